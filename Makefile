@@ -1,0 +1,37 @@
+# ardflow: two commands do everything on a fresh clone: `make demo`, `make test`.
+SHELL := /bin/bash
+PYENV_ROOT ?= $(shell pyenv root 2>/dev/null || echo $$HOME/.pyenv)
+PY312 := $(shell \
+  for c in "$(PYENV_ROOT)/versions/3.12.1/bin/python3" "$$(PYENV_VERSION=3.12.1 pyenv which python3.12 2>/dev/null)" "$$(command -v python3.12)"; do \
+    if [ -n "$$c" ] && [ -x "$$c" ] && "$$c" -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; then echo "$$c"; break; fi; \
+  done)
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: venv demo test test-slow bench clean
+
+$(STAMP): pyproject.toml
+	@if [ -z "$(PY312)" ]; then \
+	  echo "error: Python >= 3.12 not found. Install it with 'pyenv install 3.12.1' (looked in $(PYENV_ROOT)/versions/3.12.1, pyenv, PATH)." >&2; exit 1; fi
+	@test -x $(PY) || $(PY312) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	@touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/ardflow demo --out runs/demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow
+
+bench: $(STAMP)
+	$(PY) -m tests.bench.run --out .bench/results.json
+
+clean:
+	rm -rf $(VENV) .bench runs
