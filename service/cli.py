@@ -1,0 +1,260 @@
+"""The ``ardflow`` command line.
+
+Every user error is printed as one ``error: ...`` line with exit status 2;
+tracebacks are for bugs only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _kv(items: list[str] | None, what: str) -> dict[str, str]:
+    from ardcore.errors import SpecError
+
+    out = {}
+    for it in items or []:
+        if "=" not in it:
+            raise SpecError(f"{what}: expected NAME=VALUE, got {it!r}")
+        k, v = it.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+def _floats(d: dict[str, str], what: str) -> dict[str, float]:
+    from ardcore.errors import SpecError
+
+    out = {}
+    for k, v in d.items():
+        try:
+            x = float(v)
+        except ValueError:
+            raise SpecError(f"{what} {k}: {v!r} is not a number") from None
+        if not np.isfinite(x):
+            raise SpecError(f"{what} {k}: must be finite, got {v!r}")
+        out[k] = x
+    return out
+
+
+def _load_model(name_or_file: str):
+    from ardcore.errors import ModelError
+    from ardcore.library import BUILTINS, builtin
+    from ardcore.model import ModelSpec
+
+    if name_or_file in BUILTINS:
+        return builtin(name_or_file)
+    p = Path(name_or_file)
+    if p.suffix == ".json" and p.exists():
+        try:
+            return ModelSpec.model_validate_json(p.read_text())
+        except ValueError as exc:
+            raise ModelError(f"{p}: {exc}") from None
+    raise ModelError(f"unknown model {name_or_file!r}: give a built-in name ({', '.join(BUILTINS)}) "
+                     "or a model JSON file")
+
+
+def _write_sidecar(path: Path, meta: dict) -> None:
+    meta = {k: v for k, v in meta.items() if k != "theta_clean"}
+    path.with_suffix(".json").write_text(json.dumps(meta, indent=2, default=float))
+
+
+def cmd_simulate(a) -> int:
+    from ardcore.errors import SpecError
+    from ardcore.simulate import simulate_model, simulate_reference
+
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if a.model == "reference":
+        ds = simulate_reference(a.seed)
+    else:
+        spec = _load_model(a.model)
+        params = _floats(_kv(a.param, "--param"), "parameter")
+        missing = [p for p in spec.free_parameters if p not in params]
+        if missing:
+            raise SpecError(f"--param: no value for {missing[0]!r} (parameters: {spec.free_parameters})")
+        if a.n < 10 or not (a.dt > 0):
+            raise SpecError("--n must be >= 10 and --dt > 0")
+        t = np.arange(a.n) * a.dt
+        inputs = {}
+        rng = np.random.default_rng(a.seed + 1_000_003)
+        for c in spec.inputs:
+            from ardcore.simulate import lowpass
+
+            inputs[c] = a.input_std * lowpass(rng.standard_normal(a.n), 1.0 / a.dt, 0.2 / a.dt) * np.sqrt(5.0)
+        ds = simulate_model(spec, params, t, a.seed, nsub=a.nsub, inputs=inputs)
+    ds.to_csv(out)
+    _write_sidecar(out, ds.meta)
+    print(f"wrote {out} ({len(ds)} rows) and {out.with_suffix('.json')}")
+    return 0
+
+
+def cmd_loglik(a) -> int:
+    from ardcore.ekf import compile_model
+    from ardcore.errors import SpecError
+
+    ds = _read_data(a)
+    spec = _load_model(a.model)
+    params = _floats(_kv(a.param, "--param"), "parameter")
+    missing = [p for p in spec.free_parameters if p not in params]
+    if missing:
+        raise SpecError(f"--param: no value for {missing[0]!r} (parameters: {spec.free_parameters})")
+    unknown = [p for p in params if p not in spec.free_parameters]
+    if unknown:
+        raise SpecError(f"--param: {unknown[0]!r} is not a free parameter of {spec.name}")
+    cm = compile_model(spec)
+    ll = cm.loglik(params, ds, substeps=a.substeps)
+    print(json.dumps({"model": spec.name, "loglik": ll, "substeps": a.substeps or spec.substeps}))
+    return 0
+
+
+def _read_data(a):
+    from ardcore.data import read_dataset
+
+    rename = _kv(getattr(a, "rename", None), "--rename")
+    return read_dataset(a.data, fs=getattr(a, "fs", None), rename=rename)
+
+
+def cmd_data(a) -> int:
+    from ardcore.data import read_columns
+
+    if a.action == "check":
+        ds = _read_data(a)
+        info = {"rows": len(ds), "t0": float(ds.t[0]), "t1": float(ds.t[-1]),
+                "columns": {k: {"nan": int(np.isnan(v).sum()), "min": float(np.nanmin(v)), "max": float(np.nanmax(v))}
+                            for k, v in ds.columns.items()}}
+        print(json.dumps(info, indent=2))
+    else:  # convert
+        cols = read_columns(a.data)
+        from ardcore.data import Dataset
+
+        rename = _kv(a.rename, "--rename")
+        for o, n in rename.items():
+            cols[n] = cols.pop(o)
+        t = cols.pop("t") if "t" in cols else np.arange(len(next(iter(cols.values())))) / (a.fs or 1.0)
+        ds = Dataset(t, cols, {"source": str(a.data)})
+        ds.to_csv(a.out)
+        print(f"wrote {a.out} ({len(ds)} rows, columns t, {', '.join(cols)})")
+    return 0
+
+
+def cmd_models(a) -> int:
+    from ardcore.library import BUILTINS, builtin
+
+    if a.name:
+        print(_load_model(a.name).model_dump_json(indent=2))
+    else:
+        for n in BUILTINS:
+            s = builtin(n)
+            print(f"{n:26s} {s.description}")
+    return 0
+
+
+def cmd_demo(a) -> int:
+    from ardcore.ekf import compile_model
+    from ardcore.library import REFERENCE_PRIOR_MEDIANS, builtin
+    from ardcore.simulate import ReferencePipeline, simulate_reference
+
+    from .report import plot_data_and_psd
+
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    print(f"[demo] simulating the reference data set (seed {a.seed}) ...", flush=True)
+    ds = simulate_reference(a.seed)
+    csv = out / "reference.csv"
+    ds.to_csv(csv)
+    _write_sidecar(csv, ds.meta)
+    fig = plot_data_and_psd(ds.t, ds.columns["y"], out / "data_psd.png", clean=ds.meta["theta_clean"],
+                            cutoff=ReferencePipeline().cutoff,
+                            title=f"Reference LCO data (seed {a.seed}, onset tau = {ds.meta['onset_tau']:.1f})")
+    rows = {}
+    for name in ("M1", "M2", "M3"):
+        spec = builtin(name)
+        cm = compile_model(spec)
+        med = REFERENCE_PRIOR_MEDIANS[name]
+        tc = time.perf_counter()
+        ll = cm.loglik(med, ds)
+        rows[name] = {"loglik_at_prior_median": ll, "first_call_s": time.perf_counter() - tc,
+                      "prior_median": med}
+        print(f"[demo] {name}: EKF log-likelihood at the prior medians = {ll:.2f}", flush=True)
+    summary = {"data": str(csv), "figure": str(fig), "models": rows, "wall_s": time.perf_counter() - t0}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(f"[demo] data:    {csv.resolve()}")
+    print(f"[demo] figure:  {fig.resolve()}")
+    print(f"[demo] summary: {(out / 'summary.json').resolve()}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="ardflow", description="Bayesian model selection for stochastic dynamical systems")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    s = sub.add_parser("simulate", help="simulate the reference data set or any model to CSV (+ JSON sidecar)")
+    s.add_argument("model", help="'reference' (the paper's pipeline), a built-in model name, or a model JSON file")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True)
+    s.add_argument("--param", action="append", metavar="NAME=VALUE", help="parameter value (models other than reference)")
+    s.add_argument("--n", type=int, default=5000, help="number of samples")
+    s.add_argument("--dt", type=float, default=0.1, help="sampling interval")
+    s.add_argument("--nsub", type=int, default=100, help="Euler-Maruyama steps per sample")
+    s.add_argument("--input-std", type=float, default=1.0, help="std of the random input of forced models")
+    s.set_defaults(fn=cmd_simulate)
+
+    s = sub.add_parser("loglik", help="EKF log-likelihood of a model on a data set")
+    s.add_argument("data")
+    s.add_argument("--model", required=True)
+    s.add_argument("--param", action="append", metavar="NAME=VALUE")
+    s.add_argument("--substeps", type=int, default=None)
+    s.add_argument("--fs", type=float, default=None, help="sampling frequency when the file has no 't' column")
+    s.add_argument("--rename", action="append", metavar="OLD=NEW")
+    s.set_defaults(fn=cmd_loglik)
+
+    s = sub.add_parser("data", help="check or convert a data file (CSV, NPZ, MAT)")
+    s.add_argument("action", choices=["check", "convert"])
+    s.add_argument("data")
+    s.add_argument("--fs", type=float, default=None)
+    s.add_argument("--rename", action="append", metavar="OLD=NEW")
+    s.add_argument("--out", default=None, help="CSV to write (convert)")
+    s.set_defaults(fn=cmd_data)
+
+    s = sub.add_parser("models", help="list the built-in models, or print one as JSON")
+    s.add_argument("name", nargs="?")
+    s.set_defaults(fn=cmd_models)
+
+    s = sub.add_parser("demo", help="the main job on the reference problem")
+    s.add_argument("--out", default="runs/demo")
+    s.add_argument("--seed", type=int, default=1)
+    s.set_defaults(fn=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from pydantic import ValidationError
+
+    from ardcore.errors import ArdflowError
+
+    args = build_parser().parse_args(argv)
+    if args.cmd == "data" and args.action == "convert" and not args.out:
+        print("error: data convert needs --out FILE.csv", file=sys.stderr)
+        return 2
+    try:
+        return args.fn(args)
+    except ArdflowError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ValidationError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

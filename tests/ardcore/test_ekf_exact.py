@@ -1,0 +1,162 @@
+"""The generated EKF against an independent Kalman filter on linear-Gaussian models."""
+
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+from ardcore.data import Dataset
+from ardcore.ekf import compile_model
+from ardcore.library import builtin
+from ardcore.simulate import simulate_model
+
+PARAMS = {"a11": -0.1, "a12": 1.0, "a21": -1.0, "a22": -0.2, "q1": 0.05, "q2": 0.2, "r": 0.1}
+
+
+def system(p):
+    A = np.array([[p["a11"], p["a12"]], [p["a21"], p["a22"]]])
+    GG = np.diag([p["q1"] ** 2, p["q2"] ** 2])
+    H = np.array([[1.0, 0.0]])
+    return A, GG, H
+
+
+def kalman(t, y, p, transition, x0, P0):
+    """Plain textbook Kalman filter; `transition(dt)` gives (F, Q) of one interval."""
+    A, GG, H = system(p)
+    R = p["r"] ** 2
+    x, P = x0.copy(), P0.copy()
+    ll = 0.0
+    for k in range(len(t)):
+        if k:
+            F, Q = transition(t[k] - t[k - 1])
+            x, P = F @ x, F @ P @ F.T + Q
+        if np.isnan(y[k]):
+            continue
+        S = (H @ P @ H.T).item() + R
+        e = y[k] - (H @ x).item()
+        K = (P @ H.T / S).ravel()
+        x = x + K * e
+        P = P - np.outer(K, K) * S
+        ll += -0.5 * (np.log(2 * np.pi * S) + e * e / S)
+    return ll
+
+
+def euler_transition(p, nsub):
+    A, GG, _ = system(p)
+
+    def tr(dt):
+        h = dt / nsub
+        Fh = np.eye(2) + A * h
+        F, Q = np.eye(2), np.zeros((2, 2))
+        for _ in range(nsub):
+            F, Q = Fh @ F, Fh @ Q @ Fh.T + GG * h
+        return F, Q
+    return tr
+
+
+def exact_transition(p):
+    A, GG, _ = system(p)
+
+    def tr(dt):
+        # Van Loan: exact discretisation of dx = A x dt + G dW
+        n = 2
+        M = np.zeros((2 * n, 2 * n))
+        M[:n, :n], M[:n, n:], M[n:, n:] = -A, GG, A.T
+        E = expm(M * dt)
+        F = E[n:, n:].T
+        return F, F @ E[:n, n:]
+    return tr
+
+
+@pytest.fixture(scope="module")
+def data():
+    t = np.arange(400) * 0.1
+    return simulate_model("linear_gaussian", PARAMS, t, seed=3, nsub=50)
+
+
+def init():
+    return np.array([0.5, 0.0]), np.eye(2)
+
+
+@pytest.mark.parametrize("nsub", [1, 3, 10])
+def test_equals_exact_kalman_filter_of_the_same_discretisation(data, nsub):
+    cm = compile_model(builtin("linear_gaussian"))
+    ll = cm.loglik(PARAMS, data, substeps=nsub)
+    ref = kalman(data.t, data.columns["y"], PARAMS, euler_transition(PARAMS, nsub), *init())
+    assert ll == pytest.approx(ref, rel=1e-8)
+
+
+def test_irregular_sampling_and_missing_observations(data):
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.02, 0.3, 300))
+    y = simulate_model("linear_gaussian", PARAMS, t, seed=4, nsub=20).columns["y"].copy()
+    y[rng.choice(300, 40, replace=False)] = np.nan
+    ds = Dataset(t, {"y": y})
+    cm = compile_model(builtin("linear_gaussian"))
+    for nsub in (1, 7):
+        ref = kalman(t, y, PARAMS, euler_transition(PARAMS, nsub), *init())
+        assert cm.loglik(PARAMS, ds, substeps=nsub) == pytest.approx(ref, rel=1e-8)
+    # a missing observation is not an update: the filter result differs from dropping nothing
+    r = cm.filter(PARAMS, ds, substeps=7)
+    assert np.isnan(r.innovations[np.isnan(y), 0]).all()
+    assert np.isfinite(r.innovations[~np.isnan(y), 0]).all()
+
+
+def test_converges_to_exact_discretisation(data):
+    cm = compile_model(builtin("linear_gaussian"))
+    exact = kalman(data.t, data.columns["y"], PARAMS, exact_transition(PARAMS), *init())
+    errs = [abs(cm.loglik(PARAMS, data, substeps=n) - exact) for n in (1, 10, 100, 1000)]
+    assert all(b < a for a, b in zip(errs, errs[1:]))
+    # Euler is first order: ten times the sub-steps, about a tenth of the error
+    assert errs[3] < 0.2 * errs[2] < 0.04 * errs[1]
+    assert errs[3] / abs(exact) < 1e-5
+
+
+def test_known_input_held_between_samples():
+    spec = builtin("forced_linear_oscillator")
+    p = {"k": 4.0, "c": 0.4, "b": 2.0, "sigma": 0.1}
+    t = np.arange(300) * 0.05
+    u = np.sin(0.7 * t) + 0.3 * np.cos(2.3 * t)
+    ds = simulate_model(spec, p, t, seed=1, nsub=10, inputs={"u": u})
+    cm = compile_model(spec)
+    nsub = 4
+    A = np.array([[0, 1], [-p["k"], -p["c"]]])
+    Bv = np.array([0, p["b"]])
+    GG = np.diag([0, p["sigma"] ** 2])
+    R = 1e-4 ** 2
+    x, P = np.zeros(2), np.diag([0.1 ** 2, 10.0 ** 2])
+    ll = 0.0
+    y = ds.columns["y"]
+    for k in range(len(t)):
+        if k:
+            h = (t[k] - t[k - 1]) / nsub
+            for _ in range(nsub):
+                Fh = np.eye(2) + A * h
+                x = Fh @ x + Bv * u[k - 1] * h
+                P = Fh @ P @ Fh.T + GG * h
+        S = P[0, 0] + R
+        e = y[k] - x[0]
+        K = P[:, 0] / S
+        x, P = x + K * e, P - np.outer(K, K) * S
+        ll += -0.5 * (np.log(2 * np.pi * S) + e * e / S)
+    assert cm.loglik(p, ds, substeps=nsub) == pytest.approx(ll, rel=1e-8)
+
+
+def test_filter_outputs_are_consistent(data):
+    cm = compile_model(builtin("linear_gaussian"))
+    r = cm.filter(PARAMS, data)
+    assert r.loglik == pytest.approx(cm.loglik(PARAMS, data))
+    z = r.standardized[:, 0]
+    # at the true parameters, standardised innovations are ~ N(0, 1)
+    assert abs(z.mean()) < 0.15 and 0.85 < z.std() < 1.15
+    assert r.filtered.shape == (len(data), 2) and r.filtered_cov.shape == (len(data), 2, 2)
+    assert np.allclose(r.filtered_cov, np.transpose(r.filtered_cov, (0, 2, 1)))
+
+
+def test_wrong_parameter_vector_is_rejected(data):
+    from ardcore.errors import ModelError
+
+    cm = compile_model(builtin("linear_gaussian"))
+    with pytest.raises(ModelError, match="expected 7 parameters"):
+        cm.loglik([1.0, 2.0], data)
+    with pytest.raises(ModelError, match="no value for parameter 'r'"):
+        cm.loglik({k: v for k, v in PARAMS.items() if k != "r"}, data)

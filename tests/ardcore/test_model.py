@@ -1,0 +1,60 @@
+import pytest
+from pydantic import ValidationError
+
+from ardcore.errors import ModelError
+from ardcore.library import BUILTINS, builtin
+from ardcore.model import ModelSpec
+
+
+def base(**kw):
+    d = dict(name="m", states=["x"], drift={"x": "-k*x"}, diffusion={"x": "s"},
+             observations=[{"column": "y", "expr": "x", "noise_std": 0.1}], parameters=["k", "s"])
+    d.update(kw)
+    return d
+
+
+def test_every_builtin_parses_and_differentiates():
+    for name in BUILTINS:
+        s = builtin(name)
+        sm = s.sym
+        assert len(sm.drift) == len(s.states)
+        assert sm.jacobian.shape == (len(s.states), len(s.states))
+
+
+def test_sign_derivative_is_zero_in_jacobian():
+    sm = builtin("M2").sym
+    assert all("DiracDelta" not in str(e) for e in sm.jacobian)
+    # d(dtheta')/d(dtheta) = c4 exactly (the Coulomb term contributes nothing)
+    assert float(sm.jacobian[1, 1]) == pytest.approx(-7.275e-03)
+
+
+@pytest.mark.parametrize("kw,msg", [
+    (dict(drift={}), "no equation for state 'x'"),
+    (dict(diffusion={"q": "s"}), "'q' is not a state"),
+    (dict(parameters=["k", "s", "k"]), "declared twice"),
+    (dict(parameters=["k", "sin"]), "reserved"),
+    (dict(fixed={"zz": 0.0}), "'zz' is not a parameter"),
+    (dict(constants={"c": float("nan")}), "finite"),
+    (dict(states=["1x"]), "pattern"),
+])
+def test_bad_declarations_name_the_field(kw, msg):
+    with pytest.raises(ValidationError) as ei:
+        ModelSpec(**base(**kw))
+    assert msg in str(ei.value)
+
+
+def test_bad_expression_names_model_and_field():
+    with pytest.raises(ModelError) as ei:
+        ModelSpec(**base(drift={"x": "-k*x + open(1)"})).sym
+    assert "drift['x']" in str(ei.value) and "open" in str(ei.value)
+
+
+def test_fixed_parameter_leaves_phi():
+    s = builtin("M2").with_fixed(a5=0.0, a6=0.0)
+    assert s.free_parameters == ["B", "a1", "a2", "a3", "a4", "sigma"]
+    assert s.structure_hash() != builtin("M2").structure_hash()
+
+
+def test_extra_fields_rejected():
+    with pytest.raises(ValidationError):
+        ModelSpec(**base(evil=1))
