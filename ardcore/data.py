@@ -111,7 +111,7 @@ def _validate(t: np.ndarray, columns: dict[str, np.ndarray], src: str) -> None:
     if (dt <= 0).any():
         i = int(np.flatnonzero(dt <= 0)[0])
         raise DataError(f"{src}: time is not strictly increasing at row {i + 2} "
-                        f"(t={t[i + 1]!r} after t={t[i]!r})")
+                        f"(t={float(t[i + 1])!r} after t={float(t[i])!r})")
     for k, v in columns.items():
         if v.shape != (n,):
             raise DataError(f"{src}: column {k!r} has {v.size} values for {n} times")

@@ -1,0 +1,52 @@
+"""The command line, run as a user runs it (a subprocess)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+                          cwd=cwd, env=dict(os.environ), timeout=300)
+
+
+def test_simulate_reference_is_reproducible(tmp_path):
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    for p in (a, b):
+        r = run("simulate", "reference", "--seed", "3", "--out", str(p))
+        assert r.returncode == 0, r.stderr
+    assert a.read_bytes() == b.read_bytes()
+    assert a.read_text().splitlines()[0] == "t,y"
+    side = json.loads(a.with_suffix(".json").read_text())
+    assert side["seed"] == 3 and side["true_params"]["a3"] == 100.0
+    assert side["pipeline"]["n_d"] == 5000 and side["model"]["name"] == "M2true"
+    r = run("loglik", str(a), "--model", "M2true", *[f"--param={k}={side['true_params'][k]}"
+                                                     for k in ["B", "a1", "a2", "a3", "a4", "sigma"]])
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["loglik"] > 2.5e4
+
+
+def test_simulate_other_model_with_input(tmp_path):
+    out = tmp_path / "duff.csv"
+    r = run("simulate", "duffing", "--seed", "1", "--out", str(out), "--n", "200", "--dt", "0.05",
+            "--nsub", "10", "--param", "k=4", "--param", "c=0.3", "--param", "k3=1",
+            "--param", "b=1", "--param", "sigma=0.1")
+    assert r.returncode == 0, r.stderr
+    assert out.read_text().splitlines()[0] == "t,y,u"
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["simulate", "nonsense", "--out", "x.csv"], "unknown model 'nonsense'"),
+    (["simulate", "pendulum", "--out", "x.csv", "--param", "w2=1"], "no value for 'c'"),
+    (["simulate", "pendulum", "--out", "x.csv", "--param", "w2=abc"], "is not a number"),
+    (["loglik", "missing.csv", "--model", "M2"], "no such file"),
+    (["data", "check", "empty.csv"], "empty file"),
+])
+def test_errors_are_one_line_without_traceback(tmp_path, args, msg):
+    (tmp_path / "empty.csv").write_text("")
+    r = run(*args, cwd=tmp_path)
+    assert r.returncode == 2
+    assert msg in r.stderr and "Traceback" not in r.stderr
