@@ -26,7 +26,7 @@ from sympy.printing.pycode import PythonCodePrinter
 
 from .model import ModelSpec, SymbolicModel
 
-KERNEL_VERSION = "3"
+KERNEL_VERSION = "4"
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
 
@@ -183,30 +183,51 @@ def generate_source(spec: ModelSpec) -> str:
     step += [f"{ind}x{i} = x{i} + dt * d{i}" for i in range(n)]
 
     # -- observation update (all channels linearised at the forecast) -------------
-    obs_t = [(f"h{j}", sm.obs[j]) for j in range(m)]
-    obs_t += [(f"H{j}_{i}", sm.obs_jacobian[j, i]) for j in range(m) for i in range(n)]
-    obs_t += [(f"R{j}", sm.obs_std[j] ** 2) for j in range(m)]
+    # H is usually sparse and constant (a state is observed): emit only its non-zero terms.
+    Hc = [[None] * n for _ in range(m)]
+    obs_t = [(f"h{j}", sm.obs[j]) for j in range(m)] + [(f"R{j}", sm.obs_std[j] ** 2) for j in range(m)]
+    for j in range(m):
+        for i in range(n):
+            e = sm.obs_jacobian[j, i]
+            if e == 0:
+                continue
+            if e.is_Number:
+                Hc[j][i] = em.code(e)
+            else:
+                Hc[j][i] = f"H{j}_{i}"
+                obs_t.append((f"H{j}_{i}", e))
     upd = em.block(obs_t, "        ")
-    upd += [f"        xf{i} = x{i}" for i in range(n)]
+    if m > 1:
+        upd += [f"        xf{i} = x{i}" for i in range(n)]
+
+    def hterm(j, i, v):
+        h = Hc[j][i]
+        return v if h == "1.0" else f"{h} * {v}"
+
     for j in range(m):
         i8 = "            "
+        nz = [i for i in range(n) if Hc[j][i] is not None]
         upd.append(f"        yv = Y[k, {j}]")
         upd.append("        if yv == yv:")
-        # innovation against the forecast linearisation (equals the batch EKF update)
-        lin = " + ".join([f"H{j}_{i} * (x{i} - xf{i})" for i in range(n)])
-        upd.append(f"{i8}e = yv - h{j} - ({lin})")
+        # later channels: innovation against the forecast linearisation (equals the batch update)
+        lin = "" if j == 0 else " - (" + " + ".join(hterm(j, i, f"(x{i} - xf{i})") for i in nz) + ")"
+        upd.append(f"{i8}e = yv - h{j}" + (lin if nz else ""))
         for i in range(n):
-            upd.append(f"{i8}ph{i} = " + " + ".join(f"P{min(i, l)}_{max(i, l)} * H{j}_{l}" for l in range(n)))
-        upd.append(f"{i8}S = R{j} + " + " + ".join(f"H{j}_{i} * ph{i}" for i in range(n)))
+            terms = [hterm(j, l, f"P{min(i, l)}_{max(i, l)}") for l in nz]
+            upd.append(f"{i8}ph{i} = " + (" + ".join(terms) if terms else "0.0"))
+        upd.append(f"{i8}S = R{j}" + "".join(" + " + hterm(j, i, f"ph{i}") for i in nz))
         upd.append(f"{i8}if not (S > 0.0):")
         upd.append(f"{i8}    return -np.inf")
         upd.append(f"{i8}Si = 1.0 / S")
+        upd.append(f"{i8}eS = e * Si")
         for i in range(n):
-            upd.append(f"{i8}x{i} = x{i} + ph{i} * Si * e")
+            upd.append(f"{i8}x{i} = x{i} + ph{i} * eS")
+        for i in range(n):
+            upd.append(f"{i8}q{i} = ph{i} * Si")
         for i in range(n):
             for l in range(i, n):
-                upd.append(f"{i8}P{i}_{l} = P{i}_{l} - ph{i} * ph{l} * Si")
-        upd.append(f"{i8}ll -= 0.5 * (log(S) + e * e * Si + 1.8378770664093453)")
+                upd.append(f"{i8}P{i}_{l} = P{i}_{l} - ph{i} * q{l}")
+        upd.append(f"{i8}ll -= 0.5 * (log(S) + e * eS + 1.8378770664093453)")
         upd.append(f"{i8}if want:")
         upd.append(f"{i8}    INNOV[k, {j}] = e")
         upd.append(f"{i8}    SVAR[k, {j}] = S")

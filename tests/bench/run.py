@@ -1,0 +1,118 @@
+"""``make bench``: measured figures written to ``.bench/results.json``.
+
+Keys (a contract; see README): ekf_m2_ms, ekf_numpy_ms, ekf_speedup, ekf_handwritten_ms,
+ekf_vs_handwritten, ekf_compile_first_call_s, ekf_cached_first_call_s, ekf_m2_substep_table.
+Existing keys written by other benchmarks are kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+
+def _median_ms(fn, repeats: int, number: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(number):
+            fn()
+        times.append((time.perf_counter() - t0) / number)
+    return statistics.median(times) * 1e3
+
+
+_FIRST_CALL = """
+import time, json, sys
+t0 = time.perf_counter()
+from ardcore.simulate import simulate_reference
+from ardcore.ekf import compile_model
+from ardcore.library import builtin, AERO_TRUE
+ds = simulate_reference(1)
+t1 = time.perf_counter()
+cm = compile_model(builtin("M2"))
+ll = cm.loglik([AERO_TRUE[k] for k in cm.param_names], ds)
+print(json.dumps({"first_call_s": time.perf_counter() - t1}))
+"""
+
+
+def first_call_seconds(cache: str) -> float:
+    env = dict(os.environ, ARDFLOW_CACHE_DIR=cache)
+    r = subprocess.run([sys.executable, "-c", _FIRST_CALL], capture_output=True, text=True, env=env, check=True)
+    return json.loads(r.stdout.strip().splitlines()[-1])["first_call_s"]
+
+
+def bench_ekf() -> dict:
+    from ardcore.ekf import compile_model
+    from ardcore.library import AERO_GAMMA_EKF, AERO_TRUE, builtin
+    from ardcore.simulate import simulate_reference
+    from tests.bench.baselines import ekf_m2_handwritten, ekf_m2_numpy
+
+    ds = simulate_reference(1)
+    cm = compile_model(builtin("M2"))
+    p = np.array([AERO_TRUE[k] for k in cm.param_names])
+    lik = cm.bind(ds, substeps=10)
+    t, y = ds.t, ds.columns["y"]
+    ll_gen = lik(p)
+    ll_hand = ekf_m2_handwritten(p, t, y, 10, AERO_GAMMA_EKF, 0.01)
+    ll_np = ekf_m2_numpy(p, t, y, 10, AERO_GAMMA_EKF)
+    assert abs(ll_gen - ll_hand) < 1e-6 * abs(ll_gen), (ll_gen, ll_hand)
+    assert abs(ll_gen - ll_np) < 1e-6 * abs(ll_gen), (ll_gen, ll_np)
+    gen_ms = _median_ms(lambda: lik(p), repeats=15, number=20)
+    hand_ms = _median_ms(lambda: ekf_m2_handwritten(p, t, y, 10, AERO_GAMMA_EKF, 0.01), repeats=15, number=20)
+    np_ms = _median_ms(lambda: ekf_m2_numpy(p, t, y, 10, AERO_GAMMA_EKF), repeats=3, number=1)
+    table = {str(n): cm.loglik(p, ds, substeps=n) for n in (1, 2, 5, 10, 20, 50, 100, 200)}
+    with tempfile.TemporaryDirectory() as cache:
+        cold = first_call_seconds(cache)
+        warm = first_call_seconds(cache)
+    return {
+        "ekf_m2_ms": gen_ms,
+        "ekf_numpy_ms": np_ms,
+        "ekf_speedup": np_ms / gen_ms,
+        "ekf_handwritten_ms": hand_ms,
+        "ekf_vs_handwritten": gen_ms / hand_ms,
+        "ekf_compile_first_call_s": cold,
+        "ekf_cached_first_call_s": warm,
+        "ekf_m2_loglik": ll_gen,
+        "ekf_m2_substep_table": table,
+    }
+
+
+BENCHES = {"ekf": bench_ekf}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--out", default=".bench/results.json")
+    ap.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    res = json.loads(out.read_text()) if out.exists() else {}
+    for name in a.only or BENCHES:
+        print(f"[bench] {name} ...", flush=True)
+        r = BENCHES[name]()
+        res.update(r)
+        for k, v in r.items():
+            if not isinstance(v, dict):
+                print(f"  {k:28s} {v:.4g}")
+    res["machine"] = {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+                      "date": time.strftime("%Y-%m-%d")}
+    out.write_text(json.dumps(res, indent=2))
+    print(f"[bench] wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
