@@ -1,0 +1,261 @@
+"""ARD evidence maximisation over psi = {alpha_i} (method.md section 7).
+
+Start at alpha_i = ``alpha_start`` (nearly flat). For each active ARD
+parameter in turn, a line search in log10 alpha: step up by ``step_decades``
+while the evidence improves by more than ``noise_k`` times the standard
+error of the difference, then try half steps down to ``min_step_decades``.
+When a coordinate stops improving (or alpha passes its pruning threshold),
+test the nested model without the term (alpha = inf): if its evidence is
+not worse beyond the noise, the term is pruned (fixed to 0) and the
+maximisation continues over the rest. Sweeps repeat until a sweep changes
+nothing. Each trial warm-starts from the best state so far. Every trial is
+recorded in the history.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .evidence import Evidence, chib_jeliazkov, laplace
+from .mcmc import Map, SamplerConfig, SamplerResult, initial_scale, sample, serial_map
+from .posterior import ModelPosterior
+from .priors import ARD
+
+INF = math.inf
+
+
+@dataclass
+class MaximiserConfig:
+    """Evidence-maximisation settings.
+
+    Attributes
+    ----------
+    alpha_start : float
+        Initial alpha of every ARD parameter.
+    step_decades, min_step_decades : float
+        First and smallest line-search step in log10 alpha.
+    noise_k : float
+        A trial is accepted when ln Z improves by more than noise_k * se of the difference
+        and by more than ``min_gain``.
+    min_gain : float
+        Smallest improvement in ln Z (nats) that counts; the prune test keeps a term only
+        when it is worth more than this.
+    prune_alpha : float
+        Default pruning threshold: past it, the term is tested for removal at once.
+    prune_test : bool
+        Test alpha = inf when a coordinate stops improving.
+    max_trials : int
+        Most evidence evaluations per model.
+    max_sweeps : int
+        Most passes over the ARD parameters.
+    """
+
+    alpha_start: float = 1e-10
+    step_decades: float = 2.0
+    min_step_decades: float = 1.0
+    noise_k: float = 1.0
+    min_gain: float = 0.05
+    prune_alpha: float = 1e12
+    prune_test: bool = True
+    max_trials: int = 60
+    max_sweeps: int = 2
+
+
+@dataclass
+class Trial:
+    """One evidence evaluation during maximisation."""
+
+    iteration: int
+    psi: dict
+    evidence: Evidence
+    accepted: bool
+    action: str
+    wall_s: float
+    posterior: dict
+    diagnostics: dict
+
+    def to_dict(self) -> dict:
+        return {
+            "iteration": self.iteration,
+            "psi": {k: ("inf" if v == INF else v) for k, v in self.psi.items()},
+            **self.evidence.to_dict(), "accepted": self.accepted, "action": self.action,
+            "wall_s": self.wall_s, "posterior": self.posterior, "diagnostics": self.diagnostics,
+        }
+
+
+@dataclass
+class MaximiserResult:
+    psi_opt: dict
+    best: Trial
+    sampler: SamplerResult | None
+    target: ModelPosterior
+    history: list = field(default_factory=list)
+
+    @property
+    def kept(self) -> list:
+        return [k for k, v in self.psi_opt.items() if v != INF]
+
+    @property
+    def pruned(self) -> list:
+        return [k for k, v in self.psi_opt.items() if v == INF]
+
+
+def posterior_summary(names, samples: np.ndarray) -> dict:
+    """mean, sd and 0.5 / 99.5 % quantiles per parameter of pooled samples (n, d)."""
+    q = np.quantile(samples, [0.005, 0.995], axis=0)
+    return {n: {"mean": float(samples[:, i].mean()), "sd": float(samples[:, i].std(ddof=1)),
+                "q005": float(q[0, i]), "q995": float(q[1, i])} for i, n in enumerate(names)}
+
+
+def build_target(spec, essential: dict, psi: dict, data, substeps=None) -> ModelPosterior:
+    """The posterior at psi: ARD priors N(0, 1/alpha), alpha = inf fixes the term to 0."""
+    pruned = {k: 0.0 for k, a in psi.items() if a == INF}
+    s = spec.with_fixed(**pruned) if pruned else spec
+    priors = dict(essential)
+    priors.update({k: ARD(alpha=a) for k, a in psi.items() if a != INF})
+    return ModelPosterior(s, priors, data, substeps)
+
+
+class EvidenceEvaluator:
+    """Evidence at a given psi, by Chib-Jeliazkov (sampling) or Laplace."""
+
+    def __init__(self, spec, essential, data, sampler: SamplerConfig, *, method: str = "chib-jeliazkov",
+                 substeps=None, map_fn: Map = serial_map, progress=None, cancel=None):
+        self.spec, self.essential, self.data = spec, essential, data
+        self.sampler, self.method, self.substeps = sampler, method, substeps
+        self.map_fn, self.progress, self.cancel = map_fn, progress, cancel
+
+    def __call__(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False):
+        target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
+        if self.method == "laplace":
+            x0 = _warm_point(target, warm)
+            ev, xmap, C = laplace(target, x0, initial_scale(target.prior) if warm is None else None)
+            res = None
+            if final:
+                res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn,
+                             starts=_starts_around(xmap, C, self.sampler.n_chains, seed), progress=self.progress,
+                             cancel=self.cancel)
+            else:
+                res = _laplace_state(target, xmap, C, ev)
+            return target, ev, res
+        res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn, warm=warm,
+                     progress=self.progress, cancel=self.cancel)
+        ev = chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7, map_fn=self.map_fn)
+        ev.warnings = list(res.warnings) + ev.warnings
+        return target, ev, res
+
+
+def _warm_point(target, warm) -> np.ndarray:
+    if warm is None:
+        return np.array([p.quantile(0.5) if p.kind != "ard" else 0.0 for p in target.prior.priors])
+    idx = {n: i for i, n in enumerate(warm.names)}
+    return np.array([warm.phi_star[idx[n]] if n in idx else 0.0 for n in target.names])
+
+
+def _starts_around(x, C, n, seed):
+    from .mcmc import safe_cholesky
+
+    rng = np.random.default_rng(seed)
+    L = safe_cholesky(C if np.all(np.isfinite(C)) else np.diag(np.maximum(np.abs(x) * 1e-2, 1e-6) ** 2))
+    return np.array([x + 2.0 * L @ rng.standard_normal(x.size) for _ in range(n)])
+
+
+def _laplace_state(target, xmap, C, ev) -> SamplerResult:
+    """A minimal SamplerResult carrying the MAP for warm starts of the next Laplace trial."""
+    from .mcmc import ChainState
+
+    lp, ll = target(xmap)
+    st = ChainState(0, xmap.tolist(), lp, ll, np.random.PCG64(0).state, xmap.tolist(), lp, ll)
+    d = xmap.size
+    return SamplerResult(list(target.names), np.zeros((0, 0, d)), np.zeros((0, 0)), np.zeros((0, 0)), xmap, lp, ll,
+                         C, [st], np.ones(d), [], 0, True, 0.0, 0.0, 0)
+
+
+def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: MaximiserConfig, *,
+             seed: int, on_trial: Callable[[Trial], None] | None = None) -> MaximiserResult:
+    """Maximise the evidence over the ARD hyper-parameters.
+
+    Parameters
+    ----------
+    evaluate : EvidenceEvaluator
+    ard : dict
+        ARD parameter -> its pruning threshold (None: ``config.prune_alpha``).
+    config : MaximiserConfig
+    seed : int
+    on_trial : callable, optional
+        Called with every :class:`Trial` as soon as it is done.
+    """
+    psi = {k: config.alpha_start for k in ard}
+    thresholds = {k: (v if v is not None else config.prune_alpha) for k, v in ard.items()}
+    history: list[Trial] = []
+    counter = [0]
+
+    def run(trial_psi, warm, action):
+        it = counter[0]
+        counter[0] += 1
+        t0 = time.perf_counter()
+        target, ev, res = evaluate(trial_psi, seed + 1009 * it, warm)
+        post = {}
+        diag = {}
+        if res is not None and res.samples.size:
+            post = posterior_summary(res.names, res.samples.reshape(-1, len(res.names)))
+            diag = {"rhat": dict(zip(res.names, map(float, res.rhat))), "burnin_rounds": res.burnin_rounds,
+                    "converged": res.converged, "acceptance": res.acceptance,
+                    "burnin_acceptance": res.burnin_acceptance, "n_evaluations": res.n_evaluations}
+        if res is not None:
+            post.setdefault("_map", dict(zip(res.names, map(float, res.phi_star))))
+        tr = Trial(it, dict(trial_psi), ev, False, action, time.perf_counter() - t0, post, diag)
+        history.append(tr)
+        return tr, target, res
+
+    best, best_target, best_res = run(psi, None, "start")
+    best.accepted = True
+    if on_trial:
+        on_trial(best)
+
+    def better(tr: Trial, ref: Trial) -> bool:
+        se = math.hypot(tr.evidence.log_evidence_se, ref.evidence.log_evidence_se)
+        return tr.evidence.log_evidence - ref.evidence.log_evidence > max(config.noise_k * se, config.min_gain)
+
+    def accept(tr, target, res):
+        nonlocal best, best_target, best_res, psi
+        tr.accepted = True
+        best, best_target, best_res, psi = tr, target, res, dict(tr.psi)
+
+    changed = True
+    sweeps = 0
+    while changed and counter[0] < config.max_trials and sweeps < config.max_sweeps:
+        changed = False
+        sweeps += 1
+        for k in list(ard):
+            if psi[k] == INF:
+                continue
+            step = config.step_decades
+            while step >= config.min_step_decades - 1e-12 and counter[0] < config.max_trials:
+                a = psi[k] * 10.0**step
+                if a >= thresholds[k]:
+                    break
+                trial = dict(psi, **{k: a})
+                tr, target, res = run(trial, best_res, f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> {math.log10(a):.2f}")
+                if better(tr, best):
+                    accept(tr, target, res)
+                    changed = True
+                else:
+                    step /= 2.0
+                if on_trial:
+                    on_trial(tr)
+            if config.prune_test and counter[0] < config.max_trials:
+                trial = dict(psi, **{k: INF})
+                tr, target, res = run(trial, best_res, f"{k}: prune test (alpha = inf)")
+                # Occam: the nested model wins unless the term is worth more than the noise
+                if not better(best, tr):
+                    accept(tr, target, res)
+                    changed = True
+                if on_trial:
+                    on_trial(tr)
+    return MaximiserResult(psi, best, best_res, best_target, history)

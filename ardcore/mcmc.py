@@ -1,0 +1,567 @@
+"""Parallel adaptive MCMC (method.md section 6).
+
+DRAM (adaptive Metropolis + delayed rejection, Haario et al. 2006) on n_c
+chains with inter-chain adaptation (INCA, Craiu et al. 2009): after every
+round of W samples per chain, the proposal covariance is re-estimated from
+the pooled recent history of **all** chains, phi_MAP is updated from all
+chains, and the Brooks-Gelman-Rubin R-hat decides whether burn-in is over.
+Then M stationary samples per chain are drawn by plain random-walk
+Metropolis with the **fixed** final covariance (no adaptation, no delayed
+rejection), which the Chib-Jeliazkov estimator needs.
+
+Everything a chain carries between rounds is a :class:`ChainState` (plain
+numbers and lists, JSON-serialisable, including the RNG state), and every
+unit of work is a module-level function of picklable arguments, so rounds can
+run serially, on any ``concurrent.futures`` executor, or on Dask.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .errors import ArdflowError
+
+Map = Callable[[Callable, Sequence], list]
+"""``map_fn(func, items) -> list``: how independent chain tasks are run."""
+
+
+def serial_map(func, items):
+    return [func(it) for it in items]
+
+
+def executor_map(executor) -> Map:
+    """Adapt a ``concurrent.futures`` executor to :data:`Map`."""
+    return lambda func, items: list(executor.map(func, items))
+
+
+class SamplerError(ArdflowError):
+    """The sampler cannot proceed (e.g. no chain finds a finite posterior)."""
+
+
+# --------------------------------------------------------------------------- state
+@dataclass
+class ChainState:
+    """Everything one chain carries between rounds (serialisable)."""
+
+    chain: int
+    x: list
+    lp: float
+    ll: float
+    rng: dict
+    best_x: list
+    best_lp: float
+    best_ll: float
+    n_prop: int = 0
+    n_acc: int = 0
+    n_dr: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ChainState":
+        return cls(**d)
+
+    def generator(self) -> np.random.Generator:
+        g = np.random.Generator(np.random.PCG64())
+        g.bit_generator.state = self.rng
+        return g
+
+
+@dataclass
+class RoundStats:
+    """Centred sufficient statistics of one round of one chain (for pooling)."""
+
+    n: int
+    mean: np.ndarray
+    scatter: np.ndarray
+
+    @staticmethod
+    def of(samples: np.ndarray) -> "RoundStats":
+        m = samples.mean(axis=0)
+        c = samples - m
+        return RoundStats(samples.shape[0], m, c.T @ c)
+
+
+def pool_stats(stats: Sequence[RoundStats]) -> tuple[int, np.ndarray, np.ndarray]:
+    """Combine centred statistics (parallel-variance formula). Returns n, mean, covariance."""
+    n, mean, sc = 0, None, None
+    for s in stats:
+        if s.n == 0:
+            continue
+        if n == 0:
+            n, mean, sc = s.n, s.mean.copy(), s.scatter.copy()
+            continue
+        tot = n + s.n
+        d = s.mean - mean
+        sc = sc + s.scatter + np.outer(d, d) * (n * s.n / tot)
+        mean = mean + d * (s.n / tot)
+        n = tot
+    if n < 2:
+        return n, mean, None
+    return n, mean, sc / (n - 1)
+
+
+@dataclass
+class RoundResult:
+    state: ChainState
+    samples: np.ndarray
+    lp: np.ndarray
+    ll: np.ndarray
+    accepted: int
+    dr_accepted: int
+    stats: RoundStats
+
+
+def safe_cholesky(cov: np.ndarray) -> np.ndarray:
+    """Cholesky factor, adding diagonal jitter if needed."""
+    cov = 0.5 * (cov + cov.T)
+    scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    for j in (0.0, 1e-12, 1e-10, 1e-8, 1e-6, 1e-4):
+        try:
+            return np.linalg.cholesky(cov + np.diag((j * scale) ** 2 + (1e-300 if j else 0)))
+        except np.linalg.LinAlgError:
+            continue
+    return np.diag(scale)
+
+
+# --------------------------------------------------------------------------- one round
+def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: bool,
+              dr_scale: float = 0.1, cancel: Callable[[], bool] | None = None) -> RoundResult:
+    """Advance one chain by ``n`` samples.
+
+    Parameters
+    ----------
+    target : callable
+        ``x -> (log_posterior, log_likelihood)``.
+    state : ChainState
+    cov : ndarray
+        Proposal covariance for this round (fixed within the round).
+    n : int
+        Samples to draw.
+    adaptive : bool
+        Burn-in (delayed rejection on) or stationary (plain random-walk Metropolis).
+    dr_scale : float
+        The second-stage proposal covariance is ``dr_scale**2 * cov``.
+    """
+    rng = state.generator()
+    x = np.array(state.x, dtype=float)
+    lp, ll = state.lp, state.ll
+    best_x, best_lp, best_ll = np.array(state.best_x), state.best_lp, state.best_ll
+    d = x.size
+    L = safe_cholesky(cov)
+    S = np.empty((n, d))
+    LP = np.empty(n)
+    LL = np.empty(n)
+    acc = dr = 0
+    for i in range(n):
+        z1 = rng.standard_normal(d)
+        y1 = x + L @ z1
+        lp1, ll1 = target(y1)
+        log_a1 = lp1 - lp if lp1 > -math.inf else -math.inf
+        if math.log(rng.random() + 1e-300) < log_a1:
+            x, lp, ll = y1, lp1, ll1
+            acc += 1
+        elif adaptive and dr_scale > 0:
+            z2 = rng.standard_normal(d)
+            y2 = x + dr_scale * (L @ z2)
+            lp2, ll2 = target(y2)
+            if lp2 > -math.inf:
+                # Delayed-rejection acceptance (Tierney & Mira 1999) for a symmetric second stage:
+                # a2 = pi(y2) q1(y2->y1) (1 - a1(y2,y1)) / [pi(x) q1(x->y1) (1 - a1(x,y1))]
+                w = z1 - dr_scale * z2  # L^{-1}(y1 - y2)
+                log_q_ratio = -0.5 * (w @ w - z1 @ z1)
+                a1_y2 = math.exp(min(0.0, lp1 - lp2)) if lp1 > -math.inf else 0.0
+                a1_x = math.exp(min(0.0, log_a1)) if lp1 > -math.inf else 0.0
+                if a1_y2 < 1.0:
+                    log_a2 = (lp2 - lp) + log_q_ratio + math.log1p(-a1_y2) - math.log1p(-a1_x)
+                    if math.log(rng.random() + 1e-300) < log_a2:
+                        x, lp, ll = y2, lp2, ll2
+                        dr += 1
+        if lp > best_lp:
+            best_x, best_lp, best_ll = x.copy(), lp, ll
+        S[i], LP[i], LL[i] = x, lp, ll
+        if cancel is not None and (i & 63) == 0 and cancel():
+            S, LP, LL = S[: i + 1], LP[: i + 1], LL[: i + 1]
+            break
+    new = ChainState(state.chain, x.tolist(), float(lp), float(ll), rng.bit_generator.state,
+                     best_x.tolist(), float(best_lp), float(best_ll),
+                     state.n_prop + S.shape[0], state.n_acc + acc, state.n_dr + dr)
+    return RoundResult(new, S, LP, LL, acc, dr, RoundStats.of(S))
+
+
+def _round_task(args):
+    target, state, cov, n, adaptive, dr_scale = args
+    return run_round(target, state, cov, n, adaptive=adaptive, dr_scale=dr_scale)
+
+
+# --------------------------------------------------------------------------- diagnostics
+def rhat(chains: Sequence[np.ndarray]) -> np.ndarray:
+    """Split Brooks-Gelman-Rubin R-hat per parameter.
+
+    Parameters
+    ----------
+    chains : sequence of ndarray, each (n, d)
+        Equal-length samples of each chain; each is split in two halves.
+    """
+    n = min(c.shape[0] for c in chains)
+    h = n // 2
+    if h < 2:
+        return np.full(chains[0].shape[1], np.inf)
+    seqs = []
+    for c in chains:
+        c = c[-2 * h:]
+        seqs += [c[:h], c[h:]]
+    X = np.stack(seqs)  # (m, h, d)
+    means = X.mean(axis=1)
+    W = X.var(axis=1, ddof=1).mean(axis=0)
+    B = h * means.var(axis=0, ddof=1)
+    var = (h - 1) / h * W + B / h
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.sqrt(var / W)
+    return np.where(W > 0, r, np.where(B > 0, np.inf, 1.0))
+
+
+# --------------------------------------------------------------------------- starts
+def _neg_lp(target, center, scale):
+    def f(z):
+        v = target(center + scale * z)[0]
+        return -v if v > -math.inf else 1e300
+    return f
+
+
+def fd_hessian(f: Callable[[np.ndarray], float], x: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Central finite-difference Hessian of ``f`` at ``x`` with steps ``h``."""
+    d = x.size
+    H = np.empty((d, d))
+    f0 = f(x)
+    E = np.diag(h)
+    fp = [f(x + E[i]) for i in range(d)]
+    fm = [f(x - E[i]) for i in range(d)]
+    for i in range(d):
+        H[i, i] = (fp[i] - 2 * f0 + fm[i]) / h[i] ** 2
+        for j in range(i + 1, d):
+            v = (f(x + E[i] + E[j]) - f(x + E[i] - E[j]) - f(x - E[i] + E[j]) + f(x - E[i] - E[j])) / (4 * h[i] * h[j])
+            H[i, j] = H[j, i] = v
+    return H
+
+
+def local_mode(target, x0: np.ndarray, scale: np.ndarray, maxfev: int) -> tuple[np.ndarray, float]:
+    """Nelder-Mead (in coordinates scaled by ``scale``) from ``x0``, restarted once."""
+    from scipy.optimize import minimize
+
+    f = _neg_lp(target, x0, scale)
+    z = np.zeros(x0.size)
+    best = f(z)
+    for _ in range(2):
+        simplex = np.vstack([z] + [z + 0.5 * e for e in np.eye(z.size)])
+        r = minimize(f, z, method="Nelder-Mead",
+                     options={"initial_simplex": simplex, "maxfev": maxfev // 2, "xatol": 1e-6, "fatol": 1e-8})
+        if r.fun <= best:
+            z, best = r.x, r.fun
+    return x0 + scale * z, -best
+
+
+def posterior_cov_estimate(target, x: np.ndarray, scale: np.ndarray) -> np.ndarray | None:
+    """Inverse of the finite-difference Hessian of -log posterior (None if not positive definite)."""
+    f = lambda v: -target(v)[0]  # noqa: E731
+    h = 1e-3 * scale
+    for _ in range(2):
+        H = fd_hessian(f, x, h)
+        if not np.all(np.isfinite(H)):
+            return None
+        try:
+            C = np.linalg.inv(H)
+            np.linalg.cholesky(C)
+        except np.linalg.LinAlgError:
+            return None
+        h = 0.05 * np.sqrt(np.diag(C))  # refine the steps to the posterior's own scale
+    return 0.5 * (C + C.T)
+
+
+def _start_task(args):
+    target, x0, scale, maxfev, seed, overdispersion = args
+    rng = np.random.default_rng(seed)
+    xm, lpm = local_mode(target, x0, scale, maxfev)
+    C = posterior_cov_estimate(target, xm, scale)
+    if C is None:
+        C = np.diag((0.01 * scale) ** 2)
+    L = safe_cholesky(C)
+    for k in range(30):
+        # overdispersed start around the local mode, so R-hat is meaningful
+        x = xm + (overdispersion * 0.8**k) * (L @ rng.standard_normal(xm.size))
+        lp, ll = target(x)
+        if lp > -math.inf:
+            break
+    else:
+        x = xm
+        lp, ll = target(x)
+    return x, lp, ll, xm, lpm, C
+
+
+# --------------------------------------------------------------------------- settings and results
+@dataclass
+class SamplerConfig:
+    """Sampler settings (the study spec's ``sampler`` section maps onto this).
+
+    Attributes
+    ----------
+    n_chains : int
+    round_size : int
+        W, samples per chain per round.
+    min_burnin_rounds, max_burnin_rounds : int
+    rhat_threshold : float
+    n_stationary : int
+        M, stationary samples per chain.
+    n_proposal : int
+        J, proposal draws at phi* per chain for Chib-Jeliazkov.
+    dr_scale : float
+    start_maxfev : int
+        Budget of the local optimisation that places each chain's start.
+    overdispersion : float
+        Starts are drawn at this many posterior standard deviations around each local mode.
+    """
+
+    n_chains: int = 4
+    round_size: int = 500
+    min_burnin_rounds: int = 4
+    max_burnin_rounds: int = 60
+    rhat_threshold: float = 1.1
+    n_stationary: int = 5000
+    n_proposal: int = 5000
+    dr_scale: float = 0.1
+    start_maxfev: int = 3000
+    overdispersion: float = 2.0
+
+
+@dataclass
+class SamplerResult:
+    """Output of :func:`sample`: stationary samples, phi*, diagnostics and the state to warm-start from."""
+
+    names: list
+    samples: np.ndarray          # (n_chains, M, d)
+    lp: np.ndarray               # (n_chains, M)
+    ll: np.ndarray               # (n_chains, M)
+    phi_star: np.ndarray
+    lp_star: float
+    ll_star: float
+    proposal_cov: np.ndarray
+    states: list                 # ChainState
+    rhat: np.ndarray
+    rhat_history: list
+    burnin_rounds: int
+    converged: bool
+    acceptance: float
+    burnin_acceptance: float
+    n_evaluations: int
+    warnings: list = field(default_factory=list)
+
+
+def pooled_proposal(history: list[list[RoundStats]], d: int, fallback: np.ndarray) -> np.ndarray:
+    """AM proposal from the pooled recent history of all chains (the latter half of rounds)."""
+    rounds = len(history[0])
+    keep = max(1, rounds - rounds // 2)
+    stats = [s for h in history for s in h[-keep:]]
+    n, _, C = pool_stats(stats)
+    if C is None or n <= d + 1 or not np.all(np.isfinite(C)):
+        return fallback
+    try:
+        np.linalg.cholesky(C + 1e-300 * np.eye(d))
+    except np.linalg.LinAlgError:
+        return fallback
+    scale = np.sqrt(np.diag(C))
+    return (2.38**2 / d) * C + np.diag((1e-8 * scale) ** 2)
+
+
+def initial_scale(prior) -> np.ndarray:
+    """A length scale per parameter for optimisation steps and fallbacks."""
+    out = []
+    for p in prior.priors:
+        try:
+            s = (p.quantile(0.75) - p.quantile(0.25)) / 1.349
+        except ValueError:
+            s = 1.0
+        out.append(s if np.isfinite(s) and s > 0 else 1.0)
+    return np.minimum(np.array(out), 1e3)
+
+
+def initial_points(prior, n: int, rng: np.random.Generator, start_sd: dict | None = None) -> np.ndarray:
+    """Dispersed initial points: essential parameters from the central 80 % of their priors,
+    ARD parameters near 0 (their prior bulk is uninformative)."""
+    pts = np.zeros((n, len(prior.priors)))
+    for j, (name, p) in enumerate(zip(prior.names, prior.priors)):
+        if p.kind == "ard" or p.kind == "flat":
+            sd = (start_sd or {}).get(name, 0.0)
+            pts[:, j] = sd * rng.standard_normal(n)
+        else:
+            pts[:, j] = [p.quantile(q) for q in rng.uniform(0.1, 0.9, n)]
+    return pts
+
+
+def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
+           warm: SamplerResult | None = None, starts: np.ndarray | None = None,
+           progress: Callable[[dict], None] | None = None,
+           cancel: Callable[[], bool] | None = None) -> SamplerResult:
+    """Run parallel DRAM with INCA, then the fixed-proposal stationary stage.
+
+    Parameters
+    ----------
+    target : callable
+        ``x -> (log_posterior, log_likelihood)`` with ``names`` and ``prior``.
+    config : SamplerConfig
+    seed : int
+        Every random number derives from it (chain c uses an independent stream).
+    map_fn : callable
+        Runs the per-chain tasks of a round (serial by default).
+    warm : SamplerResult, optional
+        Warm start: chains continue from these states (positions mapped by
+        parameter name; parameters absent from ``warm`` start at 0) with its
+        proposal covariance.
+    starts : ndarray, optional
+        Explicit initial points (n_chains, d), skipping the start optimisation.
+    progress : callable, optional
+        Called after every round with a dict (stage, round, rhat, best log posterior, acceptance).
+    cancel : callable, optional
+        Checked between rounds; when it returns True, :class:`Cancelled` is raised.
+    """
+    names = list(target.names)
+    d = len(names)
+    nc = config.n_chains
+    ss = np.random.SeedSequence(seed)
+    child = ss.spawn(nc + 1)
+    scale = initial_scale(target.prior)
+    warnings: list[str] = []
+    n_eval = 0
+
+    if warm is not None:
+        idx = {n: i for i, n in enumerate(warm.names)}
+        states = []
+        for c in range(nc):
+            ws = warm.states[c % len(warm.states)]
+            x = np.array([ws.x[idx[n]] if n in idx else 0.0 for n in names])
+            lp, ll = target(x)
+            if not lp > -math.inf:
+                x = np.array([warm.phi_star[idx[n]] if n in idx else 0.0 for n in names])
+                lp, ll = target(x)
+            states.append(ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll))
+        sel = [idx.get(n) for n in names]
+        cov = np.diag((0.01 * scale) ** 2)
+        for i, a in enumerate(sel):
+            for j, b in enumerate(sel):
+                if a is not None and b is not None:
+                    cov[i, j] = warm.proposal_cov[a, b]
+        for i, a in enumerate(sel):
+            if a is None:  # a new parameter: a small step, not the prior's width
+                cov[i, i] = (0.01 * scale[i]) ** 2
+    else:
+        if starts is None:
+            pts = initial_points(target.prior, nc, np.random.default_rng(child[nc]))
+            tasks = [(target, pts[c], scale, config.start_maxfev, child[c].generate_state(1)[0] + c,
+                      config.overdispersion) for c in range(nc)]
+            res = map_fn(_start_task, tasks)
+            n_eval += nc * config.start_maxfev
+            xs = [r[0] for r in res]
+            covs = [r[5] for r in res]
+            cov = (2.38**2 / d) * np.mean(covs, axis=0)
+            states = []
+            for c, r in enumerate(res):
+                x, lp, ll, xm, lpm, _ = r
+                bx, blp = (xm, lpm) if lpm > lp else (x, lp)
+                bll = target(bx)[1]
+                states.append(ChainState(c, list(map(float, x)), float(lp), float(ll),
+                                         np.random.PCG64(child[c]).state, list(map(float, bx)), float(blp), float(bll)))
+        else:
+            states = []
+            for c in range(nc):
+                x = np.asarray(starts[c], dtype=float)
+                lp, ll = target(x)
+                states.append(ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll))
+            cov = np.diag((0.1 * scale) ** 2)
+    if not any(s.lp > -math.inf for s in states):
+        raise SamplerError("no chain could start at a point of finite posterior density: "
+                           "check the priors against the data and model")
+    for s in states:
+        if not s.lp > -math.inf:
+            good = max(states, key=lambda q: q.lp)
+            s.x, s.lp, s.ll = list(good.x), good.lp, good.ll
+
+    # ---- burn-in: DRAM rounds with pooled adaptation
+    history: list[list[RoundStats]] = [[] for _ in range(nc)]
+    recent: list[list[np.ndarray]] = [[] for _ in range(nc)]
+    rhat_hist = []
+    r = np.full(d, np.inf)
+    converged = False
+    b_acc = b_n = 0
+    rounds = 0
+    for rounds in range(1, config.max_burnin_rounds + 1):
+        if cancel is not None and cancel():
+            raise Cancelled("cancelled during burn-in")
+        results = map_fn(_round_task, [(target, s, cov, config.round_size, True, config.dr_scale) for s in states])
+        states = [q.state for q in results]
+        n_eval += sum(q.samples.shape[0] + (q.samples.shape[0] - q.accepted) for q in results)
+        for c, q in enumerate(results):
+            history[c].append(q.stats)
+            recent[c].append(q.samples)
+        b_acc += sum(q.accepted + q.dr_accepted for q in results)
+        b_n += sum(q.samples.shape[0] for q in results)
+        cov = pooled_proposal(history, d, cov)
+        keep = max(1, rounds - rounds // 2)
+        r = rhat([np.concatenate(recent[c][-keep:]) for c in range(nc)])
+        rhat_hist.append(r.tolist())
+        best = max(states, key=lambda q: q.best_lp)
+        if progress:
+            progress({"stage": "burnin", "round": rounds, "rhat": r.tolist(), "best_lp": best.best_lp,
+                      "acceptance": sum(q.accepted + q.dr_accepted for q in results) / max(1, sum(q.samples.shape[0] for q in results))})
+        if rounds >= config.min_burnin_rounds and np.all(r < config.rhat_threshold):
+            converged = True
+            break
+    if not converged:
+        warnings.append(f"burn-in did not reach R-hat < {config.rhat_threshold} in {rounds} rounds "
+                        f"(max R-hat {np.max(r):.3g} for {names[int(np.argmax(r))]}); results may be unreliable")
+
+    # ---- stationary stage: fixed proposal, plain RWM
+    per_round = config.round_size
+    S = [[] for _ in range(nc)]
+    LPs = [[] for _ in range(nc)]
+    LLs = [[] for _ in range(nc)]
+    done = 0
+    s_acc = 0
+    while done < config.n_stationary:
+        if cancel is not None and cancel():
+            raise Cancelled("cancelled during stationary sampling")
+        n = min(per_round, config.n_stationary - done)
+        results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states])
+        states = [q.state for q in results]
+        n_eval += nc * n
+        for c, q in enumerate(results):
+            S[c].append(q.samples)
+            LPs[c].append(q.lp)
+            LLs[c].append(q.ll)
+        s_acc += sum(q.accepted for q in results)
+        done += n
+        if progress:
+            progress({"stage": "stationary", "round": done // per_round, "done": done, "of": config.n_stationary,
+                      "acceptance": sum(q.accepted for q in results) / (nc * n)})
+    samples = np.stack([np.concatenate(s) for s in S])
+    lps = np.stack([np.concatenate(s) for s in LPs])
+    lls = np.stack([np.concatenate(s) for s in LLs])
+    best = max(states, key=lambda q: q.best_lp)
+    r_final = rhat(list(samples))
+    if np.any(r_final > config.rhat_threshold):
+        warnings.append(f"stationary samples: max R-hat {np.max(r_final):.3g} ({names[int(np.argmax(r_final))]}) "
+                        f"exceeds {config.rhat_threshold}")
+    return SamplerResult(
+        names=names, samples=samples, lp=lps, ll=lls,
+        phi_star=np.array(best.best_x), lp_star=best.best_lp, ll_star=best.best_ll,
+        proposal_cov=cov, states=states, rhat=r_final, rhat_history=rhat_hist,
+        burnin_rounds=rounds, converged=converged,
+        acceptance=s_acc / max(1, nc * config.n_stationary), burnin_acceptance=b_acc / max(1, b_n),
+        n_evaluations=n_eval, warnings=warnings)
+
+
+class Cancelled(ArdflowError):
+    """A run was cancelled cooperatively."""
