@@ -227,13 +227,14 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
         tr.accepted = True
         best, best_target, best_res, psi = tr, target, res, dict(tr.psi)
 
+    settled: dict[str, dict] = {}  # psi at which a coordinate's search last ended
     changed = True
     sweeps = 0
     while changed and counter[0] < config.max_trials and sweeps < config.max_sweeps:
         changed = False
         sweeps += 1
         for k in list(ard):
-            if psi[k] == INF:
+            if psi[k] == INF or settled.get(k) == psi:
                 continue
             step = config.step_decades
             while step >= config.min_step_decades - 1e-12 and counter[0] < config.max_trials:
@@ -258,4 +259,5 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
                     changed = True
                 if on_trial:
                     on_trial(tr)
+            settled[k] = dict(psi)
     return MaximiserResult(psi, best, best_res, best_target, history)

@@ -324,6 +324,9 @@ class SamplerConfig:
         Budget of the local optimisation that places each chain's start.
     overdispersion : float
         Starts are drawn at this many posterior standard deviations around each local mode.
+    inca : bool
+        Pool the adaptation over all chains (INCA); False adapts each chain on its own history
+        (for comparison only).
     """
 
     n_chains: int = 4
@@ -336,6 +339,7 @@ class SamplerConfig:
     dr_scale: float = 0.1
     start_maxfev: int = 3000
     overdispersion: float = 2.0
+    inca: bool = True
 
 
 @dataclass
@@ -490,6 +494,7 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
             s.x, s.lp, s.ll = list(good.x), good.lp, good.ll
 
     # ---- burn-in: DRAM rounds with pooled adaptation
+    chain_covs = [cov] * nc
     history: list[list[RoundStats]] = [[] for _ in range(nc)]
     recent: list[list[np.ndarray]] = [[] for _ in range(nc)]
     rhat_hist = []
@@ -500,7 +505,9 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
     for rounds in range(1, config.max_burnin_rounds + 1):
         if cancel is not None and cancel():
             raise Cancelled("cancelled during burn-in")
-        results = map_fn(_round_task, [(target, s, cov, config.round_size, True, config.dr_scale) for s in states])
+        covs = [cov] * nc if config.inca else chain_covs
+        results = map_fn(_round_task, [(target, s, covs[c], config.round_size, True, config.dr_scale)
+                                       for c, s in enumerate(states)])
         states = [q.state for q in results]
         n_eval += sum(q.samples.shape[0] + (q.samples.shape[0] - q.accepted) for q in results)
         for c, q in enumerate(results):
@@ -508,7 +515,11 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
             recent[c].append(q.samples)
         b_acc += sum(q.accepted + q.dr_accepted for q in results)
         b_n += sum(q.samples.shape[0] for q in results)
-        cov = pooled_proposal(history, d, cov)
+        if config.inca:
+            cov = pooled_proposal(history, d, cov)
+        else:
+            chain_covs = [pooled_proposal([history[c]], d, chain_covs[c]) for c in range(nc)]
+            cov = pooled_proposal(history, d, cov)  # only for the stationary stage
         keep = max(1, rounds - rounds // 2)
         r = rhat([np.concatenate(recent[c][-keep:]) for c in range(nc)])
         rhat_hist.append(r.tolist())

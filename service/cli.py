@@ -191,6 +191,46 @@ def cmd_demo(a) -> int:
     return 0
 
 
+def print_progress(p: dict) -> None:
+    """One line per event of a running study (stdout, flushed)."""
+    st = p.get("stage")
+    m = p.get("model", "")
+    if st == "trial":
+        mark = "accepted" if p["accepted"] else "rejected"
+        print(f"[{m}] trial {p['iteration']:>3}  {p['action']:<40s} ln Z = {p['log_evidence']:.3f} "
+              f"+- {p['log_evidence_se']:.3f}  {mark}", flush=True)
+    elif st == "burnin" and (p["round"] == 1 or p["round"] % 5 == 0):
+        r = max(p["rhat"])
+        print(f"[{m}]   burn-in round {p['round']:>3}: max R-hat {r:.3f}, best ln post {p['best_lp']:.2f}, "
+              f"acceptance {p['acceptance']:.2f}", flush=True)
+
+
+def cmd_select(a) -> int:
+    from ardcore.study import load_spec, select
+
+    spec = load_spec(a.spec)
+    out = Path(a.out)
+    t0 = time.perf_counter()
+    if a.executor == "serial":
+        summary = select(spec, out=out, progress=print_progress, base=Path(a.spec).resolve().parent)
+    else:
+        from concurrent.futures import ProcessPoolExecutor
+
+        from ardcore.mcmc import executor_map
+
+        with ProcessPoolExecutor(max_workers=a.workers) as ex:
+            summary = select(spec, out=out, progress=print_progress, map_fn=executor_map(ex),
+                             base=Path(a.spec).resolve().parent)
+    print(f"\n{'model':<12s} {'ln Z':>12s} {'se':>7s} {'GoF':>12s} {'EIG':>8s} {'P(M|d)':>8s}  kept / pruned")
+    for r in summary["models"]:
+        print(f"{r['name']:<12s} {r['log_evidence']:12.3f} {r['log_evidence_se']:7.3f} {r['goodness_of_fit']:12.3f} "
+              f"{r['information_gain']:8.3f} {r['probability']:8.4f}  {r['kept']} / {r['pruned']}")
+        for w in r["warnings"]:
+            print(f"  warning: {w}")
+    print(f"\nsummary: {(out / 'summary.json').resolve()}  ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ardflow", description="Bayesian model selection for stochastic dynamical systems")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -222,6 +262,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rename", action="append", metavar="OLD=NEW")
     s.add_argument("--out", default=None, help="CSV to write (convert)")
     s.set_defaults(fn=cmd_data)
+
+    s = sub.add_parser("select", help="run a model-selection study (JSON spec) and write DIR/summary.json")
+    s.add_argument("spec")
+    s.add_argument("--out", required=True)
+    s.add_argument("--executor", choices=["processes", "serial"], default="processes",
+                   help="run chains in a local process pool (default) or serially")
+    s.add_argument("--workers", type=int, default=None, help="process-pool size (default: cores)")
+    s.set_defaults(fn=cmd_select)
 
     s = sub.add_parser("models", help="list the built-in models, or print one as JSON")
     s.add_argument("name", nargs="?")

@@ -1,0 +1,24 @@
+"""Picklable test targets with exact answers."""
+
+import math
+
+import numpy as np
+
+
+class GaussianLoglik:
+    """ln N(m; x, S) as a function of x: with a N(0, tau^2 I) prior the evidence is N(m; 0, S + tau^2 I)."""
+
+    def __init__(self, m, S):
+        self.m = np.asarray(m, dtype=float)
+        self.Si = np.linalg.inv(S)
+        self.c = -0.5 * np.linalg.slogdet(2 * math.pi * np.asarray(S))[1]
+
+    def __call__(self, x):
+        d = x - self.m
+        return self.c - 0.5 * d @ self.Si @ d
+
+
+def correlated_cov(d, seed, scale=0.01):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((d, d))
+    return (A @ A.T / d + 0.05 * np.eye(d)) * scale

@@ -1,0 +1,118 @@
+"""Evidence estimators against exact answers (seeded tolerances)."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal as mvn
+
+from ardcore.data import Dataset
+from ardcore.evidence import chib_jeliazkov, laplace
+from ardcore.library import builtin
+from ardcore.mcmc import SamplerConfig, sample
+from ardcore.model import ModelSpec
+from ardcore.posterior import FunctionTarget, ModelPosterior
+from ardcore.priors import JointPrior, Normal
+
+from .targets import GaussianLoglik, correlated_cov
+
+CFG = SamplerConfig(n_chains=4, round_size=500, n_stationary=5000, n_proposal=5000)
+
+
+@pytest.mark.parametrize("d,seed", [(6, 0), (8, 1)])
+def test_correlated_gaussian_known_normaliser(d, seed):
+    S = correlated_cov(d, seed)
+    m = np.random.default_rng(seed + 10).standard_normal(d)
+    tau = 3.0
+    names = [f"p{i}" for i in range(d)]
+    target = FunctionTarget(names, JointPrior(names, {n: Normal(sd=tau) for n in names}), GaussianLoglik(m, S))
+    exact = mvn(np.zeros(d), S + tau**2 * np.eye(d)).logpdf(m)
+    res = sample(target, CFG, seed=seed)
+    ev = chib_jeliazkov(target, res, n_proposal=CFG.n_proposal, seed=seed + 1)
+    assert abs(ev.log_evidence - exact) < 0.15
+    assert abs(ev.log_evidence - exact) < 5 * ev.log_evidence_se + 0.05
+    lap, xmap, C = laplace(target, res.phi_star)
+    assert lap.log_evidence == pytest.approx(exact, abs=1e-6)
+    # the posterior itself is right: mean and sd against the conjugate answer
+    P = np.linalg.inv(np.linalg.inv(S) + np.eye(d) / tau**2)
+    mu = P @ np.linalg.inv(S) @ m
+    flat = res.samples.reshape(-1, d)
+    assert np.all(np.abs(flat.mean(0) - mu) < 0.1 * np.sqrt(np.diag(P)) + 0.01)
+    assert np.allclose(flat.std(0), np.sqrt(np.diag(P)), rtol=0.1)
+
+
+def regression_setup(seed=3, n=60, known_gamma=0.3):
+    spec = builtin("polynomial").with_fixed(a3=0.0, a4=0.0, gamma=known_gamma)
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0, 2, n)
+    y = 1.0 + 2.0 * x - 0.5 * x**2 + known_gamma * rng.standard_normal(n)
+    data = Dataset(np.arange(n, dtype=float), {"x": x, "y": y})
+    prior_sd = {"a0": 2.0, "a1": 3.0, "a2": 1.5}
+    priors = {k: Normal(mean=0.0, sd=v) for k, v in prior_sd.items()}
+    X = np.column_stack([np.ones(n), x, x**2])
+    S0 = np.diag([v**2 for v in prior_sd.values()])
+    exact = mvn(np.zeros(n), known_gamma**2 * np.eye(n) + X @ S0 @ X.T).logpdf(y)
+    return ModelPosterior(spec, priors, data), exact
+
+
+def test_conjugate_regression_laplace_exact_and_cj():
+    target, exact = regression_setup()
+    lap, xmap, C = laplace(target, np.zeros(3), np.ones(3))
+    assert lap.log_evidence == pytest.approx(exact, rel=1e-8)
+    res = sample(target, CFG, seed=5)
+    ev = chib_jeliazkov(target, res, n_proposal=CFG.n_proposal, seed=6)
+    assert abs(ev.log_evidence - exact) < 0.1
+    assert ev.goodness_of_fit - ev.log_evidence == pytest.approx(ev.information_gain)
+
+
+def augmented_kalman_evidence(t, y, u, a, q, r, nsub, prior_mean, prior_sd, x_sd):
+    """Exact ln p(d): Kalman filter on [x, b1, b2, c] with the parameters as static states."""
+    m = np.concatenate([[0.0], prior_mean])
+    P = np.diag(np.concatenate([[x_sd**2], np.asarray(prior_sd) ** 2]))
+    H = np.array([1.0, 0.0, 0.0, 1.0])
+    ll = 0.0
+    for k in range(len(t)):
+        if k:
+            h = (t[k] - t[k - 1]) / nsub
+            F = np.eye(4)
+            F[0, 0] = 1 - a * h
+            F[0, 1] = u[k - 1] * h
+            F[0, 2] = h
+            Q = np.zeros((4, 4))
+            Q[0, 0] = q**2 * h
+            for _ in range(nsub):
+                m = F @ m
+                P = F @ P @ F.T + Q
+        S = H @ P @ H + r**2
+        e = y[k] - H @ m
+        K = P @ H / S
+        m = m + K * e
+        P = P - np.outer(K, K) * S
+        ll += -0.5 * (math.log(2 * math.pi * S) + e * e / S)
+    return ll
+
+
+def test_linear_gaussian_state_space_cj_within_015_nats():
+    a, q, r, nsub = 0.8, 0.3, 0.1, 5
+    spec = ModelSpec(
+        name="lin_param", states=["x"], inputs=["u"],
+        drift={"x": "-a*x + b1*u + b2"}, diffusion={"x": "q"},
+        observations=[{"column": "y", "expr": "x + c", "noise_std": "r"}],
+        parameters=["b1", "b2", "c"], constants={"a": a, "q": q, "r": r},
+        initial_std={"x": 1.0}, substeps=nsub)
+    n = 200
+    t = np.arange(n) * 0.1
+    rng = np.random.default_rng(11)
+    u = np.sin(0.9 * t) + 0.5 * rng.standard_normal(n)
+    from ardcore.simulate import simulate_model
+
+    ds = simulate_model(spec, {"b1": 1.5, "b2": -0.4, "c": 0.3}, t, seed=12, nsub=20, inputs={"u": u})
+    prior_mean, prior_sd = np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.0, 1.0])
+    priors = {k: Normal(mean=m, sd=s) for k, m, s in zip(["b1", "b2", "c"], prior_mean, prior_sd)}
+    target = ModelPosterior(spec, priors, ds)
+    exact = augmented_kalman_evidence(t, ds.columns["y"], u, a, q, r, nsub, prior_mean, prior_sd, 1.0)
+    lap, _, _ = laplace(target, np.zeros(3), np.ones(3))
+    assert lap.log_evidence == pytest.approx(exact, abs=1e-5)
+    res = sample(target, CFG, seed=13)
+    ev = chib_jeliazkov(target, res, n_proposal=CFG.n_proposal, seed=14)
+    assert abs(ev.log_evidence - exact) < 0.15
