@@ -22,3 +22,17 @@ def correlated_cov(d, seed, scale=0.01):
     rng = np.random.default_rng(seed)
     A = rng.standard_normal((d, d))
     return (A @ A.T / d + 0.05 * np.eye(d)) * scale
+
+
+class TwoModes:
+    """Two far-apart Gaussian modes of unequal mass: chains started in each never meet."""
+
+    def __init__(self, sep=40.0, w=0.8):
+        self.sep, self.lw, self.lw2 = sep, math.log(w), math.log(1 - w)
+
+    def __call__(self, x):
+        a = self.lw - 0.5 * float(x @ x)
+        y = x.copy()
+        y[0] -= self.sep
+        b = self.lw2 - 0.5 * float(y @ y)
+        return float(np.logaddexp(a, b)) - 0.5 * x.size * math.log(2 * math.pi)
