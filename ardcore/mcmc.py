@@ -114,7 +114,13 @@ class RoundResult:
     ll: np.ndarray
     accepted: int
     dr_accepted: int
-    stats: RoundStats
+    halves: tuple  # RoundStats of the first and second half of the round (split R-hat)
+
+    @property
+    def stats(self) -> RoundStats:
+        n, mean, cov = pool_stats(self.halves)
+        sc = cov * (n - 1) if cov is not None else np.zeros((mean.size, mean.size))
+        return RoundStats(n, mean, sc)
 
 
 def safe_cholesky(cov: np.ndarray) -> np.ndarray:
@@ -191,12 +197,136 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
     new = ChainState(state.chain, x.tolist(), float(lp), float(ll), rng.bit_generator.state,
                      best_x.tolist(), float(best_lp), float(best_ll),
                      state.n_prop + S.shape[0], state.n_acc + acc, state.n_dr + dr)
-    return RoundResult(new, S, LP, LL, acc, dr, RoundStats.of(S))
+    h = max(1, S.shape[0] // 2)
+    return RoundResult(new, S, LP, LL, acc, dr, (RoundStats.of(S[:h]), RoundStats.of(S[h:]) if S.shape[0] > h
+                                                 else RoundStats.of(S[:h])))
 
 
 def _round_task(args):
     target, state, cov, n, adaptive, dr_scale = args
     return run_round(target, state, cov, n, adaptive=adaptive, dr_scale=dr_scale)
+
+
+# --------------------------------------------------------------------------- coordinator
+class AdaptationPool:
+    """The INCA coordinator as a sans-IO state machine.
+
+    Chains report the statistics of each burn-in round (two half-round
+    :class:`RoundStats` and their best point); once every chain has reported a
+    round, the round is committed: the proposal covariance is re-estimated from
+    the pooled latter half of all chains' rounds, split R-hat is computed from
+    the same statistics and the global best point is updated. Reports are
+    idempotent (a re-run task reporting the same round again changes nothing),
+    and the whole state is a plain dict (:meth:`to_dict`) for checkpoints.
+    In-process it is called directly; on Dask it is the coordinator actor.
+    """
+
+    def __init__(self, n_chains: int, d: int, cov, *, inca: bool = True, rhat_threshold: float = 1.1,
+                 min_rounds: int = 1):
+        self.n_chains, self.d, self.inca = n_chains, d, inca
+        self.rhat_threshold, self.min_rounds = rhat_threshold, min_rounds
+        cov = np.asarray(cov, dtype=float)
+        self.cov = cov
+        self.chain_covs = [cov.copy() for _ in range(n_chains)]
+        self.halves: list[list[RoundStats]] = [[] for _ in range(n_chains)]
+        self.rounds = 0
+        self.pending: dict[int, dict[int, tuple]] = {}
+        self.best = None
+        self.rhat_history: list[list[float]] = []
+
+    # -- chain side
+    def proposal(self, chain: int) -> np.ndarray:
+        """The covariance chain ``chain`` should use for its next round."""
+        return self.cov if self.inca else self.chain_covs[chain]
+
+    def report(self, chain: int, round_index: int, halves, best) -> bool:
+        """Record round ``round_index`` (1-based) of ``chain``; True when that round is committed."""
+        if round_index <= self.rounds:
+            return True  # already committed: a re-run task reporting again
+        self.pending.setdefault(round_index, {}).setdefault(chain, (tuple(halves), best))  # first report wins
+        if round_index == self.rounds + 1 and len(self.pending[round_index]) == self.n_chains:
+            self._commit(self.pending.pop(round_index))
+            return True
+        return False
+
+    def _commit(self, reports: dict) -> None:
+        for c in range(self.n_chains):
+            halves, best = reports[c]
+            self.halves[c].extend(halves)
+            if best is not None and (self.best is None or best[1] > self.best[1]):
+                self.best = (list(best[0]), float(best[1]), float(best[2]))
+        self.rounds += 1
+        fallback = self.cov
+        self.cov = self._proposal_from([h for h in self.halves], fallback)
+        if not self.inca:
+            self.chain_covs = [self._proposal_from([self.halves[c]], self.chain_covs[c])
+                               for c in range(self.n_chains)]
+        self.rhat_history.append(self.rhat().tolist())
+
+    def _window(self, halves: list[RoundStats]) -> list[RoundStats]:
+        keep = max(1, self.rounds - self.rounds // 2)
+        return halves[-2 * keep:]
+
+    def _proposal_from(self, per_chain: list[list[RoundStats]], fallback: np.ndarray) -> np.ndarray:
+        d = self.d
+        n, _, C = pool_stats([s for h in per_chain for s in self._window(h)])
+        if C is None or n <= d + 1 or not np.all(np.isfinite(C)):
+            return fallback
+        try:
+            np.linalg.cholesky(C + 1e-300 * np.eye(d))
+        except np.linalg.LinAlgError:
+            return fallback
+        scale = np.sqrt(np.diag(C))
+        return (2.38**2 / d) * C + np.diag((1e-8 * scale) ** 2)
+
+    # -- driver side
+    def rhat(self) -> np.ndarray:
+        """Split R-hat per parameter over the latter half of the committed rounds."""
+        if self.rounds == 0:
+            return np.full(self.d, np.inf)
+        seqs = []
+        for h in self.halves:
+            w = self._window(h)
+            k = len(w) // 2
+            seqs += [pool_stats(w[:k]), pool_stats(w[k:])]
+        return rhat_from_stats([(n, m, c) for n, m, c in seqs])
+
+    def converged(self) -> bool:
+        return self.rounds >= self.min_rounds and bool(np.all(self.rhat() < self.rhat_threshold))
+
+    def to_dict(self) -> dict:
+        enc = lambda s: {"n": s.n, "mean": s.mean.tolist(), "scatter": s.scatter.tolist()}  # noqa: E731
+        return {
+            "n_chains": self.n_chains, "d": self.d, "inca": self.inca, "rhat_threshold": self.rhat_threshold,
+            "min_rounds": self.min_rounds, "cov": self.cov.tolist(), "chain_covs": [c.tolist() for c in self.chain_covs],
+            "halves": [[enc(s) for s in h] for h in self.halves], "rounds": self.rounds, "best": self.best,
+            "rhat_history": self.rhat_history,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "AdaptationPool":
+        p = cls(d["n_chains"], d["d"], np.array(d["cov"]), inca=d["inca"], rhat_threshold=d["rhat_threshold"],
+                min_rounds=d["min_rounds"])
+        p.chain_covs = [np.array(c) for c in d["chain_covs"]]
+        p.halves = [[RoundStats(s["n"], np.array(s["mean"]), np.array(s["scatter"])) for s in h] for h in d["halves"]]
+        p.rounds, p.best, p.rhat_history = d["rounds"], d["best"], d["rhat_history"]
+        return p
+
+
+def rhat_from_stats(seqs: list[tuple]) -> np.ndarray:
+    """Gelman-Rubin R-hat from per-sequence (n, mean, covariance) statistics."""
+    ns = np.array([s[0] for s in seqs], dtype=float)
+    if len(seqs) < 2 or np.any(ns < 2) or any(s[2] is None for s in seqs):
+        return np.full(seqs[0][1].size if seqs and seqs[0][1] is not None else 1, np.inf)
+    h = ns.mean()
+    means = np.array([s[1] for s in seqs])
+    variances = np.array([np.diag(s[2]) for s in seqs])
+    W = variances.mean(axis=0)
+    B = h * means.var(axis=0, ddof=1)
+    var = (h - 1) / h * W + B / h
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.sqrt(var / W)
+    return np.where(W > 0, r, np.where(B > 0, np.inf, 1.0))
 
 
 # --------------------------------------------------------------------------- diagnostics
@@ -365,22 +495,6 @@ class SamplerResult:
     warnings: list = field(default_factory=list)
 
 
-def pooled_proposal(history: list[list[RoundStats]], d: int, fallback: np.ndarray) -> np.ndarray:
-    """AM proposal from the pooled recent history of all chains (the latter half of rounds)."""
-    rounds = len(history[0])
-    keep = max(1, rounds - rounds // 2)
-    stats = [s for h in history for s in h[-keep:]]
-    n, _, C = pool_stats(stats)
-    if C is None or n <= d + 1 or not np.all(np.isfinite(C)):
-        return fallback
-    try:
-        np.linalg.cholesky(C + 1e-300 * np.eye(d))
-    except np.linalg.LinAlgError:
-        return fallback
-    scale = np.sqrt(np.diag(C))
-    return (2.38**2 / d) * C + np.diag((1e-8 * scale) ** 2)
-
-
 def initial_scale(prior) -> np.ndarray:
     """A length scale per parameter for optimisation steps and fallbacks."""
     out = []
@@ -404,6 +518,36 @@ def initial_points(prior, n: int, rng: np.random.Generator, start_sd: dict | Non
         else:
             pts[:, j] = [p.quantile(q) for q in rng.uniform(0.1, 0.9, n)]
     return pts
+
+
+def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig, map_fn: Map = serial_map, *,
+               progress=None, cancel=None) -> tuple[list, int, int, int]:
+    """Burn-in rounds until R-hat is below the threshold or the round budget is spent.
+
+    Returns the chain states, accepted and proposed counts, and likelihood evaluations.
+    """
+    b_acc = b_n = n_eval = 0
+    nc = len(states)
+    while pool.rounds < config.max_burnin_rounds:
+        if cancel is not None and cancel():
+            raise Cancelled("cancelled during burn-in")
+        rnd = pool.rounds + 1
+        results = map_fn(_round_task, [(target, s, pool.proposal(c), config.round_size, True, config.dr_scale)
+                                       for c, s in enumerate(states)])
+        states = [q.state for q in results]
+        for c, q in enumerate(results):
+            pool.report(c, rnd, q.halves, (q.state.best_x, q.state.best_lp, q.state.best_ll))
+        n_eval += sum(q.samples.shape[0] + (q.samples.shape[0] - q.accepted) for q in results)
+        acc = sum(q.accepted + q.dr_accepted for q in results)
+        n = sum(q.samples.shape[0] for q in results)
+        b_acc, b_n = b_acc + acc, b_n + n
+        if progress:
+            progress({"stage": "burnin", "round": pool.rounds, "rhat": pool.rhat().tolist(),
+                      "best_lp": pool.best[1] if pool.best else -math.inf, "acceptance": acc / max(1, n)})
+        if pool.converged():
+            break
+    assert len(states) == nc
+    return states, b_acc, b_n, n_eval
 
 
 def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
@@ -493,43 +637,15 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
             good = max(states, key=lambda q: q.lp)
             s.x, s.lp, s.ll = list(good.x), good.lp, good.ll
 
-    # ---- burn-in: DRAM rounds with pooled adaptation
-    chain_covs = [cov] * nc
-    history: list[list[RoundStats]] = [[] for _ in range(nc)]
-    recent: list[list[np.ndarray]] = [[] for _ in range(nc)]
-    rhat_hist = []
-    r = np.full(d, np.inf)
-    converged = False
-    b_acc = b_n = 0
-    rounds = 0
-    for rounds in range(1, config.max_burnin_rounds + 1):
-        if cancel is not None and cancel():
-            raise Cancelled("cancelled during burn-in")
-        covs = [cov] * nc if config.inca else chain_covs
-        results = map_fn(_round_task, [(target, s, covs[c], config.round_size, True, config.dr_scale)
-                                       for c, s in enumerate(states)])
-        states = [q.state for q in results]
-        n_eval += sum(q.samples.shape[0] + (q.samples.shape[0] - q.accepted) for q in results)
-        for c, q in enumerate(results):
-            history[c].append(q.stats)
-            recent[c].append(q.samples)
-        b_acc += sum(q.accepted + q.dr_accepted for q in results)
-        b_n += sum(q.samples.shape[0] for q in results)
-        if config.inca:
-            cov = pooled_proposal(history, d, cov)
-        else:
-            chain_covs = [pooled_proposal([history[c]], d, chain_covs[c]) for c in range(nc)]
-            cov = pooled_proposal(history, d, cov)  # only for the stationary stage
-        keep = max(1, rounds - rounds // 2)
-        r = rhat([np.concatenate(recent[c][-keep:]) for c in range(nc)])
-        rhat_hist.append(r.tolist())
-        best = max(states, key=lambda q: q.best_lp)
-        if progress:
-            progress({"stage": "burnin", "round": rounds, "rhat": r.tolist(), "best_lp": best.best_lp,
-                      "acceptance": sum(q.accepted + q.dr_accepted for q in results) / max(1, sum(q.samples.shape[0] for q in results))})
-        if rounds >= config.min_burnin_rounds and np.all(r < config.rhat_threshold):
-            converged = True
-            break
+    # ---- burn-in: DRAM rounds with pooled adaptation (the pool is the INCA coordinator)
+    pool = AdaptationPool(nc, d, cov, inca=config.inca, rhat_threshold=config.rhat_threshold,
+                          min_rounds=config.min_burnin_rounds)
+    states, b_acc, b_n, n_b_eval = run_burnin(target, states, pool, config, map_fn, progress=progress, cancel=cancel)
+    n_eval += n_b_eval
+    rounds, converged = pool.rounds, pool.converged()
+    r = pool.rhat()
+    rhat_hist = pool.rhat_history
+    cov = pool.cov
     if not converged:
         warnings.append(f"burn-in did not reach R-hat < {config.rhat_threshold} in {rounds} rounds "
                         f"(max R-hat {np.max(r):.3g} for {names[int(np.argmax(r))]}); results may be unreliable")
