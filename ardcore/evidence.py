@@ -115,7 +115,7 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
     seeds = np.random.SeedSequence(seed).generate_state(nc)
     tasks = [(target, res.samples[c], res.lp[c], res.phi_star, res.lp_star, res.proposal_cov, n_proposal,
               int(seeds[c])) for c in range(nc)]
-    out = map_fn(_cj_chain, tasks)
+    out = map_fn(_cj_chain, tasks, label="cj")
     per = [ChainEvidence(res.lp_star - o, se, o) for o, se in out]
     vals = np.array([p.log_evidence for p in per])
     mean = float(vals.mean())

@@ -25,17 +25,21 @@ import numpy as np
 
 from .errors import ArdflowError
 
-Map = Callable[[Callable, Sequence], list]
-"""``map_fn(func, items) -> list``: how independent chain tasks are run."""
+Map = Callable[..., list]
+"""``map_fn(func, items, label=...) -> list``: how independent per-chain tasks are run.
+
+``label`` names the step (``"start"``, ``"burnin-r3"``, ``"stationary-d1000"``,
+``"cj"``); item ``c`` belongs to chain ``c``. Orchestrators use it for task
+keys and for streaming; plain maps ignore it."""
 
 
-def serial_map(func, items):
+def serial_map(func, items, label: str = ""):
     return [func(it) for it in items]
 
 
 def executor_map(executor) -> Map:
     """Adapt a ``concurrent.futures`` executor to :data:`Map`."""
-    return lambda func, items: list(executor.map(func, items))
+    return lambda func, items, label="": list(executor.map(func, items))
 
 
 class SamplerError(ArdflowError):
@@ -521,7 +525,7 @@ def initial_points(prior, n: int, rng: np.random.Generator, start_sd: dict | Non
 
 
 def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig, map_fn: Map = serial_map, *,
-               progress=None, cancel=None) -> tuple[list, int, int, int]:
+               progress=None, cancel=None, checkpoint=None) -> tuple[list, int, int, int]:
     """Burn-in rounds until R-hat is below the threshold or the round budget is spent.
 
     Returns the chain states, accepted and proposed counts, and likelihood evaluations.
@@ -533,7 +537,7 @@ def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig
             raise Cancelled("cancelled during burn-in")
         rnd = pool.rounds + 1
         results = map_fn(_round_task, [(target, s, pool.proposal(c), config.round_size, True, config.dr_scale)
-                                       for c, s in enumerate(states)])
+                                       for c, s in enumerate(states)], label=f"burnin-r{rnd}")
         states = [q.state for q in results]
         for c, q in enumerate(results):
             pool.report(c, rnd, q.halves, (q.state.best_x, q.state.best_lp, q.state.best_ll))
@@ -544,47 +548,23 @@ def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig
         if progress:
             progress({"stage": "burnin", "round": pool.rounds, "rhat": pool.rhat().tolist(),
                       "best_lp": pool.best[1] if pool.best else -math.inf, "acceptance": acc / max(1, n)})
+        if checkpoint:
+            checkpoint({"stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
+                        "counters": [b_acc, b_n, n_eval]})
         if pool.converged():
             break
     assert len(states) == nc
     return states, b_acc, b_n, n_eval
 
 
-def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
-           warm: SamplerResult | None = None, starts: np.ndarray | None = None,
-           progress: Callable[[dict], None] | None = None,
-           cancel: Callable[[], bool] | None = None) -> SamplerResult:
-    """Run parallel DRAM with INCA, then the fixed-proposal stationary stage.
-
-    Parameters
-    ----------
-    target : callable
-        ``x -> (log_posterior, log_likelihood)`` with ``names`` and ``prior``.
-    config : SamplerConfig
-    seed : int
-        Every random number derives from it (chain c uses an independent stream).
-    map_fn : callable
-        Runs the per-chain tasks of a round (serial by default).
-    warm : SamplerResult, optional
-        Warm start: chains continue from these states (positions mapped by
-        parameter name; parameters absent from ``warm`` start at 0) with its
-        proposal covariance.
-    starts : ndarray, optional
-        Explicit initial points (n_chains, d), skipping the start optimisation.
-    progress : callable, optional
-        Called after every round with a dict (stage, round, rhat, best log posterior, acceptance).
-    cancel : callable, optional
-        Checked between rounds; when it returns True, :class:`Cancelled` is raised.
-    """
+def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
+                   warm: SamplerResult | None = None, starts: np.ndarray | None = None) -> tuple[list, np.ndarray]:
+    """Chain states and the first proposal covariance (cold, warm or explicit starts)."""
     names = list(target.names)
     d = len(names)
     nc = config.n_chains
-    ss = np.random.SeedSequence(seed)
-    child = ss.spawn(nc + 1)
+    child = np.random.SeedSequence(seed).spawn(nc + 1)
     scale = initial_scale(target.prior)
-    warnings: list[str] = []
-    n_eval = 0
-
     if warm is not None:
         idx = {n: i for i, n in enumerate(warm.names)}
         states = []
@@ -605,30 +585,26 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
         for i, a in enumerate(sel):
             if a is None:  # a new parameter: a small step, not the prior's width
                 cov[i, i] = (0.01 * scale[i]) ** 2
+    elif starts is None:
+        pts = initial_points(target.prior, nc, np.random.default_rng(child[nc]))
+        tasks = [(target, pts[c], scale, config.start_maxfev, child[c].generate_state(1)[0] + c,
+                  config.overdispersion) for c in range(nc)]
+        res = map_fn(_start_task, tasks, label="start")
+        cov = (2.38**2 / d) * np.mean([r[5] for r in res], axis=0)
+        states = []
+        for c, r in enumerate(res):
+            x, lp, ll, xm, lpm, _ = r
+            bx, blp = (xm, lpm) if lpm > lp else (x, lp)
+            bll = target(bx)[1]
+            states.append(ChainState(c, list(map(float, x)), float(lp), float(ll),
+                                     np.random.PCG64(child[c]).state, list(map(float, bx)), float(blp), float(bll)))
     else:
-        if starts is None:
-            pts = initial_points(target.prior, nc, np.random.default_rng(child[nc]))
-            tasks = [(target, pts[c], scale, config.start_maxfev, child[c].generate_state(1)[0] + c,
-                      config.overdispersion) for c in range(nc)]
-            res = map_fn(_start_task, tasks)
-            n_eval += nc * config.start_maxfev
-            xs = [r[0] for r in res]
-            covs = [r[5] for r in res]
-            cov = (2.38**2 / d) * np.mean(covs, axis=0)
-            states = []
-            for c, r in enumerate(res):
-                x, lp, ll, xm, lpm, _ = r
-                bx, blp = (xm, lpm) if lpm > lp else (x, lp)
-                bll = target(bx)[1]
-                states.append(ChainState(c, list(map(float, x)), float(lp), float(ll),
-                                         np.random.PCG64(child[c]).state, list(map(float, bx)), float(blp), float(bll)))
-        else:
-            states = []
-            for c in range(nc):
-                x = np.asarray(starts[c], dtype=float)
-                lp, ll = target(x)
-                states.append(ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll))
-            cov = np.diag((0.1 * scale) ** 2)
+        states = []
+        for c in range(nc):
+            x = np.asarray(starts[c], dtype=float)
+            lp, ll = target(x)
+            states.append(ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll))
+        cov = np.diag((0.1 * scale) ** 2)
     if not any(s.lp > -math.inf for s in states):
         raise SamplerError("no chain could start at a point of finite posterior density: "
                            "check the priors against the data and model")
@@ -636,46 +612,106 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
         if not s.lp > -math.inf:
             good = max(states, key=lambda q: q.lp)
             s.x, s.lp, s.ll = list(good.x), good.lp, good.ll
+    return states, cov
 
-    # ---- burn-in: DRAM rounds with pooled adaptation (the pool is the INCA coordinator)
-    pool = AdaptationPool(nc, d, cov, inca=config.inca, rhat_threshold=config.rhat_threshold,
-                          min_rounds=config.min_burnin_rounds)
-    states, b_acc, b_n, n_b_eval = run_burnin(target, states, pool, config, map_fn, progress=progress, cancel=cancel)
-    n_eval += n_b_eval
-    rounds, converged = pool.rounds, pool.converged()
-    r = pool.rhat()
-    rhat_hist = pool.rhat_history
-    cov = pool.cov
+
+def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
+           warm: SamplerResult | None = None, starts: np.ndarray | None = None,
+           progress: Callable[[dict], None] | None = None,
+           cancel: Callable[[], bool] | None = None,
+           pool_factory: Callable[..., AdaptationPool] | None = None,
+           checkpoint: Callable[[dict], None] | None = None,
+           resume: dict | None = None) -> SamplerResult:
+    """Run parallel DRAM with INCA, then the fixed-proposal stationary stage.
+
+    Parameters
+    ----------
+    target : callable
+        ``x -> (log_posterior, log_likelihood)`` with ``names`` and ``prior``.
+    config : SamplerConfig
+    seed : int
+        Every random number derives from it (chain c uses an independent stream).
+    map_fn : callable
+        Runs the per-chain tasks of a step (serial by default); see :data:`Map`.
+    warm : SamplerResult, optional
+        Warm start: chains continue from these states (positions mapped by
+        parameter name; parameters absent from ``warm`` start at 0) with its
+        proposal covariance.
+    starts : ndarray, optional
+        Explicit initial points (n_chains, d), skipping the start optimisation.
+    progress : callable, optional
+        Called after every round with a dict (stage, round, rhat, best log posterior, acceptance).
+    cancel : callable, optional
+        Checked between rounds; when it returns True, :class:`Cancelled` is raised.
+    pool_factory : callable, optional
+        ``pool_factory(state_dict) -> pool`` for the INCA coordinator (default: an
+        in-process :class:`AdaptationPool` rebuilt from the dict); orchestrators
+        return a proxy to a remote actor.
+    checkpoint : callable, optional
+        Called with a JSON-able dict after every round (stage, chain states,
+        coordinator state, counters); together with the stationary samples
+        written so far it is enough to resume.
+    resume : dict, optional
+        A checkpoint dict to continue from; for the stationary stage it must also
+        hold ``samples``, ``lp`` and ``ll`` arrays of the draws done so far.
+    """
+    names = list(target.names)
+    d = len(names)
+    nc = config.n_chains
+    warnings: list[str] = []
+    factory = pool_factory or AdaptationPool.from_dict
+    if resume is None:
+        states, cov = initial_states(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts)
+        pool0 = AdaptationPool(nc, d, cov, inca=config.inca, rhat_threshold=config.rhat_threshold,
+                               min_rounds=config.min_burnin_rounds)
+        pool = factory(pool0.to_dict())
+        stage, counters = "burnin", [0, 0, 0]
+        if checkpoint:
+            checkpoint({"stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
+                        "counters": counters})
+    else:
+        states = [ChainState.from_dict(q) for q in resume["states"]]
+        pool = factory(resume["pool"])
+        stage, counters = resume["stage"], list(resume.get("counters", [0, 0, 0]))
+
+    # ---- burn-in: DRAM rounds, the pool is the INCA coordinator
+    if stage == "burnin":
+        states, b_acc, b_n, n_b = run_burnin(target, states, pool, config, map_fn, progress=progress, cancel=cancel,
+                                             checkpoint=checkpoint)
+        counters = [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_b]
+    b_acc, b_n, n_eval = counters
+    rounds, converged, r, cov = pool.rounds, pool.converged(), pool.rhat(), pool.cov
     if not converged:
         warnings.append(f"burn-in did not reach R-hat < {config.rhat_threshold} in {rounds} rounds "
                         f"(max R-hat {np.max(r):.3g} for {names[int(np.argmax(r))]}); results may be unreliable")
 
     # ---- stationary stage: fixed proposal, plain RWM
-    per_round = config.round_size
-    S = [[] for _ in range(nc)]
-    LPs = [[] for _ in range(nc)]
-    LLs = [[] for _ in range(nc)]
-    done = 0
-    s_acc = 0
-    while done < config.n_stationary:
+    M = config.n_stationary
+    samples = np.full((nc, M, d), np.nan)
+    lps = np.full((nc, M), np.nan)
+    lls = np.full((nc, M), np.nan)
+    done, s_acc = 0, 0
+    if resume is not None and resume["stage"] == "stationary":
+        done, s_acc = int(resume["done"]), int(resume["s_acc"])
+        samples[:, :done], lps[:, :done], lls[:, :done] = (resume["samples"][:, :done], resume["lp"][:, :done],
+                                                           resume["ll"][:, :done])
+    while done < M:
         if cancel is not None and cancel():
             raise Cancelled("cancelled during stationary sampling")
-        n = min(per_round, config.n_stationary - done)
-        results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states])
+        n = min(config.round_size, M - done)
+        results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states], label=f"stationary-d{done}")
         states = [q.state for q in results]
         n_eval += nc * n
         for c, q in enumerate(results):
-            S[c].append(q.samples)
-            LPs[c].append(q.lp)
-            LLs[c].append(q.ll)
+            samples[c, done:done + n], lps[c, done:done + n], lls[c, done:done + n] = q.samples, q.lp, q.ll
         s_acc += sum(q.accepted for q in results)
         done += n
         if progress:
-            progress({"stage": "stationary", "round": done // per_round, "done": done, "of": config.n_stationary,
+            progress({"stage": "stationary", "round": done // config.round_size, "done": done, "of": M,
                       "acceptance": sum(q.accepted for q in results) / (nc * n)})
-    samples = np.stack([np.concatenate(s) for s in S])
-    lps = np.stack([np.concatenate(s) for s in LPs])
-    lls = np.stack([np.concatenate(s) for s in LLs])
+        if checkpoint:
+            checkpoint({"stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
+                        "counters": [b_acc, b_n, n_eval], "done": done, "s_acc": s_acc})
     best = max(states, key=lambda q: q.best_lp)
     r_final = rhat(list(samples))
     if np.any(r_final > config.rhat_threshold):
@@ -684,9 +720,9 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
     return SamplerResult(
         names=names, samples=samples, lp=lps, ll=lls,
         phi_star=np.array(best.best_x), lp_star=best.best_lp, ll_star=best.best_ll,
-        proposal_cov=cov, states=states, rhat=r_final, rhat_history=rhat_hist,
+        proposal_cov=cov, states=states, rhat=r_final, rhat_history=list(pool.rhat_history),
         burnin_rounds=rounds, converged=converged,
-        acceptance=s_acc / max(1, nc * config.n_stationary), burnin_acceptance=b_acc / max(1, b_n),
+        acceptance=s_acc / max(1, nc * M), burnin_acceptance=b_acc / max(1, b_n),
         n_evaluations=n_eval, warnings=warnings)
 
 

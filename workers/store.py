@@ -1,0 +1,195 @@
+"""The zarr result store of one study.
+
+Layout (a zarr v3 group; dimension names are stored, so ``xarray.open_zarr``
+gives labelled arrays)::
+
+    STORE/                               attrs["ardflow"] = {version, spec, status, progress, summary}
+      data/                              the data set used: t (time) and one array per column (time)
+      models/<model>/                    attrs["history"] = every maximisation trial; attrs["result"]
+        trials/<NNN>/                    one trial psi (NNN = iteration)
+          samples        (chain, draw, param)   stationary samples, chunk = one chain x one round
+          log_likelihood (chain, draw)
+          log_prior      (chain, draw)
+          param          (param)                parameter names
+          attrs: psi, evidence (with per-chain values), diagnostics, done
+      checkpoints/<model>/<NNN>.json     sampler checkpoint of a trial (atomic write-then-rename)
+      summary.json                       the study summary (also in attrs)
+
+Only the orchestrator creates arrays; chain tasks write their own chunks
+(region writes to distinct chunks are safe across processes) and a re-run
+task rewrites the same chunk.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+STORE_VERSION = 1
+
+# zarr's own pools stay small: Dask provides the parallelism
+zarr.config.set({"async.concurrency": 4, "threading.max_workers": 2})
+
+
+def _json(x):
+    if isinstance(x, dict):
+        return {str(k): _json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        x = float(x)
+        if math.isinf(x):
+            return "inf" if x > 0 else "-inf"
+        if math.isnan(x):
+            return None
+        return x
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return _json(x.tolist())
+    return x
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+class StudyStore:
+    """Read and write one study's store (a local directory).
+
+    Parameters
+    ----------
+    path : str or Path
+        The store directory (created by :meth:`create`).
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    # ---------------------------------------------------------------- study level
+    @classmethod
+    def create(cls, path: str | Path, spec_json: dict, data=None) -> "StudyStore":
+        s = cls(path)
+        g = zarr.open_group(str(s.path), mode="a")
+        meta = dict(g.attrs.get("ardflow", {}))
+        meta.update({"version": STORE_VERSION, "spec": spec_json})
+        meta.setdefault("status", "created")
+        g.attrs["ardflow"] = _json(meta)
+        if data is not None and "data" not in g:
+            dg = g.require_group("data")
+            dg.create_array("t", data=np.asarray(data.t), dimension_names=["time"])
+            for k, v in data.columns.items():
+                dg.create_array(k, data=np.asarray(v), dimension_names=["time"])
+        return s
+
+    def exists(self) -> bool:
+        return (self.path / "zarr.json").exists()
+
+    def group(self, mode: str = "a"):
+        return zarr.open_group(str(self.path), mode=mode)
+
+    @property
+    def meta(self) -> dict:
+        return dict(self.group("r").attrs.get("ardflow", {}))
+
+    def update_meta(self, **kw) -> None:
+        g = self.group()
+        meta = dict(g.attrs.get("ardflow", {}))
+        meta.update(_json(kw))
+        g.attrs["ardflow"] = meta
+
+    def load_data(self):
+        from ardcore.data import Dataset
+
+        dg = self.group("r")["data"]
+        cols = {k: np.asarray(dg[k][:]) for k in dg.array_keys() if k != "t"}
+        return Dataset(np.asarray(dg["t"][:]), cols, {"source": f"{self.path}/data"})
+
+    def write_summary(self, summary: dict) -> None:
+        atomic_write_text(self.path / "summary.json", json.dumps(_json(summary), indent=2))
+        self.update_meta(status="done", summary=_json({k: v for k, v in summary.items() if k != "spec"}))
+
+    # ---------------------------------------------------------------- trials
+    def trial_path(self, model: str, iteration: int) -> str:
+        return f"models/{model}/trials/{iteration:03d}"
+
+    def create_trial(self, model: str, iteration: int, names: list[str], n_chains: int, n_draws: int,
+                     round_size: int, psi: dict) -> None:
+        """Create (or keep, when the shape matches) the arrays of one trial."""
+        g = self.group()
+        path = self.trial_path(model, iteration)
+        if path in g:
+            tg = g[path]
+            if tg["samples"].shape == (n_chains, n_draws, len(names)):
+                return
+            del g[path]
+        tg = g.require_group(path)
+        d = len(names)
+        tg.create_array("samples", shape=(n_chains, n_draws, d), chunks=(1, round_size, d), dtype="f8",
+                        fill_value=np.nan, dimension_names=["chain", "draw", "param"])
+        for k in ("log_likelihood", "log_prior"):
+            tg.create_array(k, shape=(n_chains, n_draws), chunks=(1, round_size), dtype="f8", fill_value=np.nan,
+                            dimension_names=["chain", "draw"])
+        tg.create_array("param", data=np.array(names, dtype="U32"), dimension_names=["param"])
+        tg.create_array("chain", data=np.arange(n_chains), dimension_names=["chain"])
+        tg.create_array("draw", data=np.arange(n_draws), dimension_names=["draw"])
+        tg.attrs["psi"] = _json(psi)
+        tg.attrs["done"] = False
+
+    def write_round(self, model: str, iteration: int, chain: int, start: int, samples: np.ndarray,
+                    lp: np.ndarray, ll: np.ndarray) -> None:
+        """Write one chain's round of stationary samples into its own chunk (idempotent)."""
+        tg = self.group()[self.trial_path(model, iteration)]
+        n = samples.shape[0]
+        tg["samples"][chain, start:start + n, :] = samples
+        tg["log_likelihood"][chain, start:start + n] = ll
+        tg["log_prior"][chain, start:start + n] = lp - ll
+
+    def read_samples(self, model: str, iteration: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+        tg = self.group("r")[self.trial_path(model, iteration)]
+        ll = np.asarray(tg["log_likelihood"][:])
+        return (np.asarray(tg["samples"][:]), np.asarray(tg["log_prior"][:]) + ll, ll,
+                [str(x) for x in tg["param"][:]])
+
+    def finish_trial(self, model: str, iteration: int, trial: dict) -> None:
+        tg = self.group()[self.trial_path(model, iteration)]
+        tg.attrs["trial"] = _json(trial)
+        tg.attrs["done"] = True
+
+    def trial_record(self, model: str, iteration: int) -> dict | None:
+        g = self.group("r")
+        path = self.trial_path(model, iteration)
+        if path not in g:
+            return None
+        tg = g[path]
+        return dict(tg.attrs["trial"]) if tg.attrs.get("done") else None
+
+    def set_model_attrs(self, model: str, **kw) -> None:
+        mg = self.group().require_group(f"models/{model}")
+        for k, v in kw.items():
+            mg.attrs[k] = _json(v)
+
+    # ---------------------------------------------------------------- checkpoints
+    def checkpoint_path(self, model: str, iteration: int) -> Path:
+        return self.path / "checkpoints" / model / f"{iteration:03d}.json"
+
+    def write_checkpoint(self, model: str, iteration: int, ck: dict) -> None:
+        atomic_write_text(self.checkpoint_path(model, iteration), json.dumps(_json(ck)))
+
+    def read_checkpoint(self, model: str, iteration: int) -> dict | None:
+        p = self.checkpoint_path(model, iteration)
+        if not p.exists():
+            return None
+        return json.loads(p.read_text())
