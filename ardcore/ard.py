@@ -130,7 +130,8 @@ class EvidenceEvaluator:
         self.sampler, self.method, self.substeps = sampler, method, substeps
         self.map_fn, self.progress, self.cancel = map_fn, progress, cancel
 
-    def __call__(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False):
+    def __call__(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False,
+                 iteration: int | None = None):
         target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
         if self.method == "laplace":
             x0 = _warm_point(target, warm)
@@ -199,7 +200,7 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
         it = counter[0]
         counter[0] += 1
         t0 = time.perf_counter()
-        target, ev, res = evaluate(trial_psi, seed + 1009 * it, warm)
+        target, ev, res = evaluate(trial_psi, seed + 1009 * it, warm, iteration=it)
         post = {}
         diag = {}
         if res is not None and res.samples.size:

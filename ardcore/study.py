@@ -257,8 +257,15 @@ def _jsonable(x):
 
 
 def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *, map_fn: Map = serial_map,
-                  progress: Callable[[dict], None] | None = None, cancel=None) -> tuple[dict, MaximiserResult]:
-    """ARD evidence maximisation for one candidate; returns its summary row and the full result."""
+                  progress: Callable[[dict], None] | None = None, cancel=None,
+                  evaluator_factory: Callable[..., EvidenceEvaluator] | None = None,
+                  on_trial: Callable | None = None) -> tuple[dict, MaximiserResult]:
+    """ARD evidence maximisation for one candidate; returns its summary row and the full result.
+
+    ``evaluator_factory`` (same arguments as :class:`EvidenceEvaluator`) lets an
+    orchestrator substitute its own evaluator (caching, checkpoints, remote chains);
+    ``on_trial`` is called with every finished :class:`~ardcore.ard.Trial`.
+    """
     t0 = time.perf_counter()
     label = cand.label
     ms = cand.model_spec()
@@ -269,16 +276,19 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
         if progress:
             progress({"model": label, **p})
 
-    ev = EvidenceEvaluator(ms, essential, data, cfg, method=spec.evidence, substeps=cand.substeps,
-                           map_fn=map_fn, progress=prog, cancel=cancel)
+    factory = evaluator_factory or EvidenceEvaluator
+    ev = factory(ms, essential, data, cfg, method=spec.evidence, substeps=cand.substeps,
+                 map_fn=map_fn, progress=prog, cancel=cancel)
 
-    def on_trial(tr):
+    def trial_done(tr):
         prog({"stage": "trial", "iteration": tr.iteration, "action": tr.action,
               "psi": _jsonable(tr.psi), "log_evidence": tr.evidence.log_evidence,
               "log_evidence_se": tr.evidence.log_evidence_se, "accepted": tr.accepted})
+        if on_trial:
+            on_trial(tr)
 
     seed = spec.seed * 1_000_003 + 7919 * index
-    mr = maximise(ev, cand.thresholds(), spec.maximiser.config(), seed=seed, on_trial=on_trial)
+    mr = maximise(ev, cand.thresholds(), spec.maximiser.config(), seed=seed, on_trial=trial_done)
     res, target = mr.sampler, mr.target
     if spec.evidence == "laplace" and cand.ard_names is not None:
         target, _, res = ev(mr.psi_opt, seed + 99991, mr.sampler, final=True)
@@ -310,6 +320,24 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
     return row, mr
 
 
+def compare(rows: list[dict], spec: StudySpec, data_meta: dict, wall_s: float) -> dict:
+    """The comparison of the optimal nested models (Eq. 7) and the study summary."""
+    probs, psd = model_probabilities([r["log_evidence"] for r in rows], [r["log_evidence_se"] for r in rows],
+                                     seed=spec.seed)
+    for r, p, s in zip(rows, probs, psd):
+        r["probability"] = p
+        r["probability_sd"] = s
+    return _jsonable({
+        "study": spec.name,
+        "data": data_meta,
+        "models": rows,
+        "best_model": max(rows, key=lambda r: r["log_evidence"])["name"],
+        "seed": spec.seed,
+        "wall_s": wall_s,
+        "spec": spec.model_dump(mode="json"),
+    })
+
+
 def select(spec: StudySpec, *, out: str | Path | None = None, map_fn: Map = serial_map,
            progress: Callable[[dict], None] | None = None, base: Path | None = None, cancel=None) -> dict:
     """Run a study in this process (or with ``map_fn`` over any executor).
@@ -324,21 +352,7 @@ def select(spec: StudySpec, *, out: str | Path | None = None, map_fn: Map = seri
         row, mr = run_candidate(cand, data, spec, i, map_fn=map_fn, progress=progress, cancel=cancel)
         rows.append(row)
         results[cand.label] = mr
-    probs, psd = model_probabilities([r["log_evidence"] for r in rows], [r["log_evidence_se"] for r in rows],
-                                     seed=spec.seed)
-    for r, p, s in zip(rows, probs, psd):
-        r["probability"] = p
-        r["probability_sd"] = s
-    summary = {
-        "study": spec.name,
-        "data": {"source": data.meta.get("source"), "n": len(data)},
-        "models": rows,
-        "best_model": max(rows, key=lambda r: r["log_evidence"])["name"],
-        "seed": spec.seed,
-        "wall_s": time.perf_counter() - t0,
-        "spec": spec.model_dump(mode="json"),
-    }
-    summary = _jsonable(summary)
+    summary = compare(rows, spec, {"source": data.meta.get("source"), "n": len(data)}, time.perf_counter() - t0)
     history = {k: [t.to_dict() for t in mr.history] for k, mr in results.items()}
     if out is not None:
         out = Path(out)
