@@ -195,7 +195,9 @@ def print_progress(p: dict) -> None:
     """One line per event of a running study (stdout, flushed)."""
     st = p.get("stage")
     m = p.get("model", "")
-    if st == "trial":
+    if st == "model_done":
+        print(f"[{m}] done: ln Z = {p['log_evidence']:.3f}", flush=True)
+    elif st == "trial":
         mark = "accepted" if p["accepted"] else "rejected"
         print(f"[{m}] trial {p['iteration']:>3}  {p['action']:<40s} ln Z = {p['log_evidence']:.3f} "
               f"+- {p['log_evidence_se']:.3f}  {mark}", flush=True)
@@ -205,30 +207,115 @@ def print_progress(p: dict) -> None:
               f"acceptance {p['acceptance']:.2f}", flush=True)
 
 
-def cmd_select(a) -> int:
-    from ardcore.study import load_spec, select
-
-    spec = load_spec(a.spec)
-    out = Path(a.out)
-    t0 = time.perf_counter()
-    if a.executor == "serial":
-        summary = select(spec, out=out, progress=print_progress, base=Path(a.spec).resolve().parent)
-    else:
-        from concurrent.futures import ProcessPoolExecutor
-
-        from ardcore.mcmc import executor_map
-
-        with ProcessPoolExecutor(max_workers=a.workers) as ex:
-            summary = select(spec, out=out, progress=print_progress, map_fn=executor_map(ex),
-                             base=Path(a.spec).resolve().parent)
+def _print_table(summary: dict) -> None:
     print(f"\n{'model':<12s} {'ln Z':>12s} {'se':>7s} {'GoF':>12s} {'EIG':>8s} {'P(M|d)':>8s}  kept / pruned")
     for r in summary["models"]:
         print(f"{r['name']:<12s} {r['log_evidence']:12.3f} {r['log_evidence_se']:7.3f} {r['goodness_of_fit']:12.3f} "
               f"{r['information_gain']:8.3f} {r['probability']:8.4f}  {r['kept']} / {r['pruned']}")
         for w in r["warnings"]:
             print(f"  warning: {w}")
+
+
+class _Cluster:
+    """A client on an existing scheduler, or an embedded LocalCluster (workers = cores)."""
+
+    def __init__(self, scheduler: str | None, workers: int | None):
+        self.scheduler, self.workers = scheduler, workers
+
+    def __enter__(self):
+        import os
+
+        from distributed import Client, LocalCluster
+
+        if self.scheduler:
+            self.cluster = None
+            self.client = Client(self.scheduler)
+        else:
+            n = self.workers or os.cpu_count() or 1
+            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                        dashboard_address=":8787", silence_logs=40)
+            self.client = Client(self.cluster)
+        print(f"[ardflow] Dask dashboard: {self.client.dashboard_link}", flush=True)
+        return self.client
+
+    def __exit__(self, *exc):
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def _run_on_dask(a, store) -> dict:
+    import contextlib
+
+    from workers.graph import run_study
+
+    with _Cluster(a.scheduler, a.workers) as client:
+        ctx = contextlib.nullcontext()
+        if a.performance_report:
+            from distributed import performance_report
+
+            ctx = performance_report(filename=a.performance_report)
+        with ctx:
+            return run_study(client, store, progress=print_progress)
+
+
+def cmd_select(a) -> int:
+    from ardcore.study import load_spec, select
+
+    spec = load_spec(a.spec)
+    if a.full:
+        spec = full_settings(spec)
+    out = Path(a.out)
+    t0 = time.perf_counter()
+    base = Path(a.spec).resolve().parent
+    if a.executor == "dask":
+        from workers.graph import prepare_store
+        from workers.store import StudyStore
+
+        if StudyStore(out).exists() and StudyStore(out).meta.get("status") not in (None, "created"):
+            from ardcore.errors import SpecError
+
+            raise SpecError(f"{out} already holds a study (status {StudyStore(out).meta.get('status')!r}); "
+                            f"continue it with 'ardflow resume {out}' or choose another --out")
+        store = prepare_store(spec, out, base=base)
+        print(f"[ardflow] study {store.meta['study_id']} -> {out.resolve()}", flush=True)
+        summary = _run_on_dask(a, store)
+    elif a.executor == "serial":
+        summary = select(spec, out=out, progress=print_progress, base=base)
+    else:
+        from concurrent.futures import ProcessPoolExecutor
+
+        from ardcore.mcmc import executor_map
+
+        with ProcessPoolExecutor(max_workers=a.workers) as ex:
+            summary = select(spec, out=out, progress=print_progress, map_fn=executor_map(ex), base=base)
+    _print_table(summary)
     print(f"\nsummary: {(out / 'summary.json').resolve()}  ({time.perf_counter() - t0:.1f} s)")
     return 0
+
+
+def cmd_resume(a) -> int:
+    from ardcore.errors import SpecError
+    from workers.store import StudyStore
+
+    store = StudyStore(a.store)
+    if not store.exists() or "spec" not in store.meta:
+        raise SpecError(f"{a.store}: not an ardflow study store")
+    if store.meta.get("status") == "done":
+        print(f"[ardflow] study already finished: {(store.path / 'summary.json').resolve()}")
+        return 0
+    t0 = time.perf_counter()
+    print(f"[ardflow] resuming study {store.meta['study_id']} in {store.path.resolve()}", flush=True)
+    summary = _run_on_dask(a, store)
+    _print_table(summary)
+    print(f"\nsummary: {(store.path / 'summary.json').resolve()}  ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def full_settings(spec):
+    """The paper-scale sampler settings (method.md section 6)."""
+    return spec.model_copy(update={"sampler": spec.sampler.model_copy(update={
+        "n_chains": 4, "round_size": 500, "n_stationary": 5000, "n_proposal": 5000})})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -263,13 +350,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default=None, help="CSV to write (convert)")
     s.set_defaults(fn=cmd_data)
 
-    s = sub.add_parser("select", help="run a model-selection study (JSON spec) and write DIR/summary.json")
+    s = sub.add_parser("select", help="run a model-selection study (JSON spec); the zarr store and "
+                                      "summary.json go to --out")
     s.add_argument("spec")
-    s.add_argument("--out", required=True)
-    s.add_argument("--executor", choices=["processes", "serial"], default="processes",
-                   help="run chains in a local process pool (default) or serially")
-    s.add_argument("--workers", type=int, default=None, help="process-pool size (default: cores)")
+    s.add_argument("--out", required=True, help="study store directory (zarr) with summary.json")
+    s.add_argument("--executor", choices=["dask", "processes", "serial"], default="dask",
+                   help="dask (default: embedded LocalCluster or --scheduler), a local process pool, or serial")
+    s.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
+    s.add_argument("--workers", type=int, default=None, help="embedded cluster / pool size (default: cores)")
+    s.add_argument("--performance-report", default=None, metavar="FILE.html", help="write Dask's performance report")
+    s.add_argument("--full", action="store_true", help="paper-scale sampler settings")
     s.set_defaults(fn=cmd_select)
+
+    s = sub.add_parser("resume", help="continue a study whose driver stopped")
+    s.add_argument("store")
+    s.add_argument("--scheduler", default=None)
+    s.add_argument("--workers", type=int, default=None)
+    s.add_argument("--performance-report", default=None, metavar="FILE.html")
+    s.set_defaults(fn=cmd_resume)
 
     s = sub.add_parser("models", help="list the built-in models, or print one as JSON")
     s.add_argument("name", nargs="?")

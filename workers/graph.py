@@ -1,0 +1,318 @@
+"""A study as Dask tasks.
+
+* one **maximiser task** per candidate model (it secedes from the worker's
+  thread pool and drives its trials from there);
+* per trial psi, **chain tasks** for every step: start optimisation, each
+  burn-in round (which reports to the trial's coordinator actor), each
+  stationary round (which writes its samples to the zarr store), and the
+  Chib-Jeliazkov ordinates;
+* a **comparison task** that depends on every maximiser task.
+
+Task keys are deterministic and readable on the dashboard, e.g.
+``burnin-<study>-M2-it003-r004-c1``. Everything a task needs to restart is in
+the store: finished trials are read back, the trial in flight resumes from its
+last checkpoint, so a lost worker costs at most one round and a killed
+driver continues with :func:`resume_study`.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import uuid
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ardcore.ard import EvidenceEvaluator, build_target
+from ardcore.evidence import ChainEvidence, Evidence, chib_jeliazkov
+from ardcore.mcmc import ChainState, SamplerResult, _round_task, sample
+from ardcore.study import StudySpec, compare, run_candidate
+
+from .coordinator import ActorPool, actor_variable_name
+from .store import StudyStore, _json
+
+# --------------------------------------------------------------------------- chain tasks
+
+
+def _burnin_round_task(args, prefix: str, chain: int, round_index: int):
+    """One burn-in round of one chain; the statistics go to the coordinator actor."""
+    res = _round_task(args)
+    try:
+        from distributed import Variable
+
+        fut = Variable(actor_variable_name(prefix)).get(timeout=10)
+        fut.result(timeout=10).report(chain, round_index, res.halves,
+                                      (res.state.best_x, res.state.best_lp, res.state.best_ll)).result(timeout=30)
+    except Exception:
+        pass  # the driver re-reports; a missing actor is restored there
+    return res
+
+
+def _stationary_round_task(args, store_path: str, model: str, iteration: int, chain: int, start: int):
+    """One stationary round of one chain, streamed into its own chunk of the store."""
+    res = _round_task(args)
+    StudyStore(store_path).write_round(model, iteration, chain, start, res.samples, res.lp, res.ll)
+    return res
+
+
+class DaskMap:
+    """:data:`ardcore.mcmc.Map` on a Dask client with deterministic task keys."""
+
+    def __init__(self, client, prefix: str, store: StudyStore | None = None, model: str | None = None,
+                 iteration: int | None = None):
+        self.client, self.prefix = client, prefix
+        self.store, self.model, self.iteration = store, model, iteration
+
+    def __call__(self, func, items, label: str = ""):
+        c = self.client
+        futs = []
+        for ch, it in enumerate(items):
+            if label.startswith("burnin-r"):
+                rnd = int(label[len("burnin-r"):])
+                futs.append(c.submit(_burnin_round_task, it, self.prefix, ch, rnd,
+                                     key=f"burnin-{self.prefix}-r{rnd:03d}-c{ch}"))
+            elif label.startswith("stationary-d") and self.store is not None:
+                start = int(label[len("stationary-d"):])
+                futs.append(c.submit(_stationary_round_task, it, str(self.store.path), self.model, self.iteration,
+                                     ch, start, key=f"stationary-{self.prefix}-d{start:06d}-c{ch}"))
+            else:
+                name = label.split("-")[0] or getattr(func, "__name__", "task").strip("_")
+                futs.append(c.submit(func, it, key=f"{name}-{self.prefix}-{label}-c{ch}"))
+        return c.gather(futs)
+
+
+# --------------------------------------------------------------------------- trials with a store
+
+
+def _record(psi: dict, ev: Evidence, res: SamplerResult) -> dict:
+    return _json({
+        "psi": psi, "evidence": ev.to_dict(), "names": res.names, "phi_star": res.phi_star, "lp_star": res.lp_star,
+        "ll_star": res.ll_star, "proposal_cov": res.proposal_cov, "states": [s.to_dict() for s in res.states],
+        "rhat": res.rhat, "rhat_history": res.rhat_history, "burnin_rounds": res.burnin_rounds,
+        "converged": res.converged, "acceptance": res.acceptance, "burnin_acceptance": res.burnin_acceptance,
+        "n_evaluations": res.n_evaluations, "warnings": res.warnings,
+    })
+
+
+def _from_record(rec: dict, store: StudyStore, model: str, iteration: int) -> tuple[Evidence, SamplerResult]:
+    e = rec["evidence"]
+    ev = Evidence(e["log_evidence"], e["log_evidence_se"], e["goodness_of_fit"], e["information_gain"], e["method"],
+                  [ChainEvidence(**c) for c in e["per_chain"]], list(e["warnings"]))
+    samples, lp, ll, names = store.read_samples(model, iteration)
+    res = SamplerResult(
+        names=list(rec["names"]), samples=samples, lp=lp, ll=ll, phi_star=np.array(rec["phi_star"]),
+        lp_star=rec["lp_star"], ll_star=rec["ll_star"], proposal_cov=np.array(rec["proposal_cov"]),
+        states=[ChainState.from_dict(s) for s in rec["states"]], rhat=np.array(rec["rhat"]),
+        rhat_history=rec["rhat_history"], burnin_rounds=rec["burnin_rounds"], converged=rec["converged"],
+        acceptance=rec["acceptance"], burnin_acceptance=rec["burnin_acceptance"],
+        n_evaluations=rec["n_evaluations"], warnings=list(rec["warnings"]))
+    return ev, res
+
+
+class StoredEvaluator(EvidenceEvaluator):
+    """Evidence at psi with chains on Dask, samples and checkpoints in the store.
+
+    A trial already finished in the store is read back instead of recomputed;
+    a trial with a checkpoint resumes from it.
+    """
+
+    def __init__(self, spec, essential, data, sampler, *, client, store: StudyStore, study_id: str, model: str,
+                 **kw):
+        super().__init__(spec, essential, data, sampler, **kw)
+        self.client, self.store, self.study_id, self.model = client, store, study_id, model
+        self.map_fn = DaskMap(client, f"{study_id}-{model}")
+
+    def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None):
+        if self.method == "laplace" or iteration is None:
+            return super().__call__(psi, seed, warm, final=final, iteration=iteration)
+        model, store = self.model, self.store
+        target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
+        rec = store.trial_record(model, iteration)
+        if rec is not None and rec["psi"] == _json(psi):
+            ev, res = _from_record(rec, store, model, iteration)
+            return target, ev, res
+        cfg = self.sampler
+        prefix = f"{self.study_id}-{model}-it{iteration:03d}"
+        store.create_trial(model, iteration, list(target.names), cfg.n_chains, cfg.n_stationary, cfg.round_size, psi)
+        ck = store.read_checkpoint(model, iteration)
+        if ck is not None and ck.get("psi") != _json(psi):
+            ck = None
+        if ck is not None and ck["stage"] == "stationary":
+            s, lp, ll, _ = store.read_samples(model, iteration)
+            ck.update(samples=s, lp=lp, ll=ll)
+        dmap = DaskMap(self.client, prefix, store, model, iteration)
+        pools: list[ActorPool] = []
+
+        def factory(state):
+            p = ActorPool(self.client, state, prefix)
+            pools.append(p)
+            return p
+
+        def checkpoint(d):
+            store.write_checkpoint(model, iteration, {**d, "psi": _json(psi)})
+
+        try:
+            res = sample(target, cfg, seed=seed, map_fn=dmap, warm=warm, progress=self.progress, cancel=self.cancel,
+                         pool_factory=factory, checkpoint=checkpoint, resume=ck)
+        finally:
+            for p in pools:
+                p.close()
+        ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=seed + 7, map_fn=dmap)
+        ev.warnings = list(res.warnings) + ev.warnings
+        if pools and pools[0].restarts:
+            ev.warnings.append(f"coordinator actor restored {pools[0].restarts} time(s) after a lost worker")
+        store.finish_trial(model, iteration, _record(psi, ev, res))
+        return target, ev, res
+
+
+# --------------------------------------------------------------------------- study tasks
+
+
+def _progress_writer(store: StudyStore, model: str) -> Callable[[dict], None]:
+    path = store.path / "progress" / f"{model}.jsonl"
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    def write(p: dict) -> None:
+        line = json.dumps(_json({"time": time.time(), **p}))
+        with open(path, "a") as fh:
+            fh.write(line + "\n")
+    return write
+
+
+def cancel_event_name(study_id: str) -> str:
+    return f"cancel-{study_id}"
+
+
+def run_model(client, store_path: str, study_id: str, index: int) -> dict:
+    """The ARD evidence maximisation of one candidate, chains on ``client``."""
+    from distributed import Event
+
+    store = StudyStore(store_path)
+    spec = StudySpec.model_validate(store.meta["spec"])
+    data = store.load_data()
+    cand = spec.models[index]
+    model = cand.label
+    progress = _progress_writer(store, model)
+    ev = Event(cancel_event_name(study_id), client=client)
+    cancel = ev.is_set
+    history: list[dict] = []
+
+    def on_trial(tr):
+        history.append(tr.to_dict())
+        store.set_model_attrs(model, history=history)
+
+    def factory(*a, **kw):
+        return StoredEvaluator(*a, client=client, store=store, study_id=study_id, model=model, **kw)
+
+    row, mr = run_candidate(cand, data, spec, index, progress=progress, cancel=cancel, evaluator_factory=factory,
+                            on_trial=on_trial)
+    store.set_model_attrs(model, result=row, history=[t.to_dict() for t in mr.history],
+                          best_iteration=mr.best.iteration)
+    progress({"stage": "model_done", "log_evidence": row["log_evidence"]})
+    return row
+
+
+def model_task(store_path: str, study_id: str, index: int) -> dict:
+    """Maximiser task: leaves the worker's thread pool while its chains run."""
+    from distributed import get_client, rejoin, secede
+
+    client = get_client()
+    secede()
+    try:
+        return run_model(client, store_path, study_id, index)
+    finally:
+        rejoin()
+
+
+def compare_task(store_path: str, wall_start: float, *rows: dict) -> dict:
+    """Comparison of the optimal nested models; writes the summary to the store."""
+    store = StudyStore(store_path)
+    spec = StudySpec.model_validate(store.meta["spec"])
+    meta = store.meta
+    summary = compare(list(rows), spec, meta.get("data", {}), time.time() - wall_start)
+    summary["study_id"] = meta.get("study_id")
+    store.write_summary(summary)
+    return summary
+
+
+# --------------------------------------------------------------------------- driver side
+
+
+def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None = None) -> StudyStore:
+    """Create the store with the spec and the data set (a new study id)."""
+    data = spec.data.load(base)
+    store = StudyStore.create(store_path, spec.model_dump(mode="json"), data)
+    meta = store.meta
+    if not meta.get("study_id"):
+        store.update_meta(study_id=f"{spec.name}-{uuid.uuid4().hex[:8]}", status="created",
+                          data={"source": data.meta.get("source"), "n": len(data)})
+    return store
+
+
+def submit_study(client, store: StudyStore):
+    """Submit the maximiser tasks and the comparison; returns the comparison future and the model futures."""
+    meta = store.meta
+    study_id = meta["study_id"]
+    spec = StudySpec.model_validate(meta["spec"])
+    store.update_meta(status="running")
+    start = meta.get("started") or time.time()
+    store.update_meta(started=start)
+    futs = [client.submit(model_task, str(store.path), study_id, i, key=f"maximise-{study_id}-{c.label}")
+            for i, c in enumerate(spec.models)]
+    comp = client.submit(compare_task, str(store.path), start, *futs, key=f"compare-{study_id}")
+    return comp, futs
+
+
+def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[dict]:
+    """New progress events since ``offsets`` (updated in place)."""
+    out = []
+    d = store.path / "progress"
+    if not d.exists():
+        return out
+    for f in sorted(d.glob("*.jsonl")):
+        model = f.stem
+        with open(f) as fh:
+            fh.seek(offsets.get(model, 0))
+            chunk = fh.read()
+            complete = chunk[: chunk.rfind("\n") + 1]
+            offsets[model] = offsets.get(model, 0) + len(complete.encode())
+        for line in complete.splitlines():
+            try:
+                out.append({"model": model, **json.loads(line)})
+            except json.JSONDecodeError:
+                continue
+    return out
+
+
+def run_study(client, store: StudyStore, *, progress: Callable[[dict], None] | None = None,
+              poll_s: float = 1.0) -> dict:
+    """Run (or continue) the study in ``store`` on ``client``; blocks until the summary exists."""
+    comp, futs = submit_study(client, store)
+    offsets: dict[str, int] = {}
+    try:
+        while not comp.done():
+            for ev in read_progress(store, offsets):
+                if progress:
+                    progress(ev)
+            time.sleep(poll_s)
+        for ev in read_progress(store, offsets):
+            if progress:
+                progress(ev)
+        if comp.status == "error":
+            exc = comp.exception()
+            from ardcore.mcmc import Cancelled
+
+            store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
+            raise exc
+        return comp.result()
+    finally:
+        del comp, futs
+
+
+def cancel_study(client, study_id: str) -> None:
+    """Cooperative cancellation: chains stop at the end of their current round."""
+    from distributed import Event
+
+    Event(cancel_event_name(study_id), client=client).set()
