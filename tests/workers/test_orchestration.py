@@ -1,0 +1,139 @@
+"""The study on real Dask clusters and a real zarr store."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from distributed import Client, LocalCluster, get_task_stream
+
+from ardcore.study import load_spec, select
+from workers.graph import cancel_study, prepare_store, read_progress, run_study
+from workers.store import StudyStore
+
+SPEC = Path(__file__).with_name("small_study.json")
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def rows(summary):
+    return {r["name"]: r for r in summary["models"]}
+
+
+@pytest.fixture(scope="module")
+def reference_summary():
+    return select(load_spec(SPEC))
+
+
+@pytest.fixture(scope="module")
+def thread_cluster():
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cl, \
+            Client(cl) as c:
+        yield c
+
+
+def test_orchestrated_equals_in_process(tmp_path, thread_cluster, reference_summary):
+    store = prepare_store(load_spec(SPEC), tmp_path / "st")
+    with get_task_stream(thread_cluster) as ts:
+        s = run_study(thread_cluster, store, poll_s=0.2)
+    a, b = rows(s), rows(reference_summary)
+    for k in a:
+        assert a[k]["log_evidence"] == pytest.approx(b[k]["log_evidence"], abs=1e-9)
+        assert a[k]["pruned"] == b[k]["pruned"] and a[k]["psi_opt"] == b[k]["psi_opt"]
+    keys = {t["key"] if isinstance(t["key"], str) else str(t["key"]) for t in ts.data}
+    sid = store.meta["study_id"]
+    assert f"burnin-{sid}-quad-it000-r001-c0" in keys
+    assert f"stationary-{sid}-cubic-it001-d000000-c2" in keys
+    assert f"compare-{sid}" in keys
+    assert json.loads((tmp_path / "st" / "summary.json").read_text())["best_model"] == s["best_model"]
+    assert store.meta["status"] == "done"
+
+
+def test_store_opens_with_xarray_named_dims(tmp_path, thread_cluster):
+    xr = pytest.importorskip("xarray")
+    store = prepare_store(load_spec(SPEC), tmp_path / "st")
+    run_study(thread_cluster, store, poll_s=0.2)
+    ds = xr.open_zarr(store.path, group="models/quad/trials/000", consolidated=False)
+    assert ds["samples"].dims == ("chain", "draw", "param")
+    assert list(ds["param"].values) == ["a0", "a1", "a2", "gamma"]
+    assert np.isfinite(ds["samples"].values).all()
+    data = xr.open_zarr(store.path, group="data", consolidated=False)
+    assert data["y"].dims == ("time",) and data.sizes["time"] == 100
+
+
+def test_cancel_takes_effect(tmp_path, thread_cluster):
+    from ardcore.mcmc import Cancelled
+
+    store = prepare_store(load_spec(SPEC), tmp_path / "st")
+    sid = store.meta["study_id"]
+    import threading
+
+    def cancel_soon():
+        offsets = {}
+        while not any(e.get("stage") == "burnin" for e in read_progress(store, offsets)):
+            time.sleep(0.05)
+        cancel_study(thread_cluster, sid)
+
+    th = threading.Thread(target=cancel_soon)
+    th.start()
+    with pytest.raises(Cancelled):
+        run_study(thread_cluster, store, poll_s=0.1)
+    th.join()
+    assert store.meta["status"] == "cancelled"
+    from distributed import Event
+
+    Event(f"cancel-{sid}", client=thread_cluster).clear()
+
+
+def test_lost_worker_process_study_completes(tmp_path, reference_summary):
+    """A real process-based cluster: kill a worker process mid-study; the nanny restarts it."""
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
+            Client(cl) as c:
+        store = prepare_store(load_spec(SPEC), tmp_path / "st")
+        killed = []
+
+        def progress(ev):
+            if not killed and ev.get("stage") == "trial" and ev.get("iteration", 0) >= 1:
+                pids = c.run(os.getpid)
+                victim = sorted(pids.values())[0]
+                os.kill(victim, signal.SIGKILL)
+                killed.append(victim)
+
+        s = run_study(c, store, progress=progress, poll_s=0.1)
+    assert killed
+    a, b = rows(s), rows(reference_summary)
+    for k in a:
+        assert abs(a[k]["log_evidence"] - b[k]["log_evidence"]) < 5 * max(b[k]["log_evidence_se"], 0.05)
+        assert a[k]["pruned"] == b[k]["pruned"]
+
+
+def test_killed_driver_resumes(tmp_path, reference_summary):
+    out = tmp_path / "st"
+    env = dict(os.environ)
+    p = subprocess.Popen([sys.executable, "-m", "service.cli", "select", str(SPEC), "--out", str(out),
+                          "--workers", "2"], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                         start_new_session=True)
+    store = StudyStore(out)
+    offsets = {}
+    deadline = time.time() + 240
+    trials = 0
+    while time.time() < deadline and trials < 3:
+        time.sleep(0.2)
+        if store.exists() and store.meta.get("study_id"):
+            trials += sum(1 for e in read_progress(store, offsets) if e.get("stage") == "trial")
+    os.killpg(p.pid, signal.SIGKILL)  # the driver and its embedded cluster
+    p.wait()
+    assert trials >= 3 and not (out / "summary.json").exists()
+    r = subprocess.run([sys.executable, "-m", "service.cli", "resume", str(out), "--workers", "2"], cwd=ROOT,
+                       env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    s = json.loads((out / "summary.json").read_text())
+    a, b = rows(s), rows(reference_summary)
+    for k in a:
+        # same seeds: finished trials are read back, the trial in flight continues from its checkpoint
+        assert a[k]["log_evidence"] == pytest.approx(b[k]["log_evidence"], abs=1e-9)
+        assert a[k]["pruned"] == b[k]["pruned"]
