@@ -42,7 +42,7 @@ def _burnin_round_task(args, prefix: str, chain: int, round_index: int):
     try:
         from distributed import Variable
 
-        fut = Variable(actor_variable_name(prefix)).get(timeout=10)
+        fut = Variable(actor_variable_name(prefix)).get(timeout=5)
         fut.result(timeout=10).report(chain, round_index, res.halves,
                                       (res.state.best_x, res.state.best_lp, res.state.best_ll)).result(timeout=30)
     except Exception:
@@ -61,15 +61,16 @@ class DaskMap:
     """:data:`ardcore.mcmc.Map` on a Dask client with deterministic task keys."""
 
     def __init__(self, client, prefix: str, store: StudyStore | None = None, model: str | None = None,
-                 iteration: int | None = None):
+                 iteration: int | None = None, coordinator: bool = False):
         self.client, self.prefix = client, prefix
         self.store, self.model, self.iteration = store, model, iteration
+        self.coordinator = coordinator  # burn-in tasks report to the trial's coordinator actor
 
     def __call__(self, func, items, label: str = ""):
         c = self.client
         futs = []
         for ch, it in enumerate(items):
-            if label.startswith("burnin-r"):
+            if label.startswith("burnin-r") and self.coordinator:
                 rnd = int(label[len("burnin-r"):])
                 futs.append(c.submit(_burnin_round_task, it, self.prefix, ch, rnd,
                                      key=f"burnin-{self.prefix}-r{rnd:03d}-c{ch}"))
@@ -78,8 +79,8 @@ class DaskMap:
                 futs.append(c.submit(_stationary_round_task, it, str(self.store.path), self.model, self.iteration,
                                      ch, start, key=f"stationary-{self.prefix}-d{start:06d}-c{ch}"))
             else:
-                name = label.split("-")[0] or getattr(func, "__name__", "task").strip("_")
-                futs.append(c.submit(func, it, key=f"{name}-{self.prefix}-{label}-c{ch}"))
+                name, _, rest = (label or getattr(func, "__name__", "task").strip("_")).partition("-")
+                futs.append(c.submit(func, it, key=f"{name}-{self.prefix}{'-' + rest if rest else ''}-c{ch}"))
         return c.gather(futs)
 
 
@@ -142,7 +143,7 @@ class StoredEvaluator(EvidenceEvaluator):
         if ck is not None and ck["stage"] == "stationary":
             s, lp, ll, _ = store.read_samples(model, iteration)
             ck.update(samples=s, lp=lp, ll=ll)
-        dmap = DaskMap(self.client, prefix, store, model, iteration)
+        dmap = DaskMap(self.client, prefix, store, model, iteration, coordinator=True)
         pools: list[ActorPool] = []
 
         def factory(state):

@@ -136,7 +136,75 @@ def bench_engine() -> dict:
     }
 
 
-BENCHES = {"ekf": bench_ekf, "engine": bench_engine}
+def _dir_mb(path) -> float:
+    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) / 1e6
+
+
+def bench_dask() -> dict:
+    """Scaling of chain throughput with workers, orchestration overhead, store size (M2, reference data)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from distributed import Client, LocalCluster
+
+    from ardcore.ard import EvidenceEvaluator
+    from ardcore.mcmc import SamplerConfig, executor_map, sample
+    from ardcore.simulate import simulate_reference
+    from ardcore.study import load_spec
+    from workers.graph import DaskMap, StoredEvaluator
+    from workers.store import StudyStore
+
+    psi = {"a3": 1e-4, "a4": 1e-5, "a5": float("inf"), "a6": float("inf")}
+    target = _m2_target(psi)
+    cfg = SamplerConfig(n_chains=4, round_size=500, n_stationary=3000, n_proposal=2000)
+    rates = {}
+    for nw in (1, 2):
+        with LocalCluster(n_workers=nw, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
+                Client(cl) as c:
+            sample(target, SamplerConfig(n_chains=4, round_size=50, n_stationary=50, n_proposal=50,
+                                         max_burnin_rounds=1), seed=0, map_fn=DaskMap(c, f"warm{nw}"))
+            t0 = time.perf_counter()
+            res = sample(target, cfg, seed=1, map_fn=DaskMap(c, f"scale{nw}"))
+            n_chain_samples = cfg.n_chains * (res.burnin_rounds * cfg.round_size + cfg.n_stationary)
+            rates[nw] = n_chain_samples / (time.perf_counter() - t0)
+        print(f"  {nw} worker(s): {rates[nw]:.0f} samples/s", flush=True)
+
+    spec = load_spec(Path(__file__).resolve().parents[2] / "examples" / "sec35.json")
+    cand = spec.models[0]
+    data = simulate_reference(1)
+    with ProcessPoolExecutor(2) as ex:
+        mf = executor_map(ex)
+        ev = EvidenceEvaluator(cand.model_spec(), dict(cand.priors), data, cfg, map_fn=mf)
+        ev(psi, 11, None)  # warm the pool
+        t0 = time.perf_counter()
+        ev(psi, 12, None)
+        t_in = time.perf_counter() - t0
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d, \
+            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
+            Client(cl) as c:
+        store = StudyStore.create(Path(d) / "st", spec.model_dump(mode="json"), data)
+        se = StoredEvaluator(cand.model_spec(), dict(cand.priors), data, cfg, client=c, store=store,
+                             study_id="bench", model="M2")
+        se(psi, 11, None, iteration=0)
+        t0 = time.perf_counter()
+        _, _, res = se(psi, 12, None, iteration=1)
+        t_dask = time.perf_counter() - t0
+        mb = _dir_mb(Path(d) / "st" / "models" / "M2" / "trials" / "001")
+        n_samples = res.samples.shape[0] * res.samples.shape[1]
+    print(f"  in-process {t_in:.1f} s, orchestrated {t_dask:.1f} s", flush=True)
+    return {
+        "dask_samples_per_s_1w": rates[1],
+        "dask_samples_per_s_2w": rates[2],
+        "dask_scaling_2w": rates[2] / rates[1],
+        "dask_overhead": t_dask / t_in - 1.0,
+        "dask_trial_wall_s": t_dask,
+        "inprocess_trial_wall_s": t_in,
+        "store_mb_per_1e6_samples": mb / n_samples * 1e6,
+    }
+
+
+BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask}
 
 
 def main(argv=None) -> int:
