@@ -1,7 +1,8 @@
 """A study as Dask tasks.
 
-* one **maximiser task** per candidate model (it secedes from the worker's
-  thread pool and drives its trials from there);
+* one **maximiser** per candidate model, a driver thread that reacts to the
+  evidence of each trial (the decision logic is cheap; the work is in the
+  chain tasks it submits, so a lost worker never takes a maximiser with it);
 * per trial psi, **chain tasks** for every step: start optimisation, each
   burn-in round (which reports to the trial's coordinator actor), each
   stationary round (which writes its samples to the zarr store), and the
@@ -215,18 +216,6 @@ def run_model(client, store_path: str, study_id: str, index: int) -> dict:
     return row
 
 
-def model_task(store_path: str, study_id: str, index: int) -> dict:
-    """Maximiser task: leaves the worker's thread pool while its chains run."""
-    from distributed import get_client, rejoin, secede
-
-    client = get_client()
-    secede()
-    try:
-        return run_model(client, store_path, study_id, index)
-    finally:
-        rejoin()
-
-
 def compare_task(store_path: str, wall_start: float, *rows: dict) -> dict:
     """Comparison of the optimal nested models; writes the summary to the store."""
     store = StudyStore(store_path)
@@ -252,18 +241,36 @@ def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None 
     return store
 
 
-def submit_study(client, store: StudyStore):
-    """Submit the maximiser tasks and the comparison; returns the comparison future and the model futures."""
+def start_study(client, store: StudyStore):
+    """Start one maximiser thread per model and the comparison task that depends on them.
+
+    Returns the comparison future (as a ``concurrent.futures.Future`` resolving to the summary).
+    """
+    from concurrent.futures import Future, ThreadPoolExecutor
+
     meta = store.meta
     study_id = meta["study_id"]
     spec = StudySpec.model_validate(meta["spec"])
-    store.update_meta(status="running")
     start = meta.get("started") or time.time()
-    store.update_meta(started=start)
-    futs = [client.submit(model_task, str(store.path), study_id, i, key=f"maximise-{study_id}-{c.label}")
-            for i, c in enumerate(spec.models)]
-    comp = client.submit(compare_task, str(store.path), start, *futs, key=f"compare-{study_id}")
-    return comp, futs
+    store.update_meta(status="running", started=start)
+    pool = ThreadPoolExecutor(max_workers=len(spec.models), thread_name_prefix=f"maximise-{study_id}")
+    rows = [pool.submit(run_model, client, str(store.path), study_id, i) for i in range(len(spec.models))]
+    out: Future = Future()
+
+    def finish():
+        try:
+            results = [f.result() for f in rows]
+            comp = client.submit(compare_task, str(store.path), start, *results, key=f"compare-{study_id}")
+            out.set_result(comp.result())
+        except BaseException as exc:  # noqa: BLE001 - handed to the waiting caller
+            out.set_exception(exc)
+        finally:
+            pool.shutdown(wait=False)
+
+    import threading
+
+    threading.Thread(target=finish, name=f"compare-{study_id}", daemon=True).start()
+    return out
 
 
 def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[dict]:
@@ -290,26 +297,23 @@ def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[dict]:
 def run_study(client, store: StudyStore, *, progress: Callable[[dict], None] | None = None,
               poll_s: float = 1.0) -> dict:
     """Run (or continue) the study in ``store`` on ``client``; blocks until the summary exists."""
-    comp, futs = submit_study(client, store)
+    comp = start_study(client, store)
     offsets: dict[str, int] = {}
-    try:
-        while not comp.done():
-            for ev in read_progress(store, offsets):
-                if progress:
-                    progress(ev)
-            time.sleep(poll_s)
+    while not comp.done():
         for ev in read_progress(store, offsets):
             if progress:
                 progress(ev)
-        if comp.status == "error":
-            exc = comp.exception()
-            from ardcore.mcmc import Cancelled
+        time.sleep(poll_s)
+    for ev in read_progress(store, offsets):
+        if progress:
+            progress(ev)
+    exc = comp.exception()
+    if exc is not None:
+        from ardcore.mcmc import Cancelled
 
-            store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
-            raise exc
-        return comp.result()
-    finally:
-        del comp, futs
+        store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
+        raise exc
+    return comp.result()
 
 
 def cancel_study(client, study_id: str) -> None:
