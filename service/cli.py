@@ -272,14 +272,18 @@ def cmd_select(a) -> int:
         from workers.graph import prepare_store
         from workers.store import StudyStore
 
-        if StudyStore(out).exists() and StudyStore(out).meta.get("status") not in (None, "created"):
+        existing = StudyStore(a.out)
+        if existing.exists() and existing.meta.get("status") not in (None, "created"):
             from ardcore.errors import SpecError
 
-            raise SpecError(f"{out} already holds a study (status {StudyStore(out).meta.get('status')!r}); "
-                            f"continue it with 'ardflow resume {out}' or choose another --out")
-        store = prepare_store(spec, out, base=base)
-        print(f"[ardflow] study {store.meta['study_id']} -> {out.resolve()}", flush=True)
+            raise SpecError(f"{a.out} already holds a study (status {existing.meta.get('status')!r}); "
+                            f"continue it with 'ardflow resume {a.out}' or choose another --out")
+        store = prepare_store(spec, a.out, base=base)
+        print(f"[ardflow] study {store.meta['study_id']} -> {store}", flush=True)
         summary = _run_on_dask(a, store)
+        _print_table(summary)
+        print(f"\nsummary: {store}/summary.json  ({time.perf_counter() - t0:.1f} s)")
+        return 0
     elif a.executor == "serial":
         summary = select(spec, out=out, progress=print_progress, base=base)
     else:
@@ -302,13 +306,13 @@ def cmd_resume(a) -> int:
     if not store.exists() or "spec" not in store.meta:
         raise SpecError(f"{a.store}: not an ardflow study store")
     if store.meta.get("status") == "done":
-        print(f"[ardflow] study already finished: {(store.path / 'summary.json').resolve()}")
+        print(f"[ardflow] study already finished: {store}/summary.json")
         return 0
     t0 = time.perf_counter()
-    print(f"[ardflow] resuming study {store.meta['study_id']} in {store.path.resolve()}", flush=True)
+    print(f"[ardflow] resuming study {store.meta['study_id']} in {store}", flush=True)
     summary = _run_on_dask(a, store)
     _print_table(summary)
-    print(f"\nsummary: {(store.path / 'summary.json').resolve()}  ({time.perf_counter() - t0:.1f} s)")
+    print(f"\nsummary: {store}/summary.json  ({time.perf_counter() - t0:.1f} s)")
     return 0
 
 

@@ -77,7 +77,7 @@ class DaskMap:
                                      key=f"burnin-{self.prefix}-r{rnd:03d}-c{ch}"))
             elif label.startswith("stationary-d") and self.store is not None:
                 start = int(label[len("stationary-d"):])
-                futs.append(c.submit(_stationary_round_task, it, str(self.store.path), self.model, self.iteration,
+                futs.append(c.submit(_stationary_round_task, it, str(self.store), self.model, self.iteration,
                                      ch, start, key=f"stationary-{self.prefix}-d{start:06d}-c{ch}"))
             else:
                 name, _, rest = (label or getattr(func, "__name__", "task").strip("_")).partition("-")
@@ -173,13 +173,10 @@ class StoredEvaluator(EvidenceEvaluator):
 
 
 def _progress_writer(store: StudyStore, model: str) -> Callable[[dict], None]:
-    path = store.path / "progress" / f"{model}.jsonl"
-    path.parent.mkdir(parents=True, exist_ok=True)
+    rel = f"progress/{model}.jsonl"
 
     def write(p: dict) -> None:
-        line = json.dumps(_json({"time": time.time(), **p}))
-        with open(path, "a") as fh:
-            fh.write(line + "\n")
+        store.append_line(rel, json.dumps(_json({"time": time.time(), **p})))
     return write
 
 
@@ -254,13 +251,13 @@ def start_study(client, store: StudyStore):
     start = meta.get("started") or time.time()
     store.update_meta(status="running", started=start)
     pool = ThreadPoolExecutor(max_workers=len(spec.models), thread_name_prefix=f"maximise-{study_id}")
-    rows = [pool.submit(run_model, client, str(store.path), study_id, i) for i in range(len(spec.models))]
+    rows = [pool.submit(run_model, client, str(store), study_id, i) for i in range(len(spec.models))]
     out: Future = Future()
 
     def finish():
         try:
             results = [f.result() for f in rows]
-            comp = client.submit(compare_task, str(store.path), start, *results, key=f"compare-{study_id}")
+            comp = client.submit(compare_task, str(store), start, *results, key=f"compare-{study_id}")
             out.set_result(comp.result())
         except BaseException as exc:  # noqa: BLE001 - handed to the waiting caller
             out.set_exception(exc)
@@ -276,16 +273,12 @@ def start_study(client, store: StudyStore):
 def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[dict]:
     """New progress events since ``offsets`` (updated in place)."""
     out = []
-    d = store.path / "progress"
-    if not d.exists():
-        return out
-    for f in sorted(d.glob("*.jsonl")):
-        model = f.stem
-        with open(f) as fh:
-            fh.seek(offsets.get(model, 0))
-            chunk = fh.read()
-            complete = chunk[: chunk.rfind("\n") + 1]
-            offsets[model] = offsets.get(model, 0) + len(complete.encode())
+    for name in store.list_files("progress", ".jsonl"):
+        model = name[: -len(".jsonl")]
+        text = store.read_text(f"progress/{name}") or ""
+        chunk = text.encode()[offsets.get(model, 0):].decode(errors="ignore")
+        complete = chunk[: chunk.rfind("\n") + 1]
+        offsets[model] = offsets.get(model, 0) + len(complete.encode())
         for line in complete.splitlines():
             try:
                 out.append({"model": model, **json.loads(line)})

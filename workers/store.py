@@ -72,17 +72,72 @@ class StudyStore:
     Parameters
     ----------
     path : str or Path
-        The store directory (created by :meth:`create`).
+        The store: a local directory, or any fsspec URL (``s3://bucket/study``,
+        ``gcs://...``, ``memory://...``) that every worker can reach.
     """
 
     def __init__(self, path: str | Path):
-        self.path = Path(path)
+        text = str(path)
+        self.remote = "://" in text and not text.startswith("file://")
+        if self.remote:
+            import fsspec
+
+            self.url = text.rstrip("/")
+            self.fs, self.root = fsspec.core.url_to_fs(self.url)
+            self.path = None
+        else:
+            self.path = Path(text[len("file://"):] if text.startswith("file://") else text)
+            self.url = str(self.path)
+
+    def __str__(self) -> str:
+        return self.url
+
+    # ---------------------------------------------------------------- side files (JSON beside the zarr group)
+    def write_text(self, rel: str, text: str) -> None:
+        """Write a side file: atomically (write, then rename) on local disks, one object remotely."""
+        if self.remote:
+            with self.fs.open(f"{self.root}/{rel}", "w") as fh:
+                fh.write(text)
+        else:
+            atomic_write_text(self.path / rel, text)
+
+    def read_text(self, rel: str) -> str | None:
+        try:
+            if self.remote:
+                with self.fs.open(f"{self.root}/{rel}", "r") as fh:
+                    return fh.read()
+            return (self.path / rel).read_text()
+        except FileNotFoundError:
+            return None
+
+    def append_line(self, rel: str, line: str) -> None:
+        """Append one line (progress logs); remote stores rewrite the object."""
+        if self.remote:
+            old = self.read_text(rel) or ""
+            self.write_text(rel, old + line + "\n")
+        else:
+            p = self.path / rel
+            p.parent.mkdir(parents=True, exist_ok=True)
+            with open(p, "a") as fh:
+                fh.write(line + "\n")
+
+    def list_files(self, rel: str, suffix: str) -> list[str]:
+        """Names of the side files in folder ``rel`` ending in ``suffix``."""
+        if self.remote:
+            try:
+                names = [p.rsplit("/", 1)[-1] for p in self.fs.ls(f"{self.root}/{rel}", detail=False)]
+            except FileNotFoundError:
+                return []
+        else:
+            d = self.path / rel
+            names = [p.name for p in d.iterdir()] if d.exists() else []
+        return sorted(n for n in names if n.endswith(suffix))
 
     # ---------------------------------------------------------------- study level
     @classmethod
     def create(cls, path: str | Path, spec_json: dict, data=None) -> "StudyStore":
         s = cls(path)
-        g = zarr.open_group(str(s.path), mode="a")
+        g = zarr.open_group(s.url, mode="a")
         meta = dict(g.attrs.get("ardflow", {}))
         meta.update({"version": STORE_VERSION, "spec": spec_json})
         meta.setdefault("status", "created")
@@ -95,10 +150,10 @@ class StudyStore:
         return s
 
     def exists(self) -> bool:
-        return (self.path / "zarr.json").exists()
+        return self.read_text("zarr.json") is not None
 
     def group(self, mode: str = "a"):
-        return zarr.open_group(str(self.path), mode=mode)
+        return zarr.open_group(self.url, mode=mode)
 
     @property
     def meta(self) -> dict:
@@ -115,10 +170,10 @@ class StudyStore:
 
         dg = self.group("r")["data"]
         cols = {k: np.asarray(dg[k][:]) for k in dg.array_keys() if k != "t"}
-        return Dataset(np.asarray(dg["t"][:]), cols, {"source": f"{self.path}/data"})
+        return Dataset(np.asarray(dg["t"][:]), cols, {"source": f"{self.url}/data"})
 
     def write_summary(self, summary: dict) -> None:
-        atomic_write_text(self.path / "summary.json", json.dumps(_json(summary), indent=2))
+        self.write_text("summary.json", json.dumps(_json(summary), indent=2))
         self.update_meta(status="done", summary=_json({k: v for k, v in summary.items() if k != "spec"}))
 
     # ---------------------------------------------------------------- trials
@@ -132,7 +187,8 @@ class StudyStore:
         path = self.trial_path(model, iteration)
         if path in g:
             tg = g[path]
-            if tg["samples"].shape == (n_chains, n_draws, len(names)):
+            # a driver killed half-way through creating the trial leaves no "created" mark
+            if tg.attrs.get("created") and tg["samples"].shape == (n_chains, n_draws, len(names)):
                 return
             del g[path]
         tg = g.require_group(path)
@@ -147,6 +203,7 @@ class StudyStore:
         tg.create_array("draw", data=np.arange(n_draws), dimension_names=["draw"])
         tg.attrs["psi"] = _json(psi)
         tg.attrs["done"] = False
+        tg.attrs["created"] = True
 
     def write_round(self, model: str, iteration: int, chain: int, start: int, samples: np.ndarray,
                     lp: np.ndarray, ll: np.ndarray) -> None:
@@ -182,14 +239,13 @@ class StudyStore:
             mg.attrs[k] = _json(v)
 
     # ---------------------------------------------------------------- checkpoints
-    def checkpoint_path(self, model: str, iteration: int) -> Path:
-        return self.path / "checkpoints" / model / f"{iteration:03d}.json"
+    @staticmethod
+    def _checkpoint_rel(model: str, iteration: int) -> str:
+        return f"checkpoints/{model}/{iteration:03d}.json"
 
     def write_checkpoint(self, model: str, iteration: int, ck: dict) -> None:
-        atomic_write_text(self.checkpoint_path(model, iteration), json.dumps(_json(ck)))
+        self.write_text(self._checkpoint_rel(model, iteration), json.dumps(_json(ck)))
 
     def read_checkpoint(self, model: str, iteration: int) -> dict | None:
-        p = self.checkpoint_path(model, iteration)
-        if not p.exists():
-            return None
-        return json.loads(p.read_text())
+        text = self.read_text(self._checkpoint_rel(model, iteration))
+        return None if text is None else json.loads(text)

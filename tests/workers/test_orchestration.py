@@ -137,3 +137,61 @@ def test_killed_driver_resumes(tmp_path, reference_summary):
         # same seeds: finished trials are read back, the trial in flight continues from its checkpoint
         assert a[k]["log_evidence"] == pytest.approx(b[k]["log_evidence"], abs=1e-9)
         assert a[k]["pruned"] == b[k]["pruned"]
+
+
+def test_coordinator_actor_restored_after_its_worker_dies():
+    from ardcore.mcmc import AdaptationPool, RoundStats
+    from workers.coordinator import ActorPool
+
+    rng = np.random.default_rng(0)
+
+    def halves():
+        x = rng.standard_normal((50, 2))
+        return RoundStats.of(x[:25]), RoundStats.of(x[25:])
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
+            Client(cl) as c:
+        pool = ActorPool(c, AdaptationPool(2, 2, np.eye(2)).to_dict(), "restore-test")
+        for ch in range(2):
+            pool.report(ch, 1, halves(), None)
+        assert pool.rounds == 1
+        holder = list(c.who_has(pool._future)[pool._future.key])[0]
+        pid = c.run(os.getpid, workers=[holder])[holder]
+        os.kill(pid, signal.SIGKILL)
+        time.sleep(0.5)
+        for ch in range(2):
+            pool.report(ch, 2, halves(), None)
+        assert pool.rounds == 2 and pool.restarts >= 1
+        assert np.all(np.isfinite(pool.rhat()))
+        pool.close()
+
+
+def test_reference_study_store_named_dims(tmp_path, thread_cluster):
+    xr = pytest.importorskip("xarray")
+    spec = load_spec(ROOT / "examples" / "sec33.json").model_copy(update={
+        "sampler": load_spec(SPEC).sampler.model_copy(update={"n_chains": 2, "n_stationary": 200, "n_proposal": 100}),
+        "maximiser": load_spec(SPEC).maximiser.model_copy(update={"max_trials": 1, "prune_test": False}),
+    })
+    store = prepare_store(spec, tmp_path / "ref")
+    s = run_study(thread_cluster, store, poll_s=0.2)
+    assert s["models"][0]["name"] == "M2true"
+    ds = xr.open_zarr(store.path, group="models/M2true/trials/000", consolidated=False)
+    assert dict(ds.sizes) == {"chain": 2, "draw": 200, "param": 6}
+    assert ds["log_likelihood"].dims == ("chain", "draw")
+    assert list(ds["param"].values) == ["B", "a1", "a2", "a3", "a4", "sigma"]
+    data = xr.open_zarr(store.path, group="data", consolidated=False)
+    assert data.sizes["time"] == 5000
+
+
+def test_fsspec_url_store(thread_cluster, reference_summary):
+    """Any fsspec URL works as the store (memory:// is shared by the threads of this process)."""
+    store = prepare_store(load_spec(SPEC), "memory://ardflow-test/st")
+    s = run_study(thread_cluster, store, poll_s=0.2)
+    assert StudyStore("memory://ardflow-test/st").meta["status"] == "done"
+    assert json.loads(store.read_text("summary.json"))["best_model"] == s["best_model"]
+    a, b = rows(s), rows(reference_summary)
+    for k in a:
+        assert a[k]["log_evidence"] == pytest.approx(b[k]["log_evidence"], abs=1e-9)
+    samples, lp, ll, names = store.read_samples("quad", 0)
+    assert samples.shape == (3, 400, 4) and np.isfinite(samples).all()
+    assert store.read_checkpoint("quad", 0)["stage"] == "stationary"
