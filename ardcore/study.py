@@ -35,6 +35,8 @@ class DataSpec(BaseModel):
 
     model_config = _STRICT
     path: Optional[str] = Field(None, max_length=4096, description="CSV, NPZ or MAT file")
+    dataset: Optional[str] = Field(None, pattern=r"^[a-f0-9]{16}$",
+                                   description="id of a data set uploaded to the service (REST API)")
     generator: Optional[Literal["reference", "appendix_a"]] = Field(
         None, description="'reference': the paper's LCO data set; 'appendix_a': y = 3 + 5x + N(0, 0.3^2)")
     seed: int = Field(1, ge=0, le=2**32 - 1)
@@ -47,14 +49,22 @@ class DataSpec(BaseModel):
 
     @model_validator(mode="after")
     def _one_source(self):
-        if (self.path is None) == (self.generator is None):
-            raise ValueError("data: give exactly one of 'path' and 'generator'")
+        if sum(x is not None for x in (self.path, self.generator, self.dataset)) != 1:
+            raise ValueError("data: give exactly one of 'path', 'dataset' and 'generator'")
         if self.start is not None and self.stop is not None and self.stop <= self.start:
             raise ValueError(f"data: stop ({self.stop}) must be greater than start ({self.start})")
         return self
 
-    def load(self, base: Path | None = None) -> Dataset:
-        if self.generator == "reference":
+    def load(self, base: Path | None = None, datasets: Path | None = None) -> Dataset:
+        if self.dataset is not None:
+            if datasets is None:
+                raise SpecError("data.dataset refers to an uploaded data set: use it through the service")
+            p = datasets / f"{self.dataset}.csv"
+            if not p.exists():
+                raise SpecError(f"data.dataset: no uploaded data set {self.dataset!r}")
+            ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
+            ds.meta["source"] = f"dataset:{self.dataset}"
+        elif self.generator == "reference":
             from .simulate import simulate_reference
 
             ds = simulate_reference(self.seed)

@@ -60,8 +60,33 @@ def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: n
     if tau_seconds:
         sec = a1.secondary_xaxis("top", functions=(lambda x: x / tau_seconds, lambda x: x * tau_seconds))
         sec.set_xlabel("frequency [Hz]")
+    return _save(fig, out)
+
+
+def _save(fig, out):
+    """Save to a path (returned as Path) or a binary file object."""
+    plt = _plt()
     fig.tight_layout()
-    out = Path(out)
-    fig.savefig(out, dpi=110)
+    if isinstance(out, (str, Path)):
+        out = Path(out)
+    fig.savefig(out, dpi=110, format="png")
     plt.close(fig)
     return out
+
+
+def plot_evidence_history(histories: dict[str, list[dict]], out):
+    """ln evidence, goodness of fit and information gain per maximisation trial (Figs. 8, 11-14)."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4))
+    for i, (model, hist) in enumerate(histories.items()):
+        it = [h["iteration"] for h in hist]
+        for ax, key, label in zip(axes, ("log_evidence", "goodness_of_fit", "information_gain"),
+                                  ("ln evidence", "goodness of fit", "information gain")):
+            y = np.array([h.get(key, np.nan) if isinstance(h.get(key), (int, float)) else np.nan for h in hist])
+            ax.plot(it, y, "o-", color=f"C{i}", ms=3, lw=1, label=model)
+            acc = [j for j, h in enumerate(hist) if h.get("accepted")]
+            ax.plot([it[j] for j in acc], y[acc], "o", color=f"C{i}", ms=7, mfc="none")
+            ax.set_xlabel("trial")
+            ax.set_title(label)
+    axes[0].legend(fontsize=8, title="open circles: accepted")
+    return _save(fig, out)

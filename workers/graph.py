@@ -227,13 +227,14 @@ def compare_task(store_path: str, wall_start: float, *rows: dict) -> dict:
 # --------------------------------------------------------------------------- driver side
 
 
-def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None = None) -> StudyStore:
-    """Create the store with the spec and the data set (a new study id)."""
-    data = spec.data.load(base)
+def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None = None,
+                  datasets: Path | None = None, study_id: str | None = None) -> StudyStore:
+    """Create the store with the spec and the data set (a new study id unless given)."""
+    data = spec.data.load(base, datasets)
     store = StudyStore.create(store_path, spec.model_dump(mode="json"), data)
     meta = store.meta
     if not meta.get("study_id"):
-        store.update_meta(study_id=f"{spec.name}-{uuid.uuid4().hex[:8]}", status="created",
+        store.update_meta(study_id=study_id or f"{spec.name}-{uuid.uuid4().hex[:8]}", status="created",
                           data={"source": data.meta.get("source"), "n": len(data)})
     return store
 

@@ -1,0 +1,430 @@
+"""The REST service (FastAPI), versioned under ``/v1``.
+
+Studies run on a Dask cluster (embedded LocalCluster or an existing scheduler)
+in background threads, so the event loop never blocks. The registry is
+durable: every study is a directory under the service root holding its zarr
+store, so a restarted service reattaches to its studies and resumes those that
+were running.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import io
+import json
+import logging
+import math
+import re
+import secrets
+import threading
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response, StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from ardcore.errors import ArdflowError
+from ardcore.study import StudySpec
+
+log = logging.getLogger("ardflow.service")
+
+API_VERSION = "v1"
+ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+DATASET_RE = re.compile(r"^[a-f0-9]{16}$")
+FINAL = {"done", "failed", "cancelled"}
+
+
+class Settings(BaseModel):
+    """Service settings (``ardflow serve`` options)."""
+
+    model_config = ConfigDict(extra="forbid")
+    root: Path = Field(description="directory holding the registry, data sets and study stores")
+    token: Optional[str] = Field(None, description="API token; None disables authentication")
+    max_body_mb: float = Field(20.0, gt=0)
+    max_upload_rows: int = Field(2_000_000, gt=0)
+
+
+# ------------------------------------------------------------------ response schemas
+class Health(BaseModel):
+    status: str
+    version: str
+    workers: int
+
+
+class DatasetInfo(BaseModel):
+    id: str
+    rows: int
+    columns: list[str]
+
+
+class StudyCreated(BaseModel):
+    id: str
+    status: str
+
+
+class Progress(BaseModel):
+    model: Optional[str] = None
+    stage: Optional[str] = None
+    iteration: Optional[int] = None
+    psi: Optional[dict[str, Any]] = None
+    best_log_evidence: Optional[float] = None
+    rhat: Optional[list[Optional[float]]] = None
+    trials_done: int = 0
+    elapsed_s: float = 0.0
+    eta_s: Optional[float] = None
+
+
+class StudyStatus(BaseModel):
+    id: str
+    name: str
+    status: str
+    created: float
+    error: Optional[str] = None
+    models: dict[str, Progress] = Field(default_factory=dict)
+
+
+class DashboardLink(BaseModel):
+    url: Optional[str]
+
+
+def _finite(x):
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+# ------------------------------------------------------------------ the study registry
+class Registry:
+    """Durable registry: ``root/studies/<id>/{meta.json, store/}``, ``root/datasets/<id>.csv``."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        (self.root / "studies").mkdir(parents=True, exist_ok=True)
+        (self.root / "datasets").mkdir(parents=True, exist_ok=True)
+        self.lock = threading.Lock()
+
+    def study_dir(self, sid: str) -> Path:
+        if not ID_RE.match(sid):
+            raise HTTPException(404, f"no study {sid!r}")
+        return self.root / "studies" / sid
+
+    def ids(self) -> list[str]:
+        return sorted(p.name for p in (self.root / "studies").iterdir() if (p / "meta.json").exists())
+
+    def meta(self, sid: str) -> dict:
+        p = self.study_dir(sid) / "meta.json"
+        if not p.exists():
+            raise HTTPException(404, f"no study {sid!r}")
+        return json.loads(p.read_text())
+
+    def write_meta(self, sid: str, meta: dict) -> None:
+        from workers.store import atomic_write_text
+
+        atomic_write_text(self.study_dir(sid) / "meta.json", json.dumps(meta))
+
+    def store(self, sid: str):
+        from workers.store import StudyStore
+
+        return StudyStore(self.study_dir(sid) / "store")
+
+
+class Runner:
+    """Runs studies on Dask in background threads."""
+
+    def __init__(self, registry: Registry, client):
+        self.registry, self.client = registry, client
+        self.threads: dict[str, threading.Thread] = {}
+
+    def start(self, sid: str) -> None:
+        if sid in self.threads and self.threads[sid].is_alive():
+            return
+        th = threading.Thread(target=self._run, args=(sid,), name=f"study-{sid}", daemon=True)
+        self.threads[sid] = th
+        th.start()
+
+    def _run(self, sid: str) -> None:
+        from ardcore.mcmc import Cancelled
+        from workers.graph import run_study
+
+        reg = self.registry
+        meta = reg.meta(sid)
+        meta["status"] = "running"
+        reg.write_meta(sid, meta)
+        try:
+            run_study(self.client, reg.store(sid), poll_s=0.5)
+            meta["status"] = "done"
+        except Cancelled:
+            meta["status"] = "cancelled"
+        except Exception as exc:  # noqa: BLE001 - recorded for the user, never lost
+            log.exception("study %s failed", sid)
+            if getattr(self, "closing", False):
+                return  # the service is stopping: the study resumes on the next start
+            meta["status"], meta["error"] = "failed", f"{type(exc).__name__}: {exc}"
+        reg.write_meta(sid, meta)
+
+    def cancel(self, sid: str) -> None:
+        from workers.graph import cancel_study
+
+        study_id = self.registry.store(sid).meta.get("study_id")
+        if study_id:
+            cancel_study(self.client, study_id)
+
+
+# ------------------------------------------------------------------ progress
+def study_progress(reg: Registry, sid: str) -> dict[str, Progress]:
+    from workers.graph import read_progress
+
+    store = reg.store(sid)
+    if not store.exists():
+        return {}
+    out: dict[str, Progress] = {}
+    meta = store.meta
+    started = meta.get("started") or time.time()
+    spec = meta.get("spec", {})
+    max_trials = spec.get("maximiser", {}).get("max_trials", 60)
+    for ev in read_progress(store, {}):
+        m = ev.get("model")
+        p = out.setdefault(m, Progress(model=m))
+        p.stage = ev.get("stage")
+        p.elapsed_s = max(0.0, float(ev.get("time", started)) - started)
+        if ev.get("stage") == "burnin":
+            p.rhat = _finite(ev.get("rhat"))
+        if ev.get("stage") == "trial":
+            p.trials_done += 1
+            p.iteration = ev.get("iteration")
+            p.psi = _finite(ev.get("psi"))
+            le = ev.get("log_evidence")
+            if ev.get("accepted") and isinstance(le, (int, float)) and math.isfinite(le):
+                p.best_log_evidence = le if p.best_log_evidence is None else max(p.best_log_evidence, le)
+        if ev.get("stage") == "model_done":
+            p.eta_s = 0.0
+    for p in out.values():
+        if p.trials_done and p.eta_s is None:
+            # an upper bound: the maximiser stops at max_trials at the latest
+            p.eta_s = p.elapsed_s / p.trials_done * max(0, max_trials - p.trials_done)
+    return out
+
+
+# ------------------------------------------------------------------ the app
+def create_app(settings: Settings, client) -> FastAPI:
+    """The FastAPI app over a Dask ``client`` (which it never exposes)."""
+    reg = Registry(settings.root)
+    runner = Runner(reg, client)
+    app = FastAPI(title="ardflow", version="0.1.0",
+                  description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")
+    app.state.registry, app.state.runner, app.state.settings = reg, runner, settings
+    max_body = int(settings.max_body_mb * 1024 * 1024)
+
+    @app.middleware("http")
+    async def limit_body(request: Request, call_next):
+        cl = request.headers.get("content-length")
+        if cl is not None:
+            try:
+                if int(cl) > max_body:
+                    return JSONResponse({"detail": f"request body larger than {settings.max_body_mb:g} MB"}, 413)
+            except ValueError:
+                return JSONResponse({"detail": "invalid Content-Length"}, 400)
+        return await call_next(request)
+
+    @app.exception_handler(RequestValidationError)
+    async def bad_request(request: Request, exc: RequestValidationError):
+        errs = [{"loc": [str(x) for x in e.get("loc", [])], "msg": str(e.get("msg", ""))} for e in exc.errors()]
+        return JSONResponse({"detail": errs}, 422)
+
+    @app.exception_handler(ArdflowError)
+    async def user_error(request: Request, exc: ArdflowError):
+        return JSONResponse({"detail": str(exc)}, 422)
+
+    def auth(request: Request) -> None:
+        if settings.token is None:
+            return
+        given = request.headers.get("x-api-token")
+        if given is None:
+            h = request.headers.get("authorization", "")
+            given = h[7:] if h.lower().startswith("bearer ") else None
+        if given is None or not hmac.compare_digest(given.encode(), settings.token.encode()):
+            raise HTTPException(401, "missing or wrong API token", headers={"WWW-Authenticate": "Bearer"})
+
+    v1 = f"/{API_VERSION}"
+
+    @app.get(f"{v1}/health", response_model=Health)
+    def health() -> Health:
+        try:
+            n = len(client.scheduler_info(n_workers=-1)["workers"])
+        except Exception:  # noqa: BLE001 - health reports what it can
+            n = 0
+        return Health(status="ok" if n else "degraded", version="0.1.0", workers=n)
+
+    @app.get(f"{v1}/dashboard", response_model=DashboardLink, dependencies=[Depends(auth)])
+    def dashboard() -> DashboardLink:
+        return DashboardLink(url=getattr(client, "dashboard_link", None))
+
+    @app.post(f"{v1}/datasets", response_model=DatasetInfo, status_code=201, dependencies=[Depends(auth)],
+              openapi_extra={"requestBody": {"content": {"text/csv": {"schema": {"type": "string"}}},
+                                             "required": True}})
+    async def upload_dataset(request: Request) -> DatasetInfo:
+        body = await request.body()
+        if len(body) > max_body:
+            raise HTTPException(413, f"data set larger than {settings.max_body_mb:g} MB")
+        if not body.strip():
+            raise HTTPException(422, "empty data set")
+        try:
+            text = body.decode("utf-8")
+        except UnicodeDecodeError:
+            raise HTTPException(422, "data set must be UTF-8 CSV text") from None
+        if text.count("\n") > settings.max_upload_rows:
+            raise HTTPException(413, f"data set has more than {settings.max_upload_rows} rows")
+        did = secrets.token_hex(8)
+        tmp = reg.root / "datasets" / f".{did}.csv"
+        tmp.write_text(text)
+        try:
+            from ardcore.data import read_dataset
+
+            ds = await asyncio.to_thread(read_dataset, tmp)
+        except ArdflowError as exc:
+            tmp.unlink(missing_ok=True)
+            raise HTTPException(422, str(exc).replace(str(tmp), "data set")) from None
+        tmp.replace(reg.root / "datasets" / f"{did}.csv")
+        return DatasetInfo(id=did, rows=len(ds), columns=["t", *ds.columns])
+
+    @app.post(f"{v1}/studies", response_model=StudyCreated, status_code=202, dependencies=[Depends(auth)])
+    async def submit(spec: StudySpec) -> StudyCreated:
+        if spec.data.path is not None:
+            raise HTTPException(422, "data.path is not accepted over the API: upload the data set "
+                                     "(POST /v1/datasets) and give data.dataset")
+        sid = f"{spec.name}-{secrets.token_hex(4)}"
+        d = reg.study_dir(sid)
+        d.mkdir(parents=True)
+        from workers.graph import prepare_store
+
+        try:
+            await asyncio.to_thread(prepare_store, spec, d / "store", datasets=reg.root / "datasets", study_id=sid)
+        except ArdflowError as exc:
+            import shutil
+
+            shutil.rmtree(d, ignore_errors=True)
+            raise HTTPException(422, str(exc)) from None
+        reg.write_meta(sid, {"id": sid, "name": spec.name, "status": "queued", "created": time.time()})
+        runner.start(sid)
+        return StudyCreated(id=sid, status="queued")
+
+    @app.get(f"{v1}/studies", response_model=list[StudyStatus], dependencies=[Depends(auth)])
+    def list_studies() -> list[StudyStatus]:
+        return [_status(sid, progress=False) for sid in reg.ids()]
+
+    def _status(sid: str, progress: bool = True) -> StudyStatus:
+        m = reg.meta(sid)
+        return StudyStatus(id=sid, name=m.get("name", sid), status=m.get("status", "unknown"),
+                           created=m.get("created", 0.0), error=m.get("error"),
+                           models=study_progress(reg, sid) if progress else {})
+
+    @app.get(f"{v1}/studies/{{sid}}", response_model=StudyStatus, dependencies=[Depends(auth)])
+    def status(sid: str) -> StudyStatus:
+        return _status(sid)
+
+    @app.get(f"{v1}/studies/{{sid}}/events", dependencies=[Depends(auth)],
+             responses={200: {"content": {"text/event-stream": {}}}})
+    async def events(sid: str, request: Request):
+        reg.meta(sid)
+
+        async def gen():
+            from workers.graph import read_progress
+
+            offsets: dict[str, int] = {}
+            store = reg.store(sid)
+            while True:
+                if await request.is_disconnected():
+                    return
+                evs = await asyncio.to_thread(read_progress, store, offsets) if store.exists() else []
+                for ev in evs:
+                    yield f"event: progress\ndata: {json.dumps(_finite(ev))}\n\n"
+                st = reg.meta(sid).get("status")
+                if st in FINAL:
+                    yield f"event: end\ndata: {json.dumps({'status': st})}\n\n"
+                    return
+                await asyncio.sleep(0.5)
+
+        return StreamingResponse(gen(), media_type="text/event-stream")
+
+    @app.post(f"{v1}/studies/{{sid}}/cancel", response_model=StudyStatus, dependencies=[Depends(auth)])
+    def cancel(sid: str) -> StudyStatus:
+        m = reg.meta(sid)
+        if m.get("status") in FINAL:
+            raise HTTPException(409, f"study {sid} is already {m['status']}")
+        runner.cancel(sid)
+        return _status(sid)
+
+    @app.get(f"{v1}/studies/{{sid}}/summary", dependencies=[Depends(auth)])
+    def summary(sid: str) -> JSONResponse:
+        reg.meta(sid)
+        text = reg.store(sid).read_text("summary.json")
+        if text is None:
+            raise HTTPException(409, f"study {sid} has no summary yet (status {reg.meta(sid).get('status')})")
+        return JSONResponse(json.loads(text))
+
+    def _best_trial(sid: str, model: str) -> int:
+        if not ID_RE.match(model):
+            raise HTTPException(404, f"no model {model!r}")
+        store = reg.store(sid)
+        try:
+            g = store.group("r")
+            mg = g[f"models/{model}"]
+        except Exception:  # noqa: BLE001 - missing group
+            raise HTTPException(404, f"study {sid} has no model {model!r}") from None
+        it = mg.attrs.get("best_iteration")
+        if it is None:
+            raise HTTPException(409, f"model {model!r} of study {sid} is not finished")
+        return int(it)
+
+    @app.get(f"{v1}/studies/{{sid}}/posterior/{{model}}", dependencies=[Depends(auth)],
+             responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}})
+    def posterior(sid: str, model: str, format: str = "json", max_draws: int = 2000):
+        reg.meta(sid)
+        if format not in ("json", "npz"):
+            raise HTTPException(422, "format must be 'json' or 'npz'")
+        if not 1 <= max_draws <= 1_000_000:
+            raise HTTPException(422, "max_draws must be between 1 and 1000000")
+        it = _best_trial(sid, model)
+        samples, lp, ll, names = reg.store(sid).read_samples(model, it)
+        if format == "npz":
+            buf = io.BytesIO()
+            np.savez_compressed(buf, names=np.array(names), samples=samples, log_posterior=lp, log_likelihood=ll)
+            return Response(buf.getvalue(), media_type="application/octet-stream",
+                            headers={"Content-Disposition": f'attachment; filename="{sid}_{model}.npz"'})
+        flat = samples.reshape(-1, samples.shape[-1])
+        step = max(1, flat.shape[0] // max_draws)
+        return JSONResponse({"model": model, "iteration": it, "names": names, "n_chains": samples.shape[0],
+                             "thin": step, "samples": _finite(flat[::step].tolist())})
+
+    @app.get(f"{v1}/studies/{{sid}}/figures/{{name}}", dependencies=[Depends(auth)],
+             responses={200: {"content": {"image/png": {}}}})
+    def figure(sid: str, name: str):
+        reg.meta(sid)
+        from service.figures import FIGURES, render
+
+        if name not in FIGURES:
+            raise HTTPException(404, f"no figure {name!r} (available: {sorted(FIGURES)})")
+        try:
+            png = render(name, reg.store(sid))
+        except LookupError as exc:
+            raise HTTPException(409, str(exc)) from None
+        return Response(png, media_type="image/png")
+
+    # reattach: studies that were queued or running when the service stopped continue
+    for sid in reg.ids():
+        try:
+            st = reg.meta(sid).get("status")
+        except Exception:  # noqa: BLE001 - a damaged entry must not stop the service
+            continue
+        if st in ("queued", "running"):
+            runner.start(sid)
+    return app
