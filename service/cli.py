@@ -316,6 +316,100 @@ def cmd_resume(a) -> int:
     return 0
 
 
+def _is_loopback(host: str) -> bool:
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def cmd_serve(a) -> int:
+    import os
+    import secrets
+
+    import uvicorn
+
+    from .app import Settings, create_app
+
+    root = Path(a.root)
+    root.mkdir(parents=True, exist_ok=True)
+    token = a.token or os.environ.get("ARDFLOW_TOKEN")
+    if token is None and not _is_loopback(a.host) and not a.no_auth:
+        token = secrets.token_urlsafe(24)
+        (root / "token").write_text(token)
+        os.chmod(root / "token", 0o600)
+        print(f"[ardflow] bound to {a.host}: API token required; generated one in {root / 'token'}", flush=True)
+    with _Cluster(a.scheduler, a.workers) as client:
+        app = create_app(Settings(root=root, token=token, max_body_mb=a.max_body_mb), client)
+        print(f"[ardflow] API on http://{a.host}:{a.port}/v1 (OpenAPI: /docs), registry {root.resolve()}", flush=True)
+        try:
+            uvicorn.run(app, host=a.host, port=a.port, log_level="warning")
+        finally:
+            app.state.runner.closing = True
+    return 0
+
+
+def _client(a):
+    import os
+
+    from .client import Client
+
+    return Client(a.url, token=a.token or os.environ.get("ARDFLOW_TOKEN"))
+
+
+def cmd_submit(a) -> int:
+    from .client import APIError
+
+    with _client(a) as c:
+        try:
+            sid = c.submit(a.spec, csv=a.csv)
+            print(sid, flush=True)
+            if a.wait:
+                c.wait(sid)
+                _print_table(c.summary(sid))
+        except APIError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    return 0
+
+
+def cmd_status(a) -> int:
+    from .client import APIError
+
+    with _client(a) as c:
+        try:
+            print(json.dumps(c.status(a.id) if a.id else c.studies(), indent=2))
+        except APIError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    return 0
+
+
+def cmd_fetch(a) -> int:
+    from .client import APIError
+
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with _client(a) as c:
+        try:
+            summary = c.summary(a.id)
+            (out / "summary.json").write_text(json.dumps(summary, indent=2))
+            for r in summary["models"]:
+                names, samples = c.posterior(a.id, r["name"])
+                np.savez(out / f"posterior_{r['name']}.npz", names=np.array(names), samples=samples)
+            for fig in ("data.png", "evidence.png"):
+                (out / fig).write_bytes(c.figure(a.id, fig))
+        except APIError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    print(f"fetched {a.id} into {out.resolve()}")
+    return 0
+
+
 def full_settings(spec):
     """The paper-scale sampler settings (method.md section 6)."""
     return spec.model_copy(update={"sampler": spec.sampler.model_copy(update={
@@ -372,6 +466,34 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--workers", type=int, default=None)
     s.add_argument("--performance-report", default=None, metavar="FILE.html")
     s.set_defaults(fn=cmd_resume)
+
+    s = sub.add_parser("serve", help="run the REST API (embedded LocalCluster or --scheduler)")
+    s.add_argument("--host", default="127.0.0.1")
+    s.add_argument("--port", type=int, default=8000)
+    s.add_argument("--root", default="runs/service", help="registry directory (studies and data sets)")
+    s.add_argument("--token", default=None, help="API token (default: $ARDFLOW_TOKEN; generated off loopback)")
+    s.add_argument("--no-auth", action="store_true", help="no token even off loopback (behind your own proxy)")
+    s.add_argument("--scheduler", default=None)
+    s.add_argument("--workers", type=int, default=None)
+    s.add_argument("--max-body-mb", type=float, default=20.0)
+    s.set_defaults(fn=cmd_serve)
+
+    for name, fn, hlp in (("submit", cmd_submit, "submit a study to a running service"),
+                          ("status", cmd_status, "status of one study (or the list)"),
+                          ("fetch", cmd_fetch, "download a finished study's summary, posteriors and figures")):
+        s = sub.add_parser(name, help=hlp)
+        if name == "submit":
+            s.add_argument("spec")
+            s.add_argument("--csv", default=None, help="upload this CSV as the study's data set")
+            s.add_argument("--wait", action="store_true")
+        elif name == "status":
+            s.add_argument("id", nargs="?")
+        else:
+            s.add_argument("id")
+            s.add_argument("--out", required=True)
+        s.add_argument("--url", default="http://127.0.0.1:8000")
+        s.add_argument("--token", default=None)
+        s.set_defaults(fn=fn)
 
     s = sub.add_parser("models", help="list the built-in models, or print one as JSON")
     s.add_argument("name", nargs="?")

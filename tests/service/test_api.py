@@ -1,0 +1,200 @@
+"""The real FastAPI app over HTTP (uvicorn) with a real LocalCluster."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import uvicorn
+from distributed import Client as DaskClient
+from distributed import LocalCluster
+
+from service.app import Settings, create_app
+from service.client import APIError, Client
+
+ROOT = Path(__file__).resolve().parents[2]
+SPEC = json.loads((ROOT / "tests" / "workers" / "small_study.json").read_text())
+TOKEN = "test-token-123"
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    def __init__(self, app, port):
+        self.server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+
+    def __enter__(self):
+        self.thread.start()
+        while not self.server.started:
+            time.sleep(0.05)
+        return self
+
+    def __exit__(self, *exc):
+        self.server.should_exit = True
+        self.thread.join(10)
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    root = tmp_path_factory.mktemp("svc")
+    port = free_port()
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cl, \
+            DaskClient(cl) as dc:
+        app = create_app(Settings(root=root, token=TOKEN), dc)
+        with Server(app, port):
+            yield f"http://127.0.0.1:{port}", root
+
+
+def test_submit_watch_summary_posterior(service, tmp_path):
+    url, root = service
+    with Client(url, token=TOKEN) as c:
+        assert c.health()["status"] == "ok"
+        sid = c.submit(SPEC)
+        st = c.wait(sid, poll_s=0.3, timeout=300, progress=False)
+        assert st["status"] == "done"
+        s = c.summary(sid)
+        assert {r["name"] for r in s["models"]} == {"quad", "cubic"}
+        assert abs(sum(r["probability"] for r in s["models"]) - 1) < 1e-9
+        names, samples = c.posterior(sid, "quad")
+        assert samples.ndim == 3 and samples.shape[2] == len(names)
+        ds = c.posterior(sid, "quad", as_xarray=True)
+        assert ds["samples"].dims == ("chain", "draw", "param")
+        png = c.figure(sid, "evidence.png")
+        assert png[:8] == b"\x89PNG\r\n\x1a\n"
+        st = c.status(sid)
+        assert st["models"]["quad"]["trials_done"] >= 2 and st["models"]["quad"]["best_log_evidence"] is not None
+        assert any(x["id"] == sid for x in c.studies())
+
+
+def test_uploaded_csv_study(service, tmp_path):
+    url, _ = service
+    from ardcore.study import appendix_a_data
+
+    ds = appendix_a_data(3)
+    csv = tmp_path / "d.csv"
+    ds.to_csv(csv)
+    spec = dict(SPEC, models=SPEC["models"][:1], name="uploaded")
+    with Client(url, token=TOKEN) as c:
+        sid = c.submit(spec, csv=csv)
+        assert c.wait(sid, poll_s=0.3, timeout=300, progress=False)["status"] == "done"
+        assert c.summary(sid)["data"]["source"].startswith("dataset:")
+
+
+def test_server_sent_events(service):
+    import httpx
+
+    url, _ = service
+    with Client(url, token=TOKEN) as c:
+        sid = c.submit(dict(SPEC, models=SPEC["models"][:1], name="sse"))
+    events = []
+    with httpx.stream("GET", f"{url}/v1/studies/{sid}/events", headers={"X-API-Token": TOKEN}, timeout=300) as r:
+        assert r.headers["content-type"].startswith("text/event-stream")
+        for line in r.iter_lines():
+            if line.startswith("event:"):
+                events.append(line.split(":", 1)[1].strip())
+            if events and events[-1] == "end":
+                break
+    assert "progress" in events and events[-1] == "end"
+
+
+def test_cancel_running_study(service):
+    url, _ = service
+    spec = dict(SPEC, name="tocancel", maximiser=dict(SPEC["maximiser"], max_trials=40),
+                sampler=dict(SPEC["sampler"], n_stationary=4000))
+    with Client(url, token=TOKEN) as c:
+        sid = c.submit(spec)
+        while c.status(sid)["status"] != "running":
+            time.sleep(0.1)
+        c.cancel(sid)
+        st = c.wait(sid, poll_s=0.2, timeout=120, progress=False)
+        assert st["status"] == "cancelled"
+        with pytest.raises(APIError) as ei:
+            c.cancel(sid)
+        assert ei.value.status == 409
+
+
+@pytest.mark.parametrize("method,path,body,status,msg", [
+    ("post", "/studies", {"name": "x"}, 422, "data"),
+    ("post", "/studies", dict(SPEC, bogus=1), 422, "bogus"),
+    ("post", "/studies", dict(SPEC, data={"path": "/etc/passwd"}), 422, "not accepted over the API"),
+    ("post", "/studies", dict(SPEC, data={"dataset": "0123456789abcdef"}), 422, "no uploaded data set"),
+    ("get", "/studies/nope", None, 404, "no study"),
+    ("get", "/studies/../../etc", None, 404, ""),
+    ("get", "/studies/nope/summary", None, 404, "no study"),
+])
+def test_bad_requests_are_4xx_with_a_message(service, method, path, body, status, msg):
+    import httpx
+
+    url, _ = service
+    r = getattr(httpx, method)(f"{url}/v1{path}", headers={"X-API-Token": TOKEN},
+                               **({"json": body} if body is not None else {}))
+    assert r.status_code == status, r.text
+    assert msg in r.text
+
+
+def test_auth_and_limits(service):
+    import httpx
+
+    url, _ = service
+    assert httpx.get(f"{url}/v1/studies").status_code == 401
+    assert httpx.get(f"{url}/v1/studies", headers={"X-API-Token": "wrong"}).status_code == 401
+    assert httpx.get(f"{url}/v1/studies", headers={"Authorization": f"Bearer {TOKEN}"}).status_code == 200
+    assert httpx.get(f"{url}/v1/health").status_code == 200  # health is open
+    big = b"t,y\n" + b"0,1\n" * (6 * 1024 * 1024)
+    r = httpx.post(f"{url}/v1/datasets", content=big, headers={"X-API-Token": TOKEN, "Content-Type": "text/csv"})
+    assert r.status_code == 413
+    r = httpx.post(f"{url}/v1/datasets", content=b"t,y\n1,2\n0,3\n" + b"2,1\n" * 20,
+                   headers={"X-API-Token": TOKEN, "Content-Type": "text/csv"})
+    assert r.status_code == 422 and "not strictly increasing" in r.text
+    nan = json.dumps(dict(SPEC, seed=1)).replace('"sd": 10', '"sd": NaN', 1)
+    r = httpx.post(f"{url}/v1/studies", content=nan, headers={"X-API-Token": TOKEN, "Content-Type": "application/json"})
+    assert r.status_code == 422
+
+
+def test_service_restart_mid_study(tmp_path):
+    """Kill the whole service (API and its embedded cluster) mid-study; a restarted service finishes it."""
+    root = tmp_path / "svc"
+    port = free_port()
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(root), "--workers", "2",
+           "--token", TOKEN]
+
+    def start():
+        p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             start_new_session=True)
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            try:
+                with Client(f"http://127.0.0.1:{port}", token=TOKEN, timeout=2) as c:
+                    c.health()
+                    return p
+            except Exception:
+                time.sleep(0.3)
+        raise RuntimeError("service did not start")
+
+    p = start()
+    try:
+        with Client(f"http://127.0.0.1:{port}", token=TOKEN) as c:
+            sid = c.submit(SPEC)
+            while sum(m["trials_done"] for m in c.status(sid)["models"].values()) < 3:
+                time.sleep(0.2)
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+        p = start()
+        with Client(f"http://127.0.0.1:{port}", token=TOKEN) as c:
+            st = c.wait(sid, poll_s=0.5, timeout=300, progress=False)
+            assert st["status"] == "done"
+            assert {r["name"] for r in c.summary(sid)["models"]} == {"quad", "cubic"}
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
