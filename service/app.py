@@ -237,7 +237,9 @@ def create_app(settings: Settings, client) -> FastAPI:
 
     @app.exception_handler(RequestValidationError)
     async def bad_request(request: Request, exc: RequestValidationError):
-        errs = [{"loc": [str(x) for x in e.get("loc", [])], "msg": str(e.get("msg", ""))} for e in exc.errors()]
+        errs = [{"type": str(e.get("type", "value_error")), "loc": [x if isinstance(x, int) else str(x)
+                                                                      for x in e.get("loc", [])],
+                 "msg": str(e.get("msg", ""))} for e in exc.errors()]
         return JSONResponse({"detail": errs}, 422)
 
     @app.exception_handler(ArdflowError)
