@@ -138,11 +138,18 @@ class Registry:
 
 
 class Runner:
-    """Runs studies on Dask in background threads."""
+    """Runs each study's driver (``ardflow resume STORE --scheduler ADDR``) as a child process.
+
+    The API process only serves requests; the maximisers' work never competes with
+    the event loop. A driver that dies is relaunched on the next service start from
+    the durable registry, and continues from the store.
+    """
 
     def __init__(self, registry: Registry, client):
         self.registry, self.client = registry, client
         self.threads: dict[str, threading.Thread] = {}
+        self.procs: dict[str, Any] = {}
+        self.closing = False
 
     def start(self, sid: str) -> None:
         if sid in self.threads and self.threads[sid].is_alive():
@@ -152,23 +159,32 @@ class Runner:
         th.start()
 
     def _run(self, sid: str) -> None:
-        from ardcore.mcmc import Cancelled
-        from workers.graph import run_study
+        import subprocess
+        import sys
 
         reg = self.registry
         meta = reg.meta(sid)
         meta["status"] = "running"
         reg.write_meta(sid, meta)
-        try:
-            run_study(self.client, reg.store(sid), poll_s=0.5)
+        store = reg.store(sid)
+        log_path = reg.study_dir(sid) / "driver.log"
+        with open(log_path, "a") as logf:
+            p = subprocess.Popen([sys.executable, "-m", "service.cli", "resume", str(store),
+                                  "--scheduler", self.client.scheduler.address],
+                                 stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+            self.procs[sid] = p
+            rc = p.wait()
+        if self.closing:
+            return  # the service is stopping: the study resumes on the next start
+        st = store.meta.get("status")
+        if rc == 0 and st == "done":
             meta["status"] = "done"
-        except Cancelled:
+        elif st == "cancelled":
             meta["status"] = "cancelled"
-        except Exception as exc:  # noqa: BLE001 - recorded for the user, never lost
-            log.exception("study %s failed", sid)
-            if getattr(self, "closing", False):
-                return  # the service is stopping: the study resumes on the next start
-            meta["status"], meta["error"] = "failed", f"{type(exc).__name__}: {exc}"
+        else:
+            tail = log_path.read_text()[-2000:].strip().splitlines()
+            meta["status"] = "failed"
+            meta["error"] = store.meta.get("error") or (tail[-1] if tail else f"driver exit {rc}")
         reg.write_meta(sid, meta)
 
     def cancel(self, sid: str) -> None:
@@ -178,40 +194,61 @@ class Runner:
         if study_id:
             cancel_study(self.client, study_id)
 
+    def stop(self) -> None:
+        self.closing = True
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.terminate()
+
 
 # ------------------------------------------------------------------ progress
-def study_progress(reg: Registry, sid: str) -> dict[str, Progress]:
-    from workers.graph import read_progress
+class ProgressCache:
+    """Per-study progress folded incrementally from the store's progress logs (status stays cheap)."""
 
-    store = reg.store(sid)
-    if not store.exists():
-        return {}
-    out: dict[str, Progress] = {}
-    meta = store.meta
-    started = meta.get("started") or time.time()
-    spec = meta.get("spec", {})
-    max_trials = spec.get("maximiser", {}).get("max_trials", 60)
-    for ev in read_progress(store, {}):
-        m = ev.get("model")
-        p = out.setdefault(m, Progress(model=m))
-        p.stage = ev.get("stage")
-        p.elapsed_s = max(0.0, float(ev.get("time", started)) - started)
-        if ev.get("stage") == "burnin":
-            p.rhat = _finite(ev.get("rhat"))
-        if ev.get("stage") == "trial":
-            p.trials_done += 1
-            p.iteration = ev.get("iteration")
-            p.psi = _finite(ev.get("psi"))
-            le = ev.get("log_evidence")
-            if ev.get("accepted") and isinstance(le, (int, float)) and math.isfinite(le):
-                p.best_log_evidence = le if p.best_log_evidence is None else max(p.best_log_evidence, le)
-        if ev.get("stage") == "model_done":
-            p.eta_s = 0.0
-    for p in out.values():
-        if p.trials_done and p.eta_s is None:
-            # an upper bound: the maximiser stops at max_trials at the latest
-            p.eta_s = p.elapsed_s / p.trials_done * max(0, max_trials - p.trials_done)
-    return out
+    def __init__(self, reg: Registry):
+        self.reg = reg
+        self.lock = threading.Lock()
+        self.entries: dict[str, dict] = {}
+
+    def get(self, sid: str) -> dict[str, Progress]:
+        from workers.graph import read_progress
+
+        with self.lock:
+            e = self.entries.get(sid)
+            if e is None:
+                store = self.reg.store(sid)
+                if not store.exists():
+                    return {}
+                meta = store.meta
+                e = self.entries[sid] = {
+                    "store": store, "offsets": {}, "models": {},
+                    "max_trials": meta.get("spec", {}).get("maximiser", {}).get("max_trials", 60),
+                    "started": meta.get("started")}
+            store = e["store"]
+            if e["started"] is None:
+                e["started"] = store.meta.get("started")
+            started = e["started"] or time.time()
+            out = e["models"]
+            for ev in read_progress(store, e["offsets"]):
+                m = ev.get("model")
+                p = out.setdefault(m, Progress(model=m))
+                p.stage = ev.get("stage")
+                p.elapsed_s = max(0.0, float(ev.get("time", started)) - started)
+                if ev.get("stage") == "burnin":
+                    p.rhat = _finite(ev.get("rhat"))
+                if ev.get("stage") == "trial":
+                    p.trials_done += 1
+                    p.iteration = ev.get("iteration")
+                    p.psi = _finite(ev.get("psi"))
+                    le = ev.get("log_evidence")
+                    if ev.get("accepted") and isinstance(le, (int, float)) and math.isfinite(le):
+                        p.best_log_evidence = le if p.best_log_evidence is None else max(p.best_log_evidence, le)
+                if ev.get("stage") == "model_done":
+                    p.eta_s = 0.0
+                elif p.trials_done:
+                    # an upper bound: the maximiser stops at max_trials at the latest
+                    p.eta_s = p.elapsed_s / p.trials_done * max(0, e["max_trials"] - p.trials_done)
+            return {k: v.model_copy() for k, v in out.items()}
 
 
 # ------------------------------------------------------------------ the app
@@ -219,6 +256,7 @@ def create_app(settings: Settings, client) -> FastAPI:
     """The FastAPI app over a Dask ``client`` (which it never exposes)."""
     reg = Registry(settings.root)
     runner = Runner(reg, client)
+    progress_cache = ProgressCache(reg)
     app = FastAPI(title="ardflow", version="0.1.0",
                   description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")
     app.state.registry, app.state.runner, app.state.settings = reg, runner, settings
@@ -246,7 +284,7 @@ def create_app(settings: Settings, client) -> FastAPI:
     async def user_error(request: Request, exc: ArdflowError):
         return JSONResponse({"detail": str(exc)}, 422)
 
-    def auth(request: Request) -> None:
+    async def auth(request: Request) -> None:
         if settings.token is None:
             return
         given = request.headers.get("x-api-token")
@@ -327,10 +365,11 @@ def create_app(settings: Settings, client) -> FastAPI:
         m = reg.meta(sid)
         return StudyStatus(id=sid, name=m.get("name", sid), status=m.get("status", "unknown"),
                            created=m.get("created", 0.0), error=m.get("error"),
-                           models=study_progress(reg, sid) if progress else {})
+                           models=progress_cache.get(sid) if progress else {})
 
     @app.get(f"{v1}/studies/{{sid}}", response_model=StudyStatus, dependencies=[Depends(auth)])
-    def status(sid: str) -> StudyStatus:
+    async def status(sid: str) -> StudyStatus:
+        # small local reads, folded incrementally: cheaper on the event loop than a thread hop
         return _status(sid)
 
     @app.get(f"{v1}/studies/{{sid}}/events", dependencies=[Depends(auth)],

@@ -235,6 +235,8 @@ class _Cluster:
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                         dashboard_address=":8787", silence_logs=40)
             self.client = Client(self.cluster)
+            # compute yields to the driver, the API and the scheduler on a shared machine
+            self.client.run(os.nice, 10)
         print(f"[ardflow] Dask dashboard: {self.client.dashboard_link}", flush=True)
         return self.client
 
@@ -349,7 +351,7 @@ def cmd_serve(a) -> int:
         try:
             uvicorn.run(app, host=a.host, port=a.port, log_level="warning")
         finally:
-            app.state.runner.closing = True
+            app.state.runner.stop()
     return 0
 
 

@@ -276,11 +276,10 @@ def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[dict]:
     out = []
     for name in store.list_files("progress", ".jsonl"):
         model = name[: -len(".jsonl")]
-        text = store.read_text(f"progress/{name}") or ""
-        chunk = text.encode()[offsets.get(model, 0):].decode(errors="ignore")
-        complete = chunk[: chunk.rfind("\n") + 1]
-        offsets[model] = offsets.get(model, 0) + len(complete.encode())
-        for line in complete.splitlines():
+        chunk = store.read_from(f"progress/{name}", offsets.get(model, 0))
+        complete = chunk[: chunk.rfind(b"\n") + 1]
+        offsets[model] = offsets.get(model, 0) + len(complete)
+        for line in complete.decode(errors="ignore").splitlines():
             try:
                 out.append({"model": model, **json.loads(line)})
             except json.JSONDecodeError:

@@ -121,6 +121,19 @@ class StudyStore:
             with open(p, "a") as fh:
                 fh.write(line + "\n")
 
+    def read_from(self, rel: str, offset: int) -> bytes:
+        """The bytes of a side file from ``offset`` on (a local file is not read from the start)."""
+        try:
+            if self.remote:
+                with self.fs.open(f"{self.root}/{rel}", "rb") as fh:
+                    fh.seek(offset)
+                    return fh.read()
+            with open(self.path / rel, "rb") as fh:
+                fh.seek(offset)
+                return fh.read()
+        except FileNotFoundError:
+            return b""
+
     def list_files(self, rel: str, suffix: str) -> list[str]:
         """Names of the side files in folder ``rel`` ending in ``suffix``."""
         if self.remote:

@@ -204,7 +204,63 @@ def bench_dask() -> dict:
     }
 
 
-BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask}
+def bench_api() -> dict:
+    """Status requests from 20 concurrent clients while a study runs (real server over HTTP)."""
+    import asyncio
+    import json as _json
+    import signal
+    import socket
+    import subprocess
+    import tempfile
+
+    import httpx
+
+    token = "bench-token"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    root = Path(tempfile.mkdtemp())
+    p = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(root),
+                          "--token", token], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         start_new_session=True)
+    base = f"http://127.0.0.1:{port}/v1"
+    h = {"X-API-Token": token}
+    try:
+        for _ in range(600):
+            try:
+                if httpx.get(f"{base}/health", timeout=1).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                time.sleep(0.2)
+        spec = _json.loads((Path(__file__).resolve().parents[2] / "examples" / "sec33.json").read_text())
+        sid = httpx.post(f"{base}/studies", json=spec, headers=h, timeout=60).json()["id"]
+        while httpx.get(f"{base}/studies/{sid}", headers=h).json()["status"] != "running":
+            time.sleep(0.2)
+        time.sleep(5)  # chains are running
+
+        async def client_loop(n, lat, errors):
+            async with httpx.AsyncClient(headers=h, timeout=30) as c:
+                for _ in range(n):
+                    t0 = time.perf_counter()
+                    r = await c.get(f"{base}/studies/{sid}")
+                    lat.append((time.perf_counter() - t0) * 1e3)
+                    if r.status_code != 200:
+                        errors.append(r.status_code)
+
+        async def main():
+            lat, errors = [], []
+            await asyncio.gather(*(client_loop(25, lat, errors) for _ in range(20)))
+            return lat, errors
+
+        lat, errors = asyncio.run(main())
+        httpx.post(f"{base}/studies/{sid}/cancel", headers=h)
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+    return {"api_status_p95_ms": float(np.percentile(lat, 95)), "api_status_p50_ms": float(np.percentile(lat, 50)),
+            "api_requests": len(lat), "api_errors": len(errors)}
+
+
+BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api}
 
 
 def main(argv=None) -> int:

@@ -50,7 +50,8 @@ class Server:
 def service(tmp_path_factory):
     root = tmp_path_factory.mktemp("svc")
     port = free_port()
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cl, \
+    # threads for workers, but TCP: the service's study drivers are child processes that connect to it
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=":0") as cl, \
             DaskClient(cl) as dc:
         app = create_app(Settings(root=root, token=TOKEN), dc)
         with Server(app, port):
