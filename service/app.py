@@ -435,7 +435,10 @@ def create_app(settings: Settings, client) -> FastAPI:
         if not 1 <= max_draws <= 1_000_000:
             raise HTTPException(422, "max_draws must be between 1 and 1000000")
         it = _best_trial(sid, model)
-        samples, lp, ll, names = reg.store(sid).read_samples(model, it)
+        try:
+            samples, lp, ll, names = reg.store(sid).read_samples(model, it)
+        except (KeyError, FileNotFoundError):
+            raise HTTPException(409, f"model {model!r} of study {sid} has no stored samples") from None
         if format == "npz":
             buf = io.BytesIO()
             np.savez_compressed(buf, names=np.array(names), samples=samples, log_posterior=lp, log_likelihood=ll)

@@ -207,8 +207,18 @@ def run_model(client, store_path: str, study_id: str, index: int) -> dict:
 
     row, mr = run_candidate(cand, data, spec, index, progress=progress, cancel=cancel, evaluator_factory=factory,
                             on_trial=on_trial)
+    best_iteration = mr.best.iteration
+    if spec.evidence == "laplace":
+        # Laplace trials sample nothing; the posterior drawn at psi_opt gets a trial group of its own
+        res = mr.sampler
+        best_iteration = len(mr.history)
+        nc, M, d = res.samples.shape
+        store.create_trial(model, best_iteration, list(res.names), nc, M, M, mr.psi_opt)
+        for c in range(nc):
+            store.write_round(model, best_iteration, c, 0, res.samples[c], res.lp[c], res.ll[c])
+        store.finish_trial(model, best_iteration, {"psi": _json(mr.psi_opt), "final_laplace_posterior": True})
     store.set_model_attrs(model, result=row, history=[t.to_dict() for t in mr.history],
-                          best_iteration=mr.best.iteration)
+                          best_iteration=best_iteration)
     progress({"stage": "model_done", "log_evidence": row["log_evidence"]})
     return row
 

@@ -199,3 +199,23 @@ def test_service_restart_mid_study(tmp_path):
             assert {r["name"] for r in c.summary(sid)["models"]} == {"quad", "cubic"}
     finally:
         os.killpg(p.pid, signal.SIGKILL)
+
+
+def test_appendix_a_study_over_http(service):
+    url, _ = service
+    spec = json.loads((ROOT / "examples" / "polynomial.json").read_text())
+    with Client(url, token=TOKEN) as c:
+        sid = c.submit(spec)
+        seen = set()
+        while True:
+            st = c.status(sid)
+            seen.add(st["status"])
+            if st["status"] in ("done", "failed", "cancelled"):
+                break
+            time.sleep(0.2)
+        assert st["status"] == "done", st
+        r = c.summary(sid)["models"][0]
+        assert sorted(r["pruned"]) == ["a2", "a3", "a4"]
+        names, samples = c.posterior(sid, "polynomial")
+        a1 = samples[..., names.index("a1")].ravel()
+        assert np.quantile(a1, 0.005) < 5.0 < np.quantile(a1, 0.995)
