@@ -219,3 +219,25 @@ def test_appendix_a_study_over_http(service):
         names, samples = c.posterior(sid, "polynomial")
         a1 = samples[..., names.index("a1")].ravel()
         assert np.quantile(a1, 0.005) < 5.0 < np.quantile(a1, 0.995)
+
+
+def test_cli_submit_status_fetch(service, tmp_path):
+    url, _ = service
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps(dict(SPEC, models=SPEC["models"][:1], name="cli")))
+    base = [sys.executable, "-m", "service.cli"]
+    common = ["--url", url, "--token", TOKEN]
+    r = subprocess.run(base + ["submit", str(spec), "--wait"] + common, cwd=ROOT, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    sid = r.stdout.splitlines()[0].strip()
+    r = subprocess.run(base + ["status", sid] + common, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and json.loads(r.stdout)["status"] == "done"
+    r = subprocess.run(base + ["fetch", sid, "--out", str(tmp_path / "f")] + common, cwd=ROOT, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "f" / "summary.json").exists() and (tmp_path / "f" / "posterior_quad.npz").exists()
+    assert (tmp_path / "f" / "evidence.png").read_bytes()[:4] == b"\x89PNG"
+    r = subprocess.run(base + ["status", "no-such-study"] + common, cwd=ROOT, capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2 and "HTTP 404" in r.stderr and "Traceback" not in r.stderr
