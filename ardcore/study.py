@@ -252,15 +252,19 @@ def model_probabilities(log_z: list[float], se: list[float], prior: list[float] 
     return p.tolist(), pd.std(axis=0).tolist()
 
 
-def _jsonable(x):
+def to_jsonable(x):
+    """Plain JSON values: infinities as ``"inf"``/``"-inf"`` (pruned alphas), NaN as null, numpy as Python."""
     if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
+        return {str(k): to_jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, float) and math.isinf(x):
-        return "inf" if x > 0 else "-inf"
-    if isinstance(x, (np.floating,)):
-        return _jsonable(float(x))
+        return [to_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return to_jsonable(x.tolist())
+    if isinstance(x, (float, np.floating)):
+        x = float(x)
+        if math.isinf(x):
+            return "inf" if x > 0 else "-inf"
+        return None if math.isnan(x) else x
     if isinstance(x, np.integer):
         return int(x)
     return x
@@ -292,7 +296,7 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
 
     def trial_done(tr):
         prog({"stage": "trial", "iteration": tr.iteration, "action": tr.action,
-              "psi": _jsonable(tr.psi), "log_evidence": tr.evidence.log_evidence,
+              "psi": to_jsonable(tr.psi), "log_evidence": tr.evidence.log_evidence,
               "log_evidence_se": tr.evidence.log_evidence_se, "accepted": tr.accepted})
         if on_trial:
             on_trial(tr)
@@ -300,7 +304,7 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
     seed = spec.seed * 1_000_003 + 7919 * index
     mr = maximise(ev, cand.thresholds(), spec.maximiser.config(), seed=seed, on_trial=trial_done)
     res, target = mr.sampler, mr.target
-    if spec.evidence == "laplace" and cand.ard_names is not None:
+    if spec.evidence == "laplace":
         target, _, res = ev(mr.psi_opt, seed + 99991, mr.sampler, final=True)
         mr.sampler = res
     flat = res.samples.reshape(-1, len(res.names))
@@ -337,7 +341,7 @@ def compare(rows: list[dict], spec: StudySpec, data_meta: dict, wall_s: float) -
     for r, p, s in zip(rows, probs, psd):
         r["probability"] = p
         r["probability_sd"] = s
-    return _jsonable({
+    return to_jsonable({
         "study": spec.name,
         "data": data_meta,
         "models": rows,
@@ -368,11 +372,11 @@ def select(spec: StudySpec, *, out: str | Path | None = None, map_fn: Map = seri
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         _atomic_write(out / "summary.json", json.dumps(summary, indent=2))
-        _atomic_write(out / "history.json", json.dumps(_jsonable(history), indent=2))
+        _atomic_write(out / "history.json", json.dumps(to_jsonable(history), indent=2))
         for k, mr in results.items():
             np.savez(out / f"posterior_{k}.npz", names=np.array(mr.sampler.names), samples=mr.sampler.samples,
                      lp=mr.sampler.lp, ll=mr.sampler.ll)
-    summary["_history"] = _jsonable(history)
+    summary["_history"] = to_jsonable(history)
     return summary
 
 

@@ -23,7 +23,6 @@ task rewrites the same chunk.
 from __future__ import annotations
 
 import json
-import math
 import os
 import tempfile
 from pathlib import Path
@@ -31,29 +30,15 @@ from pathlib import Path
 import numpy as np
 import zarr
 
+from ardcore.study import to_jsonable
+
 STORE_VERSION = 1
 
 # zarr's own pools stay small: Dask provides the parallelism
 zarr.config.set({"async.concurrency": 4, "threading.max_workers": 2})
 
 
-def _json(x):
-    if isinstance(x, dict):
-        return {str(k): _json(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        x = float(x)
-        if math.isinf(x):
-            return "inf" if x > 0 else "-inf"
-        if math.isnan(x):
-            return None
-        return x
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.ndarray):
-        return _json(x.tolist())
-    return x
+_json = to_jsonable
 
 
 def atomic_write_text(path: Path, text: str) -> None:
