@@ -258,7 +258,12 @@ def _run_on_dask(a, store) -> dict:
 
             ctx = performance_report(filename=a.performance_report)
         with ctx:
-            return run_study(client, store, progress=print_progress)
+            summary = run_study(client, store, progress=print_progress)
+    if not store.remote:
+        from .html_report import write_report
+
+        print(f"[ardflow] report: {write_report(store).resolve()}", flush=True)
+    return summary
 
 
 def cmd_select(a) -> int:

@@ -90,3 +90,83 @@ def plot_evidence_history(histories: dict[str, list[dict]], out):
             ax.set_title(label)
     axes[0].legend(fontsize=8, title="open circles: accepted")
     return _save(fig, out)
+
+
+def plot_ard_bounds(history: list[dict], ard: list[str], out):
+    """Prior (+-2.576/sqrt(alpha)) and posterior 99 % bounds of each ARD parameter per trial (Fig. 9)."""
+    plt = _plt()
+    n = max(1, len(ard))
+    fig, axes = plt.subplots(1, n, figsize=(3.6 * n, 3.6), squeeze=False)
+    for ax, name in zip(axes[0], ard):
+        for h in history:
+            it = h["iteration"]
+            a = h["psi"].get(name)
+            post = h.get("posterior", {}).get(name)
+            if a == "inf":
+                ax.plot([it], [0.0], "x", color="C3")
+                continue
+            half = 2.576 / np.sqrt(float(a))
+            ax.plot([it, it], [-half, half], color="0.75", lw=6, solid_capstyle="butt")
+            if post:
+                ax.plot([it, it], [post["q005"], post["q995"]], color="C0" if h.get("accepted") else "C1", lw=2)
+        ax.set_yscale("symlog", linthresh=1.0)
+        ax.set_title(name)
+        ax.set_xlabel("trial")
+    axes[0][0].set_ylabel("99 % bounds")
+    fig.suptitle("prior (grey), posterior (blue: accepted trial, orange: rejected), x: pruned", fontsize=9)
+    return _save(fig, out)
+
+
+def plot_marginals(names: list[str], samples: np.ndarray, out, true_values: dict | None = None,
+                   reference_bounds: dict | None = None):
+    """Marginal posteriors with 99 % bounds and the true values (Fig. 15)."""
+    plt = _plt()
+    d = len(names)
+    cols = min(3, d)
+    rows = int(np.ceil(d / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
+    flat = samples.reshape(-1, d)
+    for i, name in enumerate(names):
+        ax = axes[i // cols][i % cols]
+        x = flat[:, i]
+        ax.hist(x, bins=60, density=True, color="C0", alpha=0.7)
+        lo, hi = np.quantile(x, [0.005, 0.995])
+        ax.axvspan(lo, hi, color="C0", alpha=0.1, label="99 % bounds")
+        if true_values and name in true_values:
+            ax.axvline(true_values[name], color="C3", lw=2, label="true")
+        if reference_bounds and name in reference_bounds:
+            rlo, rhi = reference_bounds[name]
+            ax.axvline(rlo, color="k", ls=":", lw=1, label="paper 99 %")
+            ax.axvline(rhi, color="k", ls=":", lw=1)
+        ax.set_title(name)
+    for j in range(d, rows * cols):
+        axes[j // cols][j % cols].axis("off")
+    axes[0][0].legend(fontsize=7)
+    return _save(fig, out)
+
+
+def plot_joint(names: list[str], samples: np.ndarray, out, true_values: dict | None = None, max_points: int = 3000):
+    """Pairwise joint posteriors (Fig. 16), thinned."""
+    plt = _plt()
+    d = len(names)
+    flat = samples.reshape(-1, d)
+    flat = flat[:: max(1, flat.shape[0] // max_points)]
+    fig, axes = plt.subplots(d, d, figsize=(2.0 * d, 2.0 * d), squeeze=False)
+    for i in range(d):
+        for j in range(d):
+            ax = axes[i][j]
+            if j > i:
+                ax.axis("off")
+                continue
+            if i == j:
+                ax.hist(flat[:, i], bins=40, color="C0")
+            else:
+                ax.plot(flat[:, j], flat[:, i], ".", ms=1, alpha=0.3, color="C0")
+                if true_values and names[i] in true_values and names[j] in true_values:
+                    ax.plot(true_values[names[j]], true_values[names[i]], "+", color="C3", ms=10, mew=2)
+            if i == d - 1:
+                ax.set_xlabel(names[j], fontsize=8)
+            if j == 0:
+                ax.set_ylabel(names[i], fontsize=8)
+            ax.tick_params(labelsize=6)
+    return _save(fig, out)

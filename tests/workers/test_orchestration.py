@@ -195,3 +195,19 @@ def test_fsspec_url_store(thread_cluster, reference_summary):
     samples, lp, ll, names = store.read_samples("quad", 0)
     assert samples.shape == (3, 400, 4) and np.isfinite(samples).all()
     assert store.read_checkpoint("quad", 0)["stage"] == "stationary"
+
+
+def test_report_for_any_study(tmp_path, thread_cluster):
+    import re
+
+    from service.html_report import write_report
+
+    spec = load_spec(SPEC).model_copy(update={"true_values": {"a0": 3.0, "a1": 5.0, "gamma": 0.3}})
+    store = prepare_store(spec, tmp_path / "st")
+    run_study(thread_cluster, store, poll_s=0.2)
+    page = write_report(store)
+    text = page.read_text()
+    imgs = re.findall(r"<img src='([^']+)'", text)
+    assert len(imgs) >= 6 and all((page.parent / f).stat().st_size > 1000 for f in imgs)
+    assert "http" not in text  # no network assets
+    assert "Table 10 analogue" in text and "true inside" in text
