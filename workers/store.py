@@ -13,7 +13,7 @@ gives labelled arrays)::
           param          (param)                parameter names
           attrs: psi, evidence (with per-chain values), diagnostics, done
       checkpoints/<model>/<NNN>.json     sampler checkpoint of a trial (atomic write-then-rename)
-      summary.json                       the study summary (also in attrs)
+      summary.json, history.json         the study summary and every trial of every model (also in attrs)
 
 Only the orchestrator creates arrays; chain tasks write their own chunks
 (region writes to distinct chunks are safe across processes) and a re-run

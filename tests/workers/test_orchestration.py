@@ -50,6 +50,8 @@ def test_orchestrated_equals_in_process(tmp_path, thread_cluster, reference_summ
     assert f"stationary-{sid}-cubic-it001-d000000-c2" in keys
     assert f"compare-{sid}" in keys
     assert json.loads((tmp_path / "st" / "summary.json").read_text())["best_model"] == s["best_model"]
+    hist = json.loads((tmp_path / "st" / "history.json").read_text())
+    assert len(hist["quad"]) == a["quad"]["iterations"]
     assert store.meta["status"] == "done"
 
 
