@@ -156,38 +156,39 @@ def cmd_models(a) -> int:
 
 
 def cmd_demo(a) -> int:
-    from ardcore.ekf import compile_model
-    from ardcore.library import REFERENCE_PRIOR_MEDIANS, builtin
-    from ardcore.simulate import ReferencePipeline, simulate_reference
+    """The main job: the paper's Section 3.6 study (M1, M2, M3 with ARD) on an embedded LocalCluster."""
+    from ardcore.study import load_spec
+    from workers.graph import prepare_store
+    from workers.store import StudyStore
 
-    from .report import plot_data_and_psd
-
+    spec_path = Path(__file__).resolve().parents[1] / "examples" / "sec36.json"
+    spec = load_spec(spec_path)
+    if a.full:
+        spec = full_settings(spec)
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    store = StudyStore(out)
     t0 = time.perf_counter()
-    print(f"[demo] simulating the reference data set (seed {a.seed}) ...", flush=True)
-    ds = simulate_reference(a.seed)
-    csv = out / "reference.csv"
-    ds.to_csv(csv)
-    _write_sidecar(csv, ds.meta)
-    fig = plot_data_and_psd(ds.t, ds.columns["y"], out / "data_psd.png", clean=ds.meta["theta_clean"],
-                            cutoff=ReferencePipeline().cutoff,
-                            title=f"Reference LCO data (seed {a.seed}, onset tau = {ds.meta['onset_tau']:.1f})")
-    rows = {}
-    for name in ("M1", "M2", "M3"):
-        spec = builtin(name)
-        cm = compile_model(spec)
-        med = REFERENCE_PRIOR_MEDIANS[name]
-        tc = time.perf_counter()
-        ll = cm.loglik(med, ds)
-        rows[name] = {"loglik_at_prior_median": ll, "first_call_s": time.perf_counter() - tc,
-                      "prior_median": med}
-        print(f"[demo] {name}: EKF log-likelihood at the prior medians = {ll:.2f}", flush=True)
-    summary = {"data": str(csv), "figure": str(fig), "models": rows, "wall_s": time.perf_counter() - t0}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"[demo] data:    {csv.resolve()}")
-    print(f"[demo] figure:  {fig.resolve()}")
-    print(f"[demo] summary: {(out / 'summary.json').resolve()}")
+    status = store.meta.get("status") if store.exists() else None
+    if status == "done":
+        print(f"[demo] already done: {out.resolve()} (delete it to run again)", flush=True)
+    elif status is not None and store.meta.get("spec") == spec.model_dump(mode="json"):
+        print(f"[demo] continuing the study in {out.resolve()}", flush=True)
+        _run_on_dask(a, store)
+    else:
+        if status is not None:
+            import shutil
+
+            shutil.rmtree(out)
+        print(f"[demo] Section 3.6 study ({spec_path.name}{', paper scale' if a.full else ', demo scale'}): "
+              "M1, M2, M3 with ARD priors on a3..a6, on an embedded Dask cluster", flush=True)
+        store = prepare_store(spec, out, base=spec_path.parent)
+        _run_on_dask(a, store)
+    summary = json.loads(store.read_text("summary.json"))
+    _print_table(summary)
+    print(f"\n[demo] store (zarr):  {out.resolve()}")
+    print(f"[demo] summary:       {(out / 'summary.json').resolve()}")
+    print(f"[demo] report:        {(out / 'report' / 'report.html').resolve()}")
+    print(f"[demo] wall time:     {time.perf_counter() - t0:.0f} s")
     return 0
 
 
@@ -506,9 +507,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("name", nargs="?")
     s.set_defaults(fn=cmd_models)
 
-    s = sub.add_parser("demo", help="the main job on the reference problem")
+    s = sub.add_parser("demo", help="the main job: the Section 3.6 study on an embedded cluster, with its report")
     s.add_argument("--out", default="runs/demo")
-    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--full", action="store_true", help="paper-scale sampler settings")
+    s.add_argument("--workers", type=int, default=None)
+    s.add_argument("--scheduler", default=None)
+    s.add_argument("--performance-report", default=None, metavar="FILE.html")
     s.set_defaults(fn=cmd_demo)
     return p
 
