@@ -19,6 +19,7 @@ driver continues with :func:`resume_study`.
 from __future__ import annotations
 
 import json
+import logging
 import time
 import uuid
 from pathlib import Path
@@ -33,6 +34,8 @@ from ardcore.study import StudySpec, compare, run_candidate
 
 from .coordinator import ActorPool, actor_variable_name
 from .store import StudyStore, _json
+
+log = logging.getLogger("ardflow.workers")
 
 # --------------------------------------------------------------------------- chain tasks
 
@@ -67,22 +70,51 @@ class DaskMap:
         self.store, self.model, self.iteration = store, model, iteration
         self.coordinator = coordinator  # burn-in tasks report to the trial's coordinator actor
 
-    def __call__(self, func, items, label: str = ""):
+    stall_s = 20.0
+    """After this long without progress, check that the scheduler still knows every key being waited for."""
+
+    def _submit(self, func, it, ch: int, label: str, attempt: int):
         c = self.client
-        futs = []
-        for ch, it in enumerate(items):
-            if label.startswith("burnin-r") and self.coordinator:
-                rnd = int(label[len("burnin-r"):])
-                futs.append(c.submit(_burnin_round_task, it, self.prefix, ch, rnd,
-                                     key=f"burnin-{self.prefix}-r{rnd:03d}-c{ch}"))
-            elif label.startswith("stationary-d") and self.store is not None:
-                start = int(label[len("stationary-d"):])
-                futs.append(c.submit(_stationary_round_task, it, str(self.store), self.model, self.iteration,
-                                     ch, start, key=f"stationary-{self.prefix}-d{start:06d}-c{ch}"))
-            else:
-                name, _, rest = (label or getattr(func, "__name__", "task").strip("_")).partition("-")
-                futs.append(c.submit(func, it, key=f"{name}-{self.prefix}{'-' + rest if rest else ''}-c{ch}"))
-        return c.gather(futs)
+        sfx = f"-a{attempt}" if attempt else ""
+        if label.startswith("burnin-r") and self.coordinator:
+            rnd = int(label[len("burnin-r"):])
+            return c.submit(_burnin_round_task, it, self.prefix, ch, rnd,
+                            key=f"burnin-{self.prefix}-r{rnd:03d}-c{ch}{sfx}")
+        if label.startswith("stationary-d") and self.store is not None:
+            start = int(label[len("stationary-d"):])
+            return c.submit(_stationary_round_task, it, str(self.store), self.model, self.iteration,
+                            ch, start, key=f"stationary-{self.prefix}-d{start:06d}-c{ch}{sfx}")
+        name, _, rest = (label or getattr(func, "__name__", "task").strip("_")).partition("-")
+        return c.submit(func, it, key=f"{name}-{self.prefix}{'-' + rest if rest else ''}-c{ch}{sfx}")
+
+    def __call__(self, func, items, label: str = ""):
+        from distributed import wait
+
+        futs = [self._submit(func, it, ch, label, 0) for ch, it in enumerate(items)]
+        attempts = [0] * len(futs)
+        while True:
+            try:
+                wait(futs, timeout=self.stall_s, return_when="ALL_COMPLETED")
+            except TimeoutError:
+                pass
+            pending = [f for f in futs if not f.done()]
+            if not pending:
+                break
+            waiting = {id(f) for f in pending}
+            # A worker killed at the wrong moment can leave the scheduler without a key this client
+            # still waits for; such a task is submitted again under a new key (suffix -a<attempt>).
+            keys = [f.key for f in pending]
+            known = self.client.run_on_scheduler(_known_keys, keys=keys)
+            for i, f in enumerate(futs):
+                if id(f) in waiting and (not known.get(f.key, False) or f.status in ("lost", "cancelled")):
+                    attempts[i] += 1
+                    log.warning("task %s was lost by the scheduler; submitting it again", f.key)
+                    futs[i] = self._submit(func, items[i], i, label, attempts[i])
+        return self.client.gather(futs)
+
+
+def _known_keys(dask_scheduler=None, keys=()):
+    return {k: k in dask_scheduler.tasks for k in keys}
 
 
 # --------------------------------------------------------------------------- trials with a store
