@@ -9,7 +9,6 @@ constant between samples. Irregular sampling is handled interval by interval.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,17 +66,13 @@ class CompiledModel:
     ----------
     param_names : list of str
         The free parameters, in the order ``phi`` vectors use.
-    compile_s : float
-        Seconds the first (possibly cache-loading) call took in this process.
     """
 
     def __init__(self, spec: ModelSpec):
         self.spec = spec
         self.param_names = spec.free_parameters
         self.state_names = list(spec.states)
-        t0 = time.perf_counter()
         self._mod = kernel_module(spec)
-        self.compile_s = time.perf_counter() - t0
 
     def _phi(self, phi) -> np.ndarray:
         if isinstance(phi, dict):

@@ -132,8 +132,3 @@ def parse_expression(source: str, names: Iterable[str], *, where: str = "express
         raise ModelError(f"{where}: token {_token(node, text)!r} is not allowed in {text!r}")
 
     return visit(tree)
-
-
-def free_names(expr: sp.Expr) -> set[str]:
-    """Names of the free symbols of ``expr``."""
-    return {s.name for s in expr.free_symbols}

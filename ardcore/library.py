@@ -168,12 +168,3 @@ def builtin(name: str) -> ModelSpec:
         return BUILTINS[name]()
     except KeyError:
         raise ModelError(f"unknown built-in model {name!r} (known: {', '.join(BUILTINS)})") from None
-
-
-# Prior medians of the reference problem (Tables 2-8); ARD parameters have median 0.
-REFERENCE_PRIOR_MEDIANS = {
-    "M1": {"a1": -1.0, "a2": 1.0, "a3": 0.0, "a4": 0.0, "a5": 0.0, "a6": 0.0, "sigma": 2e-3},
-    "M2": {"B": 0.2, "a1": -1.0, "a2": -1.0, "a3": 0.0, "a4": 0.0, "a5": 0.0, "a6": 0.0, "sigma": 2e-3},
-    "M3": {"A": 0.25, "B1": 0.32, "B2": 0.04, "a1": -1.0, "a2": -1.0, "a3": 0.0, "a4": 0.0, "a5": 0.0,
-           "a6": 0.0, "sigma": 2e-3},
-}

@@ -141,7 +141,7 @@ def safe_cholesky(cov: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- one round
 def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: bool,
-              dr_scale: float = 0.1, cancel: Callable[[], bool] | None = None) -> RoundResult:
+              dr_scale: float = 0.1) -> RoundResult:
     """Advance one chain by ``n`` samples.
 
     Parameters
@@ -195,9 +195,6 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
         if lp > best_lp:
             best_x, best_lp, best_ll = x.copy(), lp, ll
         S[i], LP[i], LL[i] = x, lp, ll
-        if cancel is not None and (i & 63) == 0 and cancel():
-            S, LP, LL = S[: i + 1], LP[: i + 1], LL[: i + 1]
-            break
     new = ChainState(state.chain, x.tolist(), float(lp), float(ll), rng.bit_generator.state,
                      best_x.tolist(), float(best_lp), float(best_ll),
                      state.n_prop + S.shape[0], state.n_acc + acc, state.n_dr + dr)

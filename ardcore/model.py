@@ -261,9 +261,3 @@ def symbolic(spec: ModelSpec) -> SymbolicModel:
     params = [S(p) for p in spec.free_parameters]
     return SymbolicModel(tuple(states), tuple(params), tuple(inputs), tuple(drift), J, tuple(diffusion),
                          tuple(obs), H, tuple(obs_std), tuple(init_mean), tuple(init_std))
-
-
-def validate_name(name: str, what: str = "name") -> str:
-    if not _NAME_RE.match(name):
-        raise ModelError(f"{what} {name!r} must match {NAME_PATTERN}")
-    return name

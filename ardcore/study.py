@@ -27,6 +27,7 @@ from .model import NAME_PATTERN, ModelSpec
 from .priors import PriorSpec
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
+_S, _M = SamplerConfig, MaximiserConfig  # one place for the defaults
 Name = Annotated[str, Field(pattern=NAME_PATTERN)]
 
 
@@ -159,17 +160,19 @@ class CandidateSpec(BaseModel):
 
 
 class SamplerSpec(BaseModel):
+    """The study's sampler settings; defaults are :class:`~ardcore.mcmc.SamplerConfig`'s."""
+
     model_config = _STRICT
-    n_chains: int = Field(4, ge=2, le=64)
-    round_size: int = Field(500, ge=20, le=100_000)
-    min_burnin_rounds: int = Field(4, ge=1, le=10_000)
-    max_burnin_rounds: int = Field(60, ge=1, le=10_000)
-    rhat_threshold: float = Field(1.1, gt=1.0, le=2.0)
-    n_stationary: int = Field(5000, ge=50, le=10_000_000)
-    n_proposal: int = Field(5000, ge=50, le=10_000_000)
-    dr_scale: float = Field(0.1, ge=0.0, le=1.0)
-    start_maxfev: int = Field(3000, ge=10, le=1_000_000)
-    overdispersion: float = Field(2.0, gt=0, le=10)
+    n_chains: int = Field(_S.n_chains, ge=2, le=64)
+    round_size: int = Field(_S.round_size, ge=20, le=100_000)
+    min_burnin_rounds: int = Field(_S.min_burnin_rounds, ge=1, le=10_000)
+    max_burnin_rounds: int = Field(_S.max_burnin_rounds, ge=1, le=10_000)
+    rhat_threshold: float = Field(_S.rhat_threshold, gt=1.0, le=2.0)
+    n_stationary: int = Field(_S.n_stationary, ge=50, le=10_000_000)
+    n_proposal: int = Field(_S.n_proposal, ge=50, le=10_000_000)
+    dr_scale: float = Field(_S.dr_scale, ge=0.0, le=1.0)
+    start_maxfev: int = Field(_S.start_maxfev, ge=10, le=1_000_000)
+    overdispersion: float = Field(_S.overdispersion, gt=0, le=10)
 
     @model_validator(mode="after")
     def _rounds(self):
@@ -182,16 +185,18 @@ class SamplerSpec(BaseModel):
 
 
 class MaximiserSpec(BaseModel):
+    """The study's maximiser settings; defaults are :class:`~ardcore.ard.MaximiserConfig`'s."""
+
     model_config = _STRICT
-    alpha_start: float = Field(1e-10, gt=0)
-    step_decades: float = Field(2.0, gt=0, le=10)
-    min_step_decades: float = Field(1.0, gt=0, le=10)
-    noise_k: float = Field(1.0, ge=0, le=10)
-    min_gain: float = Field(0.05, ge=0, le=100)
-    prune_alpha: float = Field(1e12, gt=0)
-    prune_test: bool = True
-    max_trials: int = Field(60, ge=1, le=1000)
-    max_sweeps: int = Field(2, ge=1, le=100)
+    alpha_start: float = Field(_M.alpha_start, gt=0)
+    step_decades: float = Field(_M.step_decades, gt=0, le=10)
+    min_step_decades: float = Field(_M.min_step_decades, gt=0, le=10)
+    noise_k: float = Field(_M.noise_k, ge=0, le=10)
+    min_gain: float = Field(_M.min_gain, ge=0, le=100)
+    prune_alpha: float = Field(_M.prune_alpha, gt=0)
+    prune_test: bool = _M.prune_test
+    max_trials: int = Field(_M.max_trials, ge=1, le=1000)
+    max_sweeps: int = Field(_M.max_sweeps, ge=1, le=100)
 
     def config(self) -> MaximiserConfig:
         return MaximiserConfig(**self.model_dump())

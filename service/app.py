@@ -35,7 +35,6 @@ log = logging.getLogger("ardflow.service")
 
 API_VERSION = "v1"
 ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
-DATASET_RE = re.compile(r"^[a-f0-9]{16}$")
 FINAL = {"done", "failed", "cancelled"}
 
 
@@ -110,7 +109,6 @@ class Registry:
         self.root = Path(root)
         (self.root / "studies").mkdir(parents=True, exist_ok=True)
         (self.root / "datasets").mkdir(parents=True, exist_ok=True)
-        self.lock = threading.Lock()
 
     def study_dir(self, sid: str) -> Path:
         if not ID_RE.match(sid):

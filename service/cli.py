@@ -419,9 +419,12 @@ def cmd_fetch(a) -> int:
 
 
 def full_settings(spec):
-    """The paper-scale sampler settings (method.md section 6)."""
-    return spec.model_copy(update={"sampler": spec.sampler.model_copy(update={
-        "n_chains": 4, "round_size": 500, "n_stationary": 5000, "n_proposal": 5000})})
+    """The paper-scale sampler settings (method.md section 6): the engine's defaults."""
+    from ardcore.mcmc import SamplerConfig
+
+    keys = ("n_chains", "round_size", "n_stationary", "n_proposal")
+    return spec.model_copy(update={"sampler": spec.sampler.model_copy(
+        update={k: getattr(SamplerConfig, k) for k in keys})})
 
 
 def build_parser() -> argparse.ArgumentParser:
