@@ -12,6 +12,7 @@ the covariance they were given.
 from __future__ import annotations
 
 import logging
+import time
 
 from ardcore.mcmc import AdaptationPool
 
@@ -57,6 +58,7 @@ class ActorPool:
         self._start()
 
     def _start(self) -> None:
+        wait_connected(self.client)
         fut = self.client.submit(CoordinatorActor, self.mirror.to_dict(), actor=True, pure=False)
         self.actor = fut.result()
         self._future = fut  # held: the actor lives as long as its future
@@ -119,3 +121,13 @@ class ActorPool:
         except Exception:
             pass
         self._future = None
+
+
+def wait_connected(client, timeout: float = 120.0) -> None:
+    """Block while the client reconnects to the scheduler (it does so by itself after a dropped stream)."""
+    deadline = time.monotonic() + timeout
+    while client.status != "running":
+        if client.status in ("closed", "closing") or time.monotonic() > deadline:
+            raise RuntimeError(f"lost the Dask scheduler at {client.scheduler.address if client.scheduler else '?'} "
+                               f"(client status {client.status!r})")
+        time.sleep(0.2)

@@ -22,6 +22,7 @@ import json
 import logging
 import time
 import uuid
+from concurrent.futures import CancelledError
 from pathlib import Path
 from typing import Callable
 
@@ -32,7 +33,7 @@ from ardcore.evidence import ChainEvidence, Evidence, chib_jeliazkov
 from ardcore.mcmc import ChainState, SamplerResult, _round_task, sample
 from ardcore.study import StudySpec, compare, run_candidate
 
-from .coordinator import ActorPool, actor_variable_name
+from .coordinator import ActorPool, actor_variable_name, wait_connected
 from .store import StudyStore, _json
 
 log = logging.getLogger("ardflow.workers")
@@ -95,20 +96,20 @@ class DaskMap:
         while True:
             try:
                 wait(futs, timeout=self.stall_s, return_when="ALL_COMPLETED")
-            except TimeoutError:
-                pass
-            pending = [f for f in futs if not f.done()]
-            if not pending:
+            except (TimeoutError, CancelledError):
+                pass  # a stall or a dropped scheduler connection: both handled below
+            if all(f.status in ("finished", "error") for f in futs):
                 break
-            waiting = {id(f) for f in pending}
+            wait_connected(self.client)
             # A worker killed at the wrong moment can leave the scheduler without a key this client
-            # still waits for; such a task is submitted again under a new key (suffix -a<attempt>).
-            keys = [f.key for f in pending]
-            known = self.client.run_on_scheduler(_known_keys, keys=keys)
+            # still waits for, and a dropped scheduler connection cancels every future of the client;
+            # such a task is submitted again under a new key (suffix -a<attempt>).
+            pending = [f for f in futs if f.status not in ("finished", "error")]
+            known = self.client.run_on_scheduler(_known_keys, keys=[f.key for f in pending])
             for i, f in enumerate(futs):
-                if id(f) in waiting and (not known.get(f.key, False) or f.status in ("lost", "cancelled")):
+                if f.status in ("lost", "cancelled") or (f.status == "pending" and not known.get(f.key, False)):
                     attempts[i] += 1
-                    log.warning("task %s was lost by the scheduler; submitting it again", f.key)
+                    log.warning("task %s was lost (%s); submitting it again", f.key, f.status)
                     futs[i] = self._submit(func, items[i], i, label, attempts[i])
         return self.client.gather(futs)
 
@@ -227,7 +228,12 @@ def run_model(client, store_path: str, study_id: str, index: int) -> dict:
     model = cand.label
     progress = _progress_writer(store, model)
     ev = Event(cancel_event_name(study_id), client=client)
-    cancel = ev.is_set
+
+    def cancel() -> bool:
+        try:
+            return ev.is_set()
+        except Exception:  # a dropped scheduler connection is not a cancellation
+            return False
     history: list[dict] = []
 
     def on_trial(tr):
@@ -303,8 +309,17 @@ def start_study(client, store: StudyStore):
     def finish():
         try:
             results = [f.result() for f in rows]
-            comp = client.submit(compare_task, str(store), start, *results, key=f"compare-{study_id}")
-            out.set_result(comp.result())
+            for attempt in range(3):
+                wait_connected(client)
+                comp = client.submit(compare_task, str(store), start, *results,
+                                     key=f"compare-{study_id}" + (f"-a{attempt}" if attempt else ""))
+                try:
+                    out.set_result(comp.result())
+                    break
+                except CancelledError:
+                    continue
+            else:
+                raise RuntimeError("the comparison task was cancelled three times (scheduler connection lost)")
         except BaseException as exc:  # noqa: BLE001 - handed to the waiting caller
             out.set_exception(exc)
         finally:

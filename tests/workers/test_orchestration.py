@@ -91,6 +91,26 @@ def test_cancel_takes_effect(tmp_path, thread_cluster):
     Event(f"cancel-{sid}", client=thread_cluster).clear()
 
 
+def test_dropped_scheduler_connection_study_completes(tmp_path, reference_summary):
+    """The client's stream to the scheduler is cut mid-study: it reconnects and every lost task is resubmitted."""
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cl, \
+            Client(cl) as c:
+        store = prepare_store(load_spec(SPEC), tmp_path / "st")
+        dropped = []
+
+        def progress(ev):
+            if not dropped and ev.get("stage") == "trial" and ev.get("iteration", 0) >= 1:
+                c.loop.add_callback(c.scheduler_comm.comm.abort)
+                dropped.append(time.time())
+
+        s = run_study(c, store, progress=progress, poll_s=0.1)
+    assert dropped
+    a, b = rows(s), rows(reference_summary)
+    for k in a:
+        assert abs(a[k]["log_evidence"] - b[k]["log_evidence"]) < 5 * max(b[k]["log_evidence_se"], 0.05)
+        assert a[k]["pruned"] == b[k]["pruned"]
+
+
 def test_lost_worker_process_study_completes(tmp_path, reference_summary):
     """A real process-based cluster: kill a worker process mid-study; the nanny restarts it."""
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
