@@ -16,6 +16,8 @@ from ardcore.study import load_spec, select
 from workers.graph import cancel_study, prepare_store, read_progress, run_study
 from workers.store import StudyStore
 
+from ..browser import load_page
+
 SPEC = Path(__file__).with_name("small_study.json")
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -233,3 +235,7 @@ def test_report_for_any_study(tmp_path, thread_cluster):
     assert len(imgs) >= 6 and all((page.parent / f).stat().st_size > 1000 for f in imgs)
     assert "http" not in text  # no network assets
     assert "Table 10 analogue" in text and "true inside" in text
+    shown = load_page(page)  # headless Chromium, network cut off
+    assert len(shown["images"]) == len(imgs)
+    assert all(i["complete"] and i["width"] > 100 for i in shown["images"]), shown["images"]
+    assert not shown["blocked"] and not shown["failed"] and not shown["errors"], shown
