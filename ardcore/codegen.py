@@ -26,7 +26,7 @@ from sympy.printing.pycode import PythonCodePrinter
 
 from .model import ModelSpec, SymbolicModel
 
-KERNEL_VERSION = "4"
+KERNEL_VERSION = "5"
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
 
@@ -180,7 +180,12 @@ def generate_source(spec: ModelSpec) -> str:
     ind = "                "
     step += [f"{ind}{a} = {em.code(e)}" for a, e in mt]
     step += [f"{ind}{a} = {em.code(e)}" for a, e in pt]
-    step += [f"{ind}x{i} = x{i} + dt * d{i}" for i in range(n)]
+    # the interval's transition matrix Phi <- (I + J dt) Phi (the smoother needs it; only ekf_trace computes it)
+    phi_t = [(f"N{i}_{j}", sum((A[i, k] * sp.Symbol(f"F{k}_{j}", real=True) for k in range(n)), sp.S.Zero))
+             for i in range(n) for j in range(n)]
+    phi_step = [f"{ind}{a} = {em.code(e)}" for a, e in phi_t] + [
+        f"{ind}F{i}_{j} = N{i}_{j}" for i in range(n) for j in range(n)]
+    xstep = [f"{ind}x{i} = x{i} + dt * d{i}" for i in range(n)]
 
     # -- observation update (all channels linearised at the forecast) -------------
     # H is usually sparse and constant (a state is observed): emit only its non-zero terms.
@@ -235,31 +240,48 @@ def generate_source(spec: ModelSpec) -> str:
         upd.append(f"            INNOV[k, {j}] = np.nan")
         upd.append(f"            SVAR[k, {j}] = np.nan")
 
-    L += [
-        "@njit(cache=True, nogil=True)",
-        "def ekf(p, t, Y, U, nsub, want, XF, PF, XP, INNOV, SVAR):",
-        '    """EKF log-likelihood; with want=True also fills forecasts XP, filtered XF/PF, innovations."""',
-        *unpack_p,
-        *init_lines,
-        "    ll = 0.0",
-        "    for k in range(t.shape[0]):",
-        "        if k > 0:",
-        "            dt = (t[k] - t[k - 1]) / nsub",
-        *unpack_f("            ", "k - 1"),
-        "            for _s in range(nsub):",
-        *step,
-        *unpack_f("        ", "k"),
-        "        if want:",
-        *[f"            XP[k, {i}] = x{i}" for i in range(n)],
-        *upd,
-        "        if want:",
-        *[f"            XF[k, {i}] = x{i}" for i in range(n)],
-        *[f"            PF[k, {i}, {j}] = P{min(i, j)}_{max(i, j)}" for i in range(n) for j in range(n)],
-        "        if not isfinite(ll):",
-        "            return -np.inf",
-        "    return ll",
-        "",
-    ]
+    def ekf_function(trace: bool) -> list[str]:
+        if trace:
+            head = ["def ekf_trace(p, t, Y, U, nsub, XF, PF, XP, PP, PHI, INNOV, SVAR):",
+                    '    """ekf() that always records, plus forecast covariances PP and interval transitions PHI."""',
+                    "    want = True"]
+            reset = [f"            F{i}_{j} = {1.0 if i == j else 0.0}" for i in range(n) for j in range(n)]
+            body = step + phi_step + xstep
+            rec = [f"            PP[k, {i}, {j}] = P{min(i, j)}_{max(i, j)}" for i in range(n) for j in range(n)]
+            rec += [f"            PHI[k, {i}, {j}] = F{i}_{j}" for i in range(n) for j in range(n)]
+        else:
+            head = ["def ekf(p, t, Y, U, nsub, want, XF, PF, XP, INNOV, SVAR):",
+                    '    """EKF log-likelihood; with want=True also fills forecasts XP, filtered XF/PF, innovations."""']
+            reset, body, rec = [], step + xstep, []
+        return [
+            "@njit(cache=True, nogil=True)",
+            *head,
+            *unpack_p,
+            *init_lines,
+            *([f"    F{i}_{j} = {1.0 if i == j else 0.0}" for i in range(n) for j in range(n)] if trace else []),
+            "    ll = 0.0",
+            "    for k in range(t.shape[0]):",
+            "        if k > 0:",
+            "            dt = (t[k] - t[k - 1]) / nsub",
+            *unpack_f("            ", "k - 1"),
+            *reset,
+            "            for _s in range(nsub):",
+            *body,
+            *unpack_f("        ", "k"),
+            "        if want:",
+            *[f"            XP[k, {i}] = x{i}" for i in range(n)],
+            *rec,
+            *upd,
+            "        if want:",
+            *[f"            XF[k, {i}] = x{i}" for i in range(n)],
+            *[f"            PF[k, {i}, {j}] = P{min(i, j)}_{max(i, j)}" for i in range(n) for j in range(n)],
+            "        if not isfinite(ll):",
+            "            return -np.inf",
+            "    return ll",
+            "",
+        ]
+
+    L += ekf_function(False) + ekf_function(True)
 
     # -- Euler-Maruyama simulation ---------------------------------------------------
     sim_t = [(f"d{i}", sm.drift[i]) for i in range(n)]

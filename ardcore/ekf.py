@@ -34,6 +34,9 @@ class FilterResult:
     filtered : ndarray, shape (n, n_x)
         Filtered state means.
     filtered_cov : ndarray, shape (n, n_x, n_x)
+    forecast_cov, transition : ndarray, shape (n, n_x, n_x), optional
+        Forecast covariances P_k^f and the linearised transition Phi_k from
+        sample k-1 to k (identity at k = 0); only from :meth:`Likelihood.trace`.
     """
 
     loglik: float
@@ -42,6 +45,8 @@ class FilterResult:
     forecast: np.ndarray
     filtered: np.ndarray
     filtered_cov: np.ndarray
+    forecast_cov: np.ndarray | None = None
+    transition: np.ndarray | None = None
 
     @property
     def standardized(self) -> np.ndarray:
@@ -97,6 +102,11 @@ class CompiledModel:
     def filter(self, phi, data: Dataset, substeps: int | None = None) -> FilterResult:
         """Run the filter and keep innovations and state estimates."""
         return self.bind(data, substeps).filter(phi)
+
+    def smooth(self, phi, data: Dataset, substeps: int | None = None) -> tuple[FilterResult, SmootherResult]:
+        """Filter, then RTS-smooth: states given all the data and the process noise they imply."""
+        fr = self.bind(data, substeps).trace(phi)
+        return fr, rts_smooth(fr)
 
     def initial(self, phi) -> tuple[np.ndarray, np.ndarray]:
         """Initial state mean and covariance at ``phi``."""
@@ -183,6 +193,51 @@ class Likelihood:
         IN, SV = np.full((n, m), np.nan), np.full((n, m), np.nan)
         ll = self._ekf(p, self.t, self.Y, self.U, self.substeps, True, XF, PF, XP, IN, SV)
         return FilterResult(float(ll), IN, SV, XP, XF, PF)
+
+    def trace(self, phi) -> FilterResult:
+        """:meth:`filter` plus forecast covariances and transitions (what a smoother needs)."""
+        p = self.model._phi(phi)
+        n, nx, m = self.t.size, len(self.model.state_names), self.Y.shape[1]
+        XF, PF, XP = np.full((n, nx), np.nan), np.full((n, nx, nx), np.nan), np.full((n, nx), np.nan)
+        PP, PHI = np.full((n, nx, nx), np.nan), np.full((n, nx, nx), np.nan)
+        IN, SV = np.full((n, m), np.nan), np.full((n, m), np.nan)
+        ll = self.model._mod.ekf_trace(p, self.t, self.Y, self.U, self.substeps, XF, PF, XP, PP, PHI, IN, SV)
+        return FilterResult(float(ll), IN, SV, XP, XF, PF, PP, PHI)
+
+
+@dataclass
+class SmootherResult:
+    """Rauch-Tung-Striebel smoothed states and the process noise they imply.
+
+    Attributes
+    ----------
+    smoothed, smoothed_cov : ndarray, shapes (n, n_x), (n, n_x, n_x)
+    process_noise : ndarray, shape (n, n_x)
+        w_k = u_k^s - u_k^f - Phi_k (u_{k-1}^s - u_{k-1}^a): what the model had to be pushed by
+        between samples k-1 and k beyond its own dynamics (row 0 is zero).
+    """
+
+    smoothed: np.ndarray
+    smoothed_cov: np.ndarray
+    process_noise: np.ndarray
+
+
+def rts_smooth(fr: FilterResult) -> SmootherResult:
+    """RTS smoother on a :meth:`Likelihood.trace` result (linearised at the filter's estimates)."""
+    if fr.forecast_cov is None or fr.transition is None:
+        raise ModelError("rts_smooth needs Likelihood.trace() output (forecast covariances and transitions)")
+    XF, PF, XP, PP, PHI = fr.filtered, fr.filtered_cov, fr.forecast, fr.forecast_cov, fr.transition
+    n, nx = XF.shape
+    XS, PS = XF.copy(), PF.copy()
+    W = np.zeros((n, nx))
+    for k in range(n - 2, -1, -1):
+        # C = P_k^a Phi^T (P_{k+1}^f)^-1, through a least-squares solve (P^f can be singular in noiseless directions)
+        C = np.linalg.lstsq(PP[k + 1].T, (PF[k] @ PHI[k + 1].T).T, rcond=1e-12)[0].T
+        d = XS[k + 1] - XP[k + 1]
+        XS[k] = XF[k] + C @ d
+        PS[k] = PF[k] + C @ (PS[k + 1] - PP[k + 1]) @ C.T
+        W[k + 1] = d - PHI[k + 1] @ (XS[k] - XF[k])
+    return SmootherResult(XS, PS, W)
 
 
 _compiled: dict[str, CompiledModel] = {}
