@@ -134,7 +134,7 @@ class EvidenceEvaluator:
                  iteration: int | None = None):
         target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
         if self.method == "laplace":
-            x0 = _warm_point(target, warm)
+            x0 = _warm_point(target, warm) if warm is not None else self._cold_start(target, seed)
             ev, xmap, C = laplace(target, x0, initial_scale(target.prior) if warm is None else None)
             res = None
             if final:
@@ -149,6 +149,29 @@ class EvidenceEvaluator:
         ev = chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7, map_fn=self.map_fn)
         ev.warnings = list(res.warnings) + ev.warnings
         return target, ev, res
+
+
+    def _cold_start(self, target, seed: int) -> np.ndarray:
+        """Best of local searches from the prior medians and n_chains - 1 dispersed prior points.
+
+        One local search from the medians can stop in a poor local mode of a rugged likelihood;
+        a Laplace evidence taken there would be wrong by many nats.
+        """
+        from .mcmc import initial_points
+
+        scale = initial_scale(target.prior)
+        pts = [_warm_point(target, None)]
+        pts += list(initial_points(target.prior, max(self.sampler.n_chains - 1, 0), np.random.default_rng(seed)))
+        tasks = [(target, np.asarray(p, dtype=float), scale, self.sampler.start_maxfev) for p in pts]
+        found = self.map_fn(_local_mode_task, tasks, label="start")
+        return max(found, key=lambda r: r[1])[0]
+
+
+def _local_mode_task(args):
+    from .mcmc import local_mode
+
+    target, x0, scale, maxfev = args
+    return local_mode(target, x0, scale, maxfev)
 
 
 def _warm_point(target, warm) -> np.ndarray:
@@ -178,7 +201,8 @@ def _laplace_state(target, xmap, C, ev) -> SamplerResult:
 
 
 def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: MaximiserConfig, *,
-             seed: int, on_trial: Callable[[Trial], None] | None = None) -> MaximiserResult:
+             seed: int, on_trial: Callable[[Trial], None] | None = None,
+             warm: SamplerResult | None = None) -> MaximiserResult:
     """Maximise the evidence over the ARD hyper-parameters.
 
     Parameters
@@ -190,6 +214,8 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
     seed : int
     on_trial : callable, optional
         Called with every :class:`Trial` as soon as it is done.
+    warm : SamplerResult, optional
+        Warm start of the first trial (e.g. the fit of a nested model; parameters it lacks start at 0).
     """
     psi = {k: config.alpha_start for k in ard}
     thresholds = {k: (v if v is not None else config.prune_alpha) for k, v in ard.items()}
@@ -214,7 +240,7 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
         history.append(tr)
         return tr, target, res
 
-    best, best_target, best_res = run(psi, None, "start")
+    best, best_target, best_res = run(psi, warm, "start")
     best.accepted = True
     if on_trial:
         on_trial(best)

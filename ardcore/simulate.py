@@ -18,6 +18,7 @@ from .data import Dataset
 from .ekf import compile_model
 from .errors import SpecError
 from .library import AERO_TRUE, aero_true, builtin
+from .model import ModelSpec
 
 
 @dataclass(frozen=True)
@@ -110,7 +111,7 @@ def _onset_index(yf: np.ndarray, period_samples: int, fraction: float) -> tuple[
 
 
 def simulate_reference(seed: int, pipeline: ReferencePipeline | None = None,
-                       true_params: dict | None = None) -> Dataset:
+                       true_params: dict | None = None, spec: ModelSpec | None = None) -> Dataset:
     """The reference data set of the paper's Section 3.2.
 
     Parameters
@@ -120,7 +121,10 @@ def simulate_reference(seed: int, pipeline: ReferencePipeline | None = None,
         (``numpy.random.default_rng(seed)``). Same seed, same data.
     pipeline : ReferencePipeline, optional
     true_params : dict, optional
-        Overrides of :data:`~ardcore.library.AERO_TRUE`.
+        Overrides of :data:`~ardcore.library.AERO_TRUE` (and values of any parameter ``spec`` adds).
+    spec : ModelSpec, optional
+        A variant of the data-generating model (e.g. with an effect the candidates do not
+        declare); default :func:`~ardcore.library.aero_true`.
 
     Returns
     -------
@@ -130,7 +134,7 @@ def simulate_reference(seed: int, pipeline: ReferencePipeline | None = None,
     """
     pl = pipeline or ReferencePipeline()
     params = dict(AERO_TRUE, **(true_params or {}))
-    spec = aero_true()
+    spec = spec or aero_true()
     cm = compile_model(spec)
     phi = {k: params[k] for k in cm.param_names}
     nsub = int(round(pl.dtau_obs / pl.dtau))
@@ -143,7 +147,7 @@ def simulate_reference(seed: int, pipeline: ReferencePipeline | None = None,
         n = int(round(tau_max / pl.dtau_obs)) + 1
         t = np.arange(n) * pl.dtau_obs
         rng = np.random.default_rng(seed)
-        X, H = cm.simulate(phi, t, x0=np.zeros(3), nsub=nsub, rng=rng)
+        X, H = cm.simulate(phi, t, x0=np.zeros(len(spec.states)), nsub=nsub, rng=rng)
         theta = H[:, 0]
         noisy = theta + pl.gamma * rng.standard_normal(n)
         yf = lowpass(noisy, fs, pl.cutoff, pl.order)

@@ -47,6 +47,7 @@ class DataSpec(BaseModel):
     columns: Optional[list[Name]] = None
     start: Optional[int] = Field(None, ge=0)
     stop: Optional[int] = Field(None, ge=1)
+    every: Optional[int] = Field(None, ge=1, le=100_000, description="keep every n-th row (after start/stop)")
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -78,6 +79,9 @@ class DataSpec(BaseModel):
             ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
         if self.start is not None or self.stop is not None:
             ds = ds.slice(self.start, self.stop)
+        if self.every and self.every > 1:
+            k = self.every
+            ds = Dataset(ds.t[::k].copy(), {c: v[::k].copy() for c, v in ds.columns.items()}, dict(ds.meta))
         return ds
 
 
@@ -278,12 +282,13 @@ def to_jsonable(x):
 def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *, map_fn: Map = serial_map,
                   progress: Callable[[dict], None] | None = None, cancel=None,
                   evaluator_factory: Callable[..., EvidenceEvaluator] | None = None,
-                  on_trial: Callable | None = None) -> tuple[dict, MaximiserResult]:
+                  on_trial: Callable | None = None, warm=None) -> tuple[dict, MaximiserResult]:
     """ARD evidence maximisation for one candidate; returns its summary row and the full result.
 
     ``evaluator_factory`` (same arguments as :class:`EvidenceEvaluator`) lets an
     orchestrator substitute its own evaluator (caching, checkpoints, remote chains);
-    ``on_trial`` is called with every finished :class:`~ardcore.ard.Trial`.
+    ``on_trial`` is called with every finished :class:`~ardcore.ard.Trial`; ``warm`` (a
+    :class:`~ardcore.mcmc.SamplerResult`) warm-starts the first trial.
     """
     t0 = time.perf_counter()
     label = cand.label
@@ -307,7 +312,7 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
             on_trial(tr)
 
     seed = spec.seed * 1_000_003 + 7919 * index
-    mr = maximise(ev, cand.thresholds(), spec.maximiser.config(), seed=seed, on_trial=trial_done)
+    mr = maximise(ev, cand.thresholds(), spec.maximiser.config(), seed=seed, on_trial=trial_done, warm=warm)
     res, target = mr.sampler, mr.target
     if spec.evidence == "laplace":
         target, _, res = ev(mr.psi_opt, seed + 99991, mr.sampler, final=True)

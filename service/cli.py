@@ -506,6 +506,17 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--token", default=None)
         s.set_defaults(fn=fn)
 
+    s = sub.add_parser("diagnose", help="close the loop: find the residual of a fitted model, trace it to a "
+                                        "missing effect, add it under ARD and report the error before and after")
+    s.add_argument("spec", help="study spec (JSON); its one model (or --model) is diagnosed")
+    s.add_argument("--out", required=True, help="directory for diagnosis.json, diagnosis.html and figures")
+    s.add_argument("--model", help="which candidate of the spec to diagnose")
+    s.add_argument("--test-start", type=int, help="first row of the held-out record for the free run "
+                                                  "(rows of the same file; default: the estimation data)")
+    s.add_argument("--test-stop", type=int, help="end row of the held-out record")
+    s.add_argument("--top-k", type=int, default=3, help="candidates confirmed by evidence (default 3)")
+    s.set_defaults(fn=cmd_diagnose)
+
     s = sub.add_parser("models", help="list the built-in models, or print one as JSON")
     s.add_argument("name", nargs="?")
     s.set_defaults(fn=cmd_models)
@@ -518,6 +529,37 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--performance-report", default=None, metavar="FILE.html")
     s.set_defaults(fn=cmd_demo)
     return p
+
+
+def cmd_diagnose(a) -> int:
+    """Close the loop on the single model of a study spec: residuals, trace, add, report."""
+    from ardcore.diagnose import DiagnoseConfig, diagnose
+    from ardcore.study import load_spec
+
+    from .diagnose_report import write_diagnosis
+
+    spec = load_spec(a.spec)
+    if a.model:
+        picked = [m for m in spec.models if m.label == a.model]
+        if not picked:
+            from ardcore.errors import SpecError
+
+            raise SpecError(f"--model {a.model!r}: not in the spec (models: {[m.label for m in spec.models]})")
+        spec = spec.model_copy(update={"models": picked})
+    base = Path(a.spec).resolve().parent
+    data = spec.data.load(base)
+    test = None
+    if a.test_start is not None or a.test_stop is not None:
+        full = spec.data.model_copy(update={"start": a.test_start, "stop": a.test_stop}).load(base)
+        test = full
+    cfg = DiagnoseConfig(top_k=a.top_k)
+    t0 = time.perf_counter()
+    rep = diagnose(spec, data, test_data=test, config=cfg,
+                   progress=lambda s: print(f"[diagnose] {s}", flush=True))
+    path = write_diagnosis(rep, data.t, a.out, col=spec.models[0].model_spec().observed_columns[0])
+    print(f"\n{rep['verdict']}")
+    print(f"\nreport: {path} and {Path(a.out) / 'diagnosis.html'}  ({time.perf_counter() - t0:.1f} s)")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,569 @@
+"""Closing the loop (method.md section 9): residuals, tests, trace, add, report.
+
+:func:`diagnose` takes a study spec with one candidate model and its data:
+
+1. fits the candidate (ARD evidence maximisation as in any study);
+2. computes the **residuals** at the posterior mean: standardised EKF
+   innovations; the free-run (deterministic simulation) error; and the
+   process noise the filter had to inject, per dynamic state, from an RTS
+   smoother on the model with a small diagnostic noise (its level fitted by
+   maximum likelihood) on every dynamic state;
+3. **tests** them: whiteness (autocorrelation with 95 % bands, Ljung-Box),
+   normality (Jarque-Bera), spectral peaks of the innovations;
+4. **traces** the residual to an effect: every candidate of
+   :mod:`ardcore.effects` is scored by how much of the smoothed process noise it
+   explains beyond what refitting the model's own parameters would (a
+   regression score in nats, BIC-penalised, with the sample size corrected for
+   autocorrelation); the best few are **confirmed by evidence**: each is added
+   under an ARD prior and the candidate re-selected, so ARD decides whether
+   the new term survives;
+5. **reports** the error before and after.
+
+When no candidate survives, the result says so and describes the residual
+structure that remains (spectral peaks, the states that needed noise).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import sympy as sp
+from scipy import optimize, signal, stats
+
+from .data import Dataset
+from .ekf import compile_model
+from .effects import Effect, augment, candidate_effects, dynamic_states, feature_functions, oscillator_pairs
+from .errors import SpecError
+from .model import ModelSpec
+from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
+
+INF = math.inf
+
+
+@dataclass
+class DiagnoseConfig:
+    """Settings of :func:`diagnose` (documented defaults).
+
+    Attributes
+    ----------
+    max_lag : int
+        Autocorrelation lags shown and tested.
+    ljung_box_lags : int
+        Lags in the Ljung-Box statistic.
+    peak_p : float
+        A spectral bin is a peak when its power exceeds the local background by the
+        (1 - peak_p) chi-square quantile (2 degrees of freedom per Welch segment pair).
+    min_score : float
+        Regression score (nats) a candidate needs to be confirmed by evidence. The default
+        (-inf) sends the ``top_k`` best to the evidence whatever their score: the regression
+        only ranks (its sample size is uncertain, the smoothed noise being autocorrelated);
+        evidence and ARD decide.
+    top_k : int
+        Candidates confirmed by evidence (the best-scoring ones above ``min_score``).
+    min_log_bf : float
+        Evidence gain (nats) over the base model an added effect needs, on top of ARD keeping it.
+    init_samples : int
+        Samples of a held-out record used to initialise the free run (filtered state).
+    """
+
+    max_lag: int = 40
+    ljung_box_lags: int = 20
+    peak_p: float = 1e-4
+    min_score: float = -math.inf
+    top_k: int = 3
+    min_log_bf: float = 3.0
+    init_samples: int = 50
+
+
+# --------------------------------------------------------------------------- tests
+
+
+def acf(x: np.ndarray, max_lag: int) -> np.ndarray:
+    """Sample autocorrelation at lags 0..max_lag (NaN ignored)."""
+    x = x[np.isfinite(x)]
+    x = x - x.mean()
+    d = float(x @ x)
+    return np.array([float(x[: x.size - k] @ x[k:]) / d if d > 0 else 0.0 for k in range(max_lag + 1)])
+
+
+def spectral_peaks(x: np.ndarray, fs: float, p: float, *, nperseg: int | None = None) -> dict:
+    """Welch spectrum and the bins significantly above a running-median background."""
+    x = x[np.isfinite(x)]
+    nperseg = nperseg or int(min(x.size, max(256, 2 ** int(np.log2(max(x.size // 8, 2))))))
+    f, P = signal.welch(x, fs=fs, nperseg=nperseg)
+    k = max(5, (P.size // 20) | 1)
+    bg = np.array([np.median(P[max(0, i - k):i + k + 1]) for i in range(P.size)])
+    n_avg = max(1, 2 * x.size // nperseg - 1)
+    # a Welch bin ~ background * chi2(2 n_avg) / (2 n_avg); the median of that is ~ (1 - 2/(9*2n))^3
+    med = (1 - 2 / (9 * 2 * n_avg)) ** 3
+    thr = stats.chi2.ppf(1 - p, 2 * n_avg) / (2 * n_avg) / med
+    ratio = P / np.maximum(bg, 1e-300)
+    idx = [i for i in range(1, P.size - 1) if ratio[i] > thr and P[i] >= P[i - 1] and P[i] >= P[i + 1]]
+    peaks = sorted(({"f": float(f[i]), "power_ratio": float(ratio[i])} for i in idx),
+                   key=lambda d: -d["power_ratio"])
+    return {"f": f, "psd": P, "background": bg, "threshold": float(thr), "peaks": peaks[:10]}
+
+
+def residual_tests(e: np.ndarray, fs: float, config: DiagnoseConfig, *, fundamental: float | None = None) -> dict:
+    """Whiteness, normality and spectral peaks of one standardised innovation series."""
+    x = e[np.isfinite(e)]
+    n = x.size
+    r = acf(x, config.max_lag)
+    band = 1.96 / math.sqrt(n)
+    h = config.ljung_box_lags
+    q = float(n * (n + 2) * np.sum(r[1:h + 1] ** 2 / (n - np.arange(1, h + 1))))
+    jb = stats.jarque_bera(x)
+    sp_ = spectral_peaks(x, fs, config.peak_p)
+    for pk in sp_["peaks"]:
+        if fundamental:
+            m = pk["f"] / fundamental
+            pk["harmonic"] = int(round(m)) if abs(m - round(m)) < 0.08 and round(m) >= 1 else None
+    return {
+        "n": n, "rms": float(np.sqrt(np.mean(x ** 2))), "mean": float(x.mean()),
+        "acf": r, "acf_band": band, "acf_outside": float(np.mean(np.abs(r[1:]) > band)),
+        "ljung_box": q, "ljung_box_lags": h, "ljung_box_p": float(stats.chi2.sf(q, h)),
+        "jarque_bera": float(jb.statistic), "jarque_bera_p": float(jb.pvalue),
+        "skew": float(stats.skew(x)), "excess_kurtosis": float(stats.kurtosis(x)),
+        "spectrum": sp_,
+    }
+
+
+def dominant_frequency(y: np.ndarray, fs: float) -> float:
+    """Frequency of the largest spectral peak (cycles per time unit)."""
+    y = y[np.isfinite(y)]
+    y = y - y.mean()
+    f, P = signal.periodogram(y * np.hanning(y.size), fs=fs)
+    i = int(np.argmax(P[1:])) + 1
+    if 1 < i < P.size - 1:  # parabolic interpolation on log power
+        a, b, c = np.log(P[i - 1:i + 2] + 1e-300)
+        i = i + 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else i
+    return float(i * fs / y.size)
+
+
+def harmonics(y: np.ndarray, fs: float, f0: float, n: int = 7, floor: float | None = None) -> tuple[np.ndarray, float]:
+    """Amplitudes of the first ``n`` harmonics of ``f0``, clipped below at ``floor``
+    (default: 10 x the median spectral amplitude of ``y``, its noise floor); returns them and the floor."""
+    y = y[np.isfinite(y)] - np.nanmean(y)
+    w = np.hanning(y.size)
+    A = np.abs(np.fft.rfft(y * w)) * 2 / w.sum()
+    f = np.fft.rfftfreq(y.size, 1 / fs)
+    floor = 10 * float(np.median(A)) if floor is None else floor
+    out = np.full(n, floor)
+    for k in range(1, n + 1):
+        sel = np.abs(f - k * f0) <= max(2 * (f[1] - f[0]), 0.01 * k * f0)
+        if sel.any():
+            out[k - 1] = max(float(A[sel].max()), floor)
+    return out, floor
+
+
+# --------------------------------------------------------------------------- residuals
+
+
+@dataclass
+class Residuals:
+    """The residuals of a fitted model on one data set (see module docstring)."""
+
+    innovations: np.ndarray          # standardised, (n, m)
+    raw_innovations: np.ndarray      # (n, m)
+    smoothed: np.ndarray             # (n, n_x)
+    process_noise_rate: dict         # state -> (n-1,) injected drift w_k / dt
+    noise_std: dict                  # state -> fitted diagnostic noise std (or the model's own)
+    tests: dict                      # per observation channel
+    loglik: float
+
+
+def _diagnostic_spec(spec: ModelSpec, states: list[str]) -> tuple[ModelSpec, list[str]]:
+    """``spec`` with a noise parameter on every listed state that has none."""
+    add = [s for s in states if not spec.diffusion.get(s)]
+    names = [f"q_diag_{s}" for s in add]
+    if not add:
+        return spec, []
+    diff = dict(spec.diffusion)
+    diff.update({s: n for s, n in zip(add, names)})
+    new = spec.model_copy(update={"name": f"{spec.name}_diag", "diffusion": diff,
+                                  "parameters": list(spec.parameters) + names})
+    return new.revalidate(), names
+
+
+def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig, *,
+              substeps: int | None = None) -> Residuals:
+    """Residuals of ``spec`` at parameter values ``phi`` (dict over its free parameters)."""
+    cm = compile_model(spec)
+    fr = cm.filter(phi, data, substeps)
+    fs = 1.0 / float(np.median(np.diff(data.t)))
+    e = fr.standardized
+    fund = dominant_frequency(data.columns[spec.observed_columns[0]], fs)
+    tests = {c: residual_tests(e[:, j], fs, config, fundamental=fund) for j, c in enumerate(spec.observed_columns)}
+    dyn = dynamic_states(spec)
+    dspec, qnames = _diagnostic_spec(spec, dyn)
+    dcm = compile_model(dspec)
+    scale = np.nanstd(fr.filtered, axis=0)
+    q0 = {}
+    if qnames:
+        lik = dcm.bind(data, substeps)
+        idx = [spec.states.index(n[len("q_diag_"):]) for n in qnames]
+        # the injected noise is at most of the order of the state's rate of change
+        hi = np.log10(np.maximum(scale[idx] * fs, 1e-12))
+        lo = hi - 8
+
+        def nll(z):
+            z = np.clip(z, lo, hi)
+            v = lik({**phi, **{n: 10.0 ** zi for n, zi in zip(qnames, z)}})
+            return -v if np.isfinite(v) else 1e300
+
+        best = min((optimize.minimize(nll, np.full(len(qnames), s), method="Nelder-Mead",
+                                      options={"xatol": 0.05, "fatol": 0.05, "maxfev": 400})
+                    for s in (lo + 2, hi - 3)), key=lambda r: r.fun)
+        q0 = {n: float(10.0 ** np.clip(best.x, lo, hi)[i]) for i, n in enumerate(qnames)}
+    _, sm = dcm.smooth({**phi, **q0}, data, substeps)
+    dt = np.diff(data.t)
+    rates = {s: sm.process_noise[1:, spec.states.index(s)] / dt for s in dyn}
+    noise_std = {s: q0.get(f"q_diag_{s}") for s in dyn}
+    return Residuals(e, fr.innovations, sm.smoothed, rates, noise_std, tests, fr.loglik)
+
+
+# --------------------------------------------------------------------------- trace
+
+
+def _sensitivities(spec: ModelSpec, target: str, phi: dict):
+    """d drift_target / d phi_j as numpy callables of (states, inputs): the directions a refit can already move."""
+    sm = spec.sym
+    i = spec.states.index(target)
+    f = sm.drift[i]
+    syms = list(sm.states) + list(sm.inputs)
+    vals = {p: phi[str(p)] for p in sm.params}
+    out = []
+    for p in sm.params:
+        d = sp.diff(f, p)
+        d = d.replace(lambda a: isinstance(a, sp.DiracDelta), lambda a: sp.S.Zero)
+        if d == 0:
+            continue
+        out.append((str(p), sp.lambdify(syms, d.subs(vals), modules=[{"sign": np.sign}, "numpy"])))
+    return out
+
+
+def _columns(fns, X: np.ndarray, U: np.ndarray, n: int) -> np.ndarray:
+    cols = []
+    for fn in fns:
+        v = np.asarray(fn(*X.T, *U.T), dtype=float)
+        cols.append(np.broadcast_to(v, (n,)).copy() if v.ndim == 0 else v)
+    return np.column_stack(cols) if cols else np.zeros((n, 0))
+
+
+def _rss(A: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least squares on column-normalised regressors: residual sum of squares, coefficients, residual."""
+    if A.shape[1] == 0:
+        return float(y @ y), np.zeros(0), y
+    s = np.linalg.norm(A, axis=0)
+    s[s == 0] = 1.0
+    b, *_ = np.linalg.lstsq(A / s, y, rcond=1e-10)
+    r = y - (A / s) @ b
+    return float(r @ r), b / s, r
+
+
+def trace_effects(spec: ModelSpec, phi: dict, data: Dataset, res: Residuals, effects: list[Effect],
+                  targets: list[str] | None = None) -> list[dict]:
+    """Score every (effect, target state) by how much of the injected process noise it explains.
+
+    Returns the candidates sorted by ``score`` (nats): 0.5 n_eff ln(RSS0 / RSS1) - 0.5 p ln n_eff,
+    where RSS0 is left after regressing on the model's own parameter sensitivities and RSS1
+    after adding the effect's terms; n_eff corrects n for the lag-1 autocorrelation of what
+    is left.
+    """
+    targets = targets or list(res.process_noise_rate)
+    X = res.smoothed[:-1]
+    n = X.shape[0]
+    U = np.column_stack([data.columns[u][:-1] for u in spec.inputs]) if spec.inputs else np.zeros((n, 0))
+    out = []
+    for s in targets:
+        y = res.process_noise_rate[s]
+        ok = np.isfinite(y)
+        if ok.sum() < 20 or not np.any(y[ok]):
+            continue
+        nuis = _columns([f for _, f in _sensitivities(spec, s, phi)], X, U, n)
+        rss0, _, _ = _rss(nuis[ok], y[ok])
+        for eff in effects:
+            extra = {c: v[:-1] for c, v in eff.columns_for(data.t).items()}
+            fspec = spec.model_copy(update={"inputs": list(spec.inputs) + list(extra)}) if extra else spec
+            _, fns = feature_functions(fspec, list(eff.terms))
+            UU = np.column_stack([U] + [v for v in extra.values()]) if extra else U
+            F = _columns(fns, X, UU, n)
+            if not np.all(np.isfinite(F[ok])):
+                continue
+            rss1, b, r = _rss(np.column_stack([nuis, F])[ok], y[ok])
+            rho = float(np.clip(acf(r, 1)[1], 0.0, 0.999))  # autocorrelation left after the effect
+            neff = max(10.0, ok.sum() * (1 - rho) / (1 + rho))
+            p = F.shape[1]
+            score = 0.5 * neff * math.log(max(rss0, 1e-300) / max(rss1, 1e-300)) - 0.5 * p * math.log(neff)
+            out.append({"effect": eff.name, "kind": eff.kind, "terms": list(eff.terms), "target": s,
+                        "score": float(score), "explained": float(1 - rss1 / rss0) if rss0 > 0 else 0.0,
+                        "coefficients": [float(c) for c in b[nuis.shape[1]:]], "n_eff": float(neff),
+                        "_effect": eff})
+    out.sort(key=lambda d: -d["score"])
+    return out
+
+
+# --------------------------------------------------------------------------- fit, free run, loop
+
+
+def _fitted(cand: CandidateSpec, row: dict) -> tuple[ModelSpec, dict]:
+    """The candidate's model with pruned terms fixed at 0, and its posterior mean."""
+    spec = cand.model_spec()
+    pruned = {k: 0.0 for k, v in row["psi_opt"].items() if v == "inf" or v == INF}
+    if pruned:
+        spec = spec.with_fixed(**pruned)
+    phi = {k: float(row["mean"][k]) for k in spec.free_parameters}
+    return spec, phi
+
+
+def _essential_from_row(cand: CandidateSpec, row: dict) -> tuple[dict, dict]:
+    """Priors of the fitted model with kept ARD terms frozen at their optimal alpha; pruned terms fixed."""
+    from .priors import Flat, Normal
+
+    priors = dict(cand.priors)
+    fixed = dict(cand.fixed)
+    for k, a in row["psi_opt"].items():
+        if a == "inf" or a == INF:
+            fixed[k] = 0.0
+        else:
+            a = float(a)
+            priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+    return priors, fixed
+
+
+def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50, substeps: int | None = None,
+             nsub: int = 10) -> dict:
+    """Deterministic simulation of the fitted model against ``data``.
+
+    The initial state is the filtered state after the first ``init_samples`` samples. For
+    self-excited or free oscillations (no inputs) amplitude, frequency and spectrum are
+    compared as well as the pointwise error, which a small frequency error dominates.
+    """
+    cm = compile_model(spec)
+    col = spec.observed_columns[0]
+    k0 = min(max(1, init_samples), len(data) - 2)
+    if not spec.inputs:
+        # a self-excited oscillation may start at rest (friction-locked until noise breaks it): the free
+        # run then starts at the first sample where the record reaches half its largest amplitude
+        y = data.columns[col]
+        a = np.abs(y - np.nanmedian(y))
+        k0 = max(k0, int(np.argmax(a > 0.5 * np.nanmax(a))))
+        k0 = min(k0, len(data) - 2)
+    fr = cm.filter(phi, data.slice(0, k0 + 1), substeps)
+    x0 = fr.filtered[-1]
+    rest = data.slice(k0, None)
+    U = np.column_stack([rest.columns[u] for u in spec.inputs]) if spec.inputs else None
+    X, H = cm.simulate(phi, rest.t, x0=x0, inputs=U, nsub=nsub, noise=False)
+    y, yh = rest.columns[col], H[:, 0]
+    err = yh - y
+    fs = 1.0 / float(np.median(np.diff(rest.t)))
+    out = {"n": int(y.size), "start": int(k0), "rms_error": float(np.sqrt(np.nanmean(err ** 2))),
+           "rms_data": float(np.sqrt(np.nanmean((y - np.nanmean(y)) ** 2))),
+           "t": rest.t, "y": y, "y_free": yh}
+    out["relative_rms_error"] = out["rms_error"] / out["rms_data"] if out["rms_data"] > 0 else float("nan")
+    if not spec.inputs and np.all(np.isfinite(yh)):
+        fd, fm = dominant_frequency(y, fs), dominant_frequency(yh, fs)
+        hd, floor = harmonics(y, fs, fd)
+        hm, _ = harmonics(yh, fs, fm, floor=floor)
+        seen = (hd > floor) | (hm > floor)
+        amp_d = float(np.sqrt(2) * np.std(y))
+        amp_m = float(np.sqrt(2) * np.std(yh))
+        out.update({"frequency_data": fd, "frequency_model": fm, "frequency_error": (fm - fd) / fd,
+                    "amplitude_data": amp_d, "amplitude_model": amp_m, "amplitude_error": (amp_m - amp_d) / amp_d,
+                    "harmonics_data": hd.tolist(), "harmonics_model": hm.tolist(),
+                    "harmonic_error": float(np.sqrt(np.mean(np.log10(np.maximum(hm[seen], 1e-300) / hd[seen]) ** 2)))
+                    if seen.any() else float("nan")})
+    return out
+
+
+def _errors(res: Residuals, fr: dict, row: dict, col: str) -> dict:
+    t = res.tests[col]
+    keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error")
+    return {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[:, 0] ** 2))),
+            "standardized_rms": t["rms"], "ljung_box": t["ljung_box"], "ljung_box_p": t["ljung_box_p"],
+            "free_run": {k: fr[k] for k in keep if k in fr},
+            "log_evidence": row["log_evidence"], "log_evidence_se": row["log_evidence_se"]}
+
+
+def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None,
+             config: DiagnoseConfig | None = None, progress: Callable[[str], None] | None = None,
+             extra_effects: list[Effect] = (), base: tuple[dict, object] | None = None) -> dict:
+    """Run the closed loop on the single candidate of ``spec`` (see module docstring).
+
+    Parameters
+    ----------
+    spec : StudySpec
+        Exactly one candidate: the model to diagnose, with its priors (ARD terms allowed).
+    data : Dataset
+        Estimation data.
+    test_data : Dataset, optional
+        Held-out record for the free-run error (default: ``data``).
+    extra_effects : list of Effect
+        Added to the built-in library.
+    base : (row, MaximiserResult), optional
+        An existing fit of the candidate (skips step 1).
+
+    Returns
+    -------
+    dict
+        ``before``/``after`` residual tests and errors, ``candidates`` (ranked), ``confirmed``
+        (evidence for the top few), ``added`` (the effect kept, or None), ``verdict`` (text),
+        and arrays for the figures under ``_arrays``.
+    """
+    config = config or DiagnoseConfig()
+    say = progress or (lambda s: None)
+    if len(spec.models) != 1:
+        raise SpecError(f"diagnose: the spec must have exactly one model (it has {len(spec.models)})")
+    t0 = time.perf_counter()
+    cand = spec.models[0]
+    test_data = test_data or data
+    say(f"fitting {cand.label} ...")
+    row, bmr = base or run_candidate(cand, data, spec, 0)
+    fspec, phi = _fitted(cand, row)
+    col = fspec.observed_columns[0]
+    say(f"fitted: ln Z = {row['log_evidence']:.3f}; computing residuals")
+    res0 = residuals(fspec, phi, data, config, substeps=cand.substeps)
+    fr0 = free_run(fspec, phi, test_data, init_samples=config.init_samples, substeps=cand.substeps)
+    fs = 1.0 / float(np.median(np.diff(data.t)))
+    # forcing frequencies: innovation peaks that are not harmonics of the oscillation
+    peaks = [p for p in res0.tests[col]["spectrum"]["peaks"] if not p.get("harmonic")]
+    scales = {s: float(np.nanstd(res0.smoothed[:, i])) for i, s in enumerate(fspec.states)}
+    effects = candidate_effects(fspec, scales=scales, frequencies=[p["f"] for p in peaks[:2]],
+                                extra=list(extra_effects))
+    ranked = trace_effects(fspec, phi, data, res0, effects)
+    say("top candidates: " + ", ".join(f"{c['effect']} -> {c['target']} ({c['score']:.1f})" for c in ranked[:5]))
+
+    priors, fixed = _essential_from_row(cand, row)
+    confirmed = []
+    for c in [c for c in ranked if c["score"] > config.min_score][: config.top_k]:
+        eff: Effect = c["_effect"]
+        aspec, names = augment(cand.model_spec(), eff, c["target"])
+        adata = with_columns(data, eff)
+        acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed,
+                              ard=names, substeps=cand.substeps)
+        say(f"confirming {eff.name} on {c['target']} by evidence ...")
+        arow, amr = run_candidate(acand, adata, spec, 0, warm=bmr.sampler)  # new terms start at 0
+        gain = arow["log_evidence"] - row["log_evidence"]
+        kept = [n for n in names if n in arow["kept"]]
+        confirmed.append({"effect": eff.name, "target": c["target"], "score": c["score"],
+                          "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],
+                          "log_bayes_factor": gain, "kept_terms": kept, "psi_opt": arow["psi_opt"],
+                          "posterior": {n: {"mean": arow["mean"][n], "sd": arow["sd"][n], "q005": arow["q005"][n],
+                                            "q995": arow["q995"][n]} for n in names if n in arow["mean"]},
+                          "survives": bool(kept) and gain > config.min_log_bf,
+                          "_row": arow, "_cand": acand, "_data": adata, "_effect": eff})
+        say(f"  {eff.name}: ln BF = {gain:.2f}, ARD keeps {kept or 'nothing'}")
+
+    survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
+    before = _errors(res0, fr0, row, col)
+    out = {"model": cand.label, "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data),
+           "base_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean",
+                                            "sd")},
+           "before": before, "tests_before": _strip(res0.tests), "noise_std_before": res0.noise_std,
+           "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
+           "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
+           "added": None, "after": None, "tests_after": None}
+    arrays = {"before": _arrays(res0, fr0)}
+    if survivors:
+        best = survivors[0]
+        arow, acand, adata, eff = best["_row"], best["_cand"], best["_data"], best["_effect"]
+        aspec, aphi = _fitted(acand, arow)
+        res1 = residuals(aspec, aphi, adata, config, substeps=cand.substeps)
+        tdata = with_columns(test_data, eff)
+        fr1 = free_run(aspec, aphi, tdata, init_samples=config.init_samples, substeps=cand.substeps)
+        after = _errors(res1, fr1, arow, col)
+        out.update(added={"effect": eff.name, "kind": eff.kind, "target": best["target"], "terms": list(eff.terms),
+                          "posterior": best["posterior"], "log_bayes_factor": best["log_bayes_factor"],
+                          "character": _character(fspec, phi, eff, best)},
+                   after=after, tests_after=_strip(res1.tests), noise_std_after=res1.noise_std)
+        arrays["after"] = _arrays(res1, fr1)
+        out["verdict"] = (f"added {eff.name} to the {best['target']} equation: ln Bayes factor "
+                          f"{best['log_bayes_factor']:.1f}; innovation RMS {before['innovation_rms']:.4g} -> "
+                          f"{after['innovation_rms']:.4g}; free-run RMS error {before['free_run']['rms_error']:.4g} -> "
+                          f"{after['free_run']['rms_error']:.4g}")
+    else:
+        out["verdict"] = _unexplained(res0, ranked, confirmed, col, config)
+    out["wall_s"] = time.perf_counter() - t0
+    out["_arrays"] = arrays
+    return out
+
+
+def with_columns(data: Dataset, eff: Effect) -> Dataset:
+    """``data`` plus the input columns ``eff`` needs on its time grid."""
+    cols = eff.columns_for(data.t)
+    return Dataset(data.t, {**data.columns, **cols}, dict(data.meta)) if cols else data
+
+
+def _character(spec: ModelSpec, phi: dict, eff: Effect, best: dict) -> str | None:
+    """'hardening' or 'softening' for an odd stiffness term (its sign against the linear restoring slope)."""
+    if eff.kind != "stiffness" or len(eff.terms) != 1 or not best["posterior"]:
+        return None
+    pairs = oscillator_pairs(spec)
+    if not pairs:
+        return None
+    x, v = pairs[0]
+    sm = spec.sym
+    i = spec.states.index(best["target"])
+    xs = sp.Symbol(x, real=True)
+    slope = sp.diff(sm.drift[i], xs).subs({p: phi[str(p)] for p in sm.params})
+    slope = slope.subs({s: 0 for s in sm.states}).subs({u: 0 for u in sm.inputs})
+    try:
+        slope = float(slope)
+    except TypeError:
+        return None
+    coef = next(iter(best["posterior"].values()))["mean"]
+    if slope == 0 or coef == 0:
+        return None
+    return "hardening" if np.sign(coef) == np.sign(slope) else "softening"
+
+
+def _unexplained(res: Residuals, ranked: list, confirmed: list, col: str, config: DiagnoseConfig) -> str:
+    t = res.tests[col]
+    white = t["ljung_box_p"] > 0.01
+    parts = []
+    if white and not t["spectrum"]["peaks"]:
+        parts.append("the innovations are white (Ljung-Box p = %.3g) with no spectral peak: "
+                     "no evidence of a missing effect" % t["ljung_box_p"])
+    else:
+        parts.append("the residual is NOT explained by any effect in the library")
+        parts.append("Ljung-Box Q = %.1f (p = %.2g)" % (t["ljung_box"], t["ljung_box_p"]))
+        if t["spectrum"]["peaks"]:
+            parts.append("innovation spectral peaks at " + ", ".join(
+                "%.4g%s" % (p["f"], f" (harmonic {p['harmonic']})" if p.get("harmonic") else "")
+                for p in t["spectrum"]["peaks"][:5]))
+        var = {s: float(np.nanvar(r)) for s, r in res.process_noise_rate.items()}
+        if var:
+            parts.append("injected process noise per state (variance of rate): " + ", ".join(
+                f"{s} {v:.3g}" for s, v in var.items()))
+    if confirmed:
+        parts.append("tested by evidence and rejected: " + ", ".join(
+            f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f})" for c in confirmed))
+    elif ranked:
+        parts.append(f"best regression score {ranked[0]['score']:.1f} ({ranked[0]['effect']}) is below the "
+                     f"threshold {config.min_score}")
+    return "; ".join(parts)
+
+
+def _strip(tests: dict) -> dict:
+    """JSON part of the tests (the spectrum arrays go to the figures)."""
+    out = {}
+    for c, t in tests.items():
+        d = {k: v for k, v in t.items() if k not in ("spectrum", "acf")}
+        d["acf"] = [float(x) for x in t["acf"]]
+        d["spectral_peaks"] = t["spectrum"]["peaks"]
+        out[c] = d
+    return out
+
+
+def _arrays(res: Residuals, fr: dict) -> dict:
+    return {"tests": res.tests, "innovations": res.innovations, "process_noise_rate": res.process_noise_rate,
+            "free_run": fr}
+
+
+def jsonable(report: dict) -> dict:
+    """The report without its arrays, ready for ``json.dump``."""
+    return to_jsonable({k: v for k, v in report.items() if not k.startswith("_")})
