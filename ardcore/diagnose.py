@@ -68,6 +68,8 @@ class DiagnoseConfig:
         Evidence gain (nats) over the base model an added effect needs, on top of ARD keeping it.
     init_samples : int
         Samples of a held-out record used to initialise the free run (filtered state).
+    max_rounds : int
+        Effects added one after another at most (each round re-traces the new model's residual).
     """
 
     max_lag: int = 40
@@ -77,6 +79,7 @@ class DiagnoseConfig:
     top_k: int = 3
     min_log_bf: float = 3.0
     init_samples: int = 50
+    max_rounds: int = 3
 
 
 # --------------------------------------------------------------------------- tests
@@ -423,20 +426,81 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     test_data = test_data or data
     say(f"fitting {cand.label} ...")
     row, bmr = base or run_candidate(cand, data, spec, 0)
-    fspec, phi = _fitted(cand, row)
-    col = fspec.observed_columns[0]
-    say(f"fitted: ln Z = {row['log_evidence']:.3f}; computing residuals")
-    res0 = residuals(fspec, phi, data, config, substeps=cand.substeps)
-    fr0 = free_run(fspec, phi, test_data, init_samples=config.init_samples, substeps=cand.substeps)
-    fs = 1.0 / float(np.median(np.diff(data.t)))
+    col = cand.model_spec().observed_columns[0]
+    first = None
+    rounds, arrays = [], {}
+    cur_data, cur_test = data, test_data
+    for rnd in range(config.max_rounds + 1):
+        fspec, phi = _fitted(cand, row)
+        say(f"round {rnd}: {cand.label} ln Z = {row['log_evidence']:.3f}; computing residuals")
+        res = residuals(fspec, phi, cur_data, config, substeps=cand.substeps)
+        fr = free_run(fspec, phi, cur_test, init_samples=config.init_samples, substeps=cand.substeps)
+        err = _errors(res, fr, row, col)
+        if first is None:
+            first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
+                     "base_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned",
+                                                       "mean", "sd")}}
+            arrays["before"] = _arrays(res, fr)
+        else:
+            arrays["after"] = _arrays(res, fr)
+            rounds[-1]["after"] = err
+        if rnd == config.max_rounds:
+            break
+        ranked, confirmed = _trace_and_confirm(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
+                                               extra_effects, say)
+        survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
+        rec = {"round": rnd, "model": cand.label,
+               "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
+               "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
+               "added": None}
+        rounds.append(rec)
+        if not survivors:
+            rec["verdict"] = _unexplained(res, ranked, confirmed, col, config)
+            break
+        best = survivors[0]
+        eff = best["_effect"]
+        rec["added"] = {"effect": eff.name, "kind": eff.kind, "target": best["target"], "terms": list(eff.terms),
+                        "posterior": best["posterior"], "log_bayes_factor": best["log_bayes_factor"],
+                        "character": _character(fspec, phi, eff, best)}
+        say(f"round {rnd}: added {eff.name} to {best['target']} (ln BF {best['log_bayes_factor']:.1f})")
+        cand, row, bmr, cur_data = best["_cand"], best["_row"], best["_mr"], best["_data"]
+        cur_test = with_columns(cur_test, eff)
+
+    added = [r["added"] for r in rounds if r["added"]]
+    out = {"model": spec.models[0].label, "final_model": cand.label, "data": data.meta.get("source"),
+           "n": len(data), "n_test": len(test_data), **first,
+           "rounds": rounds, "candidates": rounds[0]["candidates"] if rounds else [],
+           "confirmed": rounds[0]["confirmed"] if rounds else [],
+           "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
+           "tests_after": None, "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd",
+                                                                    "q005", "q995")}}
+    if added:
+        a, b = out["after"], out["before"]
+        out["tests_after"] = _strip(arrays["after"]["tests"])
+        out["verdict"] = ("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
+                                                     f"{x['log_bayes_factor']:.1f}"
+                                                     + (f", {x['character']}" if x.get("character") else "") + ")"
+                                                     for x in added)
+                          + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
+                          f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
+                          f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
+                          + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
+    else:
+        out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
+    out["wall_s"] = time.perf_counter() - t0
+    out["_arrays"] = arrays
+    return out
+
+
+def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say):
+    """Rank the library against the residual, then confirm the best few by evidence (ARD on the new terms)."""
+    peaks = [p for p in res.tests[col]["spectrum"]["peaks"] if not p.get("harmonic")]
+    scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
     # forcing frequencies: innovation peaks that are not harmonics of the oscillation
-    peaks = [p for p in res0.tests[col]["spectrum"]["peaks"] if not p.get("harmonic")]
-    scales = {s: float(np.nanstd(res0.smoothed[:, i])) for i, s in enumerate(fspec.states)}
     effects = candidate_effects(fspec, scales=scales, frequencies=[p["f"] for p in peaks[:2]],
                                 extra=list(extra_effects))
-    ranked = trace_effects(fspec, phi, data, res0, effects)
+    ranked = trace_effects(fspec, phi, data, res, effects)
     say("top candidates: " + ", ".join(f"{c['effect']} -> {c['target']} ({c['score']:.1f})" for c in ranked[:5]))
-
     priors, fixed = _essential_from_row(cand, row)
     confirmed = []
     for c in [c for c in ranked if c["score"] > config.min_score][: config.top_k]:
@@ -455,41 +519,9 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                           "posterior": {n: {"mean": arow["mean"][n], "sd": arow["sd"][n], "q005": arow["q005"][n],
                                             "q995": arow["q995"][n]} for n in names if n in arow["mean"]},
                           "survives": bool(kept) and gain > config.min_log_bf,
-                          "_row": arow, "_cand": acand, "_data": adata, "_effect": eff})
+                          "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff})
         say(f"  {eff.name}: ln BF = {gain:.2f}, ARD keeps {kept or 'nothing'}")
-
-    survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
-    before = _errors(res0, fr0, row, col)
-    out = {"model": cand.label, "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data),
-           "base_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean",
-                                            "sd")},
-           "before": before, "tests_before": _strip(res0.tests), "noise_std_before": res0.noise_std,
-           "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
-           "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
-           "added": None, "after": None, "tests_after": None}
-    arrays = {"before": _arrays(res0, fr0)}
-    if survivors:
-        best = survivors[0]
-        arow, acand, adata, eff = best["_row"], best["_cand"], best["_data"], best["_effect"]
-        aspec, aphi = _fitted(acand, arow)
-        res1 = residuals(aspec, aphi, adata, config, substeps=cand.substeps)
-        tdata = with_columns(test_data, eff)
-        fr1 = free_run(aspec, aphi, tdata, init_samples=config.init_samples, substeps=cand.substeps)
-        after = _errors(res1, fr1, arow, col)
-        out.update(added={"effect": eff.name, "kind": eff.kind, "target": best["target"], "terms": list(eff.terms),
-                          "posterior": best["posterior"], "log_bayes_factor": best["log_bayes_factor"],
-                          "character": _character(fspec, phi, eff, best)},
-                   after=after, tests_after=_strip(res1.tests), noise_std_after=res1.noise_std)
-        arrays["after"] = _arrays(res1, fr1)
-        out["verdict"] = (f"added {eff.name} to the {best['target']} equation: ln Bayes factor "
-                          f"{best['log_bayes_factor']:.1f}; innovation RMS {before['innovation_rms']:.4g} -> "
-                          f"{after['innovation_rms']:.4g}; free-run RMS error {before['free_run']['rms_error']:.4g} -> "
-                          f"{after['free_run']['rms_error']:.4g}")
-    else:
-        out["verdict"] = _unexplained(res0, ranked, confirmed, col, config)
-    out["wall_s"] = time.perf_counter() - t0
-    out["_arrays"] = arrays
-    return out
+    return ranked, confirmed
 
 
 def with_columns(data: Dataset, eff: Effect) -> Dataset:

@@ -514,7 +514,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--test-start", type=int, help="first row of the held-out record for the free run "
                                                   "(rows of the same file; default: the estimation data)")
     s.add_argument("--test-stop", type=int, help="end row of the held-out record")
-    s.add_argument("--top-k", type=int, default=3, help="candidates confirmed by evidence (default 3)")
+    s.add_argument("--top-k", type=int, default=3, help="candidates confirmed by evidence per round (default 3)")
+    s.add_argument("--max-rounds", type=int, default=3, help="effects added one after another at most (default 3)")
     s.set_defaults(fn=cmd_diagnose)
 
     s = sub.add_parser("models", help="list the built-in models, or print one as JSON")
@@ -552,7 +553,7 @@ def cmd_diagnose(a) -> int:
     if a.test_start is not None or a.test_stop is not None:
         full = spec.data.model_copy(update={"start": a.test_start, "stop": a.test_stop}).load(base)
         test = full
-    cfg = DiagnoseConfig(top_k=a.top_k)
+    cfg = DiagnoseConfig(top_k=a.top_k, max_rounds=a.max_rounds)
     t0 = time.perf_counter()
     rep = diagnose(spec, data, test_data=test, config=cfg,
                    progress=lambda s: print(f"[diagnose] {s}", flush=True))

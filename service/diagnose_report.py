@@ -123,7 +123,7 @@ def write_diagnosis(report: dict, data_t: np.ndarray, out_dir: str | Path, col: 
     body += [f"<tr><td>{html.escape(k)}</td><td>{f(b)}</td><td>{f(a)}</td></tr>" for k, b, a in rows]
     body.append("</table>")
     if j.get("added"):
-        body.append(f"<h2>Effect added</h2><pre>{html.escape(json.dumps(j['added'], indent=1))}</pre>")
+        body.append(f"<h2>Effects added</h2><pre>{html.escape(json.dumps(j['added'], indent=1))}</pre>")
     body.append("<h2>Candidates confirmed by evidence</h2><table><tr><th>effect</th><th>target</th>"
                 "<th>ln BF</th><th>ARD keeps</th><th>survives</th></tr>")
     body += [f"<tr><td>{html.escape(c['effect'])}</td><td>{c['target']}</td><td>{f(c['log_bayes_factor'])}</td>"

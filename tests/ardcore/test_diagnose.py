@@ -1,0 +1,99 @@
+"""The closed loop: residual tests, the effect library, the trace, and the loop on small oscillators."""
+
+import numpy as np
+import pytest
+
+from ardcore.data import Dataset
+from ardcore.diagnose import DiagnoseConfig, diagnose, residual_tests, residuals, trace_effects
+from ardcore.effects import augment, candidate_effects, dynamic_states, feature_functions, oscillator_pairs
+from ardcore.library import builtin
+from ardcore.simulate import simulate_model
+from ardcore.study import StudySpec
+
+CFG = DiagnoseConfig()
+
+
+def test_white_noise_passes_and_a_tone_is_found():
+    rng = np.random.default_rng(0)
+    passes = [residual_tests(rng.standard_normal(2000), 10.0, CFG)["ljung_box_p"] > 0.01 for _ in range(20)]
+    assert sum(passes) >= 17  # ~1 % false alarms expected
+    x = rng.standard_normal(4000) + 0.5 * np.sin(2 * np.pi * 1.3 * np.arange(4000) / 10.0)
+    t = residual_tests(x, 10.0, CFG, fundamental=0.4)
+    assert t["ljung_box_p"] < 1e-6
+    assert abs(t["spectrum"]["peaks"][0]["f"] - 1.3) < 0.05
+    ar = np.zeros(3000)
+    for k in range(1, 3000):
+        ar[k] = 0.5 * ar[k - 1] + rng.standard_normal()
+    r = residual_tests(ar, 1.0, CFG)
+    assert abs(r["acf"][1] - 0.5) < 0.05 and r["ljung_box_p"] < 1e-10
+
+
+def test_library_is_generic_in_the_models_structure():
+    lin = builtin("linear_oscillator")
+    assert oscillator_pairs(lin) == [("y", "v")] and dynamic_states(lin) == ["v"]
+    forced = builtin("forced_linear_oscillator")
+    names = {e.name for e in candidate_effects(forced, scales={"y": 1.0})}
+    assert {"cubic_stiffness(y)", "quadratic_damping(v)", "coulomb_friction(v)", "input_cubic(u)",
+            "free_play(y,delta=0.25)", "quadratic_stiffness(y)"} <= names
+    m2 = builtin("M2")
+    assert dynamic_states(m2) == ["dtheta", "CM"]
+    eff = next(e for e in candidate_effects(m2, scales={"theta": 0.1}) if e.kind == "free-play")
+    spec, coef = augment(m2, eff, "CM")
+    assert coef[0] in spec.parameters and len(coef[0]) <= 32 and len(spec.name) <= 32
+    _, (f,) = feature_functions(m2, list(eff.terms))
+    x = np.array([-0.2, -0.005, 0.0, 0.003, 0.05])
+    zeros = np.zeros_like(x)
+    d = 0.01
+    np.testing.assert_allclose(f(x, zeros, zeros), np.where(np.abs(x) > d, x - d * np.sign(x), 0.0))
+
+
+def _duffing_free_decay(k3, seed, n=1500):
+    t = np.arange(n) * 0.02
+    spec = builtin("linear_oscillator")
+    if k3:
+        spec, names = augment(spec, next(e for e in candidate_effects(spec) if e.name == "cubic_stiffness(y)"), "v")
+        params = {"k": 16.0, "c": 0.05, "sigma": 0.02, names[0]: k3}
+    else:
+        params = {"k": 16.0, "c": 0.05, "sigma": 0.02}
+    spec = spec.model_copy(update={"constants": {"gamma": 1e-3}}).revalidate()
+    return simulate_model(spec, params, t, seed, x0=[1.5, 0.0])
+
+
+def test_trace_ranks_the_missing_cubic_stiffness_first():
+    data = _duffing_free_decay(-4.0, 1)
+    spec = builtin("linear_oscillator").model_copy(update={"constants": {"gamma": 1e-3}}).revalidate()
+    res = residuals(spec, {"k": 16.0 - 0.75 * 4.0 * 0.5, "c": 0.05, "sigma": 0.02}, data, CFG)
+    ranked = trace_effects(spec, {"k": 13.0, "c": 0.05, "sigma": 0.02}, data, res,
+                           candidate_effects(spec, scales={"y": 1.0}))
+    assert ranked[0]["effect"] == "cubic_stiffness(y)" and ranked[0]["target"] == "v"
+    assert ranked[0]["coefficients"][0] < 0  # hardening: the same sign as -k
+
+
+def _spec():
+    return StudySpec.model_validate({
+        "name": "osc", "data": {"generator": "appendix_a"}, "evidence": "laplace",
+        "models": [{"model": {**builtin("linear_oscillator").model_dump(mode="json"), "constants": {"gamma": 1e-3}},
+                    "priors": {"k": {"kind": "lognormal", "median": 15.0, "cov": 50},
+                               "c": {"kind": "lognormal", "median": 0.05, "cov": 200},
+                               "sigma": {"kind": "lognormal", "median": 0.02, "cov": 200}}}],
+        "sampler": {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600},
+        "seed": 2})
+
+
+def test_loop_adds_hardening_cubic_and_the_error_falls():
+    data = _duffing_free_decay(-4.0, 3)
+    rep = diagnose(_spec(), data.slice(0, 1000), test_data=data.slice(1000, None), config=DiagnoseConfig(top_k=2))
+    first = rep["added"][0]
+    assert first["effect"] == "cubic_stiffness(y)" and first["character"] == "hardening"
+    post = first["posterior"]["k_s3y_v"]
+    assert post["q005"] < -4.0 < post["q995"]
+    assert rep["after"]["free_run"]["rms_error"] < 0.5 * rep["before"]["free_run"]["rms_error"]
+    assert rep["after"]["log_evidence"] > rep["before"]["log_evidence"] + 10
+
+
+@pytest.mark.parametrize("seed", [11, 12])
+def test_loop_adds_nothing_to_a_correct_model(seed):
+    data = _duffing_free_decay(0.0, seed)
+    rep = diagnose(_spec(), data, config=DiagnoseConfig(top_k=2, max_rounds=1))
+    assert rep["added"] == [], rep["verdict"]
+    assert "no evidence of a missing effect" in rep["verdict"] or "NOT explained" in rep["verdict"]
