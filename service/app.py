@@ -87,6 +87,26 @@ class StudyStatus(BaseModel):
     models: dict[str, Progress] = Field(default_factory=dict)
 
 
+class DiagnoseRequest(BaseModel):
+    """Close the loop on one model of a finished study (``ardflow diagnose`` on the study's store)."""
+
+    model_config = ConfigDict(extra="forbid")
+    model: Optional[str] = Field(None, pattern=r"^[A-Za-z][A-Za-z0-9_]{0,31}$",
+                                 description="default: the study's best model")
+    top_k: int = Field(3, ge=1, le=10, description="candidates confirmed by evidence per round")
+    max_rounds: int = Field(3, ge=1, le=10, description="effects added one after another at most")
+    test_dataset: Optional[str] = Field(None, pattern=r"^[a-f0-9]{16}$",
+                                        description="uploaded held-out record for the free run")
+
+
+class DiagnosisStatus(BaseModel):
+    model: str
+    status: str
+    error: Optional[str] = None
+    verdict: Optional[str] = None
+    figures: list[str] = Field(default_factory=list)
+
+
 class DashboardLink(BaseModel):
     url: Optional[str]
 
@@ -191,6 +211,36 @@ class Runner:
         study_id = self.registry.store(sid).meta.get("study_id")
         if study_id:
             cancel_study(self.client, study_id)
+
+    def diagnose(self, sid: str, model: str, req: "DiagnoseRequest") -> None:
+        """``ardflow diagnose STORE --model M --out studies/<id>/diagnoses/<M>`` in a child process."""
+        import subprocess
+        import sys
+
+        reg = self.registry
+        out = reg.study_dir(sid) / "diagnoses" / model
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "status.json").write_text(json.dumps({"status": "running", "started": time.time()}))
+        cmd = [sys.executable, "-m", "service.cli", "diagnose", str(reg.store(sid)), "--model", model,
+               "--out", str(out), "--top-k", str(req.top_k), "--max-rounds", str(req.max_rounds)]
+        if req.test_dataset:
+            cmd += ["--test-data", str(reg.root / "datasets" / f"{req.test_dataset}.csv")]
+
+        def run():
+            with open(out / "diagnose.log", "w") as logf:
+                p = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+                self.procs[f"{sid}/diagnose/{model}"] = p
+                rc = p.wait()
+            if self.closing:
+                return
+            if rc == 0 and (out / "diagnosis.json").exists():
+                st = {"status": "done"}
+            else:
+                tail = (out / "diagnose.log").read_text()[-2000:].strip().splitlines()
+                st = {"status": "failed", "error": tail[-1] if tail else f"exit {rc}"}
+            (out / "status.json").write_text(json.dumps(st))
+
+        threading.Thread(target=run, name=f"diagnose-{sid}-{model}", daemon=True).start()
 
     def stop(self) -> None:
         self.closing = True
@@ -460,6 +510,51 @@ def create_app(settings: Settings, client) -> FastAPI:
         except LookupError as exc:
             raise HTTPException(409, str(exc)) from None
         return Response(png, media_type="image/png")
+
+    def _diag_dir(sid: str, model: str) -> Path:
+        if not re.match(r"^[A-Za-z][A-Za-z0-9_]{0,31}$", model):
+            raise HTTPException(404, f"no model {model!r}")
+        reg.meta(sid)
+        return reg.study_dir(sid) / "diagnoses" / model
+
+    @app.post(f"{v1}/studies/{{sid}}/diagnoses", response_model=DiagnosisStatus, status_code=202,
+              dependencies=[Depends(auth)])
+    def diagnose(sid: str, req: DiagnoseRequest) -> DiagnosisStatus:
+        meta = reg.meta(sid)
+        if meta.get("status") != "done":
+            raise HTTPException(409, f"study {sid} is {meta.get('status')}: diagnose a finished study")
+        summary = reg.store(sid).meta.get("summary") or {}
+        models = [r["name"] for r in summary.get("models", [])]
+        model = req.model or summary.get("best_model")
+        if model not in models:
+            raise HTTPException(404, f"study {sid} has no model {model!r} (models: {models})")
+        if req.test_dataset and not (reg.root / "datasets" / f"{req.test_dataset}.csv").exists():
+            raise HTTPException(404, f"no uploaded data set {req.test_dataset!r}")
+        d = _diag_dir(sid, model)
+        if (d / "status.json").exists() and json.loads((d / "status.json").read_text())["status"] == "running":
+            raise HTTPException(409, f"a diagnosis of {model} is already running")
+        runner.diagnose(sid, model, req)
+        return DiagnosisStatus(model=model, status="running")
+
+    @app.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}", dependencies=[Depends(auth)])
+    def diagnosis(sid: str, model: str) -> JSONResponse:
+        d = _diag_dir(sid, model)
+        if not (d / "status.json").exists():
+            raise HTTPException(404, f"no diagnosis of {model!r} in study {sid} (POST .../diagnoses first)")
+        st = json.loads((d / "status.json").read_text())
+        body = {"model": model, **st}
+        if st["status"] == "done":
+            body["report"] = json.loads((d / "diagnosis.json").read_text())
+            body["figures"] = sorted(p.name for p in d.glob("*.png"))
+        return JSONResponse(body)
+
+    @app.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/figures/{{name}}", dependencies=[Depends(auth)],
+             responses={200: {"content": {"image/png": {}}}})
+    def diagnosis_figure(sid: str, model: str, name: str):
+        d = _diag_dir(sid, model)
+        if not re.match(r"^[a-z_]{1,40}\.png$", name) or not (d / name).exists():
+            raise HTTPException(404, f"no figure {name!r}")
+        return Response((d / name).read_bytes(), media_type="image/png")
 
     # reattach: studies that were queued or running when the service stopped continue
     for sid in reg.ids():

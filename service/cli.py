@@ -508,12 +508,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("diagnose", help="close the loop: find the residual of a fitted model, trace it to a "
                                         "missing effect, add it under ARD and report the error before and after")
-    s.add_argument("spec", help="study spec (JSON); its one model (or --model) is diagnosed")
+    s.add_argument("spec", help="study spec (JSON) or a finished study store; one model (--model, default the "
+                                "spec's only model or the study's best) is diagnosed")
     s.add_argument("--out", required=True, help="directory for diagnosis.json, diagnosis.html and figures")
     s.add_argument("--model", help="which candidate of the spec to diagnose")
     s.add_argument("--test-start", type=int, help="first row of the held-out record for the free run "
                                                   "(rows of the same file; default: the estimation data)")
     s.add_argument("--test-stop", type=int, help="end row of the held-out record")
+    s.add_argument("--test-data", help="held-out record in its own file (same columns as the data)")
     s.add_argument("--top-k", type=int, default=3, help="candidates confirmed by evidence per round (default 3)")
     s.add_argument("--max-rounds", type=int, default=3, help="effects added one after another at most (default 3)")
     s.set_defaults(fn=cmd_diagnose)
@@ -533,29 +535,60 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_diagnose(a) -> int:
-    """Close the loop on the single model of a study spec: residuals, trace, add, report."""
+    """Close the loop on one model of a study spec or of a finished study store."""
+    from ardcore.data import read_dataset
     from ardcore.diagnose import DiagnoseConfig, diagnose
-    from ardcore.study import load_spec
+    from ardcore.errors import SpecError
+    from ardcore.study import StudySpec, load_spec
 
     from .diagnose_report import write_diagnosis
 
-    spec = load_spec(a.spec)
-    if a.model:
-        picked = [m for m in spec.models if m.label == a.model]
-        if not picked:
-            from ardcore.errors import SpecError
+    src = Path(a.spec)
+    if src.is_dir():
+        from workers.store import StudyStore
 
-            raise SpecError(f"--model {a.model!r}: not in the spec (models: {[m.label for m in spec.models]})")
+        store = StudyStore(src)
+        if not store.exists():
+            raise SpecError(f"{src} is a directory but not a study store")
+        spec = StudySpec.model_validate(store.meta["spec"])
+        data = store.load_data()
+        base = None
+        default = (store.meta.get("summary") or {}).get("best_model")
+    else:
+        store = None
+        spec = load_spec(src)
+        base = src.resolve().parent
+        data = spec.data.load(base)
+        default = None
+    name = a.model or (default if len(spec.models) > 1 else None)
+    if name:
+        picked = [m for m in spec.models if m.label == name]
+        if not picked:
+            raise SpecError(f"--model {name!r}: not in the spec (models: {[m.label for m in spec.models]})")
         spec = spec.model_copy(update={"models": picked})
-    base = Path(a.spec).resolve().parent
-    data = spec.data.load(base)
+    elif len(spec.models) > 1:
+        raise SpecError(f"the spec has {len(spec.models)} models: choose one with --model")
     test = None
-    if a.test_start is not None or a.test_stop is not None:
-        full = spec.data.model_copy(update={"start": a.test_start, "stop": a.test_stop}).load(base)
-        test = full
+    if a.test_data:
+        d = spec.data
+        test = read_dataset(a.test_data, time=d.time, fs=d.fs, rename=d.rename, columns=d.columns)
+    elif a.test_start is not None or a.test_stop is not None:
+        if spec.data.path is None:
+            raise SpecError("--test-start/--test-stop need a spec whose data come from a file (data.path)")
+        test = spec.data.model_copy(update={"start": a.test_start, "stop": a.test_stop, "every": None}).load(base)
+        if spec.data.every:
+            k = spec.data.every
+            from ardcore.data import Dataset
+
+            test = Dataset(test.t[::k].copy(), {c: v[::k].copy() for c, v in test.columns.items()}, test.meta)
     cfg = DiagnoseConfig(top_k=a.top_k, max_rounds=a.max_rounds)
     t0 = time.perf_counter()
-    rep = diagnose(spec, data, test_data=test, config=cfg,
+    fit = None
+    if store is not None:
+        from workers.graph import stored_fit
+
+        fit = stored_fit(store, spec.models[0].label)  # the study's own fit: no refit
+    rep = diagnose(spec, data, test_data=test, config=cfg, base=fit,
                    progress=lambda s: print(f"[diagnose] {s}", flush=True))
     path = write_diagnosis(rep, data.t, a.out, col=spec.models[0].model_spec().observed_columns[0])
     print(f"\n{rep['verdict']}")

@@ -123,6 +123,41 @@ class Client:
                 raise TimeoutError(f"study {sid} still {st['status']} after {timeout} s")
             time.sleep(poll_s)
 
+    def diagnose(self, sid: str, model: str | None = None, *, top_k: int = 3, max_rounds: int = 3,
+                 test_csv: str | Path | None = None, wait: bool = True, poll_s: float = 2.0,
+                 timeout: float | None = None) -> dict:
+        """Close the loop on a model of a finished study; with ``wait`` returns the finished diagnosis.
+
+        The diagnosis (``report``: residual tests before/after, ranked candidates, effects added,
+        errors before/after) is also available later from :meth:`diagnosis`.
+        """
+        body = {"top_k": top_k, "max_rounds": max_rounds}
+        if model:
+            body["model"] = model
+        if test_csv:
+            body["test_dataset"] = self.upload(test_csv)
+        st = self._check(self.http.post(f"/studies/{sid}/diagnoses", json=body)).json()
+        if not wait:
+            return st
+        t0 = time.monotonic()
+        while True:
+            d = self.diagnosis(sid, st["model"])
+            if d["status"] != "running":
+                if d["status"] == "failed":
+                    raise APIError(500, f"diagnosis failed: {d.get('error')}")
+                return d
+            if timeout is not None and time.monotonic() - t0 > timeout:
+                raise TimeoutError(f"diagnosis of {st['model']} still running after {timeout} s")
+            time.sleep(poll_s)
+
+    def diagnosis(self, sid: str, model: str) -> dict:
+        """State (``running``/``done``/``failed``) and, when done, the ``report`` of a diagnosis."""
+        return self._check(self.http.get(f"/studies/{sid}/diagnoses/{model}")).json()
+
+    def diagnosis_figure(self, sid: str, model: str, name: str = "free_run.png") -> bytes:
+        """A PNG of a finished diagnosis (tests, process_noise, candidates, free_run)."""
+        return self._check(self.http.get(f"/studies/{sid}/diagnoses/{model}/figures/{name}")).content
+
     def posterior(self, sid: str, model: str, *, as_xarray: bool = False):
         """Stationary posterior samples of ``model``'s optimal nested model.
 

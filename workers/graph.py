@@ -202,6 +202,23 @@ class StoredEvaluator(EvidenceEvaluator):
         return target, ev, res
 
 
+def stored_fit(store: StudyStore, model: str):
+    """The finished fit of ``model`` in ``store``: its summary row and a result whose ``sampler`` warm-starts
+    refits (the best trial's chains), or None when the model is not finished (or was fitted by Laplace)."""
+    from types import SimpleNamespace
+
+    try:
+        mg = store.group("r")[f"models/{model}"]
+    except Exception:  # noqa: BLE001 - no such model
+        return None
+    row, it = mg.attrs.get("result"), mg.attrs.get("best_iteration")
+    rec = store.trial_record(model, it) if it is not None else None
+    if not row or rec is None or "states" not in rec:
+        return None
+    _, res = _from_record(rec, store, model, it)
+    return row, SimpleNamespace(sampler=res)
+
+
 # --------------------------------------------------------------------------- study tasks
 
 

@@ -241,3 +241,30 @@ def test_cli_submit_status_fetch(service, tmp_path):
     r = subprocess.run(base + ["status", "no-such-study"] + common, cwd=ROOT, capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 2 and "HTTP 404" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_diagnose_over_http(service, tmp_path):
+    """Fit a linear oscillator to Duffing data over the API, then close the loop over the API."""
+    from tests.ardcore.test_diagnose import _duffing_free_decay, _spec
+
+    url, _ = service
+    data = _duffing_free_decay(-4.0, 3)
+    est, held = tmp_path / "est.csv", tmp_path / "held.csv"
+    data.slice(0, 1000).to_csv(est)
+    data.slice(1000, None).to_csv(held)
+    spec = _spec().model_dump(mode="json", exclude_none=True)
+    spec["name"] = "osc"
+    spec["data"] = {}
+    with Client(url, token=TOKEN) as c:
+        sid = c.submit(spec, csv=est)
+        assert c.wait(sid, poll_s=0.3, timeout=300, progress=False)["status"] == "done"
+        with pytest.raises(APIError) as e:
+            c.diagnose(sid, "nosuchmodel")
+        assert e.value.status == 404
+        d = c.diagnose(sid, top_k=1, max_rounds=1, test_csv=held, poll_s=0.5, timeout=300)
+        rep = d["report"]
+        assert rep["added"][0]["effect"] == "cubic_stiffness(y)" and rep["added"][0]["character"] == "hardening"
+        assert rep["after"]["free_run"]["rms_error"] < rep["before"]["free_run"]["rms_error"]
+        assert rep["n_test"] == len(data) - 1000
+        assert set(d["figures"]) >= {"tests.png", "free_run.png", "candidates.png", "process_noise.png"}
+        assert c.diagnosis_figure(sid, d["model"], "free_run.png")[:8] == b"\x89PNG\r\n\x1a\n"
