@@ -40,8 +40,14 @@ class MaximiserConfig:
     step_decades, min_step_decades : float
         First and smallest line-search step in log10 alpha.
     noise_k : float
-        A trial is accepted when ln Z improves by more than noise_k * se of the difference
-        and by more than ``min_gain``.
+        The prune test keeps a term only when ln Z with it beats ln Z without it by more than
+        noise_k * se of the difference (and ``min_gain``); a pruned term comes back in a later
+        sweep on the same margin.
+    step_noise_k : float
+        The same multiple for a line-search step up in alpha. The default 0 lets the point
+        estimate decide (a step must gain ``min_gain``): a noisy baseline then cannot stop a
+        coordinate at its starting alpha, and ties are settled by the prune test, which
+        prefers the simpler model.
     min_gain : float
         Smallest improvement in ln Z (nats) that counts; the prune test keeps a term only
         when it is worth more than this.
@@ -59,6 +65,7 @@ class MaximiserConfig:
     step_decades: float = 2.0
     min_step_decades: float = 1.0
     noise_k: float = 1.0
+    step_noise_k: float = 0.0
     min_gain: float = 0.05
     prune_alpha: float = 1e12
     prune_test: bool = True
@@ -245,9 +252,10 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
     if on_trial:
         on_trial(best)
 
-    def better(tr: Trial, ref: Trial) -> bool:
+    def better(tr: Trial, ref: Trial, k: float | None = None) -> bool:
         se = math.hypot(tr.evidence.log_evidence_se, ref.evidence.log_evidence_se)
-        return tr.evidence.log_evidence - ref.evidence.log_evidence > max(config.noise_k * se, config.min_gain)
+        k = config.noise_k if k is None else k
+        return tr.evidence.log_evidence - ref.evidence.log_evidence > max(k * se, config.min_gain)
 
     def accept(tr, target, res):
         nonlocal best, best_target, best_res, psi
@@ -255,33 +263,54 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
         best, best_target, best_res, psi = tr, target, res, dict(tr.psi)
 
     settled: dict[str, dict] = {}  # psi at which a coordinate's search last ended
+    pruned_at: dict[str, float] = {}  # the finite alpha a term had when it was pruned
     changed = True
     sweeps = 0
     while changed and counter[0] < config.max_trials and sweeps < config.max_sweeps:
         changed = False
         sweeps += 1
         for k in list(ard):
-            if psi[k] == INF or settled.get(k) == psi:
-                continue
-            step = config.step_decades
-            while step >= config.min_step_decades - 1e-12 and counter[0] < config.max_trials:
-                a = psi[k] * 10.0**step
-                if a >= thresholds[k]:
-                    break
-                trial = dict(psi, **{k: a})
-                tr, target, res = run(trial, best_res, f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> {math.log10(a):.2f}")
+            if psi[k] == INF and sweeps > 1 and k in pruned_at and settled.get(k) != psi \
+                    and counter[0] < config.max_trials:
+                # the other terms have moved since k was pruned: does k come back?
+                a = pruned_at[k]
+                tr, target, res = run(dict(psi, **{k: a}), best_res, f"{k}: re-test (alpha = {a:.3g})")
                 if better(tr, best):
                     accept(tr, target, res)
                     changed = True
-                else:
-                    step /= 2.0
+                    del pruned_at[k]
                 if on_trial:
                     on_trial(tr)
+            if psi[k] == INF or settled.get(k) == psi:
+                settled[k] = dict(psi)
+                continue
+            moved = False
+            # up first (toward the simpler model); in later sweeps, when up does not pay, down: a term the
+            # other terms' changes made more useful may have been shrunk too far
+            for direction in ((1,) if sweeps == 1 else (1, -1)):
+                step = config.step_decades
+                while step >= config.min_step_decades - 1e-12 and counter[0] < config.max_trials:
+                    a = psi[k] * 10.0 ** (direction * step)
+                    if a >= thresholds[k] or a < config.alpha_start * (1 - 1e-9):
+                        break
+                    trial = dict(psi, **{k: a})
+                    tr, target, res = run(trial, best_res,
+                                          f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> {math.log10(a):.2f}")
+                    if better(tr, best, config.step_noise_k):
+                        accept(tr, target, res)
+                        changed = moved = True
+                    else:
+                        step /= 2.0
+                    if on_trial:
+                        on_trial(tr)
+                if moved:
+                    break
             if config.prune_test and counter[0] < config.max_trials:
                 trial = dict(psi, **{k: INF})
                 tr, target, res = run(trial, best_res, f"{k}: prune test (alpha = inf)")
                 # Occam: the nested model wins unless the term is worth more than the noise
                 if not better(best, tr):
+                    pruned_at[k] = psi[k]
                     accept(tr, target, res)
                     changed = True
                 if on_trial:

@@ -196,6 +196,7 @@ class MaximiserSpec(BaseModel):
     step_decades: float = Field(_M.step_decades, gt=0, le=10)
     min_step_decades: float = Field(_M.min_step_decades, gt=0, le=10)
     noise_k: float = Field(_M.noise_k, ge=0, le=10)
+    step_noise_k: float = Field(_M.step_noise_k, ge=0, le=10)
     min_gain: float = Field(_M.min_gain, ge=0, le=100)
     prune_alpha: float = Field(_M.prune_alpha, gt=0)
     prune_test: bool = _M.prune_test

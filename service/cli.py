@@ -185,6 +185,11 @@ def cmd_demo(a) -> int:
         _run_on_dask(a, store)
     summary = json.loads(store.read_text("summary.json"))
     _print_table(summary)
+    from .paper import reference_checks
+
+    print("\n[demo] checks against the paper (issue 'Main job'):")
+    for c in reference_checks(summary, spec.true_values):
+        print(f"  [{'PASS' if c['passed'] else 'FAIL'}] {c['check']}: {c['detail']}")
     print(f"\n[demo] store (zarr):  {out.resolve()}")
     print(f"[demo] summary:       {(out / 'summary.json').resolve()}")
     print(f"[demo] report:        {(out / 'report' / 'report.html').resolve()}")

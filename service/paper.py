@@ -17,3 +17,32 @@ FIG15_M2OPT_BOUNDS = {
     "a4": (-558.0, -449.0), "sigma": (1.79e-3, 3.64e-3),
 }
 """99 % posterior bounds of M2opt reported in the paper's Fig. 15."""
+
+
+def reference_checks(summary: dict, true_values: dict) -> list[dict]:
+    """The main job's must-show checks on a Section 3.6 summary (issue "Main job").
+
+    Returns a list of ``{"check", "passed", "detail"}``: P(M2opt) >= 0.99; a5 and a6 pruned in every
+    model; a3 and a4 kept in every model; every true parameter inside M2opt's 99 % bounds.
+    """
+    rows = {r["name"]: r for r in summary.get("models", [])}
+    out = []
+    m2 = rows.get("M2")
+    if m2 is None:
+        return [{"check": "M2 in the study", "passed": False, "detail": f"models: {sorted(rows)}"}]
+    out.append({"check": "P(M2opt) >= 0.99", "passed": m2.get("probability", 0) >= 0.99,
+                "detail": f"P = {m2.get('probability', 0):.4f}"})
+    for name, r in rows.items():
+        pruned, kept = set(r.get("pruned", [])), set(r.get("kept", []))
+        out.append({"check": f"{name}: a5, a6 pruned", "passed": {"a5", "a6"} <= pruned,
+                    "detail": f"pruned {sorted(pruned)}"})
+        out.append({"check": f"{name}: a3, a4 kept", "passed": {"a3", "a4"} <= kept, "detail": f"kept {sorted(kept)}"})
+    outside = []
+    for p, v in true_values.items():
+        if p in m2.get("q005", {}):
+            lo, hi = m2["q005"][p], m2["q995"][p]
+            if not lo <= v <= hi:
+                outside.append(f"{p}={v:g} not in [{lo:.4g}, {hi:.4g}]")
+    out.append({"check": "true values inside M2opt's 99 % bounds", "passed": not outside,
+                "detail": "; ".join(outside) or "all inside"})
+    return out

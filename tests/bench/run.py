@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+ROOT = Path(__file__).resolve().parents[2]
 
 import numpy as np  # noqa: E402
 
@@ -260,7 +261,39 @@ def bench_api() -> dict:
             "api_requests": len(lat), "api_errors": len(errors)}
 
 
-BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api}
+def _study(args: list[str], out: Path) -> dict:
+    """Run an ardflow command that writes a Section 3.6 study to ``out`` (fresh); wall time and results."""
+    import shutil
+
+    from service.paper import reference_checks
+
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "service.cli", *args, "--out", str(out)], check=True,
+                   stdout=subprocess.DEVNULL)
+    wall = time.perf_counter() - t0
+    s = json.loads((out / "summary.json").read_text())
+    spec = json.loads((ROOT / "examples" / "sec36.json").read_text())
+    return {"wall_s": wall,
+            "evidence_se": {r["name"]: r["log_evidence_se"] for r in s["models"]},
+            "log_evidence": {r["name"]: r["log_evidence"] for r in s["models"]},
+            "probability": {r["name"]: r["probability"] for r in s["models"]},
+            "pruned": {r["name"]: r["pruned"] for r in s["models"]},
+            "trials": {r["name"]: r["iterations"] for r in s["models"]},
+            "checks": {c["check"]: c["passed"] for c in reference_checks(s, spec["true_values"])}}
+
+
+def bench_study() -> dict:
+    """`make demo`'s study and the paper-scale one (`--full`), end to end on the embedded cluster."""
+    demo = _study(["demo"], ROOT / ".bench" / "study_demo")
+    full = _study(["select", str(ROOT / "examples" / "sec36.json"), "--full"], ROOT / ".bench" / "study_full")
+    out = {"study_demo_s": demo.pop("wall_s"), "study_full_s": full.pop("wall_s")}
+    out.update({f"study_demo_{k}": v for k, v in demo.items()})
+    out.update({f"study_full_{k}": v for k, v in full.items()})
+    return out
+
+
+BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "study": bench_study}
 
 
 def main(argv=None) -> int:

@@ -56,12 +56,14 @@ def test_undeclared_effect_is_found_added_and_the_error_falls(kind):
     j = jsonable(rep)
     first = j["rounds"][0]["candidates"][0]
     b, a = j["before"], j["after"]
+    a = a or {"log_evidence": float("nan"), "innovation_rms": float("nan"),
+              "free_run": {"amplitude_error": float("nan"), "frequency_error": float("nan"), "rms_error": float("nan")}}
     print(f"\n[{kind}] {eff.name} on {target} = {value}: ranked first {first['effect']} -> {first['target']}; "
           f"added {[x['effect'] for x in j['added']]}; posterior {j['added'][0]['posterior'] if j['added'] else None}; "
-          f"ln Z {b['log_evidence']:.2f} -> {a and a['log_evidence']:.2f}; LCO error {lco_error(b['free_run']):.4f} -> "
-          f"{a and lco_error(a['free_run']):.4f}; free-run RMS {b['free_run']['rms_error']:.4g} -> "
-          f"{a and a['free_run']['rms_error']:.4g}; innovation RMS {b['innovation_rms']:.4g} -> "
-          f"{a and a['innovation_rms']:.4g}")
+          f"confirmed {[(c['effect'], round(c['log_bayes_factor'], 2)) for c in j['rounds'][0]['confirmed']]}; "
+          f"ln Z {b['log_evidence']:.2f} -> {a['log_evidence']:.2f}; LCO error {lco_error(b['free_run']):.4f} -> "
+          f"{lco_error(a['free_run']):.4f}; free-run RMS {b['free_run']['rms_error']:.4g} -> "
+          f"{a['free_run']['rms_error']:.4g}; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}")
     assert (first["effect"], first["target"]) == (eff.name, target)
     assert j["added"] and j["added"][0]["effect"] == eff.name  # ARD kept it
     post = next(iter(j["added"][0]["posterior"].values()))
