@@ -437,6 +437,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         fr = free_run(fspec, phi, cur_test, init_samples=config.init_samples, substeps=cand.substeps)
         err = _errors(res, fr, row, col)
         if first is None:
+            initial = {"spec": fspec, "phi": phi, "effects": [], "substeps": cand.substeps}
             first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
                      "base_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned",
                                                        "mean", "sd")}}
@@ -462,6 +463,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         rec["added"] = {"effect": eff.name, "kind": eff.kind, "target": best["target"], "terms": list(eff.terms),
                         "posterior": best["posterior"], "log_bayes_factor": best["log_bayes_factor"],
                         "character": _character(fspec, phi, eff, best)}
+        rec["_effect"] = eff
         say(f"round {rnd}: added {eff.name} to {best['target']} (ln BF {best['log_bayes_factor']:.1f})")
         cand, row, bmr, cur_data = best["_cand"], best["_row"], best["_mr"], best["_data"]
         cur_test = with_columns(cur_test, eff)
@@ -469,7 +471,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     added = [r["added"] for r in rounds if r["added"]]
     out = {"model": spec.models[0].label, "final_model": cand.label, "data": data.meta.get("source"),
            "n": len(data), "n_test": len(test_data), **first,
-           "rounds": rounds, "candidates": rounds[0]["candidates"] if rounds else [],
+           "rounds": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
+           "candidates": rounds[0]["candidates"] if rounds else [],
            "confirmed": rounds[0]["confirmed"] if rounds else [],
            "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
            "tests_after": None, "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd",
@@ -489,6 +492,10 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
     out["wall_s"] = time.perf_counter() - t0
     out["_arrays"] = arrays
+    # the final model, for free runs on further held-out records: free_run(spec, phi, with_columns(d, e)...)
+    out["_initial"] = initial
+    out["_final"] = {"spec": fspec, "phi": phi, "effects": [r["_effect"] for r in rounds if r.get("_effect")],
+                     "substeps": cand.substeps}
     return out
 
 

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from ardcore.data import Dataset
 from ardcore.diagnose import DiagnoseConfig, diagnose, residual_tests, residuals, trace_effects
 from ardcore.effects import augment, candidate_effects, dynamic_states, feature_functions, oscillator_pairs
 from ardcore.library import builtin
