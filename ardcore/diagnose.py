@@ -70,6 +70,11 @@ class DiagnoseConfig:
         Samples of a held-out record used to initialise the free run (filtered state).
     max_rounds : int
         Effects added one after another at most (each round re-traces the new model's residual).
+    split_z : float or None
+        Stability check of a surviving effect: its coefficients are refitted (at the optimal alpha) on
+        the first and the second half of the record; a difference of more than ``split_z`` standard
+        errors means the term compensates for something that changes over the record rather than
+        explaining it, and the effect is not added. None skips the check.
     """
 
     max_lag: int = 40
@@ -80,6 +85,7 @@ class DiagnoseConfig:
     min_log_bf: float = 3.0
     init_samples: int = 50
     max_rounds: int = 3
+    split_z: float | None = 3.0
 
 
 # --------------------------------------------------------------------------- tests
@@ -450,6 +456,13 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         ranked, confirmed = _trace_and_confirm(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
                                                extra_effects, say)
         survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
+        if config.split_z is not None:
+            for c in survivors:
+                c["stability"] = _split_stability(spec, c, config, say)
+                c["survives"] = c["stability"]["stable"]
+                if c["survives"]:
+                    break  # the best stable one is added
+            survivors = [c for c in survivors if c["survives"]]
         rec = {"round": rnd, "model": cand.label,
                "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
                "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
@@ -531,6 +544,35 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
     return ranked, confirmed
 
 
+def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say) -> dict:
+    """Refit the augmented model on each half of the record, the new terms' ARD priors frozen at psi_opt."""
+    from .priors import Flat, Normal
+
+    acand: CandidateSpec = c["_cand"]
+    data: Dataset = c["_data"]
+    priors = dict(acand.priors)
+    for n in c["kept_terms"]:
+        a = float(c["psi_opt"][n])
+        priors[n] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+    fixed = dict(acand.fixed)
+    fixed.update({n: 0.0 for n in acand.ard_names if n not in c["kept_terms"]})
+    half = CandidateSpec(model=acand.model, name=acand.label, priors=priors, fixed=fixed, ard=[],
+                         substeps=acand.substeps)
+    n = len(data)
+    parts = []
+    warm = c["_mr"].sampler
+    for lo, hi in ((0, n // 2), (n // 2, n)):
+        r, _ = run_candidate(half, data.slice(lo, hi), spec, 0, warm=warm)
+        parts.append({k: (r["mean"][k], r["sd"][k]) for k in c["kept_terms"]})
+    z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])
+         for k in c["kept_terms"]}
+    stable = all(v <= config.split_z for v in z.values())
+    say(f"  {c['effect']}: halves give " + ", ".join(
+        f"{k} = {parts[0][k][0]:.4g} +- {parts[0][k][1]:.2g} / {parts[1][k][0]:.4g} +- {parts[1][k][1]:.2g} "
+        f"(z = {z[k]:.1f})" for k in z) + ("" if stable else ": NOT stable over the record"))
+    return {"stable": stable, "z": z, "halves": parts}
+
+
 def with_columns(data: Dataset, eff: Effect) -> Dataset:
     """``data`` plus the input columns ``eff`` needs on its time grid."""
     cols = eff.columns_for(data.t)
@@ -578,10 +620,17 @@ def _unexplained(res: Residuals, ranked: list, confirmed: list, col: str, config
         if var:
             parts.append("injected process noise per state (variance of rate): " + ", ".join(
                 f"{s} {v:.3g}" for s, v in var.items()))
-    if confirmed:
+    unstable = [c for c in confirmed if c.get("stability") and not c["stability"]["stable"]]
+    if unstable:
+        parts.append("supported by evidence but NOT stable between the two halves of the record (a term "
+                     "compensating for something that changes over time, not the missing effect): " + ", ".join(
+                         f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f}, z = "
+                         f"{max(c['stability']['z'].values()):.1f})" for c in unstable))
+    rest = [c for c in confirmed if c not in unstable]
+    if rest:
         parts.append("tested by evidence and rejected: " + ", ".join(
-            f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f})" for c in confirmed))
-    elif ranked:
+            f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f})" for c in rest))
+    elif ranked and not confirmed:
         parts.append(f"best regression score {ranked[0]['score']:.1f} ({ranked[0]['effect']}) is below the "
                      f"threshold {config.min_score}")
     return "; ".join(parts)
