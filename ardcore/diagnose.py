@@ -344,8 +344,8 @@ def _essential_from_row(cand: CandidateSpec, row: dict) -> tuple[dict, dict]:
     return priors, fixed
 
 
-def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50, substeps: int | None = None,
-             nsub: int = 10) -> dict:
+def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
+             substeps: int | None = None) -> dict:
     """Deterministic simulation of the fitted model against ``data``.
 
     The initial state is the filtered state after the first ``init_samples`` samples. For
@@ -366,7 +366,8 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
     x0 = fr.filtered[-1]
     rest = data.slice(k0, None)
     U = np.column_stack([rest.columns[u] for u in spec.inputs]) if spec.inputs else None
-    X, H = cm.simulate(phi, rest.t, x0=x0, inputs=U, nsub=nsub, noise=False)
+    # the same Euler sub-steps as the filter that fitted phi: the discretisation is part of the fitted model
+    X, H = cm.simulate(phi, rest.t, x0=x0, inputs=U, nsub=substeps or spec.substeps, noise=False)
     y, yh = rest.columns[col], H[:, 0]
     err = yh - y
     fs = 1.0 / float(np.median(np.diff(rest.t)))
@@ -463,7 +464,14 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 if c["survives"]:
                     break  # the best stable one is added
             survivors = [c for c in survivors if c["survives"]]
-        rec = {"round": rnd, "model": cand.label,
+        # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
+        tried = {(c["effect"], c["target"]): c for c in confirmed}
+        order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
+        ranking = [{"effect": c["effect"], "target": c["target"], "log_bayes_factor": c["log_bayes_factor"],
+                    "survives": c["survives"]} for c in order]
+        ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"]} for c in ranked
+                    if (c["effect"], c["target"]) not in tried]
+        rec = {"round": rnd, "model": cand.label, "ranking": ranking,
                "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
                "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
                "added": None}

@@ -52,15 +52,15 @@ def test_undeclared_effect_is_found_added_and_the_error_falls(kind):
     eff, target, value = EFFECTS[kind]
     spec, names = augment(aero_true(), eff, target)
     data = simulate_reference(3, true_params={names[0]: value}, spec=spec)
-    rep = diagnose(m2_spec(3), data, config=DiagnoseConfig(top_k=1, max_rounds=1))
+    rep = diagnose(m2_spec(3), data, config=DiagnoseConfig(top_k=3, max_rounds=1))
     j = jsonable(rep)
-    first = j["rounds"][0]["candidates"][0]
+    first = j["rounds"][0]["ranking"][0]  # evidence-confirmed first, then the regression order
     b, a = j["before"], j["after"]
     a = a or {"log_evidence": float("nan"), "innovation_rms": float("nan"),
               "free_run": {"amplitude_error": float("nan"), "frequency_error": float("nan"), "rms_error": float("nan")}}
     print(f"\n[{kind}] {eff.name} on {target} = {value}: ranked first {first['effect']} -> {first['target']}; "
           f"added {[x['effect'] for x in j['added']]}; posterior {j['added'][0]['posterior'] if j['added'] else None}; "
-          f"confirmed {[(c['effect'], round(c['log_bayes_factor'], 2)) for c in j['rounds'][0]['confirmed']]}; "
+          f"confirmed {[(c['effect'], round(c['log_bayes_factor'], 2), c.get('stability', {}).get('z')) for c in j['rounds'][0]['confirmed']]}; "
           f"ln Z {b['log_evidence']:.2f} -> {a['log_evidence']:.2f}; LCO error {lco_error(b['free_run']):.4f} -> "
           f"{lco_error(a['free_run']):.4f}; free-run RMS {b['free_run']['rms_error']:.4g} -> "
           f"{a['free_run']['rms_error']:.4g}; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}")
