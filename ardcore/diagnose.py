@@ -394,6 +394,8 @@ def _errors(res: Residuals, fr: dict, row: dict, col: str) -> dict:
     t = res.tests[col]
     keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error")
     return {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[:, 0] ** 2))),
+            # what the model had to be pushed by (smoothed process noise, per unit time), per dynamic state
+            "injected_noise_rms": {s: float(np.sqrt(np.nanmean(r ** 2))) for s, r in res.process_noise_rate.items()},
             "standardized_rms": t["rms"], "ljung_box": t["ljung_box"], "ljung_box_p": t["ljung_box_p"],
             "free_run": {k: fr[k] for k in keep if k in fr},
             "log_evidence": row["log_evidence"], "log_evidence_se": row["log_evidence_se"]}
