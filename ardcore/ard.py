@@ -44,10 +44,10 @@ class MaximiserConfig:
         noise_k * se of the difference (and ``min_gain``); a pruned term comes back in a later
         sweep on the same margin.
     step_noise_k : float
-        The same multiple for a line-search step up in alpha. The default 0 lets the point
-        estimate decide (a step must gain ``min_gain``): a noisy baseline then cannot stop a
-        coordinate at its starting alpha, and ties are settled by the prune test, which
-        prefers the simpler model.
+        The same multiple for a line-search step up in alpha (default 1, as the prune test).
+        0 lets the point estimate decide, so a noisy baseline cannot stop a coordinate at its
+        starting alpha; on the Sec 3.6 demo that walked unneeded terms up to large alpha one
+        step at a time (demo 629 s instead of 394 s) without changing the pruning pattern.
     min_gain : float
         Smallest improvement in ln Z (nats) that counts; the prune test keeps a term only
         when it is worth more than this.
@@ -65,7 +65,7 @@ class MaximiserConfig:
     step_decades: float = 2.0
     min_step_decades: float = 1.0
     noise_k: float = 1.0
-    step_noise_k: float = 0.0
+    step_noise_k: float = 1.0
     min_gain: float = 0.05
     prune_alpha: float = 1e12
     prune_test: bool = True
