@@ -58,11 +58,19 @@ class ActorPool:
         self._start()
 
     def _start(self) -> None:
-        wait_connected(self.client)
-        fut = self.client.submit(CoordinatorActor, self.mirror.to_dict(), actor=True, pure=False)
-        self.actor = fut.result()
-        self._future = fut  # held: the actor lives as long as its future
-        self.var.set(fut)
+        last = None
+        for _attempt in range(5):
+            wait_connected(self.client)
+            try:
+                fut = self.client.submit(CoordinatorActor, self.mirror.to_dict(), actor=True, pure=False)
+                self.actor = fut.result()
+                self._future = fut  # held: the actor lives as long as its future
+                self.var.set(fut)
+                return
+            except Exception as exc:  # noqa: BLE001 - a dropped scheduler connection cancels the actor's future
+                last = exc
+                log.warning("starting the coordinator actor failed (%s); trying again", exc)
+        raise RuntimeError(f"coordinator actor could not be started: {last}")
 
     def _call(self, method: str, *args):
         for attempt in range(3):

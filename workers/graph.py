@@ -99,7 +99,10 @@ class DaskMap:
             except (TimeoutError, CancelledError):
                 pass  # a stall or a dropped scheduler connection: both handled below
             if all(f.status in ("finished", "error") for f in futs):
-                break
+                try:
+                    return self.client.gather(futs)
+                except CancelledError:
+                    pass  # the connection dropped between the wait and the gather: resubmit below
             wait_connected(self.client)
             # A worker killed at the wrong moment can leave the scheduler without a key this client
             # still waits for, and a dropped scheduler connection cancels every future of the client;
@@ -111,7 +114,6 @@ class DaskMap:
                     attempts[i] += 1
                     log.warning("task %s was lost (%s); submitting it again", f.key, f.status)
                     futs[i] = self._submit(func, items[i], i, label, attempts[i])
-        return self.client.gather(futs)
 
 
 def _known_keys(dask_scheduler=None, keys=()):
