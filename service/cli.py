@@ -580,12 +580,8 @@ def cmd_diagnose(a) -> int:
     elif a.test_start is not None or a.test_stop is not None:
         if spec.data.path is None:
             raise SpecError("--test-start/--test-stop need a spec whose data come from a file (data.path)")
-        test = spec.data.model_copy(update={"start": a.test_start, "stop": a.test_stop, "every": None}).load(base)
-        if spec.data.every:
-            k = spec.data.every
-            from ardcore.data import Dataset
-
-            test = Dataset(test.t[::k].copy(), {c: v[::k].copy() for c, v in test.columns.items()}, test.meta)
+        # the same loader as the estimation data (slice, then the same decimation)
+        test = spec.data.model_copy(update={"start": a.test_start, "stop": a.test_stop}).load(base)
     cfg = DiagnoseConfig(top_k=a.top_k, max_rounds=a.max_rounds)
     t0 = time.perf_counter()
     fit = None
