@@ -14,7 +14,7 @@ import numpy as np
 from scipy.special import logsumexp
 from scipy.stats import chi2
 
-from .mcmc import Map, SamplerResult, fd_hessian, local_mode, safe_cholesky, serial_map
+from .mcmc import Map, SamplerError, SamplerResult, fd_hessian, local_mode, safe_cholesky, serial_map
 
 
 @dataclass
@@ -113,14 +113,35 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
         raise ValueError(f"evidence needs proper priors; improper: {bad}")
     nc = res.samples.shape[0]
     seeds = np.random.SeedSequence(seed).generate_state(nc)
-    tasks = [(target, res.samples[c], res.lp[c], res.phi_star, res.lp_star, res.proposal_cov, n_proposal,
-              int(seeds[c])) for c in range(nc)]
-    out = map_fn(_cj_chain, tasks, label="cj")
-    per = [ChainEvidence(res.lp_star - o, se, o) for o, se in out]
-    vals = np.array([p.log_evidence for p in per])
+    # Z = int L pi <= max L: a chain whose estimate exceeds it never reached phi*'s mode (its draws
+    # put no proposal density at phi*), so its posterior ordinate is meaningless
+    bound = max(float(res.ll_star), float(np.nanmax(res.ll)) if np.isfinite(res.ll).any() else -math.inf)
+    warnings = []
+    phi_star, lp_star, ll_star = res.phi_star, res.lp_star, float(res.ll_star)
+    for attempt in range(2):
+        tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
+                  int(seeds[c])) for c in range(nc)]
+        out = map_fn(_cj_chain, tasks, label="cj")
+        per = [ChainEvidence(lp_star - o, se, o) for o, se in out]
+        valid = [p for p in per if math.isfinite(p.log_evidence) and p.log_evidence <= bound]
+        if valid or attempt == 1 or not np.isfinite(res.lp).any():
+            break
+        # phi* sits where no stationary draw goes: take the best stationary draw instead
+        c, i = np.unravel_index(np.nanargmax(res.lp), res.lp.shape)
+        warnings.append(f"no chain's stationary draws reached phi* (ln post {lp_star:.2f}); the evidence is "
+                        f"taken at the best stationary draw (ln post {res.lp[c, i]:.2f}); burn-in did not settle")
+        phi_star, lp_star, ll_star = res.samples[c, i], float(res.lp[c, i]), float(res.ll[c, i])
+    if len(valid) < nc:
+        bad = [i for i, p in enumerate(per) if p not in valid]
+        warnings.append(f"chains {bad} gave impossible ln evidence estimates (above the largest ln L seen, "
+                        f"{bound:.2f}): they never reached phi*'s mode and were left out")
+    if not valid:
+        raise SamplerError("Chib-Jeliazkov: no chain reached the mode of phi* (every estimate exceeds max ln L); "
+                           "the sampler did not converge")
+    vals = np.array([p.log_evidence for p in valid])
+    per, nc = valid, len(valid)
     mean = float(vals.mean())
     se = float(vals.std(ddof=1) / math.sqrt(nc)) if nc > 1 else float(per[0].se)
-    warnings = []
     if nc > 1:
         noise = np.array([max(p.se, 1e-3) for p in per])
         stat = float(np.sum(((vals - mean) / noise) ** 2))
@@ -128,7 +149,7 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
             warnings.append(f"per-chain ln evidence estimates disagree beyond their noise "
                             f"(spread {np.ptp(vals):.2f} nats: {np.round(vals, 2).tolist()}); "
                             "chains may sit in different modes")
-    gof = float(res.ll_star)
+    gof = ll_star
     return Evidence(mean, se, gof, gof - mean, "chib-jeliazkov", per, warnings)
 
 

@@ -121,6 +121,14 @@ class RoundResult:
     halves: tuple  # RoundStats of the first and second half of the round (split R-hat)
 
     @property
+    def best(self) -> tuple:
+        """What a chain reports with its round: best point, its ln posterior and ln L, and the mean
+        ln posterior of the round's latter half (the level the coordinator compares across chains)."""
+        h = self.lp.size // 2
+        level = float(np.mean(self.lp[h:])) if self.lp.size else -math.inf
+        return (self.state.best_x, self.state.best_lp, self.state.best_ll, level)
+
+    @property
     def stats(self) -> RoundStats:
         n, mean, cov = pool_stats(self.halves)
         sc = cov * (n - 1) if cov is not None else np.zeros((mean.size, mean.size))
@@ -223,9 +231,11 @@ class AdaptationPool:
     """
 
     def __init__(self, n_chains: int, d: int, cov, *, inca: bool = True, rhat_threshold: float = 1.1,
-                 min_rounds: int = 1):
+                 min_rounds: int = 1, outlier_nats: float = 0.0):
         self.n_chains, self.d, self.inca = n_chains, d, inca
         self.rhat_threshold, self.min_rounds = rhat_threshold, min_rounds
+        self.outlier_nats = outlier_nats
+        self.resets: list[list[int]] = []  # [round, chain, source chain]
         cov = np.asarray(cov, dtype=float)
         self.cov = cov
         self.chain_covs = [cov.copy() for _ in range(n_chains)]
@@ -257,12 +267,39 @@ class AdaptationPool:
             if best is not None and (self.best is None or best[1] > self.best[1]):
                 self.best = (list(best[0]), float(best[1]), float(best[2]))
         self.rounds += 1
+        self._reset_outliers(reports)
         fallback = self.cov
         self.cov = self._proposal_from([h for h in self.halves], fallback)
         if not self.inca:
             self.chain_covs = [self._proposal_from([self.halves[c]], self.chain_covs[c])
                                for c in range(self.n_chains)]
         self.rhat_history.append(self.rhat().tolist())
+
+    def _reset_outliers(self, reports: dict) -> None:
+        """Chains whose round sat ``outlier_nats`` below the best chain's level are moved to it.
+
+        A chain stuck in a minor mode during burn-in inflates the pooled covariance with the distance
+        between modes, and every chain's acceptance collapses (the outlier-chain correction of
+        DREAM, Vrugt et al. 2009). The outlier's history is dropped from the pool; the driver moves
+        its state to the source chain's and it continues on its own random stream.
+        """
+        if not self.outlier_nats > 0:
+            return
+        levels = [reports[c][1][3] if reports[c][1] is not None and len(reports[c][1]) > 3 else math.nan
+                  for c in range(self.n_chains)]
+        if not all(math.isfinite(v) for v in levels):
+            return
+        src = int(np.argmax(levels))
+        for c, v in enumerate(levels):
+            if v < levels[src] - self.outlier_nats:
+                self.halves[c] = []
+                self.resets.append([self.rounds, c, src])
+        if any(r[0] == self.rounds for r in self.resets):
+            self.cov = self._proposal_from([h for h in self.halves], self.cov)
+
+    def moved(self, round_index: int) -> dict[int, int]:
+        """Chain -> source chain for the outliers moved when ``round_index`` was committed."""
+        return {c: src for r, c, src in self.resets if r == round_index}
 
     def _window(self, halves: list[RoundStats]) -> list[RoundStats]:
         keep = max(1, self.rounds - self.rounds // 2)
@@ -283,8 +320,8 @@ class AdaptationPool:
     # -- driver side
     def rhat(self) -> np.ndarray:
         """Split R-hat per parameter over the latter half of the committed rounds."""
-        if self.rounds == 0:
-            return np.full(self.d, np.inf)
+        if self.rounds == 0 or not all(self.halves):
+            return np.full(self.d, np.inf)  # a chain just moved has no history yet
         seqs = []
         for h in self.halves:
             w = self._window(h)
@@ -301,13 +338,14 @@ class AdaptationPool:
             "n_chains": self.n_chains, "d": self.d, "inca": self.inca, "rhat_threshold": self.rhat_threshold,
             "min_rounds": self.min_rounds, "cov": self.cov.tolist(), "chain_covs": [c.tolist() for c in self.chain_covs],
             "halves": [[enc(s) for s in h] for h in self.halves], "rounds": self.rounds, "best": self.best,
-            "rhat_history": self.rhat_history,
+            "rhat_history": self.rhat_history, "outlier_nats": self.outlier_nats, "resets": self.resets,
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> "AdaptationPool":
         p = cls(d["n_chains"], d["d"], np.array(d["cov"]), inca=d["inca"], rhat_threshold=d["rhat_threshold"],
-                min_rounds=d["min_rounds"])
+                min_rounds=d["min_rounds"], outlier_nats=d.get("outlier_nats", 0.0))
+        p.resets = [list(r) for r in d.get("resets", [])]
         p.chain_covs = [np.array(c) for c in d["chain_covs"]]
         p.halves = [[RoundStats(s["n"], np.array(s["mean"]), np.array(s["scatter"])) for s in h] for h in d["halves"]]
         p.rounds, p.best, p.rhat_history = d["rounds"], d["best"], d["rhat_history"]
@@ -458,6 +496,11 @@ class SamplerConfig:
     inca : bool
         Pool the adaptation over all chains (INCA); False adapts each chain on its own history
         (for comparison only).
+    outlier_nats : float
+        During burn-in, a chain whose mean ln posterior over a round's latter half lies more than
+        this many nats below the best chain's is moved to that chain's position (0 turns it off).
+        Within one mode the round means of the chains differ by well under a nat for the
+        models here; 10 nats is a chain stuck in a minor mode.
     """
 
     n_chains: int = 4
@@ -471,6 +514,7 @@ class SamplerConfig:
     start_maxfev: int = 3000
     overdispersion: float = 2.0
     inca: bool = True
+    outlier_nats: float = 10.0
 
 
 @dataclass
@@ -537,7 +581,13 @@ def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig
                                        for c, s in enumerate(states)], label=f"burnin-r{rnd}")
         states = [q.state for q in results]
         for c, q in enumerate(results):
-            pool.report(c, rnd, q.halves, (q.state.best_x, q.state.best_lp, q.state.best_ll))
+            pool.report(c, rnd, q.halves, q.best)
+        for c, src in pool.moved(rnd).items():
+            s, o = states[c], states[src]
+            s.x, s.lp, s.ll = list(o.x), o.lp, o.ll
+        if pool.moved(rnd) and progress:
+            progress({"stage": "note", "message": f"burn-in round {rnd}: chains {sorted(pool.moved(rnd))} sat over "
+                      f"{config.outlier_nats:g} nats below chain {max(pool.moved(rnd).values())}; moved to it"})
         n_eval += sum(q.samples.shape[0] + (q.samples.shape[0] - q.accepted) for q in results)
         acc = sum(q.accepted + q.dr_accepted for q in results)
         n = sum(q.samples.shape[0] for q in results)
@@ -591,10 +641,10 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
         states = []
         for c, r in enumerate(res):
             x, lp, ll, xm, lpm, _ = r
-            bx, blp = (xm, lpm) if lpm > lp else (x, lp)
-            bll = target(bx)[1]
+            # phi* comes from what the chains visit, never from the start optimiser alone (method.md 4):
+            # a spike it found and no chain returns to would make every chain's posterior ordinate ~0
             states.append(ChainState(c, list(map(float, x)), float(lp), float(ll),
-                                     np.random.PCG64(child[c]).state, list(map(float, bx)), float(blp), float(bll)))
+                                     np.random.PCG64(child[c]).state, list(map(float, x)), float(lp), float(ll)))
     else:
         states = []
         for c in range(nc):
@@ -660,7 +710,7 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
     if resume is None:
         states, cov = initial_states(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts)
         pool0 = AdaptationPool(nc, d, cov, inca=config.inca, rhat_threshold=config.rhat_threshold,
-                               min_rounds=config.min_burnin_rounds)
+                               min_rounds=config.min_burnin_rounds, outlier_nats=config.outlier_nats)
         pool = factory(pool0.to_dict())
         stage, counters = "burnin", [0, 0, 0]
         if checkpoint:

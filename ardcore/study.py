@@ -108,11 +108,20 @@ class CandidateSpec(BaseModel):
     priors: dict[Name, PriorSpec] = Field(default_factory=dict, max_length=64)
     ard: Union[list[Name], dict[Name, ArdSettings]] = Field(default_factory=list)
     fixed: dict[Name, float] = Field(default_factory=dict)
+    constants: dict[Name, float] = Field(
+        default_factory=dict, max_length=64,
+        description="overrides of the model's known constants (e.g. the declared measurement-noise std 'gamma')")
     substeps: Optional[int] = Field(None, ge=1, le=10000)
 
     @model_validator(mode="after")
     def _check(self):
         spec = self.resolved()
+        for k, v in self.constants.items():
+            if k not in spec.constants:
+                raise ValueError(f"model {self.label}: constants: {k!r} is not a constant of the model "
+                                 f"(constants: {sorted(spec.constants)})")
+            if not math.isfinite(v):
+                raise ValueError(f"model {self.label}: constants: {k!r} must be finite")
         params = set(spec.parameters)
         label = self.label
         for where, names in (("priors", self.priors), ("ard", self.ard_names), ("fixed", self.fixed)):
@@ -146,10 +155,12 @@ class CandidateSpec(BaseModel):
     def resolved(self) -> ModelSpec:
         if isinstance(self.model, str):
             try:
-                return builtin(self.model)
+                s = builtin(self.model)
             except Exception as exc:
                 raise ValueError(str(exc)) from None
-        return self.model
+        else:
+            s = self.model
+        return s.with_constants(**self.constants) if self.constants else s
 
     def model_spec(self) -> ModelSpec:
         s = self.resolved()
@@ -177,6 +188,8 @@ class SamplerSpec(BaseModel):
     dr_scale: float = Field(_S.dr_scale, ge=0.0, le=1.0)
     start_maxfev: int = Field(_S.start_maxfev, ge=10, le=1_000_000)
     overdispersion: float = Field(_S.overdispersion, gt=0, le=10)
+    outlier_nats: float = Field(_S.outlier_nats, ge=0, le=1e6,
+                                description="burn-in: move chains this far below the best chain to it (0: off)")
 
     @model_validator(mode="after")
     def _rounds(self):
@@ -198,10 +211,13 @@ class MaximiserSpec(BaseModel):
     noise_k: float = Field(_M.noise_k, ge=0, le=10)
     step_noise_k: float = Field(_M.step_noise_k, ge=0, le=10)
     min_gain: float = Field(_M.min_gain, ge=0, le=100)
+    keep_nats: float = Field(_M.keep_nats, ge=0, le=100)
     prune_alpha: float = Field(_M.prune_alpha, gt=0)
     prune_test: bool = _M.prune_test
     max_trials: int = Field(_M.max_trials, ge=1, le=1000)
     max_sweeps: int = Field(_M.max_sweeps, ge=1, le=100)
+    order: Literal["reverse", "declared"] = Field(
+        _M.order, description="visit the ARD parameters from the last declared (default) or the first")
 
     def config(self) -> MaximiserConfig:
         return MaximiserConfig(**self.model_dump())

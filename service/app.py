@@ -280,7 +280,8 @@ class ProgressCache:
             for ev in read_progress(store, e["offsets"]):
                 m = ev.get("model")
                 p = out.setdefault(m, Progress(model=m))
-                p.stage = ev.get("stage")
+                if ev.get("stage") != "note":
+                    p.stage = ev.get("stage")
                 p.elapsed_s = max(0.0, float(ev.get("time", started)) - started)
                 if ev.get("stage") == "burnin":
                     p.rhat = _finite(ev.get("rhat"))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -169,16 +170,21 @@ def cmd_demo(a) -> int:
     store = StudyStore(out)
     t0 = time.perf_counter()
     status = store.meta.get("status") if store.exists() else None
-    if status == "done":
+    same = status is not None and store.meta.get("spec") == spec.model_dump(mode="json")
+    if same and status == "done":
         print(f"[demo] already done: {out.resolve()} (delete it to run again)", flush=True)
-    elif status is not None and store.meta.get("spec") == spec.model_dump(mode="json"):
+    elif same:
         print(f"[demo] continuing the study in {out.resolve()}", flush=True)
         _run_on_dask(a, store)
     else:
         if status is not None:
             import shutil
 
-            shutil.rmtree(out)
+            # a run of other settings (demo vs --full, an edited example) is kept, not overwritten
+            old = out.with_name(out.name + ".previous")
+            shutil.rmtree(old, ignore_errors=True)
+            out.rename(old)
+            print(f"[demo] {out} held a study with other settings; moved it to {old}", flush=True)
         print(f"[demo] Section 3.6 study ({spec_path.name}{', paper scale' if a.full else ', demo scale'}): "
               "M1, M2, M3 with ARD priors on a3..a6, on an embedded Dask cluster", flush=True)
         store = prepare_store(spec, out, base=spec_path.parent)
@@ -207,10 +213,20 @@ def print_progress(p: dict) -> None:
         mark = "accepted" if p["accepted"] else "rejected"
         print(f"[{m}] trial {p['iteration']:>3}  {p['action']:<40s} ln Z = {p['log_evidence']:.3f} "
               f"+- {p['log_evidence_se']:.3f}  {mark}", flush=True)
+    elif st == "note":
+        print(f"[{m}]   {p['message']}", flush=True)
     elif st == "burnin" and (p["round"] == 1 or p["round"] % 5 == 0):
-        r = max(p["rhat"])
-        print(f"[{m}]   burn-in round {p['round']:>3}: max R-hat {r:.3f}, best ln post {p['best_lp']:.2f}, "
-              f"acceptance {p['acceptance']:.2f}", flush=True)
+        r = max(_num(v) for v in p["rhat"])
+        print(f"[{m}]   burn-in round {p['round']:>3}: max R-hat {r:.3f}, best ln post {_num(p['best_lp']):.2f}, "
+              f"acceptance {_num(p['acceptance']):.2f}", flush=True)
+
+
+def _num(v) -> float:
+    """A number from a progress event (non-finite values arrive as the strings 'inf', '-inf', 'nan')."""
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
 
 
 def _print_table(summary: dict) -> None:

@@ -117,6 +117,9 @@ class ActorPool:
     def rhat(self):
         return self.mirror.rhat()
 
+    def moved(self, round_index: int) -> dict:
+        return self.mirror.moved(round_index)
+
     def converged(self) -> bool:
         return self.mirror.converged()
 

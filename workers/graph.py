@@ -48,8 +48,7 @@ def _burnin_round_task(args, prefix: str, chain: int, round_index: int):
         from distributed import Variable
 
         fut = Variable(actor_variable_name(prefix)).get(timeout=5)
-        fut.result(timeout=10).report(chain, round_index, res.halves,
-                                      (res.state.best_x, res.state.best_lp, res.state.best_ll)).result(timeout=30)
+        fut.result(timeout=10).report(chain, round_index, res.halves, res.best).result(timeout=30)
     except Exception:
         pass  # the driver re-reports; a missing actor is restored there
     return res

@@ -25,14 +25,15 @@ def correlated_cov(d, seed, scale=0.01):
 
 
 class TwoModes:
-    """Two far-apart Gaussian modes of unequal mass: chains started in each never meet."""
+    """Two far-apart Gaussian modes (sd ``sd``) of unequal mass: chains started in each never meet."""
 
-    def __init__(self, sep=40.0, w=0.8):
-        self.sep, self.lw, self.lw2 = sep, math.log(w), math.log(1 - w)
+    def __init__(self, sep=40.0, w=0.8, sd=1.0):
+        self.sep, self.lw, self.lw2, self.sd = sep, math.log(w), math.log(1 - w), sd
 
     def __call__(self, x):
-        a = self.lw - 0.5 * float(x @ x)
-        y = x.copy()
-        y[0] -= self.sep
+        z = x / self.sd
+        a = self.lw - 0.5 * float(z @ z)
+        y = z.copy()
+        y[0] -= self.sep / self.sd
         b = self.lw2 - 0.5 * float(y @ y)
-        return float(np.logaddexp(a, b)) - 0.5 * x.size * math.log(2 * math.pi)
+        return float(np.logaddexp(a, b)) - 0.5 * x.size * math.log(2 * math.pi) - x.size * math.log(self.sd)

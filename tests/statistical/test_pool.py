@@ -72,3 +72,20 @@ def test_sampler_resumes_exactly_from_any_checkpoint():
         again = sample(target, cfg, seed=4, resume=ck)
         assert np.array_equal(again.samples, full.samples)
         assert again.lp_star == full.lp_star and again.burnin_rounds == full.burnin_rounds
+
+
+def test_outlier_chain_is_dropped_from_the_pool_and_moved():
+    rng = np.random.default_rng(0)
+    stats = lambda mu: (RoundStats.of(mu + rng.standard_normal((50, 2))),  # noqa: E731
+                        RoundStats.of(mu + rng.standard_normal((50, 2))))
+    for nats, moved in ((10.0, {2: 1}), (0.0, {})):
+        pool = AdaptationPool(3, 2, np.eye(2), outlier_nats=nats)
+        levels = [-3.0, -2.5, -40.0]
+        for c in range(3):
+            pool.report(c, 1, stats(np.zeros(2) if c < 2 else np.full(2, 50.0)), ([0.0, 0.0], levels[c], 0.0,
+                                                                                  levels[c]))
+        assert pool.moved(1) == moved
+        assert (len(pool.halves[2]) == 0) == bool(moved)
+        # with the far chain dropped the pooled covariance is the within-mode one, not the between-mode spread
+        assert (np.max(np.diag(pool.cov)) < 10) == bool(moved)
+        assert AdaptationPool.from_dict(pool.to_dict()).moved(1) == moved
