@@ -107,18 +107,24 @@ def write_report(store, out: str | Path | None = None) -> Path:
     paper = ""
     if reference and {r["name"] for r in summary["models"]} <= set(TABLE10):
         prow = []
+        best_here = max(r["log_evidence"] for r in summary["models"])
+        best_paper = max(TABLE10[r["name"]]["log_evidence"] for r in summary["models"])
         for r in summary["models"]:
             p = TABLE10[r["name"]]
             prow.append(
                 f"<tr><td class=l>{r['name']}</td><td>{_fmt(p['log_evidence'] + TABLE10_OFFSET, 2)}</td>"
-                f"<td>{_fmt(r['log_evidence'], 2)}</td><td>{_fmt(p['goodness_of_fit'] + TABLE10_OFFSET, 2)}</td>"
+                f"<td>{_fmt(r['log_evidence'], 2)}</td><td>{_fmt(p['log_evidence'] - best_paper, 2)}</td>"
+                f"<td>{_fmt(r['log_evidence'] - best_here, 2)}</td>"
+                f"<td>{_fmt(p['goodness_of_fit'] + TABLE10_OFFSET, 2)}</td>"
                 f"<td>{_fmt(r['goodness_of_fit'], 2)}</td><td>{_fmt(p['information_gain'], 2)}</td>"
                 f"<td>{_fmt(r['information_gain'], 2)}</td><td>{_fmt(p['probability'], 3)}</td>"
                 f"<td>{_fmt(r['probability'], 3)}</td><td class=l>{', '.join(p['pruned'])}</td>"
                 f"<td class=l>{', '.join(r['pruned']) or '-'}</td></tr>")
         paper = ("<h2>This run against the paper (Table 10)</h2><p>Absolute values depend on the noise realisation "
                  "and the filter; compare the ranking, the pruning pattern, the decomposition trends and the "
-                 "parameter recovery.</p><table><tr><th class=l>model</th><th>ln Z paper</th><th>ln Z here</th>"
+                 "parameter recovery (&Delta; ln Z: against the best model of the same run).</p><table><tr>"
+                 "<th class=l>model</th><th>ln Z paper</th><th>ln Z here</th>"
+                 "<th>&Delta; ln Z paper</th><th>&Delta; ln Z here</th>"
                  "<th>GoF paper</th><th>GoF here</th><th>EIG paper</th><th>EIG here</th><th>P paper</th>"
                  "<th>P here</th><th class=l>pruned paper</th><th class=l>pruned here</th></tr>" + "".join(prow)
                  + "</table>")
