@@ -512,6 +512,19 @@ def create_app(settings: Settings, client) -> FastAPI:
             raise HTTPException(409, str(exc)) from None
         return Response(png, media_type="image/png")
 
+    @app.get(f"{v1}/studies/{{sid}}/report/{{name}}", dependencies=[Depends(auth)],
+             responses={200: {"content": {"text/html": {}, "image/png": {}}}})
+    def report_file(sid: str, name: str):
+        """The study's report (``report.html``) and its figures (PNG), as written when the study finished."""
+        meta = reg.meta(sid)
+        d = reg.store(sid).path / "report"
+        if not re.match(r"^[A-Za-z0-9_]{1,60}\.(png|html)$", name) or not (d / name).is_file():
+            if meta.get("status") != "done":
+                raise HTTPException(409, f"study {sid} is {meta.get('status')}: the report is written when it finishes")
+            raise HTTPException(404, f"no report file {name!r}")
+        kind = "text/html; charset=utf-8" if name.endswith(".html") else "image/png"
+        return Response((d / name).read_bytes(), media_type=kind)
+
     def _diag_dir(sid: str, model: str) -> Path:
         if not re.match(r"^[A-Za-z][A-Za-z0-9_]{0,31}$", model):
             raise HTTPException(404, f"no model {model!r}")

@@ -158,6 +158,21 @@ class Client:
         """A PNG of a finished diagnosis (tests, process_noise, candidates, free_run)."""
         return self._check(self.http.get(f"/studies/{sid}/diagnoses/{model}/figures/{name}")).content
 
+    def report(self, sid: str, out: str | Path) -> Path:
+        """Download a finished study's report (``report.html`` and its PNG figures) into ``out``.
+
+        Returns the local path of ``report.html``; it opens offline (no external assets).
+        """
+        import re
+
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        page = self._check(self.http.get(f"/studies/{sid}/report/report.html")).text
+        for name in sorted(set(re.findall(r"<img src='([^'/]+\.png)'", page))):
+            (out / name).write_bytes(self._check(self.http.get(f"/studies/{sid}/report/{name}")).content)
+        (out / "report.html").write_text(page)
+        return out / "report.html"
+
     def posterior(self, sid: str, model: str, *, as_xarray: bool = False):
         """Stationary posterior samples of ``model``'s optimal nested model.
 

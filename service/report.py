@@ -103,7 +103,8 @@ def plot_ard_bounds(history: list[dict], ard: list[str], out):
             a = h["psi"].get(name)
             post = h.get("posterior", {}).get(name)
             if a == "inf":
-                ax.plot([it], [0.0], "x", color="C3")
+                rejected = str(h.get("action", "")).startswith(f"{name}: prune test") and not h.get("accepted")
+                ax.plot([it], [0.0], "x", color="C1" if rejected else "C3")
                 continue
             half = 2.576 / np.sqrt(float(a))
             ax.plot([it, it], [-half, half], color="0.75", lw=6, solid_capstyle="butt")
@@ -113,7 +114,8 @@ def plot_ard_bounds(history: list[dict], ard: list[str], out):
         ax.set_title(name)
         ax.set_xlabel("trial")
     axes[0][0].set_ylabel("99 % bounds")
-    fig.suptitle("prior (grey), posterior (blue: accepted trial, orange: rejected), x: pruned", fontsize=9)
+    fig.suptitle("prior (grey), posterior (blue: accepted trial, orange: rejected); x: term removed "
+                 "(orange: its prune test, rejected)", fontsize=9)
     return _save(fig, out)
 
 

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -77,6 +78,15 @@ def test_submit_watch_summary_posterior(service, tmp_path):
         st = c.status(sid)
         assert st["models"]["quad"]["trials_done"] >= 2 and st["models"]["quad"]["best_log_evidence"] is not None
         assert any(x["id"] == sid for x in c.studies())
+        # the same report as the CLI writes, fetched over HTTP: every figure it shows comes along
+        page = c.report(sid, tmp_path / "report")
+        text = page.read_text()
+        imgs = re.findall(r"<img src='([^']+)'", text)
+        assert "Table 10 analogue" in text and len(imgs) >= 4
+        assert all((page.parent / f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for f in imgs)
+        with pytest.raises(APIError) as e:
+            c._check(c.http.get(f"/studies/{sid}/report/../meta.json"))
+        assert e.value.status == 404
 
 
 def test_uploaded_csv_study(service, tmp_path):
