@@ -41,8 +41,8 @@ class MaximiserConfig:
         First and smallest line-search step in log10 alpha.
     noise_k : float
         The prune test keeps a term only when ln Z with it beats ln Z without it by more than
-        noise_k * se of the difference (and ``min_gain``); a pruned term comes back in a later
-        sweep on the same margin.
+        noise_k * se of the difference (and ``min_gain``), plus ``keep_nats``; a pruned term
+        is re-tested in a later sweep on the noise margin alone, then prune-tested again.
     step_noise_k : float
         The same multiple for a line-search step up in alpha (default 1, as the prune test).
         0 lets the point estimate decide, so a noisy baseline cannot stop a coordinate at its
@@ -51,7 +51,7 @@ class MaximiserConfig:
     min_gain : float
         Smallest improvement in ln Z (nats) that counts as a line-search step.
     keep_nats : float
-        A term stays (and a pruned one comes back) only when ln Z with it beats ln Z without it
+        A term survives its prune test only when ln Z with it beats ln Z without it
         by more than ``keep_nats + noise_k * se``: the lower 1-se bound of its log Bayes factor
         must pass 1 nat, where Kass and Raftery's "positive" evidence starts (2 ln B = 2).
         Below that the evidence for the term is "not worth more than a bare mention"; on the

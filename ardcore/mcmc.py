@@ -294,8 +294,6 @@ class AdaptationPool:
             if v < levels[src] - self.outlier_nats:
                 self.halves[c] = []
                 self.resets.append([self.rounds, c, src])
-        if any(r[0] == self.rounds for r in self.resets):
-            self.cov = self._proposal_from([h for h in self.halves], self.cov)
 
     def moved(self, round_index: int) -> dict[int, int]:
         """Chain -> source chain for the outliers moved when ``round_index`` was committed."""
@@ -582,12 +580,13 @@ def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig
         states = [q.state for q in results]
         for c, q in enumerate(results):
             pool.report(c, rnd, q.halves, q.best)
-        for c, src in pool.moved(rnd).items():
+        moved = pool.moved(rnd)
+        for c, src in moved.items():
             s, o = states[c], states[src]
             s.x, s.lp, s.ll = list(o.x), o.lp, o.ll
-        if pool.moved(rnd) and progress:
-            progress({"stage": "note", "message": f"burn-in round {rnd}: chains {sorted(pool.moved(rnd))} sat over "
-                      f"{config.outlier_nats:g} nats below chain {max(pool.moved(rnd).values())}; moved to it"})
+        if moved and progress:
+            progress({"stage": "note", "message": f"burn-in round {rnd}: chains {sorted(moved)} sat over "
+                      f"{config.outlier_nats:g} nats below chain {max(moved.values())}; moved to it"})
         n_eval += sum(q.samples.shape[0] + (q.samples.shape[0] - q.accepted) for q in results)
         acc = sum(q.accepted + q.dr_accepted for q in results)
         n = sum(q.samples.shape[0] for q in results)

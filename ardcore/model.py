@@ -158,7 +158,7 @@ class ModelSpec(BaseModel):
         c = dict(self.constants)
         for k, v in values.items():
             if k not in c:
-                raise ModelError(f"{self.name}: {k!r} is not a constant")
+                raise ModelError(f"{self.name}: {k!r} is not a constant (constants: {sorted(c)})")
             c[k] = float(v)
         return self.model_copy(update={"constants": c}).revalidate()
 

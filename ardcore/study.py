@@ -115,13 +115,7 @@ class CandidateSpec(BaseModel):
 
     @model_validator(mode="after")
     def _check(self):
-        spec = self.resolved()
-        for k, v in self.constants.items():
-            if k not in spec.constants:
-                raise ValueError(f"model {self.label}: constants: {k!r} is not a constant of the model "
-                                 f"(constants: {sorted(spec.constants)})")
-            if not math.isfinite(v):
-                raise ValueError(f"model {self.label}: constants: {k!r} must be finite")
+        spec = self.resolved()  # applies `constants` (unknown names rejected there; NaN by the schema)
         params = set(spec.parameters)
         label = self.label
         for where, names in (("priors", self.priors), ("ard", self.ard_names), ("fixed", self.fixed)):

@@ -43,6 +43,8 @@ def mutate(fn):
     (lambda d: d.update(bogus=1), "bogus", "Extra inputs"),
     (lambda d: d["data"].update(path="x.csv"), "data", "exactly one of"),
     (lambda d: d["models"][0].update(model="M9"), "models.0", "unknown built-in model 'M9'"),
+    (lambda d: d["models"][0].update(constants={"zz": 1.0}), "models.0", "'zz' is not a constant (constants: ["),
+    (lambda d: d["models"][0].update(constants={"gamma": math.inf}), "models.0.constants.gamma", "finite"),
 ])
 def test_bad_specs_name_the_field(tmp_path, change, field, msg):
     p = tmp_path / "spec.json"
