@@ -26,7 +26,7 @@ from sympy.printing.pycode import PythonCodePrinter
 
 from .model import ModelSpec, SymbolicModel
 
-KERNEL_VERSION = "5"
+KERNEL_VERSION = "6"
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
 
@@ -140,30 +140,90 @@ def generate_source(spec: ModelSpec) -> str:
     unpack_p = [f"    p{i} = p[{i}]" for i in range(len(sm.params))]
     unpack_f = lambda ind, row: [f"{ind}f{i} = U[{row}, {i}]" for i in range(q)]  # noqa: E731
 
+    def interval_inputs(ind: str) -> list[str]:
+        """Inputs over the interval (k-1, k]: held (ZOH) or start value and increment (FOH)."""
+        if spec.input_hold == "foh":
+            return [line for i in range(q) for line in (f"{ind}fA{i} = U[k - 1, {i}]",
+                                                        f"{ind}fD{i} = U[k, {i}] - U[k - 1, {i}]")]
+        return unpack_f(ind, "k - 1")
+
     # -- initial condition ------------------------------------------------------
     init = [(f"x{i}", sm.init_mean[i]) for i in range(n)]
     init += [(f"P{i}_{i}", sm.init_std[i] ** 2) for i in range(n)]
     init_lines = em.block(init, "    ") + [f"    P{i}_{j} = 0.0" for i in range(n) for j in range(i + 1, n)]
 
-    # -- one Euler sub-step of mean and covariance --------------------------------
-    Jsym = sp.zeros(n, n)
-    jtargets = []
-    for i in range(n):
-        for j in range(n):
-            e = sm.jacobian[i, j]
-            if e == 0:
-                continue
-            if e.is_Number:
-                Jsym[i, j] = e
-            else:
-                Jsym[i, j] = sp.Symbol(f"J{i}_{j}", real=True)
-                jtargets.append((f"J{i}_{j}", e))
-    step_t = [(f"d{i}", sm.drift[i]) for i in range(n)] + jtargets
-    step_t += [(f"g{i}", sm.diffusion[i] ** 2) for i in range(n) if sm.diffusion[i] != 0]
-    step = em.block(step_t, "                ")
-    # M = (I + J dt) P, then Pn = M (I + J dt)^T + Q dt, upper triangle only.
+    # -- one sub-step of mean and covariance ---------------------------------------
+    # Inputs between samples: f = fA + fD * (fraction of the interval); fD = 0 under zero-order hold.
+    foh = spec.input_hold == "foh" and q > 0
+    ind = "                "
+
+    def set_inputs(frac: str) -> list[str]:
+        if not foh:
+            return []
+        return [f"{ind}f{i} = fA{i} + fD{i} * ((_s + {frac}) / nsub)" for i in range(q)]
+
+    def jac_pattern(tag: str) -> tuple[sp.Matrix, list]:
+        """Jacobian as a matrix of symbols ``J<tag>i_j`` (numbers inline, zeros dropped) and its targets."""
+        Jm, tg = sp.zeros(n, n), []
+        for i in range(n):
+            for j in range(n):
+                e = sm.jacobian[i, j]
+                if e == 0:
+                    continue
+                if e.is_Number:
+                    Jm[i, j] = e
+                else:
+                    Jm[i, j] = sp.Symbol(f"J{tag}{i}_{j}", real=True)
+                    tg.append((f"J{tag}{i}_{j}", e))
+        return Jm, tg
+
+    gt = [(f"g{i}", sm.diffusion[i] ** 2) for i in range(n) if sm.diffusion[i] != 0]
+    Jsym, jtargets = jac_pattern("")
+    step = set_inputs("0.0") + em.block([(f"d{i}", sm.drift[i]) for i in range(n)] + jtargets + gt, ind)
+    if spec.integrator == "euler":
+        A = sp.eye(n) + Jsym * dt
+        xstep = [f"{ind}x{i} = x{i} + dt * d{i}" for i in range(n)]
+    else:
+        # RK4 stages at z = x + c dt k_prev; the covariance uses the exact tangent of the RK4 map,
+        # Phi = I + dt/6 (T1 + 2 T2 + 2 T3 + T4), T1 = J(x), T_s = J(z_s) (I + c_s dt T_{s-1}).
+        zren = dict(rename)
+        zren.update({st: sp.Symbol(f"z{i}", real=True) for i, st in enumerate(sm.states)})
+        T = [Jsym]
+        step += [f"{ind}k1_{i} = d{i}" for i in range(n)]
+        for stage, c, frac in ((2, "0.5", "0.5"), (3, "0.5", "0.5"), (4, "1.0", "1.0")):
+            step += [f"{ind}z{i} = x{i} + {c} * dt * k{stage - 1}_{i}" for i in range(n)]
+            step += set_inputs(frac) if stage != 3 else []
+            Js, jt = jac_pattern(f"s{stage}_")
+            step += _Emitter(zren, f"_r{stage}_").block(
+                [(f"k{stage}_{i}", sm.drift[i]) for i in range(n)] + jt, ind)
+            cdt = sp.Rational(1, 2) * dt if c == "0.5" else dt
+            prev = T[-1]
+            Ts = sp.zeros(n, n)
+            for i in range(n):
+                for j in range(n):
+                    e = sp.expand(sum((Js[i, k] * ((1 if k == j else 0) + cdt * prev[k, j]) for k in range(n)),
+                                      sp.S.Zero))
+                    if e == 0:
+                        continue
+                    if e.is_Number:
+                        Ts[i, j] = e
+                    else:
+                        Ts[i, j] = sp.Symbol(f"T{stage}_{i}_{j}", real=True)
+                        step.append(f"{ind}T{stage}_{i}_{j} = {em.code(e)}")
+            T.append(Ts)
+        A = sp.zeros(n, n)
+        for i in range(n):
+            for j in range(n):
+                e = (1 if i == j else 0) + dt / 6 * (T[0][i, j] + 2 * T[1][i, j] + 2 * T[2][i, j] + T[3][i, j])
+                e = sp.expand(e)
+                if e.is_Number or e.is_Symbol:
+                    A[i, j] = e
+                else:
+                    A[i, j] = sp.Symbol(f"A{i}_{j}", real=True)
+                    step.append(f"{ind}A{i}_{j} = {em.code(e)}")
+        xstep = [f"{ind}x{i} = x{i} + dt * (k1_{i} + 2.0 * k2_{i} + 2.0 * k3_{i} + k4_{i}) / 6.0" for i in range(n)]
+    # M = A P, then Pn = M A^T + Q dt, upper triangle only (A = I + J dt for Euler, the RK4 tangent otherwise).
     P = sp.Matrix(Psym)
-    A = sp.eye(n) + Jsym * dt
     Msym = sp.Matrix(n, n, lambda i, j: sp.Symbol(f"M{i}_{j}", real=True))
     mt = []
     for i in range(n):
@@ -177,15 +237,13 @@ def generate_source(spec: ModelSpec) -> str:
             if i == j and sm.diffusion[i] != 0:
                 e = e + sp.Symbol(f"g{i}", real=True) * dt
             pt.append((f"P{i}_{j}", e))
-    ind = "                "
     step += [f"{ind}{a} = {em.code(e)}" for a, e in mt]
     step += [f"{ind}{a} = {em.code(e)}" for a, e in pt]
-    # the interval's transition matrix Phi <- (I + J dt) Phi (the smoother needs it; only ekf_trace computes it)
+    # the interval's transition matrix Phi <- A Phi (the smoother needs it; only ekf_trace computes it)
     phi_t = [(f"N{i}_{j}", sum((A[i, k] * sp.Symbol(f"F{k}_{j}", real=True) for k in range(n)), sp.S.Zero))
              for i in range(n) for j in range(n)]
     phi_step = [f"{ind}{a} = {em.code(e)}" for a, e in phi_t] + [
         f"{ind}F{i}_{j} = N{i}_{j}" for i in range(n) for j in range(n)]
-    xstep = [f"{ind}x{i} = x{i} + dt * d{i}" for i in range(n)]
 
     # -- observation update (all channels linearised at the forecast) -------------
     # H is usually sparse and constant (a state is observed): emit only its non-zero terms.
@@ -263,7 +321,7 @@ def generate_source(spec: ModelSpec) -> str:
             "    for k in range(t.shape[0]):",
             "        if k > 0:",
             "            dt = (t[k] - t[k - 1]) / nsub",
-            *unpack_f("            ", "k - 1"),
+            *interval_inputs("            "),
             *reset,
             "            for _s in range(nsub):",
             *body,
@@ -283,18 +341,29 @@ def generate_source(spec: ModelSpec) -> str:
 
     L += ekf_function(False) + ekf_function(True)
 
-    # -- Euler-Maruyama simulation ---------------------------------------------------
-    sim_t = [(f"d{i}", sm.drift[i]) for i in range(n)]
-    sim_t += [(f"g{i}", sm.diffusion[i]) for i in range(n) if sm.diffusion[i] != 0]
+    # -- simulation: the same scheme for the drift, plus g sqrt(dt) N(0, 1) per sub-step ------------
     noisy = [i for i in range(n) if sm.diffusion[i] != 0]
-    sim = em.block(sim_t, "            ")
-    sim += [f"            x{i} = x{i} + dt * d{i}" + (f" + g{i} * sq * W[w, {noisy.index(i)}]" if i in noisy else "")
+    sind = "                "
+    sim = set_inputs("0.0") + em.block([(f"d{i}", sm.drift[i]) for i in range(n)]
+                                       + [(f"g{i}", sm.diffusion[i]) for i in noisy], sind)
+    if spec.integrator == "euler":
+        incr = [f"dt * d{i}" for i in range(n)]
+    else:
+        zren = dict(rename)
+        zren.update({st: sp.Symbol(f"z{i}", real=True) for i, st in enumerate(sm.states)})
+        sim += [f"{sind}k1_{i} = d{i}" for i in range(n)]
+        for stage, c, frac in ((2, "0.5", "0.5"), (3, "0.5", "0.5"), (4, "1.0", "1.0")):
+            sim += [f"{sind}z{i} = x{i} + {c} * dt * k{stage - 1}_{i}" for i in range(n)]
+            sim += set_inputs(frac) if stage != 3 else []
+            sim += _Emitter(zren, f"_r{stage}_").block([(f"k{stage}_{i}", sm.drift[i]) for i in range(n)], sind)
+        incr = [f"dt * (k1_{i} + 2.0 * k2_{i} + 2.0 * k3_{i} + k4_{i}) / 6.0" for i in range(n)]
+    sim += [f"{sind}x{i} = x{i} + {incr[i]}" + (f" + g{i} * sq * W[w, {noisy.index(i)}]" if i in noisy else "")
             for i in range(n)]
     hobs = em.block([(f"h{j}", sm.obs[j]) for j in range(m)], "        ")
     L += [
         "@njit(cache=True, nogil=True)",
         "def simulate(p, x, t, U, nsub, W, X, H):",
-        '    """Euler-Maruyama from state x at t[0]; W holds N(0,1) increments, one row per step."""',
+        '    """From state x at t[0] (Euler-Maruyama, or RK4 drift + Euler noise); W: N(0,1) increments per step."""',
         *unpack_p,
         *[f"    x{i} = x[{i}]" for i in range(n)],
         "    w = 0",
@@ -302,9 +371,9 @@ def generate_source(spec: ModelSpec) -> str:
         "        if k > 0:",
         "            dt = (t[k] - t[k - 1]) / nsub",
         "            sq = sqrt(dt)",
-        *unpack_f("            ", "k - 1"),
+        *interval_inputs("            "),
         "            for _s in range(nsub):",
-        *["    " + s for s in sim],
+        *sim,
         "                w += 1",
         *unpack_f("        ", "k"),
         *[f"        X[k, {i}] = x{i}" for i in range(n)],

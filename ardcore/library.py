@@ -1,7 +1,8 @@
 """Built-in model library.
 
 Every entry is an ordinary declarative :class:`~ardcore.model.ModelSpec`;
-users can copy one as JSON and edit it. The aeroelastic models follow
+users can copy one as JSON and edit it. The aeroelastic models (Euler sub-steps, as the paper's study was run and the
+reference data are simulated) follow
 ``shared/docs/reference-problem.md`` (Eq. 15-18, Table 6); the candidate
 terms e1..e6 of the paper are the parameters ``a1..a6`` here.
 """
@@ -43,7 +44,7 @@ def aero_m1() -> ModelSpec:
         observations=_OBS_THETA,
         parameters=["a1", "a2", "a3", "a4", "a5", "a6", "sigma"],
         constants={**{k: AERO_CONSTANTS[k] for k in ("c1", "c2", "c3", "c4", "c5")}, "gamma": AERO_GAMMA_EKF},
-        initial_std={"theta": 0.01, "dtheta": 0.01},
+        initial_std={"theta": 0.01, "dtheta": 0.01}, integrator="euler",
     )
 
 
@@ -58,7 +59,7 @@ def aero_m2() -> ModelSpec:
         observations=_OBS_THETA,
         parameters=["B", "a1", "a2", "a3", "a4", "a5", "a6", "sigma"],
         constants={**AERO_CONSTANTS, "gamma": AERO_GAMMA_EKF},
-        initial_std=_INIT_STD,
+        initial_std=_INIT_STD, integrator="euler",
     )
 
 
@@ -82,7 +83,7 @@ def aero_m3() -> ModelSpec:
         observations=_OBS_THETA,
         parameters=["A", "B1", "B2", "a1", "a2", "a3", "a4", "a5", "a6", "sigma"],
         constants={**AERO_CONSTANTS, "kappa": 0.5, "gamma": AERO_GAMMA_EKF},
-        initial_std={**_INIT_STD, "w": 0.01},
+        initial_std={**_INIT_STD, "w": 0.01}, integrator="euler",
     )
 
 
@@ -93,7 +94,7 @@ def polynomial() -> ModelSpec:
         states=["z"], drift={"z": 0.0}, inputs=["x"],
         observations=[{"column": "y", "expr": "a0 + a1*x + a2*x**2 + a3*x**3 + a4*x**4", "noise_std": "gamma"}],
         parameters=["a0", "a1", "a2", "a3", "a4", "gamma"],
-        initial_std={"z": 0.0}, substeps=1,
+        initial_std={"z": 0.0}, substeps=1, integrator="euler",
     )
 
 

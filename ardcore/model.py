@@ -2,7 +2,7 @@
 
 A model is data: states, drift expressions, which states receive process noise
 (and its diffusion coefficient), observations with their noise, known constants,
-known inputs (data columns, held between samples), named parameters, and
+known inputs (data columns, interpolated between samples), named parameters, and
 optionally parameters fixed to a value (a pruned term is fixed to 0)::
 
     du = F(u, phi, f) dt + diag(g(u, phi, f)) dW,     y_k = h(u(t_k), phi) + eps_k
@@ -18,7 +18,7 @@ import json
 import re
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Annotated, Union
+from typing import Annotated, Literal, Union
 
 import sympy as sp
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -69,7 +69,7 @@ class ModelSpec(BaseModel):
     constants : dict
         Known constants (baked into the compiled kernel).
     inputs : list of str
-        Known inputs: data columns, held constant between samples.
+        Known inputs: data columns, interpolated between samples (see ``input_hold``).
     initial_mean, initial_std : dict
         Initial state mean and standard deviation (numbers or expressions over
         parameters and constants); missing states default to 0 and 1.
@@ -77,6 +77,14 @@ class ModelSpec(BaseModel):
         Parameters fixed to a value (removed from phi).
     substeps : int
         EKF sub-steps per observation interval.
+    integrator : {"rk4", "euler"}
+        Scheme of a sub-step. ``"rk4"`` (default): classical Runge-Kutta for the mean and its
+        exact tangent map for the covariance (``P <- Phi P Phi^T + G G^T dt``), fourth order, so a
+        few sub-steps are enough. ``"euler"``: ``Phi = I + J dt`` (first order; the paper's
+        aeroelastic models keep it so that their reference data and results are unchanged).
+    input_hold : {"foh", "zoh"}
+        How inputs vary between samples. ``"foh"`` (default): linearly interpolated (first-order
+        hold). ``"zoh"``: held at the previous sample, which delays them by half a sample.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -95,6 +103,8 @@ class ModelSpec(BaseModel):
     initial_std: dict[Name, ExprLike] = Field(default_factory=dict)
     fixed: dict[Name, float] = Field(default_factory=dict)
     substeps: int = Field(10, ge=1, le=10000)
+    integrator: Literal["rk4", "euler"] = "rk4"
+    input_hold: Literal["foh", "zoh"] = "foh"
 
     @field_validator("constants", "fixed")
     @classmethod

@@ -1,6 +1,7 @@
 """The RTS smoother on a linear-Gaussian model against the exact conditional mean of the joint Gaussian."""
 
 import numpy as np
+import pytest
 
 from ardcore.data import Dataset
 from ardcore.ekf import compile_model
@@ -9,17 +10,18 @@ from ardcore.library import builtin
 from .test_ekf_exact import PARAMS, euler_transition
 
 
-def test_smoother_equals_batch_conditional_mean():
+@pytest.mark.parametrize("scheme", ["euler", "rk4"])
+def test_smoother_equals_batch_conditional_mean(scheme):
     rng = np.random.default_rng(4)
     n, nsub = 40, 3
     t = np.cumsum(np.r_[0.0, rng.uniform(0.05, 0.3, n - 1)])  # irregular sampling
     y = rng.standard_normal(n) * 0.5
     y[[7, 8, 21]] = np.nan  # missing observations
-    cm = compile_model(builtin("linear_gaussian").model_copy(update={"substeps": nsub}))
+    cm = compile_model(builtin("linear_gaussian").model_copy(update={"substeps": nsub, "integrator": scheme}))
     fr, sm = cm.smooth(PARAMS, Dataset(t, {"y": y}))
 
-    # joint prior of the stacked states X = (x_0, ..., x_{n-1}) under the same Euler discretisation
-    tr = euler_transition(PARAMS, nsub)
+    # joint prior of the stacked states X = (x_0, ..., x_{n-1}) under the same discretisation
+    tr = euler_transition(PARAMS, nsub, scheme)
     m0, P0 = cm.initial(PARAMS)
     Fs, Qs = [np.eye(2)], [P0]
     for k in range(1, n):

@@ -99,7 +99,8 @@ def test_linear_gaussian_state_space_cj_within_015_nats():
         drift={"x": "-a*x + b1*u + b2"}, diffusion={"x": "q"},
         observations=[{"column": "y", "expr": "x + c", "noise_std": "r"}],
         parameters=["b1", "b2", "c"], constants={"a": a, "q": q, "r": r},
-        initial_std={"x": 1.0}, substeps=nsub)
+        initial_std={"x": 1.0}, substeps=nsub,
+        integrator="euler", input_hold="zoh")  # the discretisation augmented_kalman_evidence is written for
     n = 200
     t = np.arange(n) * 0.1
     rng = np.random.default_rng(11)
