@@ -11,12 +11,14 @@
 3. **tests** them: whiteness (autocorrelation with 95 % bands, Ljung-Box),
    normality (Jarque-Bera), spectral peaks of the innovations;
 4. **traces** the residual to an effect: every candidate of
-   :mod:`ardcore.effects` is scored by how much of the smoothed process noise it
-   explains beyond what refitting the model's own parameters would (a
-   regression score in nats, BIC-penalised, with the sample size corrected for
-   autocorrelation); the best few are **confirmed by evidence**: each is added
-   under an ARD prior and the candidate re-selected, so ARD decides whether
-   the new term survives;
+   :mod:`ardcore.effects` on every dynamic state (and every measurement effect
+   on every observed channel) is **screened by evidence** (:mod:`ardcore.screen`:
+   a Laplace log Bayes factor from the EKF's own score and information, the
+   model's parameters profiled out, terms normalised, shape parameters such as a
+   free-play width or a forcing frequency profiled); the best few are
+   **confirmed** by the full ARD re-selection: each is added (normalised) under
+   an ARD prior and the candidate re-selected, so ARD decides whether the new
+   term survives;
 5. **reports** the error before and after.
 
 When no candidate survives, the result says so and describes the residual
@@ -36,9 +38,10 @@ from scipy import optimize, signal, stats
 
 from .data import Dataset
 from .ekf import compile_model
-from .effects import Effect, augment, candidate_effects, dynamic_states, feature_functions, oscillator_pairs
+from .effects import Effect, augment, candidate_effects, dynamic_states, oscillator_pairs
 from .errors import SpecError
 from .model import ModelSpec
+from .screen import Screened, screen_effects
 from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
 
 INF = math.inf
@@ -58,12 +61,11 @@ class DiagnoseConfig:
         A spectral bin is a peak when its power exceeds the local background by the
         (1 - peak_p) chi-square quantile (2 degrees of freedom per Welch segment pair).
     min_score : float
-        Regression score (nats) a candidate needs to be confirmed by evidence. The default
-        (-inf) sends the ``top_k`` best to the evidence whatever their score: the regression
-        only ranks (its sample size is uncertain, the smoothed noise being autocorrelated);
-        evidence and ARD decide.
+        Screened ln Bayes factor (nats, :mod:`ardcore.screen`) a candidate needs to be confirmed by
+        the full ARD re-selection (default 3: Kass and Raftery's "positive" evidence).
     top_k : int
-        Candidates confirmed by evidence (the best-scoring ones above ``min_score``).
+        Candidates confirmed by the full re-selection per round (the best screened ones above
+        ``min_score``).
     min_log_bf : float
         Evidence gain (nats) over the base model an added effect needs, on top of ARD keeping it.
     init_samples : int
@@ -72,20 +74,25 @@ class DiagnoseConfig:
         Effects added one after another at most (each round re-traces the new model's residual).
     split_z : float or None
         Stability check of a surviving effect: its coefficients are refitted (at the optimal alpha) on
-        the first and the second half of the record; a difference of more than ``split_z`` standard
-        errors means the term compensates for something that changes over the record rather than
-        explaining it, and the effect is not added. None skips the check.
+        the first and the second half of the record. They disagree when they differ by more than
+        ``split_z`` standard errors *and* by more than ``split_rel`` of their size (or change sign): a
+        term that compensates for something that changes over the record rather than explaining it.
+        On a long record the standard errors are tiny and any small misfit shows, so the size of
+        the disagreement is judged against the effect's own size. None skips the check.
+    split_rel : float
+        Relative disagreement of the halves (|a - b| / max(|a|, |b|)) that still counts as stable.
     """
 
     max_lag: int = 40
     ljung_box_lags: int = 20
     peak_p: float = 1e-4
-    min_score: float = -math.inf
+    min_score: float = 3.0
     top_k: int = 3
     min_log_bf: float = 3.0
     init_samples: int = 50
     max_rounds: int = 3
     split_z: float | None = 3.0
+    split_rel: float = 0.3
 
 
 # --------------------------------------------------------------------------- tests
@@ -235,87 +242,6 @@ def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig,
     return Residuals(e, fr.innovations, sm.smoothed, rates, noise_std, tests, fr.loglik)
 
 
-# --------------------------------------------------------------------------- trace
-
-
-def _sensitivities(spec: ModelSpec, target: str, phi: dict):
-    """d drift_target / d phi_j as numpy callables of (states, inputs): the directions a refit can already move."""
-    sm = spec.sym
-    i = spec.states.index(target)
-    f = sm.drift[i]
-    syms = list(sm.states) + list(sm.inputs)
-    vals = {p: phi[str(p)] for p in sm.params}
-    out = []
-    for p in sm.params:
-        d = sp.diff(f, p)
-        d = d.replace(lambda a: isinstance(a, sp.DiracDelta), lambda a: sp.S.Zero)
-        if d == 0:
-            continue
-        out.append((str(p), sp.lambdify(syms, d.subs(vals), modules=[{"sign": np.sign}, "numpy"])))
-    return out
-
-
-def _columns(fns, X: np.ndarray, U: np.ndarray, n: int) -> np.ndarray:
-    cols = []
-    for fn in fns:
-        v = np.asarray(fn(*X.T, *U.T), dtype=float)
-        cols.append(np.broadcast_to(v, (n,)).copy() if v.ndim == 0 else v)
-    return np.column_stack(cols) if cols else np.zeros((n, 0))
-
-
-def _rss(A: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least squares on column-normalised regressors: residual sum of squares, coefficients, residual."""
-    if A.shape[1] == 0:
-        return float(y @ y), np.zeros(0), y
-    s = np.linalg.norm(A, axis=0)
-    s[s == 0] = 1.0
-    b, *_ = np.linalg.lstsq(A / s, y, rcond=1e-10)
-    r = y - (A / s) @ b
-    return float(r @ r), b / s, r
-
-
-def trace_effects(spec: ModelSpec, phi: dict, data: Dataset, res: Residuals, effects: list[Effect],
-                  targets: list[str] | None = None) -> list[dict]:
-    """Score every (effect, target state) by how much of the injected process noise it explains.
-
-    Returns the candidates sorted by ``score`` (nats): 0.5 n_eff ln(RSS0 / RSS1) - 0.5 p ln n_eff,
-    where RSS0 is left after regressing on the model's own parameter sensitivities and RSS1
-    after adding the effect's terms; n_eff corrects n for the lag-1 autocorrelation of what
-    is left.
-    """
-    targets = targets or list(res.process_noise_rate)
-    X = res.smoothed[:-1]
-    n = X.shape[0]
-    U = np.column_stack([data.columns[u][:-1] for u in spec.inputs]) if spec.inputs else np.zeros((n, 0))
-    out = []
-    for s in targets:
-        y = res.process_noise_rate[s]
-        ok = np.isfinite(y)
-        if ok.sum() < 20 or not np.any(y[ok]):
-            continue
-        nuis = _columns([f for _, f in _sensitivities(spec, s, phi)], X, U, n)
-        rss0, _, _ = _rss(nuis[ok], y[ok])
-        for eff in effects:
-            extra = {c: v[:-1] for c, v in eff.columns_for(data.t).items()}
-            fspec = spec.model_copy(update={"inputs": list(spec.inputs) + list(extra)}) if extra else spec
-            _, fns = feature_functions(fspec, list(eff.terms))
-            UU = np.column_stack([U] + [v for v in extra.values()]) if extra else U
-            F = _columns(fns, X, UU, n)
-            if not np.all(np.isfinite(F[ok])):
-                continue
-            rss1, b, r = _rss(np.column_stack([nuis, F])[ok], y[ok])
-            rho = float(np.clip(acf(r, 1)[1], 0.0, 0.999))  # autocorrelation left after the effect
-            neff = max(10.0, ok.sum() * (1 - rho) / (1 + rho))
-            p = F.shape[1]
-            score = 0.5 * neff * math.log(max(rss0, 1e-300) / max(rss1, 1e-300)) - 0.5 * p * math.log(neff)
-            out.append({"effect": eff.name, "kind": eff.kind, "terms": list(eff.terms), "target": s,
-                        "score": float(score), "explained": float(1 - rss1 / rss0) if rss0 > 0 else 0.0,
-                        "coefficients": [float(c) for c in b[nuis.shape[1]:]], "n_eff": float(neff),
-                        "_effect": eff})
-    out.sort(key=lambda d: -d["score"])
-    return out
-
-
 # --------------------------------------------------------------------------- fit, free run, loop
 
 
@@ -393,7 +319,9 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
 def _errors(res: Residuals, fr: dict, row: dict, col: str) -> dict:
     t = res.tests[col]
     keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error")
-    return {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[:, 0] ** 2))),
+    # the first innovations carry the initial-state uncertainty, not the model's error
+    skip = min(10, max(0, res.raw_innovations.shape[0] // 10))
+    return {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[skip:, 0] ** 2))),
             # what the model had to be pushed by (smoothed process noise, per unit time), per dynamic state
             "injected_noise_rms": {s: float(np.sqrt(np.nanmean(r ** 2))) for s, r in res.process_noise_rate.items()},
             "standardized_rms": t["rms"], "ljung_box": t["ljung_box"], "ljung_box_p": t["ljung_box_p"],
@@ -471,7 +399,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
         ranking = [{"effect": c["effect"], "target": c["target"], "log_bayes_factor": c["log_bayes_factor"],
                     "survives": c["survives"]} for c in order]
-        ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"]} for c in ranked
+        ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"],
+                     "screened_log_bayes_factor": c["log_bayes_factor"]} for c in ranked
                     if (c["effect"], c["target"]) not in tried]
         rec = {"round": rnd, "model": cand.label, "ranking": ranking,
                "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
@@ -523,19 +452,23 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
 
 
 def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say):
-    """Rank the library against the residual, then confirm the best few by evidence (ARD on the new terms)."""
+    """Screen the whole library by evidence, then confirm the best few by the full ARD re-selection."""
     peaks = [p for p in res.tests[col]["spectrum"]["peaks"] if not p.get("harmonic")]
     scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
-    # forcing frequencies: innovation peaks that are not harmonics of the oscillation
+    # forcing frequencies: innovation peaks that are not harmonics of the oscillation (refined by the screen)
     effects = candidate_effects(fspec, scales=scales, frequencies=[p["f"] for p in peaks[:2]],
                                 extra=list(extra_effects))
-    ranked = trace_effects(fspec, phi, data, res, effects)
-    say("top candidates: " + ", ".join(f"{c['effect']} -> {c['target']} ({c['score']:.1f})" for c in ranked[:5]))
+    screened = screen_effects(fspec, phi, data, effects, dynamic_states(fspec), list(fspec.observed_columns),
+                              substeps=cand.substeps, progress=say)
+    ranked = [{**c.to_json(), "_screened": c} for c in screened]
+    say("screen: " + ", ".join(f"{c['effect']} -> {c['target']} (ln BF ~ {c['log_bayes_factor']:.1f})"
+                               for c in ranked[:5]))
     priors, fixed = _essential_from_row(cand, row)
     confirmed = []
-    for c in [c for c in ranked if c["score"] > config.min_score][: config.top_k]:
-        eff: Effect = c["_effect"]
-        aspec, names = augment(cand.model_spec(), eff, c["target"])
+    for c in [c for c in ranked if c["log_bayes_factor"] > config.min_score][: config.top_k]:
+        sc: Screened = c["_screened"]
+        eff: Effect = sc.effect
+        aspec, names = augment(cand.model_spec(), eff, c["target"], sc.scales)
         adata = with_columns(data, eff)
         acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed,
                               ard=names, substeps=cand.substeps)
@@ -543,15 +476,24 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
         arow, amr = run_candidate(acand, adata, spec, 0, warm=bmr.sampler)  # new terms start at 0
         gain = arow["log_evidence"] - row["log_evidence"]
         kept = [n for n in names if n in arow["kept"]]
-        confirmed.append({"effect": eff.name, "target": c["target"], "score": c["score"],
+        scale = dict(zip(names, sc.scales))
+        confirmed.append({"effect": eff.name, "target": c["target"], "score": c["log_bayes_factor"],
+                          "screened_log_bayes_factor": c["log_bayes_factor"],
                           "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],
                           "log_bayes_factor": gain, "kept_terms": kept, "psi_opt": arow["psi_opt"],
-                          "posterior": {n: {"mean": arow["mean"][n], "sd": arow["sd"][n], "q005": arow["q005"][n],
-                                            "q995": arow["q995"][n]} for n in names if n in arow["mean"]},
+                          # coefficients in the term's own units (the fit uses the normalised ones)
+                          "posterior": {n: _physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
+                          "scales": scale,
                           "survives": bool(kept) and gain > config.min_log_bf,
                           "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff})
         say(f"  {eff.name}: ln BF = {gain:.2f}, ARD keeps {kept or 'nothing'}")
     return ranked, confirmed
+
+
+def _physical(row: dict, name: str, scale: float) -> dict:
+    """Posterior summary of a normalised coefficient in physical units (scale > 0)."""
+    return {"mean": row["mean"][name] * scale, "sd": row["sd"][name] * scale,
+            "q005": row["q005"][name] * scale, "q995": row["q995"][name] * scale}
 
 
 def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say) -> dict:
@@ -576,11 +518,15 @@ def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say) -> d
         parts.append({k: (r["mean"][k], r["sd"][k]) for k in c["kept_terms"]})
     z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])
          for k in c["kept_terms"]}
-    stable = all(v <= config.split_z for v in z.values())
+    rel = {k: abs(parts[0][k][0] - parts[1][k][0]) / max(abs(parts[0][k][0]), abs(parts[1][k][0]), 1e-300)
+           for k in c["kept_terms"]}
+    same_sign = all(parts[0][k][0] * parts[1][k][0] > 0 for k in c["kept_terms"])
+    # disagreement beyond the noise AND large against the effect's own size (long records have tiny se)
+    stable = all(z[k] <= config.split_z or (same_sign and rel[k] <= config.split_rel) for k in z)
     say(f"  {c['effect']}: halves give " + ", ".join(
         f"{k} = {parts[0][k][0]:.4g} +- {parts[0][k][1]:.2g} / {parts[1][k][0]:.4g} +- {parts[1][k][1]:.2g} "
         f"(z = {z[k]:.1f})" for k in z) + ("" if stable else ": NOT stable over the record"))
-    return {"stable": stable, "z": z, "halves": parts}
+    return {"stable": stable, "z": z, "relative_difference": rel, "halves": parts}
 
 
 def with_columns(data: Dataset, eff: Effect) -> Dataset:
@@ -589,10 +535,16 @@ def with_columns(data: Dataset, eff: Effect) -> Dataset:
     return Dataset(data.t, {**data.columns, **cols}, dict(data.meta)) if cols else data
 
 
+_ODD = ("cubic_stiffness", "quintic_stiffness", "saturation")
+
+
 def _character(spec: ModelSpec, phi: dict, eff: Effect, best: dict) -> str | None:
-    """'hardening' or 'softening' for an odd stiffness term (its sign against the linear restoring slope)."""
+    """'hardening' or 'softening' for an odd stiffness term (its sign against the linear restoring slope);
+    even and asymmetric terms (x^2, x|x|, x^4) make the stiffness differ between the two sides instead."""
     if eff.kind != "stiffness" or len(eff.terms) != 1 or not best["posterior"]:
         return None
+    if not eff.name.startswith(_ODD):
+        return "asymmetric (stiffer on one side)"
     pairs = oscillator_pairs(spec)
     if not pairs:
         return None
@@ -641,8 +593,8 @@ def _unexplained(res: Residuals, ranked: list, confirmed: list, col: str, config
         parts.append("tested by evidence and rejected: " + ", ".join(
             f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f})" for c in rest))
     elif ranked and not confirmed:
-        parts.append(f"best regression score {ranked[0]['score']:.1f} ({ranked[0]['effect']}) is below the "
-                     f"threshold {config.min_score}")
+        parts.append(f"no candidate's screened ln Bayes factor reaches {config.min_score:g} (best: "
+                     f"{ranked[0]['effect']} on {ranked[0]['target']}, {ranked[0]['log_bayes_factor']:.1f})")
     return "; ".join(parts)
 
 

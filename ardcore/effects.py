@@ -8,14 +8,25 @@ not from its names.
 * A **displacement/velocity pair** (x, v) is a state x whose drift is exactly
   another state v. For each pair the library proposes stiffness terms (x^2,
   x|x|, x^3, x^5), damping terms (v^3, v|v| quadratic damping, sign(v) Coulomb
-  friction), cross terms (x^2 v, x v^2), a free-play / dead zone of width
-  delta (x reduced by delta towards 0 outside |x| < delta, several widths)
-  and a constant offset.
+  friction, and smooth dry friction and Stribeck friction with their velocity
+  scale), cross terms (x^2 v, x v^2), a free-play / dead zone of half-width
+  delta (x reduced by delta towards 0 outside |x| < delta; delta a shape
+  parameter), a saturating stiffness, and a constant offset.
 * **Inputs** u: u, u^2, u^3, u x, u v.
 * **Periodic forcing** at a frequency found in the residual spectrum: a sine
   and a cosine (supplied as extra input columns, since expressions have no
-  time variable).
+  time variable); the frequency is a shape parameter refined by the screen.
+* **Any dynamic state** s (first-order, level/flow and coupled models as well as
+  oscillators): s^2, s^3, s|s|, sqrt(|s|) (outflow through an orifice), saturation
+  tanh(s/s0), linear coupling to every other state, and an offset.
+* **Measurement effects** (``where="observation"``, added to an observation's
+  expression): a bias, a direct feedthrough of each input, and a quadratic/cubic
+  sensor nonlinearity.
 * Targets are the *dynamic* states: those whose drift is not just another state.
+
+Shape parameters (a free-play width, a friction velocity, a forcing frequency) are
+written ``{name}`` in the terms; :meth:`Effect.at` fixes them (the screen picks the
+value that the evidence prefers, :mod:`ardcore.screen`).
 
 Extend it by passing ``extra`` effects to :func:`candidate_effects`.
 """
@@ -57,6 +68,24 @@ class Effect:
     description: str = ""
     frequency: float | None = None
     code: str = "e"
+    where: str = "drift"
+    shape: tuple = ()
+    """``(name, low, high)``: a shape parameter written ``{name}`` in the terms, to be fixed by :meth:`at`."""
+
+    def at(self, value: float) -> "Effect":
+        """This effect with its shape parameter fixed to ``value`` (a forcing effect: its frequency)."""
+        if not self.shape:
+            return self
+        name = self.shape[0]
+        v = float(f"{value:.6g}")
+        if name == "f":
+            return Effect(f"forcing(f={v:.6g})", self.kind, self.terms, f"periodic forcing at {v:.6g} cycles/unit",
+                          frequency=v, code=self.code, where=self.where)
+        terms = tuple(t.replace("{" + name + "}", repr(v)) for t in self.terms)
+        base = self.name.split("(")[0]
+        arg = self.name[len(base) + 1:-1]
+        return Effect(f"{base}({arg},{name}={v:.3g})", self.kind, terms,
+                      self.description.replace("{" + name + "}", f"{v:.3g}"), code=self.code, where=self.where)
 
     def columns_for(self, t: np.ndarray) -> dict[str, np.ndarray]:
         """Extra input columns this effect needs on the time grid ``t`` (empty for most effects)."""
@@ -69,14 +98,14 @@ class Effect:
 def oscillator_pairs(spec: ModelSpec) -> list[tuple[str, str]]:
     """(x, v) pairs with dx/dt = v."""
     states = list(spec.states)
-    return [(x, spec.drift[x].strip()) for x in states if spec.drift[x].strip() in states
-            and spec.drift[x].strip() != x]
+    return [(x, str(spec.drift[x]).strip()) for x in states if str(spec.drift[x]).strip() in states
+            and str(spec.drift[x]).strip() != x]
 
 
 def dynamic_states(spec: ModelSpec) -> list[str]:
     """States whose drift is not just another state (where an effect can enter)."""
     states = set(spec.states)
-    return [s for s in spec.states if spec.drift[s].strip() not in states]
+    return [s for s in spec.states if str(spec.drift[s]).strip() not in states]
 
 
 def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None,
@@ -108,13 +137,28 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
             Effect(f"cross({x}*{v}^2)", "cross", (f"{x}*{v}**2",), f"cross term {x} {v}^2", code=f"c12{x}"),
             Effect("offset", "offset", ("1",), "constant offset", code="off"),
         ]
+        out += [
+            Effect(f"quartic_stiffness({x})", "stiffness", (f"{x}**4",), f"fourth-order stiffness {x}^4", code=f"s4{x}"),
+        ]
         s = scales.get(x)
         if s and s > 0:
-            for j, frac in enumerate((0.1, 0.25, 0.5)):
-                d = float(f"{frac * s:.3g}")
-                out.append(Effect(f"free_play({x},delta={d:g})", "free-play",
-                                  (f"0.5*({x} - {d!r}*sign({x}))*(1 + sign(abs({x}) - {d!r}))",),
-                                  f"dead zone of half-width {d:g} in {x}", code=f"fp{j}{x}"))
+            # the width as a shape parameter, from 2 % to 150 % of the displacement's std
+            out.append(Effect(f"free_play({x})", "free-play",
+                              (f"0.5*({x} - {{delta}}*sign({x}))*(1 + sign(abs({x}) - {{delta}}))",),
+                              f"dead zone of half-width {{delta}} in {x}", code=f"fpw{x}",
+                              shape=("delta", 0.02 * s, 1.5 * s)))
+            out.append(Effect(f"saturation({x})", "stiffness", (f"{x} - {{xs}}*tanh({x}/{{xs}})",),
+                              f"stiffness that saturates beyond |{x}| ~ {{xs}}", code=f"st{x}",
+                              shape=("xs", 0.2 * s, 1.5 * s)))
+        sv = scales.get(v)
+        if sv and sv > 0:
+            # dry friction with a smooth sign (the EKF sees its slope) and Stribeck's decaying static peak
+            out.append(Effect(f"dry_friction({v})", "friction", (f"tanh({v}/{{vs}})",),
+                              f"dry (Coulomb) friction, smooth sign over {{vs}}", code=f"fd{v}",
+                              shape=("vs", 0.005 * sv, 0.3 * sv)))
+            out.append(Effect(f"stribeck({v})", "friction", (f"tanh({v}/{0.01 * sv:.3g})*exp(-({v}/{{vs}})**2)",),
+                              f"Stribeck friction peak decaying over {{vs}}", code=f"fs{v}",
+                              shape=("vs", 0.02 * sv, 1.0 * sv)))
         for u in spec.inputs:
             out += [Effect(f"input_cross({u}*{x})", "input", (f"{u}*{x}",), f"input-state cross term {u} {x}", code=f"u{u}{x}"),
                     Effect(f"input_cross({u}*{v})", "input", (f"{u}*{v}",), f"input-velocity cross term {u} {v}", code=f"u{u}{v}")]
@@ -122,10 +166,38 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         out += [Effect(f"input({u})", "input", (u,), f"linear input {u}", code=f"u1{u}"),
                 Effect(f"input_quadratic({u})", "input", (f"{u}**2",), f"quadratic input {u}^2", code=f"u2{u}"),
                 Effect(f"input_cubic({u})", "input", (f"{u}**3",), f"cubic input {u}^3", code=f"u3{u}")]
+    pair_v = {v for _, v in oscillator_pairs(spec)}
+    for s_ in dynamic_states(spec):
+        if s_ in pair_v:
+            continue  # a velocity: the oscillator families above cover it
+        sc = scales.get(s_)
+        out += [Effect(f"square({s_})", "state", (f"{s_}**2",), f"{s_}^2", code=f"q2{s_}"),
+                Effect(f"cube({s_})", "state", (f"{s_}**3",), f"{s_}^3", code=f"q3{s_}"),
+                Effect(f"signed_square({s_})", "state", (f"{s_}*abs({s_})",), f"{s_}|{s_}|", code=f"qa{s_}"),
+                Effect(f"sqrt_outflow({s_})", "state", (f"sqrt(abs({s_}))*sign({s_})",),
+                       f"outflow through an orifice, sqrt({s_})", code=f"qr{s_}"),
+                Effect("offset", "offset", ("1",), "constant offset", code="off")]
+        if sc and sc > 0:
+            out.append(Effect(f"saturation({s_})", "state", (f"{s_} - {{xs}}*tanh({s_}/{{xs}})",),
+                              f"{s_} saturating beyond ~{{xs}}", code=f"qs{s_}", shape=("xs", 0.2 * sc, 1.5 * sc)))
+        for u in spec.inputs:
+            out += [Effect(f"input_cross({u}*{s_})", "input", (f"{u}*{s_}",), f"input-state cross term {u} {s_}",
+                           code=f"u{u}{s_}")]
     for i, f in enumerate(frequencies):
         out.append(Effect(f"forcing(f={f:.4g})", "forcing", (f"forcing{i}_sin", f"forcing{i}_cos"),
                           f"periodic forcing at {f:.4g} cycles/unit", frequency=float(f),
-                          code=f"fo{i}"))
+                          code=f"fo{i}", shape=("f", 0.97 * f, 1.03 * f)))
+    # measurement effects: added to an observation's expression
+    out.append(Effect("sensor_bias", "measurement", ("1",), "measurement bias", code="mb", where="observation"))
+    for u in spec.inputs:
+        out.append(Effect(f"feedthrough({u})", "measurement", (u,), f"direct feedthrough of {u} to the measurement",
+                          code=f"mf{u}", where="observation"))
+    for j, o in enumerate(spec.observations):
+        e = str(o.expr)
+        out += [Effect(f"sensor_quadratic({o.column})", "measurement", (f"({e})**2",),
+                       f"quadratic sensor nonlinearity", code=f"m2{o.column}", where="observation"),
+                Effect(f"sensor_cubic({o.column})", "measurement", (f"({e})**3",),
+                       f"cubic sensor nonlinearity", code=f"m3{o.column}", where="observation")]
     out += list(extra)
     # one offset per model is enough
     seen, uniq = set(), []
@@ -151,16 +223,35 @@ def coefficient_name(effect: Effect, term_index: int, target: str) -> str:
     return _short(f"k_{effect.code}{idx}_{target}")
 
 
-def augment(spec: ModelSpec, effect: Effect, target: str) -> tuple[ModelSpec, list[str]]:
-    """``spec`` with ``effect`` added to the drift of ``target``; returns it and the new coefficient names."""
-    names = [coefficient_name(effect, i, target) for i in range(len(effect.terms))]
-    add = " + ".join(f"{n}*({term})" for n, term in zip(names, effect.terms))
-    drift = dict(spec.drift)
-    drift[target] = f"({drift[target]}) + {add}"
-    inputs = list(spec.inputs) + [c for c in effect.columns_for(np.zeros(1)) if c not in spec.inputs]
-    new = spec.model_copy(update={"name": _short(f"{spec.name}_{effect.code}"), "drift": drift,
-                                  "parameters": list(spec.parameters) + names, "inputs": inputs})
-    return new.revalidate(), names
+def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | None = None,
+            *, names: list[str] | None = None) -> tuple[ModelSpec, list[str]]:
+    """``spec`` with ``effect`` added to ``target``; returns it and the new coefficient names.
+
+    ``target`` is a state (the effect enters its drift) or, for ``effect.where == "observation"``, an
+    observed column (the effect enters that observation's expression). With ``scales`` each term is
+    written ``k * (scale * term)``: the coefficient ``k`` is then dimensionless (1 = an effect as large
+    as the target's own drift), so that priors, proposal steps and evidence do not depend on the
+    term's units. Without, ``k`` is the physical coefficient.
+    """
+    if effect.shape and "{" in "".join(effect.terms):
+        raise ValueError(f"effect {effect.name!r} has a free shape parameter {effect.shape[0]!r}: fix it with .at()")
+    names = names or [coefficient_name(effect, i, target) for i in range(len(effect.terms))]
+    sc = scales or [None] * len(effect.terms)
+    add = " + ".join(f"{n}*({term})" if c is None else f"{n}*({c if isinstance(c, str) else repr(float(c))}*({term}))"
+                     for n, term, c in zip(names, effect.terms, sc))
+    update = {"name": _short(f"{spec.name}_{effect.code}"), "parameters": list(spec.parameters) + names,
+              "inputs": list(spec.inputs) + [c for c in effect.columns_for(np.zeros(1)) if c not in spec.inputs]}
+    if effect.where == "observation":
+        obs = [o.model_copy(update={"expr": f"({o.expr}) + {add}"}) if o.column == target else o
+               for o in spec.observations]
+        if all(o.column != target for o in spec.observations):
+            raise ValueError(f"{target!r} is not an observed column of {spec.name!r}")
+        update["observations"] = obs
+    else:
+        drift = dict(spec.drift)
+        drift[target] = f"({drift[target]}) + {add}"
+        update["drift"] = drift
+    return spec.model_copy(update=update).revalidate(), names
 
 
 def feature_functions(spec: ModelSpec, exprs: list[str]):

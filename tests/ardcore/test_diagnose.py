@@ -2,8 +2,11 @@
 
 import numpy as np
 import pytest
+from scipy import optimize
 
-from ardcore.diagnose import DiagnoseConfig, diagnose, residual_tests, residuals, trace_effects
+from ardcore.diagnose import DiagnoseConfig, diagnose, residual_tests
+from ardcore.screen import screen_effects
+from ardcore.ekf import compile_model
 from ardcore.effects import augment, candidate_effects, dynamic_states, feature_functions, oscillator_pairs
 from ardcore.library import builtin
 from ardcore.simulate import simulate_model
@@ -33,10 +36,12 @@ def test_library_is_generic_in_the_models_structure():
     forced = builtin("forced_linear_oscillator")
     names = {e.name for e in candidate_effects(forced, scales={"y": 1.0})}
     assert {"cubic_stiffness(y)", "quadratic_damping(v)", "coulomb_friction(v)", "input_cubic(u)",
-            "free_play(y,delta=0.25)", "quadratic_stiffness(y)"} <= names
+            "free_play(y)", "quadratic_stiffness(y)", "feedthrough(u)", "sensor_bias"} <= names
     m2 = builtin("M2")
     assert dynamic_states(m2) == ["dtheta", "CM"]
     eff = next(e for e in candidate_effects(m2, scales={"theta": 0.1}) if e.kind == "free-play")
+    assert eff.shape[0] == "delta" and eff.shape[1] < 0.01 < eff.shape[2]
+    eff = eff.at(0.01)
     spec, coef = augment(m2, eff, "CM")
     assert coef[0] in spec.parameters and len(coef[0]) <= 32 and len(spec.name) <= 32
     _, (f,) = feature_functions(m2, list(eff.terms))
@@ -58,14 +63,16 @@ def _duffing_free_decay(k3, seed, n=1500):
     return simulate_model(spec, params, t, seed, x0=[1.5, 0.0])
 
 
-def test_trace_ranks_the_missing_cubic_stiffness_first():
+def test_screen_ranks_the_missing_cubic_stiffness_first():
     data = _duffing_free_decay(-4.0, 1)
     spec = builtin("linear_oscillator").model_copy(update={"constants": {"gamma": 1e-3}}).revalidate()
-    res = residuals(spec, {"k": 16.0 - 0.75 * 4.0 * 0.5, "c": 0.05, "sigma": 0.02}, data, CFG)
-    ranked = trace_effects(spec, {"k": 13.0, "c": 0.05, "sigma": 0.02}, data, res,
-                           candidate_effects(spec, scales={"y": 1.0}))
-    assert ranked[0]["effect"] == "cubic_stiffness(y)" and ranked[0]["target"] == "v"
-    assert ranked[0]["coefficients"][0] < 0  # hardening: the same sign as -k
+    lik = compile_model(spec).bind(data)
+    r = optimize.minimize(lambda z: -lik(np.exp(z)), np.log([13, 0.05, 0.02]), method="Nelder-Mead")
+    phi = dict(zip(["k", "c", "sigma"], np.exp(r.x)))  # the screen works at the fitted parameters
+    ranked = screen_effects(spec, phi, data, candidate_effects(spec, scales={"y": 1.0, "v": 4.0}), ["v"], ["y"])
+    assert ranked[0].effect.name == "cubic_stiffness(y)" and ranked[0].target == "v"
+    assert ranked[0].physical[0] < 0  # hardening: the same sign as -k
+    assert ranked[0].log_bayes_factor > 30 > ranked[-1].log_bayes_factor
 
 
 def _spec():

@@ -1,0 +1,341 @@
+"""Evidence screen of every candidate effect on every target (method.md section 9, step 3).
+
+Every (effect, target) pair of the library is scored by an approximate log Bayes
+factor against the fitted model, computed from the EKF itself rather than from a
+regression on a residual:
+
+* the candidates' terms are added to one *screening model* (a few at a time), each
+  **normalised**: written ``k * (scale * term)`` with ``scale`` = rms of the target's
+  drift (or of the observed signal) / rms of the term along the filtered states, so
+  ``k = 1`` is an effect as large as the target's own dynamics whatever the term's
+  units;
+* at the fitted parameters and ``k = 0`` the innovations ``e_k`` and their variances
+  ``S_k`` are differentiated (central differences of the filter) with respect to
+  every model parameter and every ``k``; this gives the score ``g`` and the Fisher
+  (Gauss-Newton) information ``I`` of the EKF likelihood;
+* the model's own parameters are profiled out (Schur complement: a term that a refit
+  of the existing parameters would absorb gets no credit, one that they cannot mimic
+  keeps it), and with a N(0, 1) prior on the normalised coefficients the Laplace
+  log Bayes factor of adding the effect is
+  ``0.5 g' (I + 1)^-1 g - 0.5 ln det(1 + I)``;
+* shape parameters (a free-play width, a friction velocity scale, a saturation
+  level, a forcing frequency) are chosen by maximising that log Bayes factor over a
+  grid and then a golden-section refinement (a profile over the shape).
+
+It costs two filter runs per parameter and per candidate term, so the whole library
+is screened (not only the best few of a ranking); the decision remains the full ARD
+re-selection of the candidates the screen ranks highest.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import sympy as sp
+
+from .data import Dataset
+from .ekf import compile_model
+from .effects import Effect, feature_functions
+from .model import ModelSpec
+
+PRIOR_SD = 1.0
+"""Prior sd of a normalised coefficient in the screen (1 = an effect the size of the target's dynamics)."""
+
+SHAPE_OCCAM = 2.0
+"""Nats taken off a shaped effect's screened ln BF: its shape is the profile maximum, not integrated over a prior
+(a log-uniform prior over the shape's range with a posterior a few percent wide costs about this much)."""
+
+
+@dataclass
+class Screened:
+    """One screened (effect, target) pair.
+
+    Attributes
+    ----------
+    effect : Effect
+        With its shape parameter fixed.
+    target : str
+        State (drift) or observed column (measurement effect).
+    log_bayes_factor : float
+        Laplace estimate of ln p(d | model + effect) - ln p(d | model), parameters profiled.
+    delta_loglik : float
+        Estimated gain of the maximised log-likelihood.
+    coefficients : list of float
+        Estimated normalised coefficients (posterior mean under the screen's prior).
+    scales : list of float
+        Normalisation of each term (physical coefficient = normalised coefficient x scale).
+    """
+
+    effect: Effect
+    target: str
+    log_bayes_factor: float
+    delta_loglik: float
+    coefficients: list
+    scales: list
+    shape_profile: list = field(default_factory=list)
+
+    @property
+    def physical(self) -> list[float]:
+        return [float(c * s) for c, s in zip(self.coefficients, self.scales)]
+
+    def to_json(self) -> dict:
+        return {"effect": self.effect.name, "kind": self.effect.kind, "terms": list(self.effect.terms),
+                "target": self.target, "where": self.effect.where,
+                "log_bayes_factor": float(self.log_bayes_factor), "score": float(self.log_bayes_factor),
+                "delta_loglik": float(self.delta_loglik),
+                "coefficients": self.physical, "normalised_coefficients": [float(c) for c in self.coefficients],
+                "scales": [float(s) for s in self.scales]}
+
+
+def _rms(a: np.ndarray) -> float:
+    a = np.asarray(a, dtype=float)
+    a = a[np.isfinite(a)]
+    return float(np.sqrt(np.mean(a ** 2))) if a.size else 0.0
+
+
+def _eval_exprs(spec: ModelSpec, exprs: list[str], X: np.ndarray, U: np.ndarray) -> list[np.ndarray]:
+    _, fns = feature_functions(spec, exprs)
+    n = X.shape[0]
+    out = []
+    for f in fns:
+        v = np.asarray(f(*X.T, *U.T), dtype=float)
+        out.append(np.broadcast_to(v, (n,)).copy() if v.ndim == 0 else v)
+    return out
+
+
+def target_scale(spec: ModelSpec, phi: dict, target: str, X: np.ndarray, U: np.ndarray, data: Dataset) -> float:
+    """Size of what an effect on ``target`` competes with: rms of its drift, or of the observed signal."""
+    if target in spec.states:
+        sm = spec.sym
+        i = spec.states.index(target)
+        e = sm.drift[i].subs({p: phi[str(p)] for p in sm.params if str(p) in phi})
+        syms = list(sm.states) + list(sm.inputs)
+        f = sp.lambdify(syms, e, modules=[{"sign": np.sign}, "numpy"])
+        v = np.asarray(f(*X.T, *U.T), dtype=float)
+        r = _rms(v - np.nanmean(v)) if v.ndim else 0.0
+        if r > 0:
+            return r
+        # a state with no drift yet: its rate of change in the data
+        x = X[:, i]
+        dt = float(np.median(np.diff(data.t)))
+        return max(_rms(np.diff(x)) / dt, 1e-12)
+    y = data.columns[target]
+    return max(_rms(y - np.nanmean(y)), 1e-12)
+
+
+class _Screener:
+    """Score/information of the EKF likelihood for a batch of normalised candidate terms."""
+
+    def __init__(self, spec: ModelSpec, phi: dict, data: Dataset, substeps: int | None):
+        self.spec, self.phi, self.data, self.substeps = spec, dict(phi), data, substeps
+        fr = compile_model(spec).filter(phi, data, substeps)
+        self.X = np.where(np.isfinite(fr.filtered), fr.filtered, 0.0)
+        self.U = (np.column_stack([data.columns[u] for u in spec.inputs]) if spec.inputs
+                  else np.zeros((len(data), 0)))
+        self.loglik = fr.loglik
+        self.theta = list(spec.free_parameters)
+        self._models: dict = {}
+
+    def term_scale(self, effect: Effect, target: str, data: Dataset) -> list[float] | None:
+        """scale per term so that scale * term has the rms of the target's dynamics (None if a term is ~0)."""
+        cols = effect.columns_for(data.t)
+        U = np.column_stack([self.U] + [cols[c] for c in cols]) if cols else self.U
+        fspec = self.spec.model_copy(update={"inputs": list(self.spec.inputs) + list(cols)}) if cols else self.spec
+        vals = _eval_exprs(fspec, list(effect.terms), self.X, U)
+        R = target_scale(self.spec, self.phi, target, self.X, self.U, data)
+        out = []
+        for v in vals:
+            if not np.all(np.isfinite(v)):
+                return None
+            r = _rms(v)
+            if r <= 1e-300 * max(R, 1e-300) or r == 0:
+                return None
+            out.append(R / r)
+        return out
+
+    def batch(self, items: list[tuple[Effect, str, list[float]]], shape_values: list | None = None,
+              data: Dataset | None = None) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+        """Score g and information I over (theta, every item's coefficients); returns per-item index lists.
+
+        Scales and shape values are parameters of the screening model (not literals), so one
+        compiled kernel serves every value a shape profile tries.
+        """
+        from .effects import augment
+
+        shape_values = shape_values or [None] * len(items)
+        key = tuple((e.name if not e.shape else e.name + "#" + e.shape[0], t, len(s)) for e, t, s in items)
+        spec = self.spec
+        data = data or self.data
+        names, values = [], {}
+        for j, ((eff, target, scales), sv) in enumerate(zip(items, shape_values)):
+            nm = [f"zq{j}_{i}" for i in range(len(eff.terms))]
+            cn = [f"zc{j}_{i}" for i in range(len(eff.terms))]
+            e2 = eff
+            if eff.shape and eff.shape[0] != "f":
+                pname = f"zs{j}"
+                e2 = Effect(eff.name, eff.kind, tuple(t.replace("{" + eff.shape[0] + "}", pname) for t in eff.terms),
+                            code=eff.code, where=eff.where)
+                values[pname] = float(sv)
+            spec, _ = augment(spec, e2, target, cn, names=nm)
+            extra = [f"zs{j}"] if f"zs{j}" in values else []
+            spec = spec.model_copy(update={"name": "screen", "parameters": list(spec.parameters) + cn + extra})
+            values.update({c: float(s) for c, s in zip(cn, scales)})
+            names.append(nm)
+            data = _with_cols(data, eff if not eff.shape or eff.shape[0] != "f" else eff.at(float(sv)))
+        if key not in self._models:
+            self._models[key] = compile_model(spec.revalidate())
+        lik = self._models[key].bind(data, self.substeps)
+        allp = self.theta + [n for nm in names for n in nm]
+        base = {**{p: self.phi[p] for p in self.theta}, **{n: 0.0 for nm in names for n in nm}, **values}
+        f0 = lik.filter(base)
+        e0, S0 = f0.innovations.ravel(), f0.innovation_var.ravel()
+        ok = np.isfinite(e0) & np.isfinite(S0) & (S0 > 0)
+        e0, S0 = e0[ok], S0[ok]
+        D_e, D_S = [], []
+        for p in allp:
+            v = base[p]
+            h = 1e-4 * abs(v) if v != 0 else 1e-5
+            r = []
+            for sgn in (1, -1):
+                fr = lik.filter({**base, p: v + sgn * h})
+                r.append((fr.innovations.ravel()[ok], fr.innovation_var.ravel()[ok]))
+            D_e.append((r[0][0] - r[1][0]) / (2 * h))
+            D_S.append((r[0][1] - r[1][1]) / (2 * h))
+        De, DS = np.array(D_e), np.array(D_S)
+        bad = ~np.all(np.isfinite(De), axis=0) | ~np.all(np.isfinite(DS), axis=0)
+        De[:, bad], DS[:, bad] = 0.0, 0.0
+        g = -(De @ (e0 / S0)) - 0.5 * (DS @ (1 / S0 - e0 ** 2 / S0 ** 2))
+        Inf = (De / S0) @ De.T + 0.5 * (DS / S0 ** 2) @ DS.T
+        k = len(self.theta)
+        groups, pos = [], k
+        for nm in names:
+            groups.append(np.arange(pos, pos + len(nm)))
+            pos += len(nm)
+        return groups, g, Inf
+
+
+def _with_cols(data: Dataset, eff: Effect) -> Dataset:
+    cols = eff.columns_for(data.t)
+    return Dataset(data.t, {**data.columns, **cols}, dict(data.meta)) if cols else data
+
+
+def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """Laplace ln BF, profile gain and coefficients of one group, the first k parameters profiled out."""
+    th = np.arange(k)
+    Itt = Inf[np.ix_(th, th)]
+    d = np.sqrt(np.maximum(np.diag(Itt), 1e-300))
+    Itt_inv = np.linalg.pinv(Itt / np.outer(d, d), rcond=1e-10) / np.outer(d, d)
+    Ibt = Inf[np.ix_(grp, th)]
+    H = Inf[np.ix_(grp, grp)] - Ibt @ Itt_inv @ Ibt.T
+    H = 0.5 * (H + H.T)
+    w, V = np.linalg.eigh(H)
+    w = np.maximum(w, 0.0)
+    gb = g[grp] - Ibt @ Itt_inv @ g[th]
+    z = V.T @ gb
+    s2 = PRIOR_SD ** 2
+    lbf = float(0.5 * np.sum(z ** 2 / (w + 1 / s2)) - 0.5 * np.sum(np.log1p(s2 * w)))
+    gain = float(0.5 * np.sum(np.where(w > 1e-12 * max(w.max(), 1e-300), z ** 2 / np.maximum(w, 1e-300), 0.0)))
+    coef = V @ (z / (w + 1 / s2))
+    return lbf, gain, coef
+
+
+def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effect], targets: list[str],
+                   obs_targets: list[str], *, substeps: int | None = None, batch_size: int = 12,
+                   shape_grid: int = 7, progress=None) -> list[Screened]:
+    """Screen every effect on every target; sorted by log Bayes factor (best first).
+
+    Parameters
+    ----------
+    spec, phi : the fitted model and its parameter values (posterior mean or MAP).
+    data : Dataset
+        The estimation data.
+    effects : list of Effect
+        Drift effects go to every state in ``targets``; measurement effects (``where="observation"``)
+        to every column in ``obs_targets``.
+    substeps : int, optional
+        The fit's sub-steps.
+    batch_size : int
+        Candidate terms per screening model (bounds the size of the generated kernel).
+    shape_grid : int
+        Grid points over a shape parameter's range before golden-section refinement.
+    """
+    say = progress or (lambda s: None)
+    sc = _Screener(spec, phi, data, substeps)
+    k = len(sc.theta)
+    pairs = [(e, t) for e in effects if e.where == "drift" for t in targets]
+    pairs += [(e, c) for e in effects if e.where == "observation" for c in obs_targets]
+    out: list[Screened] = []
+    plain = [(e, t) for e, t in pairs if not e.shape]
+    shaped = [(e, t) for e, t in pairs if e.shape]
+    items = []
+    for e, t in plain:
+        s = sc.term_scale(e, t, data)
+        if s is not None:
+            items.append((e, t, s))
+    for b in range(0, len(items), batch_size):
+        chunk = items[b:b + batch_size]
+        groups, g, Inf = sc.batch(chunk)
+        for (e, t, s), grp in zip(chunk, groups):
+            lbf, gain, coef = _bayes_factor(g, Inf, k, grp)
+            out.append(Screened(e, t, lbf, gain, [float(c) for c in coef], s))
+    say(f"screened {len(items)} plain candidates")
+    for e, t in shaped:
+        best = _screen_shape(sc, e, t, data, k, shape_grid)
+        if best is not None:
+            out.append(best)
+    say(f"screened {len(shaped)} shaped candidates")
+    out.sort(key=lambda c: -c.log_bayes_factor)
+    return out
+
+
+def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_grid: int) -> Screened | None:
+    """Profile a shaped effect over its shape parameter: grid (log-spaced), then golden-section refinement."""
+    _, lo, hi = e.shape
+    cache: dict[float, Screened | None] = {}
+
+    def at(v: float) -> Screened | None:
+        v = float(f"{v:.6g}")
+        if v in cache:
+            return cache[v]
+        ef = e.at(v)
+        s = sc.term_scale(ef, t, data)
+        r = None
+        if s is not None:
+            groups, g, Inf = sc.batch([(e, t, s)], [v])
+            lbf, gain, coef = _bayes_factor(g, Inf, k, groups[0])
+            r = Screened(ef, t, lbf, gain, [float(c) for c in coef], s)
+        cache[v] = r
+        return r
+
+    grid = np.geomspace(lo, hi, n_grid) if lo > 0 else np.linspace(lo, hi, n_grid)
+    vals = [at(v) for v in grid]
+    score = [v.log_bayes_factor if v is not None else -math.inf for v in vals]
+    if not np.isfinite(max(score)):
+        return None
+    i = int(np.argmax(score))
+    # golden-section on log(shape) between the neighbours of the best grid point
+    a = math.log(grid[max(i - 1, 0)])
+    b = math.log(grid[min(i + 1, len(grid) - 1)])
+    gr = (math.sqrt(5) - 1) / 2
+
+    def f(x):
+        r = at(math.exp(x))
+        return r.log_bayes_factor if r is not None else -math.inf
+
+    c, d = b - gr * (b - a), a + gr * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(6):
+        if fc > fd:
+            b, d, fd = d, c, fc
+            c = b - gr * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + gr * (b - a)
+            fd = f(d)
+    best = max((r for r in cache.values() if r is not None), key=lambda r: r.log_bayes_factor)
+    best.log_bayes_factor -= SHAPE_OCCAM
+    best.shape_profile = sorted((float(v), float(r.log_bayes_factor)) for v, r in cache.items() if r is not None)
+    return best
