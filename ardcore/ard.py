@@ -150,10 +150,14 @@ class EvidenceEvaluator:
     """Evidence at a given psi, by Chib-Jeliazkov (sampling) or Laplace."""
 
     def __init__(self, spec, essential, data, sampler: SamplerConfig, *, method: str = "chib-jeliazkov",
-                 substeps=None, map_fn: Map = serial_map, progress=None, cancel=None):
+                 substeps=None, map_fn: Map = serial_map, progress=None, cancel=None,
+                 final_posterior: str = "sample"):
         self.spec, self.essential, self.data = spec, essential, data
         self.sampler, self.method, self.substeps = sampler, method, substeps
         self.map_fn, self.progress, self.cancel = map_fn, progress, cancel
+        # Laplace studies: "sample" draws the final posterior by MCMC, "laplace" takes the Gaussian N(MAP, H^-1)
+        # that the evidence itself assumed (what a screen of many candidates can afford)
+        self.final_posterior = final_posterior
 
     def __call__(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False,
                  iteration: int | None = None):
@@ -162,7 +166,9 @@ class EvidenceEvaluator:
             x0 = _warm_point(target, warm) if warm is not None else self._cold_start(target, seed)
             ev, xmap, C = laplace(target, x0, initial_scale(target.prior) if warm is None else None)
             res = None
-            if final:
+            if final and self.final_posterior == "laplace":
+                res = _laplace_state(target, xmap, C, ev, draws=4000, seed=seed)
+            elif final:
                 res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn,
                              starts=_starts_around(xmap, C, self.sampler.n_chains, seed), progress=self.progress,
                              cancel=self.cancel)
@@ -214,14 +220,21 @@ def _starts_around(x, C, n, seed):
     return np.array([x + 2.0 * L @ rng.standard_normal(x.size) for _ in range(n)])
 
 
-def _laplace_state(target, xmap, C, ev) -> SamplerResult:
-    """A minimal SamplerResult carrying the MAP for warm starts of the next Laplace trial."""
-    from .mcmc import ChainState
+def _laplace_state(target, xmap, C, ev, *, draws: int = 0, seed: int = 0) -> SamplerResult:
+    """A SamplerResult carrying the MAP for warm starts of the next Laplace trial; with ``draws``, also
+    that many draws of the Laplace posterior N(MAP, C) as one chain (their lp/ll are not evaluated: NaN)."""
+    from .mcmc import ChainState, safe_cholesky
 
     lp, ll = target(xmap)
     st = ChainState(0, xmap.tolist(), lp, ll, np.random.PCG64(0).state, xmap.tolist(), lp, ll)
     d = xmap.size
-    return SamplerResult(list(target.names), np.zeros((0, 0, d)), np.zeros((0, 0)), np.zeros((0, 0)), xmap, lp, ll,
+    samples = np.zeros((0, 0, d))
+    if draws:
+        L = safe_cholesky(C) if np.all(np.isfinite(C)) else np.zeros((d, d))
+        z = np.random.default_rng(seed).standard_normal((draws, d))
+        samples = (xmap + z @ L.T)[None]
+    nan = np.full(samples.shape[:2], np.nan)
+    return SamplerResult(list(target.names), samples, nan, nan, xmap, lp, ll,
                          C, [st], np.ones(d), [], 0, True, 0.0, 0.0, 0)
 
 

@@ -41,7 +41,7 @@ from .ekf import compile_model
 from .effects import Effect, augment, candidate_effects, dynamic_states, oscillator_pairs
 from .errors import SpecError
 from .model import ModelSpec
-from .screen import Screened, screen_effects
+from .screen import Screened, distinct_candidates, screen_effects
 from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
 
 INF = math.inf
@@ -81,6 +81,15 @@ class DiagnoseConfig:
         the disagreement is judged against the effect's own size. None skips the check.
     split_rel : float
         Relative disagreement of the halves (|a - b| / max(|a|, |b|)) that still counts as stable.
+    alpha_start : float
+        Starting ARD precision of a new (normalised) term in its confirmation. A new term's coefficient
+        is 1 for an effect as large as the target's whole dynamics, so prior sd 1/sqrt(1e-2) = 10 is
+        already flat for it; starting at the study's 1e-10 would only add trials in which ln Z climbs by
+        the known 2.3 nats per two decades.
+    posterior : {"laplace", "sample"}
+        With a Laplace-evidence spec, the loop's fits report the Laplace posterior N(MAP, H^-1) that
+        their evidence assumes ("laplace", default: it costs nothing) or sample it by MCMC ("sample").
+        Chib-Jeliazkov specs always sample.
     """
 
     max_lag: int = 40
@@ -93,6 +102,8 @@ class DiagnoseConfig:
     max_rounds: int = 3
     split_z: float | None = 3.0
     split_rel: float = 0.3
+    alpha_start: float = 1e-2
+    posterior: str = "laplace"
 
 
 # --------------------------------------------------------------------------- tests
@@ -355,14 +366,19 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         and arrays for the figures under ``_arrays``.
     """
     config = config or DiagnoseConfig()
-    say = progress or (lambda s: None)
+    t_start = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if progress:
+            progress(f"[{time.perf_counter() - t_start:6.0f} s] {msg}")
+
     if len(spec.models) != 1:
         raise SpecError(f"diagnose: the spec must have exactly one model (it has {len(spec.models)})")
     t0 = time.perf_counter()
     cand = spec.models[0]
     test_data = test_data or data
     say(f"fitting {cand.label} ...")
-    row, bmr = base or run_candidate(cand, data, spec, 0)
+    row, bmr = base or run_candidate(cand, data, spec, 0, final_posterior=config.posterior)
     col = cand.model_spec().observed_columns[0]
     first = None
     rounds, arrays = [], {}
@@ -464,8 +480,16 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
     say("screen: " + ", ".join(f"{c['effect']} -> {c['target']} (ln BF ~ {c['log_bayes_factor']:.1f})"
                                for c in ranked[:5]))
     priors, fixed = _essential_from_row(cand, row)
+    cspec = spec.model_copy(update={"maximiser": spec.maximiser.model_copy(
+        update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
     confirmed = []
-    for c in [c for c in ranked if c["log_bayes_factor"] > config.min_score][: config.top_k]:
+    picked = distinct_candidates(fspec, phi, data, screened, config.top_k, config.min_score, substeps=cand.substeps)
+    redundant = [c for c in screened[:12] if getattr(c, "conditional_on", None)]
+    if redundant:
+        say("not confirmed (explained by a better candidate): " + ", ".join(
+            f"{c.effect.name} -> {c.target}" for c in redundant))
+    by_id = {id(c["_screened"]): c for c in ranked}
+    for c in [by_id[id(p)] for p in picked]:
         sc: Screened = c["_screened"]
         eff: Effect = sc.effect
         aspec, names = augment(cand.model_spec(), eff, c["target"], sc.scales)
@@ -473,7 +497,8 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
         acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed,
                               ard=names, substeps=cand.substeps)
         say(f"confirming {eff.name} on {c['target']} by evidence ...")
-        arow, amr = run_candidate(acand, adata, spec, 0, warm=bmr.sampler)  # new terms start at 0
+        arow, amr = run_candidate(acand, adata, cspec, 0, warm=bmr.sampler,  # new terms start at 0
+                                  final_posterior=config.posterior)
         gain = arow["log_evidence"] - row["log_evidence"]
         kept = [n for n in names if n in arow["kept"]]
         scale = dict(zip(names, sc.scales))
@@ -514,7 +539,7 @@ def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say) -> d
     parts = []
     warm = c["_mr"].sampler
     for lo, hi in ((0, n // 2), (n // 2, n)):
-        r, _ = run_candidate(half, data.slice(lo, hi), spec, 0, warm=warm)
+        r, _ = run_candidate(half, data.slice(lo, hi), spec, 0, warm=warm, final_posterior=config.posterior)
         parts.append({k: (r["mean"][k], r["sd"][k]) for k in c["kept_terms"]})
     z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])
          for k in c["kept_terms"]}

@@ -183,7 +183,10 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         for u in spec.inputs:
             out += [Effect(f"input_cross({u}*{s_})", "input", (f"{u}*{s_}",), f"input-state cross term {u} {s_}",
                            code=f"u{u}{s_}")]
-    for i, f in enumerate(frequencies):
+    used = set(spec.inputs)
+    free_idx = (i for i in range(100) if f"forcing{i}_sin" not in used)  # columns of forcing already added stay
+    for f in frequencies:
+        i = next(free_idx)
         out.append(Effect(f"forcing(f={f:.4g})", "forcing", (f"forcing{i}_sin", f"forcing{i}_cos"),
                           f"periodic forcing at {f:.4g} cycles/unit", frequency=float(f),
                           code=f"fo{i}", shape=("f", 0.97 * f, 1.03 * f)))
@@ -192,8 +195,10 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     for u in spec.inputs:
         out.append(Effect(f"feedthrough({u})", "measurement", (u,), f"direct feedthrough of {u} to the measurement",
                           code=f"mf{u}", where="observation"))
-    for j, o in enumerate(spec.observations):
-        e = str(o.expr)
+    for o in spec.observations:
+        e = str(o.expr).strip()
+        if e not in spec.states:
+            continue  # a sensor nonlinearity of a state-observing channel only (its terms may hold no parameters)
         out += [Effect(f"sensor_quadratic({o.column})", "measurement", (f"({e})**2",),
                        f"quadratic sensor nonlinearity", code=f"m2{o.column}", where="observation"),
                 Effect(f"sensor_cubic({o.column})", "measurement", (f"({e})**3",),

@@ -339,3 +339,33 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
     best.log_bayes_factor -= SHAPE_OCCAM
     best.shape_profile = sorted((float(v), float(r.log_bayes_factor)) for v, r in cache.items() if r is not None)
     return best
+
+
+def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: list[Screened], k: int,
+                        min_log_bf: float, *, substeps: int | None = None, look: int = 12) -> list[Screened]:
+    """Up to ``k`` of the best screened candidates, each still worth ``min_log_bf`` given the ones before it.
+
+    Candidate B is skipped when its screened ln BF *conditional on* the candidates already picked (their
+    coefficients profiled out with the model's own) falls below ``min_log_bf``: it explains what they
+    explain (a constant on the velocity equation and a bias on the measurement, a cubic and a saturating
+    stiffness), and confirming both would double the cost for one effect.
+    """
+    sc = _Screener(spec, phi, data, substeps)
+    base = len(sc.theta)
+    picked: list[Screened] = []
+    for c in [c for c in screened if c.log_bayes_factor > min_log_bf][:look]:
+        if len(picked) >= k:
+            break
+        if picked:
+            items = [(p.effect, p.target, p.scales) for p in picked] + [(c.effect, c.target, c.scales)]
+            with_data = data
+            for p in picked + [c]:
+                with_data = _with_cols(with_data, p.effect)
+            groups, g, Inf = sc.batch(items, data=with_data)
+            nuis = base + sum(len(gr) for gr in groups[:-1])
+            lbf, _, _ = _bayes_factor(g, Inf, nuis, groups[-1])
+            if lbf <= min_log_bf:
+                c.conditional_on = [p.effect.name for p in picked]
+                continue
+        picked.append(c)
+    return picked

@@ -293,13 +293,15 @@ def to_jsonable(x):
 def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *, map_fn: Map = serial_map,
                   progress: Callable[[dict], None] | None = None, cancel=None,
                   evaluator_factory: Callable[..., EvidenceEvaluator] | None = None,
-                  on_trial: Callable | None = None, warm=None) -> tuple[dict, MaximiserResult]:
+                  on_trial: Callable | None = None, warm=None,
+                  final_posterior: str = "sample") -> tuple[dict, MaximiserResult]:
     """ARD evidence maximisation for one candidate; returns its summary row and the full result.
 
     ``evaluator_factory`` (same arguments as :class:`EvidenceEvaluator`) lets an
     orchestrator substitute its own evaluator (caching, checkpoints, remote chains);
     ``on_trial`` is called with every finished :class:`~ardcore.ard.Trial`; ``warm`` (a
-    :class:`~ardcore.mcmc.SamplerResult`) warm-starts the first trial.
+    :class:`~ardcore.mcmc.SamplerResult`) warm-starts the first trial. With Laplace evidence,
+    ``final_posterior="laplace"`` reports the Laplace posterior N(MAP, H^-1) instead of sampling it.
     """
     t0 = time.perf_counter()
     label = cand.label
@@ -312,8 +314,9 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
             progress({"model": label, **p})
 
     factory = evaluator_factory or EvidenceEvaluator
+    kw = {"final_posterior": final_posterior} if final_posterior != "sample" else {}
     ev = factory(ms, essential, data, cfg, method=spec.evidence, substeps=cand.substeps,
-                 map_fn=map_fn, progress=prog, cancel=cancel)
+                 map_fn=map_fn, progress=prog, cancel=cancel, **kw)
 
     def trial_done(tr):
         prog({"stage": "trial", "iteration": tr.iteration, "action": tr.action,

@@ -58,8 +58,13 @@ def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
     conf = {(x["effect"], x["target"]): x for x in report["confirmed"]}
     colors = ["C2" if conf.get((x["effect"], x["target"]), {}).get("survives") else
               ("C1" if (x["effect"], x["target"]) in conf else "0.6") for x in c]
-    ax.barh([f"{x['effect']} -> {x['target']}" for x in c], [100 * x["explained"] for x in c], color=colors)
-    ax.set(xlabel="% of the injected process noise explained (beyond refitting)",
+    # screened ln BF spans nats to tens of thousands: a signed log scale keeps both ends readable
+    v = np.array([x["log_bayes_factor"] for x in c])
+    ax.barh([f"{x['effect']} -> {x['target']}" for x in c], np.sign(v) * np.log10(1 + np.abs(v)), color=colors)
+    ticks = [t for t in (-100, -10, 0, 3, 10, 100, 1000, 10000, 100000) if abs(t) <= max(10, np.abs(v).max() * 1.5)]
+    ax.set_xticks(np.sign(ticks) * np.log10(1 + np.abs(ticks)), [str(t) for t in ticks])
+    ax.axvline(np.log10(4), color="k", lw=0.6, ls=":")
+    ax.set(xlabel="screened ln Bayes factor of adding the effect (dotted: 3 nats)",
            title="candidate effects (green: kept by evidence, orange: rejected by evidence)")
     return _save(fig, out)
 

@@ -74,6 +74,12 @@ def bench_ekf() -> dict:
     hand_ms = _median_ms(lambda: ekf_m2_handwritten(p, t, y, 10, AERO_GAMMA_EKF, 0.01), repeats=15, number=20)
     np_ms = _median_ms(lambda: ekf_m2_numpy(p, t, y, 10, AERO_GAMMA_EKF), repeats=3, number=1)
     table = {str(n): cm.loglik(p, ds, substeps=n) for n in (1, 2, 5, 10, 20, 50, 100, 200)}
+    # the same model with RK4 sub-steps (the default scheme of a new model), and the cost per sub-step
+    rk = compile_model(builtin("M2").model_copy(update={"integrator": "rk4"}).revalidate())
+    table_rk4 = {str(n): rk.loglik(p, ds, substeps=n) for n in (1, 2, 5, 10, 20, 50, 100, 200)}
+    rk_lik = rk.bind(ds, substeps=2)
+    rk4_ms = _median_ms(lambda: rk_lik(p), repeats=15, number=20)
+    sb = silverbox_substep_table()
     with tempfile.TemporaryDirectory() as cache:
         cold = first_call_seconds(cache)
         warm = first_call_seconds(cache)
@@ -87,7 +93,39 @@ def bench_ekf() -> dict:
         "ekf_cached_first_call_s": warm,
         "ekf_m2_loglik": ll_gen,
         "ekf_m2_substep_table": table,
+        "ekf_m2_rk4_substep_table": table_rk4,
+        "ekf_m2_rk4_2sub_ms": rk4_ms,
+        **sb,
     }
+
+
+def silverbox_substep_table() -> dict:
+    """Sub-step convergence on Silverbox: ln L on the estimation segment and the multisine free-run error of a
+    Duffing model with input feedthrough (parameters fitted once by the loop, rounded), per scheme and hold."""
+    from ardcore.data import SILVERBOX_SPLITS, load_silverbox
+    from ardcore.ekf import compile_model
+    from ardcore.model import ModelSpec
+
+    d = load_silverbox(ROOT.parent / "shared" / "data" / "real" / "SNLS80mV.csv")
+    est, test = d.slice(*SILVERBOX_SPLITS["estimation"]), d.slice(*SILVERBOX_SPLITS["test_multisine"])
+    phi = {"k": 1.845e5, "c": 41.94, "b": 1.941e5, "sigma": 1.986, "gamma": 1.261e-4, "k3": 7.228e5, "off": 997.8,
+           "e": -0.03706}
+    out = {}
+    for integ, hold in (("euler", "zoh"), ("euler", "foh"), ("rk4", "zoh"), ("rk4", "foh")):
+        spec = ModelSpec(name="sb", states=["y", "v"], inputs=["u"], diffusion={"v": "sigma"},
+                         drift={"y": "v", "v": "-k*y - c*v - k3*y**3 - off + b*u"},
+                         observations=[{"column": "y", "expr": "y + e*u", "noise_std": "gamma"}],
+                         parameters=list(phi), initial_std={"y": 0.1, "v": 10.0}, integrator=integ, input_hold=hold)
+        cm = compile_model(spec)
+        row = {}
+        for n in (1, 2, 5, 20, 100):
+            x0 = cm.filter(phi, test.slice(0, 51), n).filtered[-1]
+            rest = test.slice(50, None)
+            _, H = cm.simulate(phi, rest.t, x0=x0, inputs=rest.columns["u"][:, None], nsub=n, noise=False)
+            row[str(n)] = {"loglik": cm.loglik(phi, est, n),
+                           "free_run_mv": 1e3 * float(np.sqrt(np.mean((H[:, 0] - rest.columns["y"]) ** 2)))}
+        out[f"ekf_silverbox_{integ}_{hold}_substep_table"] = row
+    return out
 
 
 def _m2_target(psi):
@@ -293,7 +331,99 @@ def bench_study() -> dict:
     return out
 
 
-BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "study": bench_study}
+def _final_free_run(rep: dict, record, when: str = "_final") -> float:
+    """Free-run RMS error of the loop's initial or final model on another held-out record."""
+    from ardcore.diagnose import free_run, with_columns
+
+    m = rep[when]
+    for e in m["effects"]:
+        record = with_columns(record, e)
+    return free_run(m["spec"], m["phi"], record, substeps=m["substeps"])["rms_error"]
+
+
+def bench_loop() -> dict:
+    """The closed loop on the shared real records, and the peers on the same data and splits, in one run.
+
+    Silverbox: fit on the estimation segment, free run on the multisine and arrow test segments (first 50
+    samples initialise). Pendulum: fit 2-40 s, free run 40-120 s. Reference data: the loop on the 5000-point
+    record (M2's data-generating form, one round). Keys: loop_silverbox_{multisine,arrow}_mv (after the loop),
+    ..._before_mv, loop_silverbox_s, loop_pendulum_rad (+ _before), loop_pendulum_s, loop_reference_s,
+    loop_peer_{arx,narx,pysindy,sysidentpy}_{multisine,arrow}_mv, loop_peer_best_multisine_mv,
+    loop_peer_best_arrow_mv, loop_peer_narx_pendulum_rad, loop_silverbox_added, loop_pendulum_added.
+    """
+    from ardcore.data import SILVERBOX_SPLITS, load_pendulum, load_silverbox
+    from ardcore.diagnose import DiagnoseConfig, diagnose
+    from ardcore.simulate import simulate_reference
+    from ardcore.study import StudySpec, load_spec
+
+    from . import peers
+
+    data_dir = ROOT.parent / "shared" / "data" / "real"
+    out: dict = {}
+    full = load_silverbox(data_dir / "SNLS80mV.csv")
+    seg = {k: full.slice(*v) for k, v in SILVERBOX_SPLITS.items()}
+    # -- peers, same data and split
+    y, u = seg["estimation"].columns["y"], seg["estimation"].columns["u"]
+    tests = {"multisine": (seg["test_multisine"].columns["y"], seg["test_multisine"].columns["u"]),
+             "arrow": (seg["test_arrow"].columns["y"], seg["test_arrow"].columns["u"])}
+    arx = peers.fit_narx(y, u, polynomial=False)
+    narx = peers.fit_narx(y, u)
+    peer = {"arx": {k: peers.free_run_rms(arx, *v) for k, v in tests.items()},
+            "narx": {k: peers.free_run_rms(narx, *v) for k, v in tests.items()}}
+    for name, fn in (("pysindy", lambda: peers.pysindy_free_run(y, u, tests, 1.0 / float(np.median(np.diff(
+            seg["estimation"].t))))), ("sysidentpy", lambda: peers.sysidentpy_free_run(y, u, tests))):
+        r = fn()
+        if r is not None:
+            peer[name] = r
+    for name, r in peer.items():
+        for k, v in r.items():
+            out[f"loop_peer_{name}_{k}_mv"] = 1e3 * v
+    out["loop_peer_best_multisine_mv"] = min(1e3 * r["multisine"] for r in peer.values())
+    out["loop_peer_best_arrow_mv"] = min(1e3 * r["arrow"] for r in peer.values())
+    # -- the loop on Silverbox
+    spec = load_spec(ROOT / "examples" / "silverbox_diagnose.json")
+    t0 = time.perf_counter()
+    rep = diagnose(spec, spec.data.load(ROOT / "examples"), test_data=seg["test_multisine"],
+                   progress=lambda m: print("  " + m, flush=True))
+    out["loop_silverbox_s"] = time.perf_counter() - t0
+    out["loop_silverbox_multisine_before_mv"] = 1e3 * rep["before"]["free_run"]["rms_error"]
+    out["loop_silverbox_multisine_mv"] = 1e3 * (rep["after"] or rep["before"])["free_run"]["rms_error"]
+    out["loop_silverbox_arrow_before_mv"] = 1e3 * _final_free_run(rep, seg["test_arrow"], "_initial")
+    out["loop_silverbox_arrow_mv"] = 1e3 * _final_free_run(rep, seg["test_arrow"])
+    out["loop_silverbox_added"] = [a["effect"] + " -> " + a["target"] for a in rep["added"]]
+    # -- the pendulum
+    pend = load_spec(ROOT / "examples" / "pendulum_diagnose.json")
+    pfull = load_pendulum(data_dir / "pendulum" / "adip_pend_data.mat")
+    ptest = pfull.slice(40000, None)
+    ptest = type(ptest)(ptest.t[::20].copy(), {"y": ptest.columns["y"][::20].copy()}, ptest.meta)
+    t0 = time.perf_counter()
+    pdata = pend.data.load(ROOT / "examples")
+    prep = diagnose(pend, pdata, test_data=ptest, progress=lambda m: print("  " + m, flush=True))
+    out["loop_pendulum_s"] = time.perf_counter() - t0
+    out["loop_pendulum_before_rad"] = prep["before"]["free_run"]["rms_error"]
+    out["loop_pendulum_rad"] = (prep["after"] or prep["before"])["free_run"]["rms_error"]
+    out["loop_pendulum_added"] = [a["effect"] + " -> " + a["target"] for a in prep["added"]]
+    py = pdata.columns["y"]
+    pn = peers.fit_narx(py, np.zeros_like(py))
+    out["loop_peer_narx_pendulum_rad"] = peers.free_run_rms(pn, ptest.columns["y"], np.zeros(len(ptest)))
+    # -- the loop on the 5000-point reference data (M2's data-generating form)
+    ref = StudySpec.model_validate({
+        "name": "loop", "data": {"generator": "reference", "seed": 3},
+        "models": [{"model": "M2true", "priors": {
+            "B": {"kind": "lognormal", "median": 0.2, "cov": 50}, "a1": {"kind": "uniform", "low": -2, "high": 0},
+            "a2": {"kind": "uniform", "low": -2, "high": 0}, "a3": {"kind": "uniform", "low": -250, "high": 250},
+            "a4": {"kind": "uniform", "low": -1000, "high": 0},
+            "sigma": {"kind": "lognormal", "median": 0.002, "cov": 50}}}],
+        "sampler": {"start_maxfev": 1500, "round_size": 250, "n_stationary": 1000, "n_proposal": 1000},
+        "maximiser": {"step_decades": 2, "min_step_decades": 2, "max_sweeps": 1}, "seed": 3})
+    t0 = time.perf_counter()
+    diagnose(ref, simulate_reference(3), config=DiagnoseConfig(max_rounds=1))
+    out["loop_reference_s"] = time.perf_counter() - t0
+    return out
+
+
+BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "study": bench_study,
+           "loop": bench_loop}
 
 
 def main(argv=None) -> int:
@@ -309,7 +439,7 @@ def main(argv=None) -> int:
         r = BENCHES[name]()
         res.update(r)
         for k, v in r.items():
-            if isinstance(v, (int, float)):
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
                 print(f"  {k:28s} {v:.4g}")
     res["machine"] = {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
                       "date": time.strftime("%Y-%m-%d")}
