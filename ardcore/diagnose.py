@@ -90,6 +90,10 @@ class DiagnoseConfig:
         With a Laplace-evidence spec, the loop's fits report the Laplace posterior N(MAP, H^-1) that
         their evidence assumes ("laplace", default: it costs nothing) or sample it by MCMC ("sample").
         Chib-Jeliazkov specs always sample.
+    joint : bool
+        Add every distinct, stable survivor of a round at once: they are re-selected together under ARD
+        (which prunes what the others make redundant) and added when that beats the best single effect by
+        ``min_log_bf``. False adds one effect per round.
     """
 
     max_lag: int = 40
@@ -104,6 +108,7 @@ class DiagnoseConfig:
     split_rel: float = 0.3
     alpha_start: float = 1e-2
     posterior: str = "laplace"
+    joint: bool = True
 
 
 # --------------------------------------------------------------------------- tests
@@ -405,11 +410,13 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
         if config.split_z is not None:
             for c in survivors:
+                if c["_effect"].where == "noise":
+                    continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
                 c["stability"] = _split_stability(spec, c, config, say)
                 c["survives"] = c["stability"]["stable"]
-                if c["survives"]:
+                if c["survives"] and not config.joint:
                     break  # the best stable one is added
-            survivors = [c for c in survivors if c["survives"]]
+            survivors = [c for c in survivors if c.get("stability", {}).get("stable", True) and c["survives"]]
         # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
         tried = {(c["effect"], c["target"]): c for c in confirmed}
         order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
@@ -427,16 +434,32 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             rec["verdict"] = _unexplained(res, ranked, confirmed, col, config)
             break
         best = survivors[0]
-        eff = best["_effect"]
-        rec["added"] = {"effect": eff.name, "kind": eff.kind, "target": best["target"], "terms": list(eff.terms),
-                        "posterior": best["posterior"], "log_bayes_factor": best["log_bayes_factor"],
-                        "character": _character(fspec, phi, eff, best)}
-        rec["_effect"] = eff
-        say(f"round {rnd}: added {eff.name} to {best['target']} (ln BF {best['log_bayes_factor']:.1f})")
-        cand, row, bmr, cur_data = best["_cand"], best["_row"], best["_mr"], best["_data"]
-        cur_test = with_columns(cur_test, eff)
+        chosen, fit = [best], (best["_cand"], best["_row"], best["_mr"], best["_data"])
+        if config.joint and len(survivors) > 1:
+            # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
+            # others make redundant; taken when it beats the best single effect by more than min_log_bf
+            j = _joint_fit(spec, cand, row, best, survivors, cur_data, config, say)
+            if j is not None and j[1]["log_evidence"] > best["log_evidence"] + config.min_log_bf:
+                chosen, fit = j[4], j[:4]
+        jrow = fit[1]
+        recs = []
+        for c in chosen:
+            eff = c["_effect"]
+            names = list(c["scales"])
+            post = {n: _physical(jrow, n, c["scales"][n]) for n in names if n in jrow["mean"]}
+            recs.append({"effect": eff.name, "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
+                         "posterior": post, "log_bayes_factor": c["log_bayes_factor"],
+                         "character": _character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
+        rec["added"], rec["added_with"] = recs[0], recs[1:]
+        rec["_effects"] = [c["_effect"] for c in chosen]
+        say(f"round {rnd}: added " + ", ".join(f"{r['effect']} to {r['target']} (ln BF {r['log_bayes_factor']:.1f})"
+                                                for r in recs)
+            + (f"; together ln BF {jrow['log_evidence'] - row['log_evidence']:.1f}" if len(recs) > 1 else ""))
+        cand, row, bmr, cur_data = fit
+        for e in rec["_effects"]:
+            cur_test = with_columns(cur_test, e)
 
-    added = [r["added"] for r in rounds if r["added"]]
+    added = [a for r in rounds if r["added"] for a in [r["added"], *r.get("added_with", [])]]
     out = {"model": spec.models[0].label, "final_model": cand.label, "data": data.meta.get("source"),
            "n": len(data), "n_test": len(test_data), **first,
            "rounds": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
@@ -462,7 +485,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     out["_arrays"] = arrays
     # the final model, for free runs on further held-out records: free_run(spec, phi, with_columns(d, e)...)
     out["_initial"] = initial
-    out["_final"] = {"spec": fspec, "phi": phi, "effects": [r["_effect"] for r in rounds if r.get("_effect")],
+    out["_final"] = {"spec": fspec, "phi": phi, "effects": [e for r in rounds for e in r.get("_effects", [])],
                      "substeps": cand.substeps}
     return out
 
@@ -513,6 +536,33 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
                           "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff})
         say(f"  {eff.name}: ln BF = {gain:.2f}, ARD keeps {kept or 'nothing'}")
     return ranked, confirmed
+
+
+def _joint_fit(spec, cand, row, best, survivors, data, config, say):
+    """The current model with every surviving effect added, each new term at the ARD precision its own
+    re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
+
+    Returns (candidate, row, maximiser result, data, survivors) or None."""
+    from .priors import Flat, Normal
+
+    priors, fixed = _essential_from_row(cand, row)
+    aspec, adata = cand.model_spec(), data
+    for c in survivors:
+        n = list(c["scales"])
+        aspec, n = augment(aspec, c["_effect"], c["target"], [c["scales"][k] for k in n], names=n)
+        adata = with_columns(adata, c["_effect"])
+        for k in n:
+            a = c["psi_opt"].get(k, 0.0)
+            if k not in c["kept_terms"] or a == "inf" or a == INF:
+                fixed[k] = 0.0
+            else:
+                a = float(a)
+                priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+    acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed, ard=[], substeps=cand.substeps)
+    say("fitting the distinct survivors together: " + ", ".join(c["effect"] for c in survivors))
+    arow, amr = run_candidate(acand, adata, spec, 0, warm=best["_mr"].sampler, final_posterior=config.posterior)
+    say(f"  together: ln BF = {arow['log_evidence'] - row['log_evidence']:.2f}")
+    return acand, arow, amr, adata, survivors
 
 
 def _physical(row: dict, name: str, scale: float) -> dict:

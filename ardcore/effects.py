@@ -124,6 +124,8 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     """
     scales = scales or {}
     out: list[Effect] = []
+    # the user's inputs (columns of a periodic forcing the loop added are not inputs to build effects from)
+    inputs = [u for u in spec.inputs if not re.fullmatch(r"forcing\d+_(sin|cos)", u)]
     for x, v in oscillator_pairs(spec):
         out += [
             Effect(f"quadratic_stiffness({x})", "stiffness", (f"{x}**2",), f"even-order (asymmetric) stiffness {x}^2", code=f"s2{x}"),
@@ -159,10 +161,10 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
             out.append(Effect(f"stribeck({v})", "friction", (f"tanh({v}/{0.01 * sv:.3g})*exp(-({v}/{{vs}})**2)",),
                               f"Stribeck friction peak decaying over {{vs}}", code=f"fs{v}",
                               shape=("vs", 0.02 * sv, 1.0 * sv)))
-        for u in spec.inputs:
+        for u in inputs:
             out += [Effect(f"input_cross({u}*{x})", "input", (f"{u}*{x}",), f"input-state cross term {u} {x}", code=f"u{u}{x}"),
                     Effect(f"input_cross({u}*{v})", "input", (f"{u}*{v}",), f"input-velocity cross term {u} {v}", code=f"u{u}{v}")]
-    for u in spec.inputs:
+    for u in inputs:
         out += [Effect(f"input({u})", "input", (u,), f"linear input {u}", code=f"u1{u}"),
                 Effect(f"input_quadratic({u})", "input", (f"{u}**2",), f"quadratic input {u}^2", code=f"u2{u}"),
                 Effect(f"input_cubic({u})", "input", (f"{u}**3",), f"cubic input {u}^3", code=f"u3{u}")]
@@ -180,7 +182,7 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         if sc and sc > 0:
             out.append(Effect(f"saturation({s_})", "state", (f"{s_} - {{xs}}*tanh({s_}/{{xs}})",),
                               f"{s_} saturating beyond ~{{xs}}", code=f"qs{s_}", shape=("xs", 0.2 * sc, 1.5 * sc)))
-        for u in spec.inputs:
+        for u in inputs:
             out += [Effect(f"input_cross({u}*{s_})", "input", (f"{u}*{s_}",), f"input-state cross term {u} {s_}",
                            code=f"u{u}{s_}")]
     used = set(spec.inputs)
@@ -192,9 +194,15 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
                           code=f"fo{i}", shape=("f", 0.97 * f, 1.03 * f)))
     # measurement effects: added to an observation's expression
     out.append(Effect("sensor_bias", "measurement", ("1",), "measurement bias", code="mb", where="observation"))
-    for u in spec.inputs:
+    for u in inputs:
         out.append(Effect(f"feedthrough({u})", "measurement", (u,), f"direct feedthrough of {u} to the measurement",
                           code=f"mf{u}", where="observation"))
+    for o in spec.observations:
+        # the declared measurement noise may be too small: then the filter explains the misfit by process noise,
+        # and the fitted dynamics free-run poorly. exp(k) scales it; ARD on k (k = 0: as declared) decides.
+        out.append(Effect(f"measurement_noise({o.column})", "noise", ("noise",),
+                          f"measurement noise of {o.column} larger or smaller than declared (x exp(k))",
+                          code=f"mn{o.column}", where="noise"))
     for o in spec.observations:
         e = str(o.expr).strip()
         if e not in spec.states:
@@ -233,7 +241,8 @@ def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | 
     """``spec`` with ``effect`` added to ``target``; returns it and the new coefficient names.
 
     ``target`` is a state (the effect enters its drift) or, for ``effect.where == "observation"``, an
-    observed column (the effect enters that observation's expression). With ``scales`` each term is
+    observed column (the effect enters that observation's expression); for ``"noise"``, the observed
+    column whose noise std is multiplied by ``exp(k)``. With ``scales`` each term is
     written ``k * (scale * term)``: the coefficient ``k`` is then dimensionless (1 = an effect as large
     as the target's own drift), so that priors, proposal steps and evidence do not depend on the
     term's units. Without, ``k`` is the physical coefficient.
@@ -246,7 +255,12 @@ def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | 
                      for n, term, c in zip(names, effect.terms, sc))
     update = {"name": _short(f"{spec.name}_{effect.code}"), "parameters": list(spec.parameters) + names,
               "inputs": list(spec.inputs) + [c for c in effect.columns_for(np.zeros(1)) if c not in spec.inputs]}
-    if effect.where == "observation":
+    if effect.where == "noise":
+        if all(o.column != target for o in spec.observations):
+            raise ValueError(f"{target!r} is not an observed column of {spec.name!r}")
+        update["observations"] = [o.model_copy(update={"noise_std": f"({o.noise_std})*exp({names[0]})"})
+                                  if o.column == target else o for o in spec.observations]
+    elif effect.where == "observation":
         obs = [o.model_copy(update={"expr": f"({o.expr}) + {add}"}) if o.column == target else o
                for o in spec.observations]
         if all(o.column != target for o in spec.observations):

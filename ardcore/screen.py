@@ -140,6 +140,8 @@ class _Screener:
 
     def term_scale(self, effect: Effect, target: str, data: Dataset) -> list[float] | None:
         """scale per term so that scale * term has the rms of the target's dynamics (None if a term is ~0)."""
+        if effect.where == "noise":
+            return [1.0]  # k is already dimensionless: the log of the noise factor
         cols = effect.columns_for(data.t)
         U = np.column_stack([self.U] + [cols[c] for c in cols]) if cols else self.U
         fspec = self.spec.model_copy(update={"inputs": list(self.spec.inputs) + list(cols)}) if cols else self.spec
@@ -265,7 +267,7 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
     sc = _Screener(spec, phi, data, substeps)
     k = len(sc.theta)
     pairs = [(e, t) for e in effects if e.where == "drift" for t in targets]
-    pairs += [(e, c) for e in effects if e.where == "observation" for c in obs_targets]
+    pairs += [(e, c) for e in effects if e.where in ("observation", "noise") for c in obs_targets]
     out: list[Screened] = []
     plain = [(e, t) for e, t in pairs if not e.shape]
     shaped = [(e, t) for e, t in pairs if e.shape]

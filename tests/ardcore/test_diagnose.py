@@ -103,3 +103,56 @@ def test_loop_adds_nothing_to_a_correct_model(seed):
     rep = diagnose(_spec(), data, config=DiagnoseConfig(top_k=2, max_rounds=1))
     assert rep["added"] == [], rep["verdict"]
     assert "no evidence of a missing effect" in rep["verdict"] or "NOT explained" in rep["verdict"]
+
+
+def _fit(spec, data, x0):
+    """MAP of the positive parameters of ``spec`` (log scale), as the loop's fit would give."""
+    lik = compile_model(spec).bind(data)
+    r = optimize.minimize(lambda z: -lik(np.exp(z)), np.log(x0), method="Nelder-Mead",
+                          options={"maxfev": 4000, "xatol": 1e-6, "fatol": 1e-6})
+    return dict(zip(spec.free_parameters, np.exp(r.x)))
+
+
+def _names(ranked, k=1):
+    return [(c.effect.name, c.target) for c in ranked[:k]]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_screen_finds_a_measurement_feedthrough(seed):
+    """y = x + e u (a transfer-function zero): a measurement effect, not a term of the dynamics."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(3000) * 0.02
+    u = np.convolve(rng.standard_normal(t.size), np.ones(5) / 5, mode="same")
+    truth = builtin("forced_linear_oscillator").model_copy(update={
+        "observations": [{"column": "y", "expr": "y + e*u", "noise_std": "gamma"}],
+        "parameters": ["k", "c", "b", "sigma", "e"], "constants": {"gamma": 1e-3}}).revalidate()
+    data = simulate_model(truth, {"k": 30.0, "c": 1.0, "b": 20.0, "sigma": 0.5, "e": 0.05}, t, seed, inputs={"u": u})
+    spec = builtin("forced_linear_oscillator").model_copy(update={"constants": {"gamma": 1e-3}}).revalidate()
+    phi = _fit(spec, data, [30.0, 1.0, 20.0, 0.5])
+    ranked = screen_effects(spec, phi, data, candidate_effects(spec, scales={"y": 0.5, "v": 3.0}), ["v"], ["y"])
+    assert _names(ranked) == [("feedthrough(u)", "y")], _names(ranked, 5)
+    assert ranked[0].log_bayes_factor > 30
+    assert abs(ranked[0].physical[0] - 0.05) < 0.02
+
+
+def test_screen_finds_the_outflow_law_of_a_level_model():
+    """A tank h' = q u - a sqrt(h) proposed as the linear h' = q u - a h: a first-order model, no oscillator."""
+    from ardcore.model import ModelSpec
+
+    def tank(drift, params):
+        return ModelSpec(name="tank", states=["h"], inputs=["u"], drift={"h": drift}, diffusion={"h": "s"},
+                         observations=[{"column": "y", "expr": "h", "noise_std": 0.005}],
+                         parameters=params, initial_mean={"h": 1.0}, initial_std={"h": 0.1})
+
+    rng = np.random.default_rng(3)
+    t = np.arange(2000) * 0.1
+    u = 1.0 + 0.8 * np.sign(np.sin(2 * np.pi * t / 40)) + 0.1 * rng.standard_normal(t.size)
+    data = simulate_model(tank("q*u - a*sqrt(abs(h))*sign(h)", ["q", "a", "s"]), {"q": 0.5, "a": 0.5, "s": 0.01},
+                          t, 3, inputs={"u": u}, x0=[1.0])
+    spec = tank("q*u - a*h", ["q", "a", "s"])
+    assert dynamic_states(spec) == ["h"]
+    phi = _fit(spec, data, [0.5, 0.5, 0.01])
+    ranked = screen_effects(spec, phi, data, candidate_effects(spec, scales={"h": float(np.std(data.columns["y"]))}),
+                            ["h"], ["y"])
+    assert ranked[0].effect.kind in ("state", "offset") and ranked[0].log_bayes_factor > 30, _names(ranked, 5)
+    assert ("sqrt_outflow(h)", "h") in _names(ranked, 3), _names(ranked, 5)

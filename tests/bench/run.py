@@ -370,8 +370,8 @@ def bench_loop() -> dict:
     narx = peers.fit_narx(y, u)
     peer = {"arx": {k: peers.free_run_rms(arx, *v) for k, v in tests.items()},
             "narx": {k: peers.free_run_rms(narx, *v) for k, v in tests.items()}}
-    for name, fn in (("pysindy", lambda: peers.pysindy_free_run(y, u, tests, 1.0 / float(np.median(np.diff(
-            seg["estimation"].t))))), ("sysidentpy", lambda: peers.sysidentpy_free_run(y, u, tests))):
+    for name, fn in (("pysindy", lambda: peers.pysindy_free_run(y, u, tests)),
+                     ("sysidentpy", lambda: peers.sysidentpy_free_run(y, u, tests))):
         r = fn()
         if r is not None:
             peer[name] = r
