@@ -164,7 +164,8 @@ class EvidenceEvaluator:
         target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
         if self.method == "laplace":
             x0 = _warm_point(target, warm) if warm is not None else self._cold_start(target, seed)
-            ev, xmap, C = laplace(target, x0, initial_scale(target.prior) if warm is None else None)
+            ev, xmap, C = laplace(target, x0, initial_scale(target.prior) if warm is None else None,
+                                  warm=warm is not None)
             res = None
             if final and self.final_posterior == "laplace":
                 res = _laplace_state(target, xmap, C, ev, draws=4000, seed=seed)

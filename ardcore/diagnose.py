@@ -28,6 +28,7 @@ structure that remains (spectral peaks, the states that needed noise).
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -94,6 +95,9 @@ class DiagnoseConfig:
         Add every distinct, stable survivor of a round at once: they are re-selected together under ARD
         (which prunes what the others make redundant) and added when that beats the best single effect by
         ``min_log_bf``. False adds one effect per round.
+    workers : int
+        Processes that run a round's confirmations and halves checks side by side (0: one per core, at
+        most ``top_k``; 1: in this process).
     """
 
     max_lag: int = 40
@@ -109,6 +113,7 @@ class DiagnoseConfig:
     alpha_start: float = 1e-2
     posterior: str = "laplace"
     joint: bool = True
+    workers: int = 0
 
 
 # --------------------------------------------------------------------------- tests
@@ -388,77 +393,81 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     first = None
     rounds, arrays = [], {}
     cur_data, cur_test = data, test_data
-    for rnd in range(config.max_rounds + 1):
-        fspec, phi = _fitted(cand, row)
-        say(f"round {rnd}: {cand.label} ln Z = {row['log_evidence']:.3f}; computing residuals")
-        res = residuals(fspec, phi, cur_data, config, substeps=cand.substeps)
-        fr = free_run(fspec, phi, cur_test, init_samples=config.init_samples, substeps=cand.substeps)
-        err = _errors(res, fr, row, col)
-        if first is None:
-            initial = {"spec": fspec, "phi": phi, "effects": [], "substeps": cand.substeps}
-            first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
-                     "base_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned",
-                                                       "mean", "sd")}}
-            arrays["before"] = _arrays(res, fr)
-        else:
-            arrays["after"] = _arrays(res, fr)
-            rounds[-1]["after"] = err
-        if rnd == config.max_rounds:
-            break
-        ranked, confirmed = _trace_and_confirm(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
-                                               extra_effects, say)
-        survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
-        if config.split_z is not None:
-            for c in survivors:
-                if c["_effect"].where == "noise":
-                    continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
-                c["stability"] = _split_stability(spec, c, config, say)
-                c["survives"] = c["stability"]["stable"]
-                if c["survives"] and not config.joint:
-                    break  # the best stable one is added
-            survivors = [c for c in survivors if c.get("stability", {}).get("stable", True) and c["survives"]]
-        # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
-        tried = {(c["effect"], c["target"]): c for c in confirmed}
-        order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
-        ranking = [{"effect": c["effect"], "target": c["target"], "log_bayes_factor": c["log_bayes_factor"],
-                    "survives": c["survives"]} for c in order]
-        ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"],
-                     "screened_log_bayes_factor": c["log_bayes_factor"]} for c in ranked
-                    if (c["effect"], c["target"]) not in tried]
-        rec = {"round": rnd, "model": cand.label, "ranking": ranking,
-               "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
-               "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
-               "added": None}
-        rounds.append(rec)
-        if not survivors:
-            rec["verdict"] = _unexplained(res, ranked, confirmed, col, config)
-            break
-        best = survivors[0]
-        chosen, fit = [best], (best["_cand"], best["_row"], best["_mr"], best["_data"])
-        if config.joint and len(survivors) > 1:
-            # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
-            # others make redundant; taken when it beats the best single effect by more than min_log_bf
-            j = _joint_fit(spec, cand, row, best, survivors, cur_data, config, say)
-            if j is not None and j[1]["log_evidence"] > best["log_evidence"] + config.min_log_bf:
-                chosen, fit = j[4], j[:4]
-        jrow = fit[1]
-        recs = []
-        for c in chosen:
-            eff = c["_effect"]
-            names = list(c["scales"])
-            post = {n: _physical(jrow, n, c["scales"][n]) for n in names if n in jrow["mean"]}
-            recs.append({"effect": eff.name, "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
-                         "posterior": post, "log_bayes_factor": c["log_bayes_factor"],
-                         "character": _character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
-        rec["added"], rec["added_with"] = recs[0], recs[1:]
-        rec["_effects"] = [c["_effect"] for c in chosen]
-        say(f"round {rnd}: added " + ", ".join(f"{r['effect']} to {r['target']} (ln BF {r['log_bayes_factor']:.1f})"
-                                                for r in recs)
-            + (f"; together ln BF {jrow['log_evidence'] - row['log_evidence']:.1f}" if len(recs) > 1 else ""))
-        cand, row, bmr, cur_data = fit
-        for e in rec["_effects"]:
-            cur_test = with_columns(cur_test, e)
-
+    workers = config.workers or min(os.cpu_count() or 1, max(config.top_k, 2))
+    mapper, close = _pool_mapper(workers)
+    try:
+        for rnd in range(config.max_rounds + 1):
+            fspec, phi = _fitted(cand, row)
+            say(f"round {rnd}: {cand.label} ln Z = {row['log_evidence']:.3f}; computing residuals")
+            res = residuals(fspec, phi, cur_data, config, substeps=cand.substeps)
+            fr = free_run(fspec, phi, cur_test, init_samples=config.init_samples, substeps=cand.substeps)
+            err = _errors(res, fr, row, col)
+            if first is None:
+                initial = {"spec": fspec, "phi": phi, "effects": [], "substeps": cand.substeps}
+                first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
+                         "base_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned",
+                                                           "mean", "sd")}}
+                arrays["before"] = _arrays(res, fr)
+            else:
+                arrays["after"] = _arrays(res, fr)
+                rounds[-1]["after"] = err
+            if rnd == config.max_rounds:
+                break
+            ranked, confirmed = _trace_and_confirm(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
+                                                   extra_effects, say, mapper)
+            survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
+            if config.split_z is not None:
+                for c in survivors:
+                    if c["_effect"].where == "noise":
+                        continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
+                    c["stability"] = _split_stability(spec, c, config, say, mapper)
+                    c["survives"] = c["stability"]["stable"]
+                    if c["survives"] and not config.joint:
+                        break  # the best stable one is added
+                survivors = [c for c in survivors if c.get("stability", {}).get("stable", True) and c["survives"]]
+            # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
+            tried = {(c["effect"], c["target"]): c for c in confirmed}
+            order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
+            ranking = [{"effect": c["effect"], "target": c["target"], "log_bayes_factor": c["log_bayes_factor"],
+                        "survives": c["survives"]} for c in order]
+            ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"],
+                         "screened_log_bayes_factor": c["log_bayes_factor"]} for c in ranked
+                        if (c["effect"], c["target"]) not in tried]
+            rec = {"round": rnd, "model": cand.label, "ranking": ranking,
+                   "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
+                   "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
+                   "added": None}
+            rounds.append(rec)
+            if not survivors:
+                rec["verdict"] = _unexplained(res, ranked, confirmed, col, config)
+                break
+            best = survivors[0]
+            chosen, fit = [best], (best["_cand"], best["_row"], best["_mr"], best["_data"])
+            if config.joint and len(survivors) > 1:
+                # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
+                # others make redundant; taken when it beats the best single effect by more than min_log_bf
+                j = _joint_fit(spec, cand, row, best, survivors, cur_data, config, say)
+                if j is not None and j[1]["log_evidence"] > best["log_evidence"] + config.min_log_bf:
+                    chosen, fit = j[4], j[:4]
+            jrow = fit[1]
+            recs = []
+            for c in chosen:
+                eff = c["_effect"]
+                names = list(c["scales"])
+                post = {n: _physical(jrow, n, c["scales"][n]) for n in names if n in jrow["mean"]}
+                recs.append({"effect": eff.name, "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
+                             "posterior": post, "log_bayes_factor": c["log_bayes_factor"],
+                             "character": _character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
+            rec["added"], rec["added_with"] = recs[0], recs[1:]
+            rec["_effects"] = [c["_effect"] for c in chosen]
+            say(f"round {rnd}: added " + ", ".join(f"{r['effect']} to {r['target']} (ln BF {r['log_bayes_factor']:.1f})"
+                                                    for r in recs)
+                + (f"; together ln BF {jrow['log_evidence'] - row['log_evidence']:.1f}" if len(recs) > 1 else ""))
+            cand, row, bmr, cur_data = fit
+            for e in rec["_effects"]:
+                cur_test = with_columns(cur_test, e)
+    finally:
+        close()
     added = [a for r in rounds if r["added"] for a in [r["added"], *r.get("added_with", [])]]
     out = {"model": spec.models[0].label, "final_model": cand.label, "data": data.meta.get("source"),
            "n": len(data), "n_test": len(test_data), **first,
@@ -490,7 +499,39 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     return out
 
 
-def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say):
+def _warm_with(sampler, names: list[str], values: list[float]):
+    """``sampler`` (a SamplerResult) whose best point also carries ``names`` at ``values`` (for warm starts)."""
+    import dataclasses
+
+    keep = [i for i, n in enumerate(sampler.names) if n not in names]
+    return dataclasses.replace(sampler, names=[sampler.names[i] for i in keep] + list(names),
+                               phi_star=np.concatenate([np.asarray(sampler.phi_star)[keep], np.asarray(values, float)]))
+
+
+def _fit_task(args):
+    """One re-selection (a picklable unit of work for the confirmation pool)."""
+    cand, data, spec, warm, posterior = args
+    return run_candidate(cand, data, spec, 0, warm=warm, final_posterior=posterior)
+
+
+def _pool_mapper(workers: int):
+    """(map function, closer): confirmations and halves run side by side on ``workers`` processes."""
+    if workers <= 1:
+        return (lambda fn, tasks: [fn(t) for t in tasks]), (lambda: None)
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    # spawn: numba and BLAS threads do not survive a fork; kernels come from the on-disk cache
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+
+    def run(fn, tasks):
+        if len(tasks) <= 1:
+            return [fn(t) for t in tasks]
+        return list(pool.map(fn, tasks))
+    return run, (lambda: pool.shutdown(cancel_futures=True))
+
+
+def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper):
     """Screen the whole library by evidence, then confirm the best few by the full ARD re-selection."""
     peaks = [p for p in res.tests[col]["spectrum"]["peaks"] if not p.get("harmonic")]
     scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
@@ -512,16 +553,23 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
         say("not confirmed (explained by a better candidate): " + ", ".join(
             f"{c.effect.name} -> {c.target}" for c in redundant))
     by_id = {id(c["_screened"]): c for c in ranked}
-    for c in [by_id[id(p)] for p in picked]:
+    chosen = [by_id[id(p)] for p in picked]
+    tasks = []
+    for c in chosen:
         sc: Screened = c["_screened"]
-        eff: Effect = sc.effect
-        aspec, names = augment(cand.model_spec(), eff, c["target"], sc.scales)
-        adata = with_columns(data, eff)
+        aspec, names = augment(cand.model_spec(), sc.effect, c["target"], sc.scales)
         acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed,
                               ard=names, substeps=cand.substeps)
-        say(f"confirming {eff.name} on {c['target']} by evidence ...")
-        arow, amr = run_candidate(acand, adata, cspec, 0, warm=bmr.sampler,  # new terms start at 0
-                                  final_posterior=config.posterior)
+        # new terms start at the screen's estimate (a Laplace search from 0 would walk there by Nelder-Mead)
+        warm = _warm_with(bmr.sampler, names, sc.coefficients) if spec.evidence == "laplace" else bmr.sampler
+        tasks.append((acand, with_columns(data, sc.effect), cspec, warm, config.posterior))
+    if chosen:
+        say("confirming by evidence: " + ", ".join(f"{c['effect']} -> {c['target']}" for c in chosen))
+    results = mapper(_fit_task, tasks)
+    for c, (acand, adata, *_), (arow, amr) in zip(chosen, tasks, results):
+        sc = c["_screened"]
+        eff: Effect = sc.effect
+        names = [n for n in acand.ard_names]
         gain = arow["log_evidence"] - row["log_evidence"]
         kept = [n for n in names if n in arow["kept"]]
         scale = dict(zip(names, sc.scales))
@@ -571,7 +619,7 @@ def _physical(row: dict, name: str, scale: float) -> dict:
             "q005": row["q005"][name] * scale, "q995": row["q995"][name] * scale}
 
 
-def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say) -> dict:
+def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say, mapper) -> dict:
     """Refit the augmented model on each half of the record, the new terms' ARD priors frozen at psi_opt."""
     from .priors import Flat, Normal
 
@@ -588,8 +636,8 @@ def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say) -> d
     n = len(data)
     parts = []
     warm = c["_mr"].sampler
-    for lo, hi in ((0, n // 2), (n // 2, n)):
-        r, _ = run_candidate(half, data.slice(lo, hi), spec, 0, warm=warm, final_posterior=config.posterior)
+    tasks = [(half, data.slice(lo, hi), spec, warm, config.posterior) for lo, hi in ((0, n // 2), (n // 2, n))]
+    for r, _ in mapper(_fit_task, tasks):
         parts.append({k: (r["mean"][k], r["sd"][k]) for k in c["kept_terms"]})
     z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])
          for k in c["kept_terms"]}

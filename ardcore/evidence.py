@@ -154,8 +154,11 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
 
 
 def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: int = 4000,
-            polish: int = 3) -> tuple[Evidence, np.ndarray, np.ndarray]:
+            polish: int = 3, warm: bool = False) -> tuple[Evidence, np.ndarray, np.ndarray]:
     """Laplace evidence ln p(d) ~ L(MAP) + d/2 ln 2 pi - 1/2 ln |H| (Appendices A-B).
+
+    With ``warm`` (``x0`` from a neighbouring trial), Newton steps start at ``x0`` and Nelder-Mead runs only
+    when they do not converge.
 
     Returns
     -------
@@ -169,21 +172,35 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
     if scale is None:
         scale = np.maximum(np.abs(x0) * 0.1, 1e-3)
     f = lambda v: -target(v)[0]  # noqa: E731
-    x, _ = local_mode(target, x0, scale, maxfev)
-    h = 1e-3 * scale
-    H = None
-    for _ in range(polish):
-        H = fd_hessian(f, x, h)
-        g = np.array([(f(x + h[i] * e) - f(x - h[i] * e)) / (2 * h[i]) for i, e in enumerate(np.eye(d))])
-        try:
-            step = np.linalg.solve(H, g)
-            C = np.linalg.inv(H)
-        except np.linalg.LinAlgError:
-            break
-        if f(x - step) <= f(x):
-            x = x - step
-        sd = np.sqrt(np.abs(np.diag(C)))
-        h = np.where(np.isfinite(sd) & (sd > 0), 0.01 * sd, h)
+
+    def newton(x, h, iters):
+        """Newton steps with a finite-difference Hessian; returns x, h and whether it converged (step < 1e-3 sd)."""
+        for _ in range(iters):
+            H = fd_hessian(f, x, h)
+            g = np.array([(f(x + h[i] * e) - f(x - h[i] * e)) / (2 * h[i]) for i, e in enumerate(np.eye(d))])
+            try:
+                step = np.linalg.solve(H, g)
+                C = np.linalg.inv(H)
+            except np.linalg.LinAlgError:
+                return x, h, False
+            sd = np.sqrt(np.abs(np.diag(C)))
+            ok = np.all(np.isfinite(sd)) and np.all(sd > 0) and np.all(np.diag(C) > 0)
+            if f(x - step) <= f(x):
+                x = x - step
+            elif not ok:
+                return x, h, False
+            h = np.where(np.isfinite(sd) & (sd > 0), 0.01 * sd, h)
+            if ok and np.all(np.abs(step) < 1e-3 * sd):
+                return x, h, True
+        return x, h, False
+
+    converged = False
+    if warm:
+        # a warm start is near the mode: Newton from there, Nelder-Mead only if Newton does not converge
+        x, h, converged = newton(x0.copy(), 1e-3 * scale, polish + 5)
+    if not converged:
+        x, _ = local_mode(target, x0, scale, maxfev)
+        x, h, _ = newton(x, 1e-3 * scale, polish)
     H = fd_hessian(f, x, h)
     sign, logdet = np.linalg.slogdet(H)
     lp, ll = target(x)
