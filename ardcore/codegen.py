@@ -26,7 +26,7 @@ from sympy.printing.pycode import PythonCodePrinter
 
 from .model import ModelSpec, SymbolicModel
 
-KERNEL_VERSION = "6"
+KERNEL_VERSION = "7"
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
 
@@ -312,7 +312,7 @@ def generate_source(spec: ModelSpec) -> str:
                     '    """EKF log-likelihood; with want=True also fills forecasts XP, filtered XF/PF, innovations."""']
             reset, body, rec = [], step + xstep, []
         return [
-            "@njit(cache=True, nogil=True)",
+            "@njit(cache=True, nogil=True, error_model='numpy')",
             *head,
             *unpack_p,
             *init_lines,
@@ -361,7 +361,7 @@ def generate_source(spec: ModelSpec) -> str:
             for i in range(n)]
     hobs = em.block([(f"h{j}", sm.obs[j]) for j in range(m)], "        ")
     L += [
-        "@njit(cache=True, nogil=True)",
+        "@njit(cache=True, nogil=True, error_model='numpy')",
         "def simulate(p, x, t, U, nsub, W, X, H):",
         '    """From state x at t[0] (Euler-Maruyama, or RK4 drift + Euler noise); W: N(0,1) increments per step."""',
         *unpack_p,
@@ -381,14 +381,14 @@ def generate_source(spec: ModelSpec) -> str:
         *[f"        H[k, {j}] = h{j}" for j in range(m)],
         "    return w",
         "",
-        "@njit(cache=True, nogil=True)",
+        "@njit(cache=True, nogil=True, error_model='numpy')",
         "def initial(p, x, P):",
         *unpack_p,
         *init_lines,
         *[f"    x[{i}] = x{i}" for i in range(n)],
         *[f"    P[{i}, {j}] = P{min(i, j)}_{max(i, j)}" for i in range(n) for j in range(n)],
         "",
-        "@njit(cache=True, nogil=True)",
+        "@njit(cache=True, nogil=True, error_model='numpy')",
         "def obs_std(p):",
         *unpack_p,
         *[f"    {a} = {em.code(e)}" for a, e in [(f"r{j}", sm.obs_std[j]) for j in range(m)]],

@@ -570,7 +570,8 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
         sc = c["_screened"]
         eff: Effect = sc.effect
         names = [n for n in acand.ard_names]
-        gain = arow["log_evidence"] - row["log_evidence"]
+        # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam factor
+        gain = arow["log_evidence"] - row["log_evidence"] - sc.shape_occam
         kept = [n for n in names if n in arow["kept"]]
         scale = dict(zip(names, sc.scales))
         confirmed.append({"effect": eff.name, "target": c["target"], "score": c["log_bayes_factor"],

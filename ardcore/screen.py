@@ -44,8 +44,8 @@ PRIOR_SD = 1.0
 """Prior sd of a normalised coefficient in the screen (1 = an effect the size of the target's dynamics)."""
 
 SHAPE_OCCAM = 2.0
-"""Nats taken off a shaped effect's screened ln BF: its shape is the profile maximum, not integrated over a prior
-(a log-uniform prior over the shape's range with a posterior a few percent wide costs about this much)."""
+"""Least nats taken off a shaped effect's screened ln BF (see :func:`_shape_occam`): its shape is the profile
+maximum, not integrated over its prior."""
 
 
 @dataclass
@@ -75,6 +75,9 @@ class Screened:
     coefficients: list
     scales: list
     shape_profile: list = field(default_factory=list)
+    shape_occam: float = 0.0
+    """Nats the profiled shape costs (already taken off ``log_bayes_factor``; the confirmation, which holds
+    the shape fixed, takes them off its ln BF too)."""
 
     @property
     def physical(self) -> list[float]:
@@ -84,6 +87,7 @@ class Screened:
         return {"effect": self.effect.name, "kind": self.effect.kind, "terms": list(self.effect.terms),
                 "target": self.target, "where": self.effect.where,
                 "log_bayes_factor": float(self.log_bayes_factor), "score": float(self.log_bayes_factor),
+                "shape_occam": float(self.shape_occam),
                 "delta_loglik": float(self.delta_loglik),
                 "coefficients": self.physical, "normalised_coefficients": [float(c) for c in self.coefficients],
                 "scales": [float(s) for s in self.scales]}
@@ -292,6 +296,35 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
     return out
 
 
+def _shape_occam(e: Effect, cache: dict, data: Dataset) -> float:
+    """Occam factor of a profiled shape parameter: ln(prior range / (sqrt(2 pi) sd)) in log(shape), the
+    Laplace approximation of integrating the ln BF over a log-uniform prior instead of taking its maximum.
+
+    The sd comes from the curvature of the profile around its maximum. A forcing frequency was picked from
+    the whole spectrum (any peak between 1/T and the Nyquist frequency), so that band is its prior range:
+    the look-elsewhere penalty that keeps a peak of coloured noise from passing as a forcing.
+    """
+    pts = sorted((math.log(v), r.log_bayes_factor) for v, r in cache.items() if r is not None)
+    if e.shape[0] == "f":
+        T = float(data.t[-1] - data.t[0])
+        lo, hi = 1.0 / T, 0.5 / float(np.median(np.diff(data.t)))
+    else:
+        lo, hi = e.shape[1], e.shape[2]
+    rng = math.log(hi / lo)
+    top = max(p[1] for p in pts)
+    near = [(x, y) for x, y in pts if y > top - 10]
+    sd = None
+    if len(near) >= 3:
+        x = np.array([p[0] for p in near])
+        y = np.array([p[1] for p in near])
+        c = np.polyfit(x - x[np.argmax(y)], y, 2)[0]
+        if c < 0:
+            sd = 1.0 / math.sqrt(-2 * c)
+    if sd is None:  # a flat or one-sided profile: the shape is barely determined, no Occam gain beyond the floor
+        return SHAPE_OCCAM
+    return max(SHAPE_OCCAM, math.log(rng / (math.sqrt(2 * math.pi) * sd)))
+
+
 def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_grid: int) -> Screened | None:
     """Profile a shaped effect over its shape parameter: grid (log-spaced), then golden-section refinement."""
     _, lo, hi = e.shape
@@ -338,7 +371,8 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
             d = a + gr * (b - a)
             fd = f(d)
     best = max((r for r in cache.values() if r is not None), key=lambda r: r.log_bayes_factor)
-    best.log_bayes_factor -= SHAPE_OCCAM
+    best.shape_occam = _shape_occam(e, cache, data)
+    best.log_bayes_factor -= best.shape_occam
     best.shape_profile = sorted((float(v), float(r.log_bayes_factor)) for v, r in cache.items() if r is not None)
     return best
 

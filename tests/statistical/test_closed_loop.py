@@ -117,9 +117,12 @@ def test_pendulum_softening_cubic_and_held_out_free_run():
     print("\n[pendulum] " + j["verdict"])
     print(json.dumps({"before": j["before"]["free_run"], "after": j["after"]["free_run"],
                       "added": j["added"]}, indent=1))
-    first = j["added"][0]
-    assert first["effect"] == "cubic_stiffness(y)" and first["character"] == "softening"
-    assert j["after"]["free_run"]["rms_error"] < 0.5 * j["before"]["free_run"]["rms_error"]
+    cubic = [x for x in j["added"] if x["effect"] == "cubic_stiffness(y)"]
+    assert cubic and cubic[0]["character"] == "softening", j["verdict"]
+    # the declared encoder noise (1e-4) is too small: the loop estimates it, and the process noise that had
+    # absorbed the misfit (and spoilt the free run) falls
+    assert any(x["effect"] == "measurement_noise(y)" for x in j["added"]), j["verdict"]
+    assert j["after"]["free_run"]["rms_error"] < 0.2 * j["before"]["free_run"]["rms_error"]
 
 
 def test_silverbox_hardening_cubic_on_the_test_segment():
@@ -147,6 +150,9 @@ def test_silverbox_hardening_cubic_on_the_test_segment():
     stiff = [x for x in j["added"] if x["kind"] == "stiffness" and x["character"]]
     assert stiff and stiff[0]["character"] == "hardening"
     assert any(x["effect"] == "cubic_stiffness(y)" for x in j["added"]), j["verdict"]
-    # both customary test segments; the margin is small because inputs are held between samples (ZOH)
-    assert j["after"]["free_run"]["rms_error"] < j["before"]["free_run"]["rms_error"]
-    assert arrow_err["_final"] < arrow_err["_initial"]
+    # both customary test segments (first-order hold and RK4: the model is no longer limited by a half-sample
+    # input delay); the measured input feeds through to the measured output
+    assert any(x["effect"] == "feedthrough(u)" for x in j["added"]), j["verdict"]
+    assert j["after"]["free_run"]["rms_error"] < 0.1 * j["before"]["free_run"]["rms_error"]
+    assert arrow_err["_final"] < 0.1 * arrow_err["_initial"]
+    assert j["after"]["free_run"]["rms_error"] < 1e-3 and arrow_err["_final"] < 1e-3
