@@ -211,6 +211,8 @@ class Residuals:
     noise_std: dict                  # state -> fitted diagnostic noise std (or the model's own)
     tests: dict                      # per observation channel
     loglik: float
+    states: tuple = ()               # names of the smoothed columns
+    dt: float = 1.0                  # median sample interval
 
 
 def _diagnostic_spec(spec: ModelSpec, states: list[str]) -> tuple[ModelSpec, list[str]]:
@@ -260,7 +262,8 @@ def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig,
     dt = np.diff(data.t)
     rates = {s: sm.process_noise[1:, spec.states.index(s)] / dt for s in dyn}
     noise_std = {s: q0.get(f"q_diag_{s}") for s in dyn}
-    return Residuals(e, fr.innovations, sm.smoothed, rates, noise_std, tests, fr.loglik)
+    return Residuals(e, fr.innovations, sm.smoothed, rates, noise_std, tests, fr.loglik, tuple(spec.states),
+                     float(np.median(dt)))
 
 
 # --------------------------------------------------------------------------- fit, free run, loop
@@ -387,6 +390,12 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     t0 = time.perf_counter()
     cand = spec.models[0]
     test_data = test_data or data
+    ms = cand.model_spec()
+    for what, d in (("data", data), ("held-out data", test_data)):
+        missing = [c for c in list(ms.observed_columns) + list(ms.inputs) if c not in d.columns]
+        if missing:  # before any fit: a free run at the end must not be what finds it
+            raise SpecError(f"diagnose: the {what} ({d.meta.get('source', 'given')}) has no column "
+                            f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
     say(f"fitting {cand.label} ...")
     row, bmr = base or run_candidate(cand, data, spec, 0, final_posterior=config.posterior)
     col = cand.model_spec().observed_columns[0]
@@ -706,6 +715,16 @@ def _unexplained(res: Residuals, ranked: list, confirmed: list, col: str, config
         if var:
             parts.append("injected process noise per state (variance of rate): " + ", ".join(
                 f"{s} {v:.3g}" for s, v in var.items()))
+        share = _injected_share(res)
+        if share:
+            parts.append("the noise the filter injects is " + ", ".join(
+                f"{100 * v:.2g} % of the rms rate of change of {s}" for s, v in share.items())
+                + ("" if max(share.values()) > 0.1 else
+                   " (small: the model's dynamics carry the data; what remains is small or outside the dynamics, "
+                   "e.g. coloured measurement noise)"))
+        if ranked and not any(c["log_bayes_factor"] > config.min_score for c in ranked):
+            parts.append("no effect of the library is supported by the evidence, so the model is adequate as far "
+                         "as the library can tell")
     unstable = [c for c in confirmed if c.get("stability") and not c["stability"]["stable"]]
     if unstable:
         parts.append("supported by evidence but NOT stable between the two halves of the record (a term "
@@ -720,6 +739,19 @@ def _unexplained(res: Residuals, ranked: list, confirmed: list, col: str, config
         parts.append(f"no candidate's screened ln Bayes factor reaches {config.min_score:g} (best: "
                      f"{ranked[0]['effect']} on {ranked[0]['target']}, {ranked[0]['log_bayes_factor']:.1f})")
     return "; ".join(parts)
+
+
+def _injected_share(res: Residuals) -> dict:
+    """rms of the injected noise rate / rms rate of change of each dynamic state (how much the filter had to push)."""
+    out = {}
+    for s, r in res.process_noise_rate.items():
+        if s not in res.states:
+            continue
+        rate = np.diff(res.smoothed[:, res.states.index(s)]) / res.dt
+        d = float(np.sqrt(np.nanmean((rate - np.nanmean(rate)) ** 2)))
+        if d > 0 and np.isfinite(d):
+            out[s] = float(np.sqrt(np.nanmean(r ** 2))) / d
+    return out
 
 
 def _strip(tests: dict) -> dict:

@@ -537,6 +537,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                   "(rows of the same file; default: the estimation data)")
     s.add_argument("--test-stop", type=int, help="end row of the held-out record")
     s.add_argument("--test-data", help="held-out record in its own file (same columns as the data)")
+    s.add_argument("--test-rename", action="append", metavar="OLD=NEW",
+                   help="renaming of the held-out file's columns (default: the spec's data.rename); e.g. "
+                        "--test-rename uVal=u --test-rename yVal=y for a file that holds both records")
     s.add_argument("--top-k", type=int, default=3, help="candidates confirmed by evidence per round (default 3)")
     s.add_argument("--max-rounds", type=int, default=3, help="effects added one after another at most (default 3)")
     s.set_defaults(fn=cmd_diagnose)
@@ -592,7 +595,8 @@ def cmd_diagnose(a) -> int:
     test = None
     if a.test_data:
         d = spec.data
-        test = read_dataset(a.test_data, time=d.time, fs=d.fs, rename=d.rename, columns=d.columns)
+        rename = _kv(a.test_rename, "--test-rename") if a.test_rename else d.rename
+        test = read_dataset(a.test_data, time=d.time, fs=d.fs, rename=rename, columns=d.columns)
     elif a.test_start is not None or a.test_stop is not None:
         if spec.data.path is None:
             raise SpecError("--test-start/--test-stop need a spec whose data come from a file (data.path)")

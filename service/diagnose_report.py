@@ -60,6 +60,10 @@ def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
               ("C1" if (x["effect"], x["target"]) in conf else "0.6") for x in c]
     # screened ln BF spans nats to tens of thousands: a signed log scale keeps both ends readable
     v = np.array([x["log_bayes_factor"] for x in c])
+    if not len(c):  # --max-rounds 0: nothing was screened
+        ax.text(0.5, 0.5, "no candidates screened", ha="center", va="center", transform=ax.transAxes)
+        ax.set_axis_off()
+        return _save(fig, out)
     ax.barh([f"{x['effect']} -> {x['target']}" for x in c], np.sign(v) * np.log10(1 + np.abs(v)), color=colors)
     ticks = [t for t in (-100, -10, 0, 3, 10, 100, 1000, 10000, 100000) if abs(t) <= max(10, np.abs(v).max() * 1.5)]
     ax.set_xticks(np.sign(ticks) * np.log10(1 + np.abs(ticks)), [str(t) for t in ticks])

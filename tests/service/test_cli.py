@@ -50,3 +50,30 @@ def test_errors_are_one_line_without_traceback(tmp_path, args, msg):
     r = run(*args, cwd=tmp_path)
     assert r.returncode == 2
     assert msg in r.stderr and "Traceback" not in r.stderr
+
+
+def test_diagnose_held_out_file_with_its_own_column_names(tmp_path):
+    """A held-out file whose columns are named differently (yVal) is renamed by --test-rename."""
+    import numpy as np
+
+    from ardcore.simulate import simulate_model
+
+    t = np.arange(1200) * 0.02
+    d = simulate_model("linear_oscillator", {"k": 16.0, "c": 0.1, "sigma": 0.05}, t, 4, x0=[1.0, 0.0])
+    y = d.columns["y"]
+    (tmp_path / "est.csv").write_text("t,y\n" + "\n".join(f"{float(a)!r},{float(b)!r}" for a, b in zip(t[:800], y[:800])))
+    (tmp_path / "val.csv").write_text("t,yVal\n" + "\n".join(f"{float(a)!r},{float(b)!r}" for a, b in zip(t[800:], y[800:])))
+    spec = {"name": "osc", "data": {"path": "est.csv"}, "evidence": "laplace",
+            "models": [{"model": "linear_oscillator",
+                        "priors": {"k": {"kind": "lognormal", "median": 15.0, "cov": 50},
+                                   "c": {"kind": "lognormal", "median": 0.1, "cov": 200},
+                                   "sigma": {"kind": "lognormal", "median": 0.05, "cov": 200}}}],
+            "sampler": {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600}}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    r = run("diagnose", "spec.json", "--out", "out", "--test-data", "val.csv", "--max-rounds", "0", cwd=tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "val.csv" in r.stderr, r.stderr
+    r = run("diagnose", "spec.json", "--out", "out", "--test-data", "val.csv", "--test-rename", "yVal=y",
+            "--max-rounds", "0", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
+    assert rep["n_test"] == 400
