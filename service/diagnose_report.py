@@ -81,8 +81,14 @@ def _plot_free_run(arrays: dict, out: Path) -> Path:
     n = min(t.size, 4000)
     a1.plot(t[:n], fr0["y"][:n], "k", lw=0.8, label="data")
     a1.plot(t[:n], fr0["y_free"][:n], "C3", lw=0.8, label="free run, before")
+    if "band" in fr0:
+        a1.fill_between(t[:n], fr0["band"][0][:n], fr0["band"][1][:n], color="C3", alpha=0.15, lw=0,
+                        label=f"90 % band of posterior draws, before ({100 * fr0['band_coverage']:.0f} % of data inside)")
     if "after" in arrays:
         fr1 = arrays["after"]["free_run"]
+        if "band" in fr1:
+            a1.fill_between(fr1["t"][:n], fr1["band"][0][:n], fr1["band"][1][:n], color="C0", alpha=0.2, lw=0,
+                            label=f"90 % band, after ({100 * fr1['band_coverage']:.0f} % of data inside)")
         a1.plot(fr1["t"][:n], fr1["y_free"][:n], "C0", lw=0.8, label="free run, after")
     a1.set(xlabel="time", ylabel="output", title="free-run simulation against the (held-out) data")
     a1.legend(fontsize=8)
