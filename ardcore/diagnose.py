@@ -23,6 +23,10 @@
 
 When no candidate survives, the result says so and describes the residual
 structure that remains (spectral peaks, the states that needed noise).
+
+Rooms: the residual tests live in :mod:`ardcore.residual_tests`, the free run and its
+prediction band in :mod:`ardcore.freerun`, the evidence screen in :mod:`ardcore.screen`,
+the library in :mod:`ardcore.effects`; this module holds the loop.
 """
 
 from __future__ import annotations
@@ -35,13 +39,15 @@ from typing import Callable
 
 import numpy as np
 import sympy as sp
-from scipy import optimize, signal, stats
+from scipy import optimize
 
 from .data import Dataset
 from .ekf import compile_model
 from .effects import Effect, augment, candidate_effects, dynamic_states, oscillator_pairs
 from .errors import SpecError
 from .model import ModelSpec
+from .freerun import _posterior_draws, free_run
+from .residual_tests import acf, dominant_frequency, harmonics, residual_tests, spectral_peaks  # noqa: F401
 from .screen import Screened, distinct_candidates, screen_effects
 from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
 
@@ -117,87 +123,6 @@ class DiagnoseConfig:
     joint: bool = True
     workers: int = 0
     band_draws: int = 40
-
-
-# --------------------------------------------------------------------------- tests
-
-
-def acf(x: np.ndarray, max_lag: int) -> np.ndarray:
-    """Sample autocorrelation at lags 0..max_lag (NaN ignored)."""
-    x = x[np.isfinite(x)]
-    x = x - x.mean()
-    d = float(x @ x)
-    return np.array([float(x[: x.size - k] @ x[k:]) / d if d > 0 else 0.0 for k in range(max_lag + 1)])
-
-
-def spectral_peaks(x: np.ndarray, fs: float, p: float, *, nperseg: int | None = None) -> dict:
-    """Welch spectrum and the bins significantly above a running-median background."""
-    x = x[np.isfinite(x)]
-    nperseg = nperseg or int(min(x.size, max(256, 2 ** int(np.log2(max(x.size // 8, 2))))))
-    f, P = signal.welch(x, fs=fs, nperseg=nperseg)
-    k = max(5, (P.size // 20) | 1)
-    bg = np.array([np.median(P[max(0, i - k):i + k + 1]) for i in range(P.size)])
-    n_avg = max(1, 2 * x.size // nperseg - 1)
-    # a Welch bin ~ background * chi2(2 n_avg) / (2 n_avg); the median of that is ~ (1 - 2/(9*2n))^3
-    med = (1 - 2 / (9 * 2 * n_avg)) ** 3
-    thr = stats.chi2.ppf(1 - p, 2 * n_avg) / (2 * n_avg) / med
-    ratio = P / np.maximum(bg, 1e-300)
-    idx = [i for i in range(1, P.size - 1) if ratio[i] > thr and P[i] >= P[i - 1] and P[i] >= P[i + 1]]
-    peaks = sorted(({"f": float(f[i]), "power_ratio": float(ratio[i])} for i in idx),
-                   key=lambda d: -d["power_ratio"])
-    return {"f": f, "psd": P, "background": bg, "threshold": float(thr), "peaks": peaks[:10]}
-
-
-def residual_tests(e: np.ndarray, fs: float, config: DiagnoseConfig, *, fundamental: float | None = None) -> dict:
-    """Whiteness, normality and spectral peaks of one standardised innovation series."""
-    x = e[np.isfinite(e)]
-    n = x.size
-    r = acf(x, config.max_lag)
-    band = 1.96 / math.sqrt(n)
-    h = config.ljung_box_lags
-    q = float(n * (n + 2) * np.sum(r[1:h + 1] ** 2 / (n - np.arange(1, h + 1))))
-    jb = stats.jarque_bera(x)
-    sp_ = spectral_peaks(x, fs, config.peak_p)
-    for pk in sp_["peaks"]:
-        if fundamental:
-            m = pk["f"] / fundamental
-            pk["harmonic"] = int(round(m)) if abs(m - round(m)) < 0.08 and round(m) >= 1 else None
-    return {
-        "n": n, "rms": float(np.sqrt(np.mean(x ** 2))), "mean": float(x.mean()),
-        "acf": r, "acf_band": band, "acf_outside": float(np.mean(np.abs(r[1:]) > band)),
-        "ljung_box": q, "ljung_box_lags": h, "ljung_box_p": float(stats.chi2.sf(q, h)),
-        "jarque_bera": float(jb.statistic), "jarque_bera_p": float(jb.pvalue),
-        "skew": float(stats.skew(x)), "excess_kurtosis": float(stats.kurtosis(x)),
-        "spectrum": sp_,
-    }
-
-
-def dominant_frequency(y: np.ndarray, fs: float) -> float:
-    """Frequency of the largest spectral peak (cycles per time unit)."""
-    y = y[np.isfinite(y)]
-    y = y - y.mean()
-    f, P = signal.periodogram(y * np.hanning(y.size), fs=fs)
-    i = int(np.argmax(P[1:])) + 1
-    if 1 < i < P.size - 1:  # parabolic interpolation on log power
-        a, b, c = np.log(P[i - 1:i + 2] + 1e-300)
-        i = i + 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else i
-    return float(i * fs / y.size)
-
-
-def harmonics(y: np.ndarray, fs: float, f0: float, n: int = 7, floor: float | None = None) -> tuple[np.ndarray, float]:
-    """Amplitudes of the first ``n`` harmonics of ``f0``, clipped below at ``floor``
-    (default: 10 x the median spectral amplitude of ``y``, its noise floor); returns them and the floor."""
-    y = y[np.isfinite(y)] - np.nanmean(y)
-    w = np.hanning(y.size)
-    A = np.abs(np.fft.rfft(y * w)) * 2 / w.sum()
-    f = np.fft.rfftfreq(y.size, 1 / fs)
-    floor = 10 * float(np.median(A)) if floor is None else floor
-    out = np.full(n, floor)
-    for k in range(1, n + 1):
-        sel = np.abs(f - k * f0) <= max(2 * (f[1] - f[0]), 0.01 * k * f0)
-        if sel.any():
-            out[k - 1] = max(float(A[sel].max()), floor)
-    return out, floor
 
 
 # --------------------------------------------------------------------------- residuals
@@ -295,74 +220,6 @@ def _essential_from_row(cand: CandidateSpec, row: dict) -> tuple[dict, dict]:
             a = float(a)
             priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
     return priors, fixed
-
-
-def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
-             substeps: int | None = None, draws: list[dict] | None = None) -> dict:
-    """Deterministic simulation of the fitted model against ``data``.
-
-    The initial state is the filtered state after the first ``init_samples`` samples. For
-    self-excited or free oscillations (no inputs) amplitude, frequency and spectrum are
-    compared as well as the pointwise error, which a small frequency error dominates.
-    With ``draws`` (posterior draws of the free parameters) each draw is run the same way
-    (its own initial filter): ``band`` holds the pointwise 5 % and 95 % quantiles of those free
-    runs, ``band_coverage`` the share of data inside that 90 % band and ``draws_rms_error``
-    the median RMS error of the draws.
-    """
-    out = _free_run_one(spec, phi, data, init_samples=init_samples, substeps=substeps)
-    if draws:
-        sims = [_free_run_one(spec, d, data, init_samples=init_samples, substeps=substeps, full=False) for d in draws]
-        ys = np.array([r["y_free"] for r in sims if np.all(np.isfinite(r["y_free"]))])
-        if len(ys) >= 5:
-            lo, hi = np.quantile(ys, [0.05, 0.95], axis=0)
-            y = out["y"]
-            ok = np.isfinite(y)
-            out["band"] = (lo, hi)
-            out["band_coverage"] = float(np.mean((y[ok] >= lo[ok]) & (y[ok] <= hi[ok])))
-            out["band_halfwidth_rms"] = float(np.sqrt(np.mean(((hi - lo) / 2) ** 2)))
-            out["draws_rms_error"] = float(np.median([r["rms_error"] for r in sims]))
-            out["n_draws"] = int(len(ys))
-    return out
-
-
-def _free_run_one(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
-                  substeps: int | None = None, full: bool = True) -> dict:
-    cm = compile_model(spec)
-    col = spec.observed_columns[0]
-    k0 = min(max(1, init_samples), len(data) - 2)
-    if not spec.inputs:
-        # a self-excited oscillation may start at rest (friction-locked until noise breaks it): the free
-        # run then starts at the first sample where the record reaches half its largest amplitude
-        y = data.columns[col]
-        a = np.abs(y - np.nanmedian(y))
-        k0 = max(k0, int(np.argmax(a > 0.5 * np.nanmax(a))))
-        k0 = min(k0, len(data) - 2)
-    fr = cm.filter(phi, data.slice(0, k0 + 1), substeps)
-    x0 = fr.filtered[-1]
-    rest = data.slice(k0, None)
-    U = np.column_stack([rest.columns[u] for u in spec.inputs]) if spec.inputs else None
-    # the same Euler sub-steps as the filter that fitted phi: the discretisation is part of the fitted model
-    X, H = cm.simulate(phi, rest.t, x0=x0, inputs=U, nsub=substeps or spec.substeps, noise=False)
-    y, yh = rest.columns[col], H[:, 0]
-    err = yh - y
-    fs = 1.0 / float(np.median(np.diff(rest.t)))
-    out = {"n": int(y.size), "start": int(k0), "rms_error": float(np.sqrt(np.nanmean(err ** 2))),
-           "rms_data": float(np.sqrt(np.nanmean((y - np.nanmean(y)) ** 2))),
-           "t": rest.t, "y": y, "y_free": yh}
-    out["relative_rms_error"] = out["rms_error"] / out["rms_data"] if out["rms_data"] > 0 else float("nan")
-    if full and not spec.inputs and np.all(np.isfinite(yh)):
-        fd, fm = dominant_frequency(y, fs), dominant_frequency(yh, fs)
-        hd, floor = harmonics(y, fs, fd)
-        hm, _ = harmonics(yh, fs, fm, floor=floor)
-        seen = (hd > floor) | (hm > floor)
-        amp_d = float(np.sqrt(2) * np.std(y))
-        amp_m = float(np.sqrt(2) * np.std(yh))
-        out.update({"frequency_data": fd, "frequency_model": fm, "frequency_error": (fm - fd) / fd,
-                    "amplitude_data": amp_d, "amplitude_model": amp_m, "amplitude_error": (amp_m - amp_d) / amp_d,
-                    "harmonics_data": hd.tolist(), "harmonics_model": hm.tolist(),
-                    "harmonic_error": float(np.sqrt(np.mean(np.log10(np.maximum(hm[seen], 1e-300) / hd[seen]) ** 2)))
-                    if seen.any() else float("nan")})
-    return out
 
 
 def _errors(res: Residuals, fr: dict, row: dict, col: str) -> dict:
@@ -766,19 +623,6 @@ def _unexplained(res: Residuals, ranked: list, confirmed: list, col: str, config
         parts.append(f"no candidate's screened ln Bayes factor reaches {config.min_score:g} (best: "
                      f"{ranked[0]['effect']} on {ranked[0]['target']}, {ranked[0]['log_bayes_factor']:.1f})")
     return "; ".join(parts)
-
-
-def _posterior_draws(mr, spec: ModelSpec, n: int, seed: int = 0) -> list[dict]:
-    """Up to ``n`` posterior draws (dicts over the free parameters of ``spec``) from a fit's samples."""
-    res = getattr(mr, "sampler", None)
-    if not n or res is None or res.samples.size == 0:
-        return []
-    flat = res.samples.reshape(-1, res.samples.shape[-1])
-    names = list(res.names)
-    if any(p not in names for p in spec.free_parameters):
-        return []
-    idx = np.random.default_rng(seed).choice(flat.shape[0], size=min(n, flat.shape[0]), replace=False)
-    return [{p: float(flat[i, names.index(p)]) for p in spec.free_parameters} for i in idx]
 
 
 def _injected_share(res: Residuals) -> dict:

@@ -156,10 +156,10 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         if sv and sv > 0:
             # dry friction with a smooth sign (the EKF sees its slope) and Stribeck's decaying static peak
             out.append(Effect(f"dry_friction({v})", "friction", (f"tanh({v}/{{vs}})",),
-                              f"dry (Coulomb) friction, smooth sign over {{vs}}", code=f"fd{v}",
+                              "dry (Coulomb) friction, smooth sign over {vs}", code=f"fd{v}",
                               shape=("vs", 0.005 * sv, 0.3 * sv)))
             out.append(Effect(f"stribeck({v})", "friction", (f"tanh({v}/{0.01 * sv:.3g})*exp(-({v}/{{vs}})**2)",),
-                              f"Stribeck friction peak decaying over {{vs}}", code=f"fs{v}",
+                              "Stribeck friction peak decaying over {vs}", code=f"fs{v}",
                               shape=("vs", 0.02 * sv, 1.0 * sv)))
         for u in inputs:
             out += [Effect(f"input_cross({u}*{x})", "input", (f"{u}*{x}",), f"input-state cross term {u} {x}", code=f"u{u}{x}"),
@@ -208,9 +208,9 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         if e not in spec.states:
             continue  # a sensor nonlinearity of a state-observing channel only (its terms may hold no parameters)
         out += [Effect(f"sensor_quadratic({o.column})", "measurement", (f"({e})**2",),
-                       f"quadratic sensor nonlinearity", code=f"m2{o.column}", where="observation"),
+                       "quadratic sensor nonlinearity", code=f"m2{o.column}", where="observation"),
                 Effect(f"sensor_cubic({o.column})", "measurement", (f"({e})**3",),
-                       f"cubic sensor nonlinearity", code=f"m3{o.column}", where="observation")]
+                       "cubic sensor nonlinearity", code=f"m3{o.column}", where="observation")]
     out += list(extra)
     # one offset per model is enough
     seen, uniq = set(), []
