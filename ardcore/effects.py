@@ -95,6 +95,11 @@ class Effect:
         return {self.terms[0]: np.sin(w * t), self.terms[1]: np.cos(w * t)}
 
 
+def user_inputs(spec: ModelSpec) -> list[str]:
+    """The model's inputs without the sine/cosine columns of a periodic forcing the loop added."""
+    return [u for u in spec.inputs if not re.fullmatch(r"forcing\d+_(sin|cos)", u)]
+
+
 def oscillator_pairs(spec: ModelSpec) -> list[tuple[str, str]]:
     """(x, v) pairs with dx/dt = v."""
     states = list(spec.states)
@@ -125,7 +130,7 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     scales = scales or {}
     out: list[Effect] = []
     # the user's inputs (columns of a periodic forcing the loop added are not inputs to build effects from)
-    inputs = [u for u in spec.inputs if not re.fullmatch(r"forcing\d+_(sin|cos)", u)]
+    inputs = user_inputs(spec)
     for x, v in oscillator_pairs(spec):
         out += [
             Effect(f"quadratic_stiffness({x})", "stiffness", (f"{x}**2",), f"even-order (asymmetric) stiffness {x}^2", code=f"s2{x}"),

@@ -6,6 +6,7 @@ import numpy as np
 
 from .data import Dataset
 from .ekf import compile_model
+from .effects import user_inputs
 from .model import ModelSpec
 from .residual_tests import dominant_frequency, harmonics
 
@@ -43,7 +44,7 @@ def _free_run_one(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: in
     cm = compile_model(spec)
     col = spec.observed_columns[0]
     k0 = min(max(1, init_samples), len(data) - 2)
-    if not spec.inputs:
+    if not user_inputs(spec):
         # a self-excited oscillation may start at rest (friction-locked until noise breaks it): the free
         # run then starts at the first sample where the record reaches half its largest amplitude
         y = data.columns[col]
@@ -63,7 +64,8 @@ def _free_run_one(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: in
            "rms_data": float(np.sqrt(np.nanmean((y - np.nanmean(y)) ** 2))),
            "t": rest.t, "y": y, "y_free": yh}
     out["relative_rms_error"] = out["rms_error"] / out["rms_data"] if out["rms_data"] > 0 else float("nan")
-    if full and not spec.inputs and np.all(np.isfinite(yh)):
+    # a self-excited or free oscillation (a forcing the loop found does not make it an input-driven system)
+    if full and not user_inputs(spec) and np.all(np.isfinite(yh)):
         fd, fm = dominant_frequency(y, fs), dominant_frequency(yh, fs)
         hd, floor = harmonics(y, fs, fd)
         hm, _ = harmonics(yh, fs, fm, floor=floor)
