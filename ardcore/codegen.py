@@ -162,21 +162,37 @@ def generate_source(spec: ModelSpec) -> str:
             return []
         return [f"{ind}f{i} = fA{i} + fD{i} * ((_s + {frac}) / nsub)" for i in range(q)]
 
+    def named(e, name: str, targets: list) -> sp.Expr:
+        """``e`` itself when it is a number (zeros drop out of products); otherwise the symbol ``name``,
+        with ``(name, e)`` appended to ``targets`` for emission."""
+        if e == 0 or e.is_Number:
+            return e
+        targets.append((name, e))
+        return sp.Symbol(name, real=True)
+
     def jac_pattern(tag: str) -> tuple[sp.Matrix, list]:
         """Jacobian as a matrix of symbols ``J<tag>i_j`` (numbers inline, zeros dropped) and its targets."""
-        Jm, tg = sp.zeros(n, n), []
-        for i in range(n):
-            for j in range(n):
-                e = sm.jacobian[i, j]
-                if e == 0:
-                    continue
-                if e.is_Number:
-                    Jm[i, j] = e
-                else:
-                    Jm[i, j] = sp.Symbol(f"J{tag}{i}_{j}", real=True)
-                    tg.append((f"J{tag}{i}_{j}", e))
+        tg: list = []
+        Jm = sp.Matrix(n, n, lambda i, j: named(sm.jacobian[i, j], f"J{tag}{i}_{j}", tg))
         return Jm, tg
 
+    zren = {**rename, **{st: sp.Symbol(f"z{i}", real=True) for i, st in enumerate(sm.states)}}
+    rk4 = ((2, "0.5", "0.5"), (3, "0.5", "0.5"), (4, "1.0", "1.0"))
+
+    def rk4_stages(lines: list, jacobians: bool) -> list:
+        """Append RK4 stages 2-4 to ``lines`` (stage 1, ``d`` at x, is already there): z = x + c dt k_prev,
+        k_s = drift(z, inputs at the stage's time); returns each stage's Jacobian matrix if asked."""
+        lines += [f"{ind}k1_{i} = d{i}" for i in range(n)]
+        out = []
+        for stage, c, frac in rk4:
+            lines += [f"{ind}z{i} = x{i} + {c} * dt * k{stage - 1}_{i}" for i in range(n)]
+            lines += set_inputs(frac) if stage != 3 else []  # stage 3 shares stage 2's time
+            Js, jt = jac_pattern(f"s{stage}_") if jacobians else (None, [])
+            lines += _Emitter(zren, f"_r{stage}_").block([(f"k{stage}_{i}", sm.drift[i]) for i in range(n)] + jt, ind)
+            out.append(Js)
+        return out
+
+    rk4_incr = [f"dt * (k1_{i} + 2.0 * k2_{i} + 2.0 * k3_{i} + k4_{i}) / 6.0" for i in range(n)]
     gt = [(f"g{i}", sm.diffusion[i] ** 2) for i in range(n) if sm.diffusion[i] != 0]
     Jsym, jtargets = jac_pattern("")
     step = set_inputs("0.0") + em.block([(f"d{i}", sm.drift[i]) for i in range(n)] + jtargets + gt, ind)
@@ -184,44 +200,20 @@ def generate_source(spec: ModelSpec) -> str:
         A = sp.eye(n) + Jsym * dt
         xstep = [f"{ind}x{i} = x{i} + dt * d{i}" for i in range(n)]
     else:
-        # RK4 stages at z = x + c dt k_prev; the covariance uses the exact tangent of the RK4 map,
+        # the covariance uses the exact tangent of the RK4 map,
         # Phi = I + dt/6 (T1 + 2 T2 + 2 T3 + T4), T1 = J(x), T_s = J(z_s) (I + c_s dt T_{s-1}).
-        zren = dict(rename)
-        zren.update({st: sp.Symbol(f"z{i}", real=True) for i, st in enumerate(sm.states)})
-        T = [Jsym]
-        step += [f"{ind}k1_{i} = d{i}" for i in range(n)]
-        for stage, c, frac in ((2, "0.5", "0.5"), (3, "0.5", "0.5"), (4, "1.0", "1.0")):
-            step += [f"{ind}z{i} = x{i} + {c} * dt * k{stage - 1}_{i}" for i in range(n)]
-            step += set_inputs(frac) if stage != 3 else []
-            Js, jt = jac_pattern(f"s{stage}_")
-            step += _Emitter(zren, f"_r{stage}_").block(
-                [(f"k{stage}_{i}", sm.drift[i]) for i in range(n)] + jt, ind)
+        T, tt = [Jsym], []
+        for (stage, c, _), Js in zip(rk4, rk4_stages(step, jacobians=True)):
             cdt = sp.Rational(1, 2) * dt if c == "0.5" else dt
             prev = T[-1]
-            Ts = sp.zeros(n, n)
-            for i in range(n):
-                for j in range(n):
-                    e = sp.expand(sum((Js[i, k] * ((1 if k == j else 0) + cdt * prev[k, j]) for k in range(n)),
-                                      sp.S.Zero))
-                    if e == 0:
-                        continue
-                    if e.is_Number:
-                        Ts[i, j] = e
-                    else:
-                        Ts[i, j] = sp.Symbol(f"T{stage}_{i}_{j}", real=True)
-                        step.append(f"{ind}T{stage}_{i}_{j} = {em.code(e)}")
-            T.append(Ts)
-        A = sp.zeros(n, n)
-        for i in range(n):
-            for j in range(n):
-                e = (1 if i == j else 0) + dt / 6 * (T[0][i, j] + 2 * T[1][i, j] + 2 * T[2][i, j] + T[3][i, j])
-                e = sp.expand(e)
-                if e.is_Number or e.is_Symbol:
-                    A[i, j] = e
-                else:
-                    A[i, j] = sp.Symbol(f"A{i}_{j}", real=True)
-                    step.append(f"{ind}A{i}_{j} = {em.code(e)}")
-        xstep = [f"{ind}x{i} = x{i} + dt * (k1_{i} + 2.0 * k2_{i} + 2.0 * k3_{i} + k4_{i}) / 6.0" for i in range(n)]
+            T.append(sp.Matrix(n, n, lambda i, j: named(
+                sp.expand(sum((Js[i, k] * ((1 if k == j else 0) + cdt * prev[k, j]) for k in range(n)), sp.S.Zero)),
+                f"T{stage}_{i}_{j}", tt)))
+        A = sp.Matrix(n, n, lambda i, j: named(
+            sp.expand((1 if i == j else 0) + dt / 6 * (T[0][i, j] + 2 * T[1][i, j] + 2 * T[2][i, j] + T[3][i, j])),
+            f"A{i}_{j}", tt))
+        step += [f"{ind}{a} = {em.code(e)}" for a, e in tt]
+        xstep = [f"{ind}x{i} = x{i} + {rk4_incr[i]}" for i in range(n)]
     # M = A P, then Pn = M A^T + Q dt, upper triangle only (A = I + J dt for Euler, the RK4 tangent otherwise).
     P = sp.Matrix(Psym)
     Msym = sp.Matrix(n, n, lambda i, j: sp.Symbol(f"M{i}_{j}", real=True))
@@ -343,21 +335,14 @@ def generate_source(spec: ModelSpec) -> str:
 
     # -- simulation: the same scheme for the drift, plus g sqrt(dt) N(0, 1) per sub-step ------------
     noisy = [i for i in range(n) if sm.diffusion[i] != 0]
-    sind = "                "
     sim = set_inputs("0.0") + em.block([(f"d{i}", sm.drift[i]) for i in range(n)]
-                                       + [(f"g{i}", sm.diffusion[i]) for i in noisy], sind)
+                                       + [(f"g{i}", sm.diffusion[i]) for i in noisy], ind)
     if spec.integrator == "euler":
         incr = [f"dt * d{i}" for i in range(n)]
     else:
-        zren = dict(rename)
-        zren.update({st: sp.Symbol(f"z{i}", real=True) for i, st in enumerate(sm.states)})
-        sim += [f"{sind}k1_{i} = d{i}" for i in range(n)]
-        for stage, c, frac in ((2, "0.5", "0.5"), (3, "0.5", "0.5"), (4, "1.0", "1.0")):
-            sim += [f"{sind}z{i} = x{i} + {c} * dt * k{stage - 1}_{i}" for i in range(n)]
-            sim += set_inputs(frac) if stage != 3 else []
-            sim += _Emitter(zren, f"_r{stage}_").block([(f"k{stage}_{i}", sm.drift[i]) for i in range(n)], sind)
-        incr = [f"dt * (k1_{i} + 2.0 * k2_{i} + 2.0 * k3_{i} + k4_{i}) / 6.0" for i in range(n)]
-    sim += [f"{sind}x{i} = x{i} + {incr[i]}" + (f" + g{i} * sq * W[w, {noisy.index(i)}]" if i in noisy else "")
+        rk4_stages(sim, jacobians=False)
+        incr = rk4_incr
+    sim += [f"{ind}x{i} = x{i} + {incr[i]}" + (f" + g{i} * sq * W[w, {noisy.index(i)}]" if i in noisy else "")
             for i in range(n)]
     hobs = em.block([(f"h{j}", sm.obs[j]) for j in range(m)], "        ")
     L += [
