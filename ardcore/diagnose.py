@@ -43,10 +43,10 @@ from scipy import optimize
 
 from .data import Dataset
 from .ekf import compile_model
-from .effects import Effect, augment, candidate_effects, dynamic_states, oscillator_pairs
+from .effects import Effect, augment, candidate_effects, dynamic_states, oscillator_pairs, with_columns
 from .errors import SpecError
 from .model import ModelSpec
-from .freerun import _posterior_draws, free_run
+from .freerun import _posterior_draws, free_run, free_run_of  # noqa: F401
 from .residual_tests import acf, dominant_frequency, harmonics, residual_tests, spectral_peaks  # noqa: F401
 from .screen import Screened, distinct_candidates, screen_effects
 from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
@@ -385,7 +385,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
     out["wall_s"] = time.perf_counter() - t0
     out["_arrays"] = arrays
-    # the final model, for free runs on further held-out records: free_run(spec, phi, with_columns(d, e)...)
+    # the initial and final models, for free runs on further held-out records: free_run_of(out["_final"], record)
     out["_initial"] = initial
     out["_final"] = {"spec": fspec, "phi": phi, "effects": [e for r in rounds for e in r.get("_effects", [])],
                      "substeps": cand.substeps}
@@ -462,7 +462,7 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
     for c, (acand, adata, *_), (arow, amr) in zip(chosen, tasks, results):
         sc = c["_screened"]
         eff: Effect = sc.effect
-        names = [n for n in acand.ard_names]
+        names = list(acand.ard_names)
         # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam factor
         gain = arow["log_evidence"] - row["log_evidence"] - sc.shape_occam
         kept = [n for n in names if n in arow["kept"]]
@@ -544,12 +544,6 @@ def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say, mapp
         f"{k} = {parts[0][k][0]:.4g} +- {parts[0][k][1]:.2g} / {parts[1][k][0]:.4g} +- {parts[1][k][1]:.2g} "
         f"(z = {z[k]:.1f})" for k in z) + ("" if stable else ": NOT stable over the record"))
     return {"stable": stable, "z": z, "relative_difference": rel, "halves": parts}
-
-
-def with_columns(data: Dataset, eff: Effect) -> Dataset:
-    """``data`` plus the input columns ``eff`` needs on its time grid."""
-    cols = eff.columns_for(data.t)
-    return Dataset(data.t, {**data.columns, **cols}, dict(data.meta)) if cols else data
 
 
 _ODD = ("cubic_stiffness", "quintic_stiffness", "saturation")

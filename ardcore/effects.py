@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
+from .data import Dataset
 from .model import ModelSpec
 
 
@@ -93,6 +94,12 @@ class Effect:
             return {}
         w = 2 * np.pi * self.frequency
         return {self.terms[0]: np.sin(w * t), self.terms[1]: np.cos(w * t)}
+
+
+def with_columns(data: Dataset, eff: Effect) -> Dataset:
+    """``data`` plus the input columns ``eff`` needs on its time grid."""
+    cols = eff.columns_for(data.t)
+    return Dataset(data.t, {**data.columns, **cols}, dict(data.meta)) if cols else data
 
 
 def user_inputs(spec: ModelSpec) -> list[str]:

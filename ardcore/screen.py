@@ -37,7 +37,7 @@ import sympy as sp
 
 from .data import Dataset
 from .ekf import compile_model
-from .effects import Effect, feature_functions
+from .effects import Effect, augment, feature_functions, with_columns
 from .model import ModelSpec
 
 PRIOR_SD = 1.0
@@ -138,7 +138,6 @@ class _Screener:
         self.X = np.where(np.isfinite(fr.filtered), fr.filtered, 0.0)
         self.U = (np.column_stack([data.columns[u] for u in spec.inputs]) if spec.inputs
                   else np.zeros((len(data), 0)))
-        self.loglik = fr.loglik
         self.theta = list(spec.free_parameters)
         self._models: dict = {}
 
@@ -168,8 +167,6 @@ class _Screener:
         Scales and shape values are parameters of the screening model (not literals), so one
         compiled kernel serves every value a shape profile tries.
         """
-        from .effects import augment
-
         shape_values = shape_values or [None] * len(items)
         key = tuple((e.name if not e.shape else e.name + "#" + e.shape[0], t, len(s)) for e, t, s in items)
         spec = self.spec
@@ -189,7 +186,7 @@ class _Screener:
             spec = spec.model_copy(update={"name": "screen", "parameters": list(spec.parameters) + cn + extra})
             values.update({c: float(s) for c, s in zip(cn, scales)})
             names.append(nm)
-            data = _with_cols(data, eff if not eff.shape or eff.shape[0] != "f" else eff.at(float(sv)))
+            data = with_columns(data, eff if not eff.shape or eff.shape[0] != "f" else eff.at(float(sv)))
         if key not in self._models:
             self._models[key] = compile_model(spec.revalidate())
         lik = self._models[key].bind(data, self.substeps)
@@ -220,11 +217,6 @@ class _Screener:
             groups.append(np.arange(pos, pos + len(nm)))
             pos += len(nm)
         return groups, g, Inf
-
-
-def _with_cols(data: Dataset, eff: Effect) -> Dataset:
-    cols = eff.columns_for(data.t)
-    return Dataset(data.t, {**data.columns, **cols}, dict(data.meta)) if cols else data
 
 
 def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray) -> tuple[float, float, np.ndarray]:
@@ -396,7 +388,7 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
             items = [(p.effect, p.target, p.scales) for p in picked] + [(c.effect, c.target, c.scales)]
             with_data = data
             for p in picked + [c]:
-                with_data = _with_cols(with_data, p.effect)
+                with_data = with_columns(with_data, p.effect)
             groups, g, Inf = sc.batch(items, data=with_data)
             nuis = base + sum(len(gr) for gr in groups[:-1])
             lbf, _, _ = _bayes_factor(g, Inf, nuis, groups[-1])

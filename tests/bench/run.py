@@ -331,16 +331,6 @@ def bench_study() -> dict:
     return out
 
 
-def _final_free_run(rep: dict, record, when: str = "_final") -> float:
-    """Free-run RMS error of the loop's initial or final model on another held-out record."""
-    from ardcore.diagnose import free_run, with_columns
-
-    m = rep[when]
-    for e in m["effects"]:
-        record = with_columns(record, e)
-    return free_run(m["spec"], m["phi"], record, substeps=m["substeps"])["rms_error"]
-
-
 def bench_loop() -> dict:
     """The closed loop on the shared real records, and the peers on the same data and splits, in one run.
 
@@ -353,6 +343,7 @@ def bench_loop() -> dict:
     """
     from ardcore.data import SILVERBOX_SPLITS, load_pendulum, load_silverbox
     from ardcore.diagnose import DiagnoseConfig, diagnose
+    from ardcore.freerun import free_run_of
     from ardcore.simulate import simulate_reference
     from ardcore.study import StudySpec, load_spec
 
@@ -389,8 +380,8 @@ def bench_loop() -> dict:
     out["loop_silverbox_s"] = time.perf_counter() - t0
     out["loop_silverbox_multisine_before_mv"] = 1e3 * rep["before"]["free_run"]["rms_error"]
     out["loop_silverbox_multisine_mv"] = 1e3 * (rep["after"] or rep["before"])["free_run"]["rms_error"]
-    out["loop_silverbox_arrow_before_mv"] = 1e3 * _final_free_run(rep, seg["test_arrow"], "_initial")
-    out["loop_silverbox_arrow_mv"] = 1e3 * _final_free_run(rep, seg["test_arrow"])
+    out["loop_silverbox_arrow_before_mv"] = 1e3 * free_run_of(rep["_initial"], seg["test_arrow"])["rms_error"]
+    out["loop_silverbox_arrow_mv"] = 1e3 * free_run_of(rep["_final"], seg["test_arrow"])["rms_error"]
     out["loop_silverbox_added"] = [a["effect"] + " -> " + a["target"] for a in rep["added"]]
     # -- the pendulum
     pend = load_spec(ROOT / "examples" / "pendulum_diagnose.json")

@@ -136,15 +136,9 @@ def test_silverbox_hardening_cubic_on_the_test_segment():
     print(json.dumps({"before": j["before"]["free_run"], "after": j["after"]["free_run"],
                       "added": j["added"]}, indent=1))
     # the customary second test record: the arrow (rows 100-40575), free run of the final model
-    from ardcore.diagnose import free_run, with_columns
+    from ardcore.freerun import free_run_of
 
-    arrow_err = {}
-    for when in ("_initial", "_final"):
-        m = rep[when]
-        arrow = full.slice(100, 40575)
-        for e in m["effects"]:
-            arrow = with_columns(arrow, e)
-        arrow_err[when] = free_run(m["spec"], m["phi"], arrow, substeps=m["substeps"])["rms_error"]
+    arrow_err = {when: free_run_of(rep[when], full.slice(100, 40575))["rms_error"] for when in ("_initial", "_final")}
     print(f"[silverbox] arrow test segment: free-run RMS error {arrow_err['_initial']:.4g} -> "
           f"{arrow_err['_final']:.4g} V")
     stiff = [x for x in j["added"] if x["kind"] == "stiffness" and x["character"]]
