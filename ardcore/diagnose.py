@@ -414,8 +414,13 @@ def _pool_mapper(workers: int):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    # spawn: numba and BLAS threads do not survive a fork; kernels come from the on-disk cache
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+    # fork from a single-threaded process: a plain script without a __main__ guard keeps working (spawn
+    # re-runs the script in every worker) and compiled kernels come along; with other threads alive (a host
+    # application) a fork could copy a held lock, so spawn, which loads kernels from the on-disk cache
+    import threading
+
+    method = "fork" if threading.active_count() == 1 and "fork" in mp.get_all_start_methods() else "spawn"
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context(method))
 
     def run(fn, tasks):
         if len(tasks) <= 1:
