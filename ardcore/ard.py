@@ -25,6 +25,7 @@ from .evidence import Evidence, chib_jeliazkov, laplace
 from .mcmc import Map, SamplerConfig, SamplerResult, initial_scale, sample, serial_map
 from .posterior import ModelPosterior
 from .priors import ARD
+from .reweight import resample_states, reweight, weighted_summary
 
 INF = math.inf
 
@@ -71,6 +72,22 @@ class MaximiserConfig:
         it are still free (backward elimination under the hierarchy principle). Visiting a3
         first on the Sec 3.6 study let theta^5 stand in for theta^3 in M1, and theta^4 theta'
         for theta^2 theta' in M3, so the wrong member of each pair was pruned.
+    reweight : bool
+        Line-search steps are first estimated by reweighting the draws of the last sampled trial
+        (:mod:`ardcore.reweight`: the step changes only the ARD prior, so no likelihood is evaluated);
+        a real trial (MCMC + Chib-Jeliazkov) runs only when that estimate is unreliable, for every
+        prune test and re-test, and at the optimum each coordinate's line search ends on. Studies
+        with Laplace evidence draw nothing to reweight.
+    reweight_min_ess : float
+        Smallest Kish effective sample size of the weights, as a share of the draws, for a reweighted
+        step. Below about a quarter the new posterior's bulk sits where the old one has few draws and
+        the estimate rests on a handful of them (its batch-means se is then itself unreliable).
+    reweight_max_se : float
+        Largest Monte Carlo se (nats, batch means) of a reweighted step; 0.2 is below the Chib-Jeliazkov
+        se of a sampled trial in the reference studies, so a reweighted step is never the noisier one.
+    reweight_min_step : float
+        Smallest step (decades) tried by reweighting when a full step cannot be reweighted (see
+        :func:`maximise`); such smaller steps cost no likelihood evaluation.
     """
 
     alpha_start: float = 1e-10
@@ -85,6 +102,10 @@ class MaximiserConfig:
     max_trials: int = 60
     max_sweeps: int = 2
     order: str = "reverse"
+    reweight: bool = True
+    reweight_min_ess: float = 0.25
+    reweight_max_se: float = 0.2
+    reweight_min_step: float = 0.25
 
     def __post_init__(self):
         if self.order not in ("reverse", "declared"):
@@ -103,6 +124,14 @@ class Trial:
     wall_s: float
     posterior: dict
     diagnostics: dict
+    reweighted_from: int | None = None
+    """Iteration of the sampled trial whose draws were reweighted (None: this trial was sampled)."""
+    reweight_se: float = 0.0
+    """Monte Carlo se of the reweighting alone (the difference to its base trial has only this error)."""
+
+    @property
+    def sampled(self) -> bool:
+        return self.reweighted_from is None
 
     def to_dict(self) -> dict:
         return {
@@ -110,6 +139,7 @@ class Trial:
             "psi": {k: ("inf" if v == INF else v) for k, v in self.psi.items()},
             **self.evidence.to_dict(), "accepted": self.accepted, "action": self.action,
             "wall_s": self.wall_s, "posterior": self.posterior, "diagnostics": self.diagnostics,
+            "sampled": self.sampled, "reweighted_from": self.reweighted_from, "reweight_se": self.reweight_se,
         }
 
 
@@ -260,11 +290,13 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
     thresholds = {k: (v if v is not None else config.prune_alpha) for k, v in ard.items()}
     visit = list(ard)[::-1] if config.order == "reverse" else list(ard)
     history: list[Trial] = []
-    counter = [0]
+    counter = [0]   # iteration ids (sampled and reweighted trials)
+    n_sampled = [0]  # sampled trials: what max_trials limits
 
     def run(trial_psi, warm, action):
         it = counter[0]
         counter[0] += 1
+        n_sampled[0] += 1
         t0 = time.perf_counter()
         target, ev, res = evaluate(trial_psi, seed + 1009 * it, warm, iteration=it)
         post = {}
@@ -273,7 +305,9 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
             post = posterior_summary(res.names, res.samples.reshape(-1, len(res.names)))
             diag = {"rhat": dict(zip(res.names, map(float, res.rhat))), "burnin_rounds": res.burnin_rounds,
                     "converged": res.converged, "acceptance": res.acceptance,
-                    "burnin_acceptance": res.burnin_acceptance, "n_evaluations": res.n_evaluations}
+                    "burnin_acceptance": res.burnin_acceptance,
+                    # every likelihood evaluation of the trial: start, burn-in, stationary draws, CJ proposals
+                    "n_evaluations": int(res.n_evaluations) + int(getattr(ev, "n_evaluations", 0))}
         if res is not None:
             post.setdefault("_map", dict(zip(res.names, map(float, res.phi_star))))
         tr = Trial(it, dict(trial_psi), ev, False, action, time.perf_counter() - t0, post, diag)
@@ -282,29 +316,105 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
 
     best, best_target, best_res = run(psi, warm, "start")
     best.accepted = True
+    base = (best, best_res)  # the sampled trial whose draws reweighted trials come from
     if on_trial:
         on_trial(best)
 
+    def reweighted(trial_psi, action):
+        """(trial, warm state) reweighted from the base trial's draws, or (None, weights or None) when that is
+        not reliable (or does not apply)."""
+        btr, bres = base
+        if not config.reweight or bres is None or not bres.samples.size:
+            return None, None
+        rw = reweight(bres.names, bres.samples, btr.psi, trial_psi)
+        if rw is None or not rw.reliable(config.reweight_min_ess, config.reweight_max_se):
+            return None, rw
+        it = counter[0]
+        counter[0] += 1
+        be = btr.evidence
+        lz = be.log_evidence + rw.log_ratio
+        ev = Evidence(lz, math.hypot(be.log_evidence_se, rw.se), be.goodness_of_fit, be.goodness_of_fit - lz,
+                      "reweighted", warnings=[])
+        tr = Trial(it, dict(trial_psi), ev, False, action + " (reweighted)", 0.0,
+                   weighted_summary(bres.names, bres.samples, rw.weights),
+                   {"ess": rw.ess, "n_draws": rw.n, "n_evaluations": 0}, reweighted_from=btr.iteration,
+                   reweight_se=rw.se)
+        history.append(tr)
+        return tr, resample_states(bres, rw.weights, seed + 1009 * it)
+
+    def step(k, stp, direction):
+        """One line-search step of ``stp`` decades: (trial, target, state), or None when the step is known to
+        be worse without sampling it.
+
+        Reweighted when that is reliable. When it is not, smaller steps in the same direction are
+        reweighted (down to ``reweight_min_step`` decades): ln Z is unimodal in log alpha, so a reliable
+        smaller step that is worse means the full step is worse too (None), and one that is better is
+        taken instead. Only when no smaller step can be reweighted is the step sampled, its chains
+        starting at draws resampled with the weights.
+        """
+        a = psi[k] * 10.0 ** (direction * stp)
+        label = f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> {math.log10(a):.2f}"
+        tr, state = reweighted(dict(psi, **{k: a}), label)
+        if tr is not None:
+            return tr, None, state
+        rw = state
+        sub = stp / 2.0
+        while sub >= config.reweight_min_step - 1e-12:
+            b = psi[k] * 10.0 ** (direction * sub)
+            t2, st2 = reweighted(dict(psi, **{k: b}), f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> "
+                                                      f"{math.log10(b):.2f}")
+            if t2 is not None:
+                if better(t2, best, config.step_noise_k):
+                    return t2, None, st2
+                if on_trial:
+                    on_trial(t2)
+                return None
+            sub /= 2.0
+        btr, bres = base
+        warm = resample_states(bres, rw.weights, seed + 1009 * counter[0]) if rw is not None else best_res
+        return run(dict(psi, **{k: a}), warm, label)
+
+    def diff_se(a: Trial, b: Trial) -> float:
+        """se of ln Z(a) - ln Z(b): a reweighted trial shares its base's estimate, so only the reweighting's
+        own error separates them."""
+        if a.reweighted_from is not None and a.reweighted_from == b.iteration:
+            return a.reweight_se
+        if b.reweighted_from is not None and b.reweighted_from == a.iteration:
+            return b.reweight_se
+        if a.reweighted_from is not None and a.reweighted_from == b.reweighted_from:
+            return math.hypot(a.reweight_se, b.reweight_se)
+        return math.hypot(a.evidence.log_evidence_se, b.evidence.log_evidence_se)
+
     def better(tr: Trial, ref: Trial, k: float | None = None, margin: float = 0.0) -> bool:
-        se = math.hypot(tr.evidence.log_evidence_se, ref.evidence.log_evidence_se)
         k = config.noise_k if k is None else k
-        return tr.evidence.log_evidence - ref.evidence.log_evidence > max(k * se, config.min_gain) + margin
+        return tr.evidence.log_evidence - ref.evidence.log_evidence > max(k * diff_se(tr, ref), config.min_gain) + margin
 
     def accept(tr, target, res):
-        nonlocal best, best_target, best_res, psi
+        nonlocal best, best_target, best_res, psi, base
         tr.accepted = True
         best, best_target, best_res, psi = tr, target, res, dict(tr.psi)
+        if tr.sampled:
+            base = (tr, res)
+
+    def settle(k: str):
+        """The optimum a line search ended on is sampled (never left as a reweighted estimate)."""
+        if best.sampled:
+            return
+        tr, target, res = run(dict(psi), best_res, f"{k}: sampled at the line-search optimum")
+        accept(tr, target, res)
+        if on_trial:
+            on_trial(tr)
 
     settled: dict[str, dict] = {}  # psi at which a coordinate's search last ended
     pruned_at: dict[str, float] = {}  # the finite alpha a term had when it was pruned
     changed = True
     sweeps = 0
-    while changed and counter[0] < config.max_trials and sweeps < config.max_sweeps:
+    while changed and n_sampled[0] < config.max_trials and sweeps < config.max_sweeps:
         changed = False
         sweeps += 1
         for k in visit:
             if psi[k] == INF and sweeps > 1 and k in pruned_at and settled.get(k) != psi \
-                    and counter[0] < config.max_trials:
+                    and n_sampled[0] < config.max_trials:
                 # the other terms have moved since k was pruned: does k come back?
                 a = pruned_at[k]
                 tr, target, res = run(dict(psi, **{k: a}), best_res, f"{k}: re-test (alpha = {a:.3g})")
@@ -321,24 +431,26 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
             # up first (toward the simpler model); in later sweeps, when up does not pay, down: a term the
             # other terms' changes made more useful may have been shrunk too far
             for direction in ((1,) if sweeps == 1 else (1, -1)):
-                step = config.step_decades
-                while step >= config.min_step_decades - 1e-12 and counter[0] < config.max_trials:
-                    a = psi[k] * 10.0 ** (direction * step)
+                stp = config.step_decades
+                while stp >= config.min_step_decades - 1e-12 and n_sampled[0] < config.max_trials:
+                    a = psi[k] * 10.0 ** (direction * stp)
                     if a >= thresholds[k] or a < config.alpha_start * (1 - 1e-9):
                         break
-                    trial = dict(psi, **{k: a})
-                    tr, target, res = run(trial, best_res,
-                                          f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> {math.log10(a):.2f}")
+                    out = step(k, stp, direction)
+                    if out is None:
+                        break  # a reweighted smaller step was worse: so is this one
+                    tr, target, res = out
                     if better(tr, best, config.step_noise_k):
                         accept(tr, target, res)
                         changed = moved = True
                     else:
-                        step /= 2.0
+                        stp /= 2.0
                     if on_trial:
                         on_trial(tr)
                 if moved:
                     break
-            if config.prune_test and counter[0] < config.max_trials:
+            settle(k)
+            if config.prune_test and n_sampled[0] < config.max_trials:
                 trial = dict(psi, **{k: INF})
                 tr, target, res = run(trial, best_res, f"{k}: prune test (alpha = inf)")
                 # Occam: the nested model wins unless the term is worth more than the noise
@@ -349,4 +461,5 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
                 if on_trial:
                     on_trial(tr)
             settled[k] = dict(psi)
+    settle("optimum")
     return MaximiserResult(psi, best, best_res, best_target, history)

@@ -48,13 +48,15 @@ class Evidence:
     method: str
     per_chain: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
+    n_evaluations: int = 0
+    """Likelihood evaluations the estimate itself made (Chib-Jeliazkov: the proposal draws)."""
 
     def to_dict(self) -> dict:
         return {
             "log_evidence": self.log_evidence, "log_evidence_se": self.log_evidence_se,
             "goodness_of_fit": self.goodness_of_fit, "information_gain": self.information_gain,
             "method": self.method, "warnings": list(self.warnings),
-            "per_chain": [c.__dict__ for c in self.per_chain],
+            "per_chain": [c.__dict__ for c in self.per_chain], "n_evaluations": self.n_evaluations,
         }
 
 
@@ -118,7 +120,9 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
     bound = max(float(res.ll_star), float(np.nanmax(res.ll)) if np.isfinite(res.ll).any() else -math.inf)
     warnings = []
     phi_star, lp_star, ll_star = res.phi_star, res.lp_star, float(res.ll_star)
+    n_eval = 0
     for attempt in range(2):
+        n_eval += nc * n_proposal
         tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
                   int(seeds[c])) for c in range(nc)]
         out = map_fn(_cj_chain, tasks, label="cj")
@@ -150,7 +154,7 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
                             f"(spread {np.ptp(vals):.2f} nats: {np.round(vals, 2).tolist()}); "
                             "chains may sit in different modes")
     gof = ll_star
-    return Evidence(mean, se, gof, gof - mean, "chib-jeliazkov", per, warnings)
+    return Evidence(mean, se, gof, gof - mean, "chib-jeliazkov", per, warnings, n_evaluations=n_eval)
 
 
 def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: int = 4000,

@@ -450,8 +450,23 @@ def posterior_cov_estimate(target, x: np.ndarray, scale: np.ndarray) -> np.ndarr
     return 0.5 * (C + C.T)
 
 
+class _Counted:
+    """A target that counts its calls (likelihood evaluations), for the cost figures."""
+
+    def __init__(self, target):
+        self.target, self.calls = target, 0
+
+    def __call__(self, x):
+        self.calls += 1
+        return self.target(x)
+
+    def __getattr__(self, name):
+        return getattr(self.target, name)
+
+
 def _start_task(args):
     target, x0, scale, maxfev, seed, overdispersion = args
+    target = _Counted(target)
     rng = np.random.default_rng(seed)
     xm, lpm = local_mode(target, x0, scale, maxfev)
     C = posterior_cov_estimate(target, xm, scale)
@@ -467,7 +482,7 @@ def _start_task(args):
     else:
         x = xm
         lp, ll = target(x)
-    return x, lp, ll, xm, lpm, C
+    return x, lp, ll, xm, lpm, C, target.calls
 
 
 # --------------------------------------------------------------------------- settings and results
@@ -604,13 +619,15 @@ def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig
 
 
 def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
-                   warm: SamplerResult | None = None, starts: np.ndarray | None = None) -> tuple[list, np.ndarray]:
-    """Chain states and the first proposal covariance (cold, warm or explicit starts)."""
+                   warm: SamplerResult | None = None, starts: np.ndarray | None = None) -> tuple[list, np.ndarray, int]:
+    """Chain states, the first proposal covariance (cold, warm or explicit starts) and the likelihood
+    evaluations that took."""
     names = list(target.names)
     d = len(names)
     nc = config.n_chains
     child = np.random.SeedSequence(seed).spawn(nc + 1)
     scale = initial_scale(target.prior)
+    n_eval = nc
     if warm is not None:
         idx = {n: i for i, n in enumerate(warm.names)}
         states = []
@@ -636,10 +653,11 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
         tasks = [(target, pts[c], scale, config.start_maxfev, child[c].generate_state(1)[0] + c,
                   config.overdispersion) for c in range(nc)]
         res = map_fn(_start_task, tasks, label="start")
+        n_eval = sum(int(r[6]) for r in res)
         cov = (2.38**2 / d) * np.mean([r[5] for r in res], axis=0)
         states = []
         for c, r in enumerate(res):
-            x, lp, ll, xm, lpm, _ = r
+            x, lp, ll, xm, lpm, *_ = r
             # phi* comes from what the chains visit, never from the start optimiser alone (method.md 4):
             # a spike it found and no chain returns to would make every chain's posterior ordinate ~0
             states.append(ChainState(c, list(map(float, x)), float(lp), float(ll),
@@ -658,7 +676,7 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
         if not s.lp > -math.inf:
             good = max(states, key=lambda q: q.lp)
             s.x, s.lp, s.ll = list(good.x), good.lp, good.ll
-    return states, cov
+    return states, cov, n_eval
 
 
 def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
@@ -707,11 +725,11 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
     warnings: list[str] = []
     factory = pool_factory or AdaptationPool.from_dict
     if resume is None:
-        states, cov = initial_states(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts)
+        states, cov, n_start = initial_states(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts)
         pool0 = AdaptationPool(nc, d, cov, inca=config.inca, rhat_threshold=config.rhat_threshold,
                                min_rounds=config.min_burnin_rounds, outlier_nats=config.outlier_nats)
         pool = factory(pool0.to_dict())
-        stage, counters = "burnin", [0, 0, 0]
+        stage, counters = "burnin", [0, 0, n_start]
         if checkpoint:
             checkpoint({"stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
                         "counters": counters})

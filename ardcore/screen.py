@@ -132,7 +132,7 @@ def target_scale(spec: ModelSpec, phi: dict, target: str, X: np.ndarray, U: np.n
 class _Screener:
     """Score/information of the EKF likelihood for a batch of normalised candidate terms."""
 
-    def __init__(self, spec: ModelSpec, phi: dict, data: Dataset, substeps: int | None):
+    def __init__(self, spec: ModelSpec, phi: dict, data: Dataset, substeps: int | None, robust: bool = True):
         self.spec, self.phi, self.data, self.substeps = spec, dict(phi), data, substeps
         fr = compile_model(spec).filter(phi, data, substeps)
         self.X = np.where(np.isfinite(fr.filtered), fr.filtered, 0.0)
@@ -140,6 +140,9 @@ class _Screener:
                   else np.zeros((len(data), 0)))
         self.theta = list(spec.free_parameters)
         self._models: dict = {}
+        # the innovations' actual spectrum (the likelihood takes it as flat): what the score really varies by
+        self.psd = innovation_background(fr.standardized) if robust else None
+        self.n_obs = len(data)
 
     def term_scale(self, effect: Effect, target: str, data: Dataset) -> list[float] | None:
         """scale per term so that scale * term has the rms of the target's dynamics (None if a term is ~0)."""
@@ -216,11 +219,92 @@ class _Screener:
         for nm in names:
             groups.append(np.arange(pos, pos + len(nm)))
             pos += len(nm)
-        return groups, g, Inf
+        psi = None
+        if self.psd is not None:
+            # the innovations' sensitivities on the time grid (zero where there is no observation), standardised
+            psi = np.zeros((len(allp), ok.size))
+            psi[:, ok] = De / np.sqrt(S0)
+        return groups, g, Inf, psi
 
 
-def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray) -> tuple[float, float, np.ndarray]:
-    """Laplace ln BF, profile gain and coefficients of one group, the first k parameters profiled out."""
+def innovation_background(e: np.ndarray, *, median_bins: int = 9, segments: int = 8):
+    """Spectral density of standardised innovations relative to white noise (1 = as the likelihood assumes),
+    as a function of frequency in cycles per sample; None when it cannot be estimated.
+
+    A Welch estimate (segments of about n/``segments`` samples, so bins of ~``segments``/n cycles per
+    sample) smoothed by a running median over ``median_bins`` bins: a line (a missing forcing, 3-4 bins
+    of a Hann window) does not count as noise, while colour that is narrow itself does (a pipeline's
+    low-pass filter leaves the reference data's noise in a band of 0.023 cycles per sample, which
+    segments of n/16 could not resolve). One observed channel only (several channels: None, the screen
+    is not adjusted).
+    """
+    from scipy import signal
+
+    e = np.asarray(e, float)
+    if e.ndim == 2:
+        if e.shape[1] != 1:
+            return None
+        e = e[:, 0]
+    x = np.where(np.isfinite(e), e, 0.0)
+    if np.isfinite(e).sum() < 64:
+        return None
+    nper = int(max(32, 2 ** int(np.log2(max(x.size // segments, 32)))))
+    f, P = signal.welch(x, fs=1.0, nperseg=nper)
+    P = P * np.where((f > 0) & (f < 0.5), 0.5, 1.0)  # one-sided density of unit white noise: 2 inside, 1 at the ends
+    h = median_bins // 2
+    bg = np.array([np.median(P[max(0, i - h):i + h + 1]) for i in range(P.size)])
+    bg = bg / max(float(np.mean(np.isfinite(e))), 1e-12)  # zeros put in for missing samples dilute the power
+    return lambda fq: np.interp(fq, f, bg)
+
+
+def spectral_score_cov(psi: np.ndarray, psd) -> np.ndarray:
+    """Covariance of the score ``psi @ eps`` when the standardised innovations ``eps`` have the relative
+    spectral density ``psd`` (the likelihood assumes 1: then the result is ``psi @ psi.T``).
+
+    ``psi`` (rows: parameters, columns: samples) are the innovations' standardised sensitivities; by
+    Parseval, ``Var(sum_t psi_t eps_t) = (1/n) sum_f psi_hat(f) S(f) psi_hat(f)^H``.
+    """
+    n = psi.shape[1]
+    F = np.fft.rfft(psi, axis=1)
+    fq = np.fft.rfftfreq(n)
+    w = psd(fq) * np.where((fq > 0) & (fq < 0.5), 2.0, 1.0) / n
+    V = np.real((F * w) @ np.conj(F).T)
+    return 0.5 * (V + V.T)
+
+
+def _sandwich(H: np.ndarray, gb: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Information and score of the likelihood adjusted to the score's actual variance ``V``.
+
+    The EKF likelihood assumes white innovations; when they are not (coloured measurement noise, a
+    filter in the data pipeline) the score varies more than its information says and every term looks
+    more supported than it is. The curvature adjustment of a misspecified likelihood (Chandler and
+    Bate 2007; Pauli, Racugno and Ventura 2011) replaces ``H`` by ``H V^-1 H`` and the score by
+    ``H V^-1 g``, which keeps the estimate ``H^-1 g`` and gives it the sandwich variance
+    ``H^-1 V H^-1``. Directions in which the score varies *less* than ``H`` says are left as they are:
+    the screen never claims more evidence than the model's own likelihood.
+    """
+    w, U = np.linalg.eigh(H)
+    keep = w > 1e-12 * max(float(w.max()), 1e-300)
+    if not keep.any():
+        return H, gb
+    M = U[:, keep] * np.sqrt(w[keep])                 # H = M M' on its range
+    Minv = (U[:, keep] / np.sqrt(w[keep])).T
+    A = Minv @ V @ Minv.T                             # V relative to H: identity for a correct likelihood
+    c, Q = np.linalg.eigh(0.5 * (A + A.T))
+    Ainv = (Q / np.maximum(c, 1.0)) @ Q.T
+    Hs = M @ Ainv @ M.T
+    gs = M @ Ainv @ (Minv @ gb)
+    return 0.5 * (Hs + Hs.T), gs
+
+
+def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: np.ndarray | None = None,
+                  psd=None) -> tuple[float, float, np.ndarray]:
+    """Laplace ln BF, profile gain and coefficients of one group, the first k parameters profiled out.
+
+    With the innovations' sensitivities ``psi`` and their actual relative spectrum ``psd``
+    (:func:`innovation_background`), the likelihood is first adjusted to the score's actual variance
+    (:func:`_sandwich`, :func:`spectral_score_cov`).
+    """
     th = np.arange(k)
     Itt = Inf[np.ix_(th, th)]
     d = np.sqrt(np.maximum(np.diag(Itt), 1e-300))
@@ -228,9 +312,15 @@ def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray) -> tu
     Ibt = Inf[np.ix_(grp, th)]
     H = Inf[np.ix_(grp, grp)] - Ibt @ Itt_inv @ Ibt.T
     H = 0.5 * (H + H.T)
+    gb = g[grp] - Ibt @ Itt_inv @ g[th]
+    if psi is not None and psd is not None:
+        # the efficient score's sensitivities (what a refit of the model's own parameters cannot absorb); their
+        # Gram matrix is H, so only the colour of the innovations is added: V = H + psi (S - 1) psi'
+        eff = psi[grp] - (Ibt @ Itt_inv) @ psi[th]
+        V = H + spectral_score_cov(eff, psd) - eff @ eff.T
+        H, gb = _sandwich(H, gb, V)
     w, V = np.linalg.eigh(H)
     w = np.maximum(w, 0.0)
-    gb = g[grp] - Ibt @ Itt_inv @ g[th]
     z = V.T @ gb
     s2 = PRIOR_SD ** 2
     lbf = float(0.5 * np.sum(z ** 2 / (w + 1 / s2)) - 0.5 * np.sum(np.log1p(s2 * w)))
@@ -241,7 +331,7 @@ def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray) -> tu
 
 def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effect], targets: list[str],
                    obs_targets: list[str], *, substeps: int | None = None, batch_size: int = 12,
-                   shape_grid: int = 7, progress=None) -> list[Screened]:
+                   shape_grid: int = 7, robust: bool = True, progress=None) -> list[Screened]:
     """Screen every effect on every target; sorted by log Bayes factor (best first).
 
     Parameters
@@ -258,9 +348,12 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
         Candidate terms per screening model (bounds the size of the generated kernel).
     shape_grid : int
         Grid points over a shape parameter's range before golden-section refinement.
+    robust : bool
+        Adjust each candidate's evidence to the actual variance of its score under the innovations'
+        own spectrum (:func:`_sandwich`): coloured innovations then do not pass for support.
     """
     say = progress or (lambda s: None)
-    sc = _Screener(spec, phi, data, substeps)
+    sc = _Screener(spec, phi, data, substeps, robust)
     k = len(sc.theta)
     pairs = [(e, t) for e in effects if e.where == "drift" for t in targets]
     pairs += [(e, c) for e in effects if e.where in ("observation", "noise") for c in obs_targets]
@@ -274,9 +367,9 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
             items.append((e, t, s))
     for b in range(0, len(items), batch_size):
         chunk = items[b:b + batch_size]
-        groups, g, Inf = sc.batch(chunk)
+        groups, g, Inf, C = sc.batch(chunk)
         for (e, t, s), grp in zip(chunk, groups):
-            lbf, gain, coef = _bayes_factor(g, Inf, k, grp)
+            lbf, gain, coef = _bayes_factor(g, Inf, k, grp, C, sc.psd)
             out.append(Screened(e, t, lbf, gain, [float(c) for c in coef], s))
     say(f"screened {len(items)} plain candidates")
     for e, t in shaped:
@@ -330,8 +423,8 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
         s = sc.term_scale(ef, t, data)
         r = None
         if s is not None:
-            groups, g, Inf = sc.batch([(e, t, s)], [v])
-            lbf, gain, coef = _bayes_factor(g, Inf, k, groups[0])
+            groups, g, Inf, C = sc.batch([(e, t, s)], [v])
+            lbf, gain, coef = _bayes_factor(g, Inf, k, groups[0], C, sc.psd)
             r = Screened(ef, t, lbf, gain, [float(c) for c in coef], s)
         cache[v] = r
         return r
@@ -370,7 +463,8 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
 
 
 def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: list[Screened], k: int,
-                        min_log_bf: float, *, substeps: int | None = None, look: int = 12) -> list[Screened]:
+                        min_log_bf: float, *, substeps: int | None = None, look: int = 12,
+                        robust: bool = True) -> list[Screened]:
     """Up to ``k`` of the best screened candidates, each still worth ``min_log_bf`` given the ones before it.
 
     Candidate B is skipped when its screened ln BF *conditional on* the candidates already picked (their
@@ -378,7 +472,7 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
     explain (a constant on the velocity equation and a bias on the measurement, a cubic and a saturating
     stiffness), and confirming both would double the cost for one effect.
     """
-    sc = _Screener(spec, phi, data, substeps)
+    sc = _Screener(spec, phi, data, substeps, robust)
     base = len(sc.theta)
     picked: list[Screened] = []
     for c in [c for c in screened if c.log_bayes_factor > min_log_bf][:look]:
@@ -389,9 +483,9 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
             with_data = data
             for p in picked + [c]:
                 with_data = with_columns(with_data, p.effect)
-            groups, g, Inf = sc.batch(items, data=with_data)
+            groups, g, Inf, C = sc.batch(items, data=with_data)
             nuis = base + sum(len(gr) for gr in groups[:-1])
-            lbf, _, _ = _bayes_factor(g, Inf, nuis, groups[-1])
+            lbf, _, _ = _bayes_factor(g, Inf, nuis, groups[-1], C, sc.psd)
             if lbf <= min_log_bf:
                 c.conditional_on = [p.effect.name for p in picked]
                 continue

@@ -83,12 +83,16 @@ def plot_evidence_history(histories: dict[str, list[dict]], out):
         for ax, key, label in zip(axes, ("log_evidence", "goodness_of_fit", "information_gain"),
                                   ("ln evidence", "goodness of fit", "information gain")):
             y = np.array([h.get(key, np.nan) if isinstance(h.get(key), (int, float)) else np.nan for h in hist])
-            ax.plot(it, y, "o-", color=f"C{i}", ms=3, lw=1, label=model)
+            ax.plot(it, y, "-", color=f"C{i}", lw=1, label=model)
+            # sampled trials (MCMC + Chib-Jeliazkov) as dots, reweighted ones (no likelihood evaluated) as crosses
+            smp = np.array([h.get("sampled", True) for h in hist], dtype=bool)
+            ax.plot(np.asarray(it)[smp], y[smp], "o", color=f"C{i}", ms=3)
+            ax.plot(np.asarray(it)[~smp], y[~smp], "x", color=f"C{i}", ms=5)
             acc = [j for j, h in enumerate(hist) if h.get("accepted")]
             ax.plot([it[j] for j in acc], y[acc], "o", color=f"C{i}", ms=7, mfc="none")
             ax.set_xlabel("trial")
             ax.set_title(label)
-    axes[0].legend(fontsize=8, title="open circles: accepted")
+    axes[0].legend(fontsize=8, title="dots: sampled, x: reweighted\nopen circles: accepted")
     return _save(fig, out)
 
 

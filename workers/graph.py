@@ -135,7 +135,7 @@ def _record(psi: dict, ev: Evidence, res: SamplerResult) -> dict:
 def _from_record(rec: dict, store: StudyStore, model: str, iteration: int) -> tuple[Evidence, SamplerResult]:
     e = rec["evidence"]
     ev = Evidence(e["log_evidence"], e["log_evidence_se"], e["goodness_of_fit"], e["information_gain"], e["method"],
-                  [ChainEvidence(**c) for c in e["per_chain"]], list(e["warnings"]))
+                  [ChainEvidence(**c) for c in e["per_chain"]], list(e["warnings"]), e.get("n_evaluations", 0))
     samples, lp, ll, names = store.read_samples(model, iteration)
     res = SamplerResult(
         names=list(rec["names"]), samples=samples, lp=lp, ll=ll, phi_star=np.array(rec["phi_star"]),

@@ -49,11 +49,14 @@ def test_orchestrated_equals_in_process(tmp_path, thread_cluster, reference_summ
     keys = {t["key"] if isinstance(t["key"], str) else str(t["key"]) for t in ts.data}
     sid = store.meta["study_id"]
     assert f"burnin-{sid}-quad-it000-r001-c0" in keys
-    assert f"stationary-{sid}-cubic-it001-d000000-c2" in keys
     assert f"compare-{sid}" in keys
     assert json.loads((tmp_path / "st" / "summary.json").read_text())["best_model"] == s["best_model"]
     hist = json.loads((tmp_path / "st" / "history.json").read_text())
     assert len(hist["quad"]) == a["quad"]["iterations"]
+    # a sampled trial's chains ran as tasks; a reweighted one ran none
+    for h in hist["cubic"][1:]:
+        key = f"stationary-{sid}-cubic-it{h['iteration']:03d}-d000000-c2"
+        assert (key in keys) == h["sampled"], (h["action"], h["sampled"])
     assert store.meta["status"] == "done"
 
 
