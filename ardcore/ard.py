@@ -76,8 +76,8 @@ class MaximiserConfig:
         Line-search steps are first estimated by reweighting the draws of the last sampled trial
         (:mod:`ardcore.reweight`: the step changes only the ARD prior, so no likelihood is evaluated);
         a real trial (MCMC + Chib-Jeliazkov) runs only when that estimate is unreliable, for every
-        prune test and re-test, and at the optimum each coordinate's line search ends on. Studies
-        with Laplace evidence draw nothing to reweight.
+        prune test and re-test, and at the accepted optimum. Studies with Laplace evidence draw
+        nothing to reweight.
     reweight_min_ess : float
         Smallest Kish effective sample size of the weights, as a share of the draws, for a reweighted
         step. Below about a quarter the new posterior's bulk sits where the old one has few draws and
@@ -371,7 +371,10 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
                 return None
             sub /= 2.0
         btr, bres = base
-        warm = resample_states(bres, rw.weights, seed + 1009 * counter[0]) if rw is not None else best_res
+        # resampled starts need distinct draws to resample: with a few heavy weights the chains would all
+        # start at one point, so then they continue from where the best trial's chains are
+        spread = rw is not None and rw.ess >= 10 * len(bres.states)
+        warm = resample_states(bres, rw.weights, seed + 1009 * counter[0]) if spread else best_res
         return run(dict(psi, **{k: a}), warm, label)
 
     def diff_se(a: Trial, b: Trial) -> float:
@@ -397,7 +400,9 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
             base = (tr, res)
 
     def settle(k: str):
-        """The optimum a line search ended on is sampled (never left as a reweighted estimate)."""
+        """The accepted optimum is sampled (never left as a reweighted estimate). A prune test in between
+        compares its sampled alpha = inf trial with the reweighted estimate, whose se carries both the base
+        trial's and the reweighting's error."""
         if best.sampled:
             return
         tr, target, res = run(dict(psi), best_res, f"{k}: sampled at the line-search optimum")
@@ -449,7 +454,6 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
                         on_trial(tr)
                 if moved:
                     break
-            settle(k)
             if config.prune_test and n_sampled[0] < config.max_trials:
                 trial = dict(psi, **{k: INF})
                 tr, target, res = run(trial, best_res, f"{k}: prune test (alpha = inf)")

@@ -106,6 +106,10 @@ class DiagnoseConfig:
         most ``top_k``; 1: in this process).
     band_draws : int
         Posterior draws whose free runs make the 90 % prediction band of the free run (0: none).
+    rival_nats : float
+        A candidate the screen found redundant with a better one is still confirmed when their screened
+        ln Bayes factors are within this many nats (the screen cannot tell the twins apart; the full
+        evidence does). Of two surviving twins the one with the higher evidence goes on.
     """
 
     max_lag: int = 40
@@ -123,6 +127,7 @@ class DiagnoseConfig:
     joint: bool = True
     workers: int = 0
     band_draws: int = 40
+    rival_nats: float = 5.0
 
 
 # --------------------------------------------------------------------------- residuals
@@ -447,11 +452,20 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
     confirmed = []
     picked = distinct_candidates(fspec, phi, data, screened, config.top_k, config.min_score, substeps=cand.substeps)
     redundant = [c for c in screened[:12] if getattr(c, "conditional_on", None)]
+    # a redundant candidate the screen cannot tell from the one it was dropped for (a saturating stiffness and
+    # a free-play; a smooth sign of two widths) is confirmed too: the full evidence decides between the twins
+    rivals = {}
+    for c in redundant:
+        near = [p for p in picked if p.effect.name in c.conditional_on and id(p) not in rivals.values()
+                and abs(p.log_bayes_factor - c.log_bayes_factor) <= config.rival_nats]
+        if near:
+            rivals[id(c)] = id(near[0])
+    redundant = [c for c in redundant if id(c) not in rivals]
     if redundant:
         say("not confirmed (explained by a better candidate): " + ", ".join(
             f"{c.effect.name} -> {c.target}" for c in redundant))
     by_id = {id(c["_screened"]): c for c in ranked}
-    chosen = [by_id[id(p)] for p in picked]
+    chosen = [by_id[id(p)] for p in picked] + [by_id[i] for i in rivals]
     tasks = []
     for c in chosen:
         sc: Screened = c["_screened"]
@@ -480,8 +494,18 @@ def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
                           "posterior": {n: _physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
                           "scales": scale,
                           "survives": bool(kept) and gain > config.min_log_bf,
-                          "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff})
+                          "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff,
+                          "_screened": sc})
         say(f"  {eff.name}: ln BF = {gain:.2f}, ARD keeps {kept or 'nothing'}")
+    # of two twins only the one with the higher evidence goes on
+    by_screen = {id(c["_screened"]): c for c in confirmed}
+    for rid, pid in rivals.items():
+        a, b = by_screen.get(rid), by_screen.get(pid)
+        if a and b and a["survives"] and b["survives"]:
+            lo, hi = sorted((a, b), key=lambda c: c["log_evidence"])
+            lo["survives"] = False
+            lo["rival_of"] = hi["effect"]
+            say(f"  {lo['effect']} and {hi['effect']} explain the same; {hi['effect']} has the higher evidence")
     return ranked, confirmed
 
 
@@ -532,10 +556,14 @@ def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say, mapp
     fixed.update({n: 0.0 for n in acand.ard_names if n not in c["kept_terms"]})
     half = CandidateSpec(model=acand.model, name=acand.label, priors=priors, fixed=fixed, ard=[],
                          substeps=acand.substeps)
+    # halves of the *observed* samples (a record may end in missing values)
+    seen = np.flatnonzero(np.any(np.column_stack([np.isfinite(data.columns[o])
+                                                  for o in acand.model_spec().observed_columns]), axis=1))
     n = len(data)
+    mid = int(seen[seen.size // 2]) if seen.size >= 4 else n // 2
     parts = []
     warm = c["_mr"].sampler
-    tasks = [(half, data.slice(lo, hi), spec, warm, config.posterior) for lo, hi in ((0, n // 2), (n // 2, n))]
+    tasks = [(half, data.slice(lo, hi), spec, warm, config.posterior) for lo, hi in ((0, mid), (mid, n))]
     for r, _ in mapper(_fit_task, tasks):
         parts.append({k: (r["mean"][k], r["sd"][k]) for k in c["kept_terms"]})
     z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])

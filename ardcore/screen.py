@@ -140,8 +140,12 @@ class _Screener:
                   else np.zeros((len(data), 0)))
         self.theta = list(spec.free_parameters)
         self._models: dict = {}
-        # the innovations' actual spectrum (the likelihood takes it as flat): what the score really varies by
-        self.psd = innovation_background(fr.standardized) if robust else None
+        # the standardised innovations on the time grid (zero where there is no observation): their actual
+        # spectrum, which the likelihood takes as flat, is what each candidate's score really varies by
+        self.eps = None
+        if robust and fr.standardized.ndim == 2 and fr.standardized.shape[1] == 1:
+            e = fr.standardized[:, 0]
+            self.eps = np.where(np.isfinite(e), e, 0.0)
         self.n_obs = len(data)
 
     def term_scale(self, effect: Effect, target: str, data: Dataset) -> list[float] | None:
@@ -220,7 +224,7 @@ class _Screener:
             groups.append(np.arange(pos, pos + len(nm)))
             pos += len(nm)
         psi = None
-        if self.psd is not None:
+        if self.eps is not None:
             # the innovations' sensitivities on the time grid (zero where there is no observation), standardised
             psi = np.zeros((len(allp), ok.size))
             psi[:, ok] = De / np.sqrt(S0)
@@ -252,8 +256,8 @@ def innovation_background(e: np.ndarray, *, median_bins: int = 9, segments: int 
     f, P = signal.welch(x, fs=1.0, nperseg=nper)
     P = P * np.where((f > 0) & (f < 0.5), 0.5, 1.0)  # one-sided density of unit white noise: 2 inside, 1 at the ends
     h = median_bins // 2
-    bg = np.array([np.median(P[max(0, i - h):i + h + 1]) for i in range(P.size)])
-    bg = bg / max(float(np.mean(np.isfinite(e))), 1e-12)  # zeros put in for missing samples dilute the power
+    bg = np.median(np.lib.stride_tricks.sliding_window_view(np.pad(P, h, mode="edge"), 2 * h + 1), axis=1)
+    bg = bg / max(float(np.mean(np.isfinite(e) & (e != 0))), 1e-12)  # zeros for missing samples dilute the power
     return lambda fq: np.interp(fq, f, bg)
 
 
@@ -298,12 +302,15 @@ def _sandwich(H: np.ndarray, gb: np.ndarray, V: np.ndarray) -> tuple[np.ndarray,
 
 
 def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: np.ndarray | None = None,
-                  psd=None) -> tuple[float, float, np.ndarray]:
+                  eps: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
     """Laplace ln BF, profile gain and coefficients of one group, the first k parameters profiled out.
 
-    With the innovations' sensitivities ``psi`` and their actual relative spectrum ``psd``
-    (:func:`innovation_background`), the likelihood is first adjusted to the score's actual variance
-    (:func:`_sandwich`, :func:`spectral_score_cov`).
+    With the innovations' sensitivities ``psi`` and the standardised innovations ``eps`` themselves, the
+    likelihood is first adjusted to the score's actual variance (:func:`_sandwich`,
+    :func:`spectral_score_cov`): the spectrum is that of the innovations *with the candidate fitted*
+    (linearised, ``eps + psi' k``), as a sandwich variance is estimated from the residuals of the
+    fitted model, so that a real effect's own signature (a chirp of a decaying oscillation, which a
+    running median does not step over as it does a line) does not count as noise against it.
     """
     th = np.arange(k)
     Itt = Inf[np.ix_(th, th)]
@@ -313,12 +320,15 @@ def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: 
     H = Inf[np.ix_(grp, grp)] - Ibt @ Itt_inv @ Ibt.T
     H = 0.5 * (H + H.T)
     gb = g[grp] - Ibt @ Itt_inv @ g[th]
-    if psi is not None and psd is not None:
+    if psi is not None and eps is not None:
         # the efficient score's sensitivities (what a refit of the model's own parameters cannot absorb); their
         # Gram matrix is H, so only the colour of the innovations is added: V = H + psi (S - 1) psi'
         eff = psi[grp] - (Ibt @ Itt_inv) @ psi[th]
-        V = H + spectral_score_cov(eff, psd) - eff @ eff.T
-        H, gb = _sandwich(H, gb, V)
+        k_hat = np.linalg.pinv(H, rcond=1e-10) @ gb
+        psd = innovation_background(eps + eff.T @ k_hat)
+        if psd is not None:
+            V = H + spectral_score_cov(eff, psd) - eff @ eff.T
+            H, gb = _sandwich(H, gb, V)
     w, V = np.linalg.eigh(H)
     w = np.maximum(w, 0.0)
     z = V.T @ gb
@@ -369,7 +379,7 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
         chunk = items[b:b + batch_size]
         groups, g, Inf, C = sc.batch(chunk)
         for (e, t, s), grp in zip(chunk, groups):
-            lbf, gain, coef = _bayes_factor(g, Inf, k, grp, C, sc.psd)
+            lbf, gain, coef = _bayes_factor(g, Inf, k, grp, C, sc.eps)
             out.append(Screened(e, t, lbf, gain, [float(c) for c in coef], s))
     say(f"screened {len(items)} plain candidates")
     for e, t in shaped:
@@ -424,7 +434,7 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
         r = None
         if s is not None:
             groups, g, Inf, C = sc.batch([(e, t, s)], [v])
-            lbf, gain, coef = _bayes_factor(g, Inf, k, groups[0], C, sc.psd)
+            lbf, gain, coef = _bayes_factor(g, Inf, k, groups[0], C, sc.eps)
             r = Screened(ef, t, lbf, gain, [float(c) for c in coef], s)
         cache[v] = r
         return r
@@ -485,7 +495,7 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
                 with_data = with_columns(with_data, p.effect)
             groups, g, Inf, C = sc.batch(items, data=with_data)
             nuis = base + sum(len(gr) for gr in groups[:-1])
-            lbf, _, _ = _bayes_factor(g, Inf, nuis, groups[-1], C, sc.psd)
+            lbf, _, _ = _bayes_factor(g, Inf, nuis, groups[-1], C, sc.eps)
             if lbf <= min_log_bf:
                 c.conditional_on = [p.effect.name for p in picked]
                 continue

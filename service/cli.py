@@ -191,11 +191,12 @@ def cmd_demo(a) -> int:
         _run_on_dask(a, store)
     summary = json.loads(store.read_text("summary.json"))
     _print_table(summary)
-    from .paper import reference_checks
+    from .paper import check_label, reference_checks
 
     print("\n[demo] checks against the paper (issue 'Main job'):")
     for c in reference_checks(summary, spec.true_values):
-        print(f"  [{'PASS' if c['passed'] else 'FAIL'}] {c['check']}: {c['detail']}")
+        print(f"  [{check_label(c)}] {c['check']}: {c['detail']}"
+              + (f"\n      documented difference: {c['documented']}" if c.get("documented") else ""))
     print(f"\n[demo] store (zarr):  {out.resolve()}")
     print(f"[demo] summary:       {(out / 'summary.json').resolve()}")
     print(f"[demo] report:        {(out / 'report' / 'report.html').resolve()}")

@@ -128,12 +128,14 @@ def write_report(store, out: str | Path | None = None) -> Path:
                  "<th>GoF paper</th><th>GoF here</th><th>EIG paper</th><th>EIG here</th><th>P paper</th>"
                  "<th>P here</th><th class=l>pruned paper</th><th class=l>pruned here</th></tr>" + "".join(prow)
                  + "</table>")
-        from .paper import reference_checks
+        from .paper import check_label, reference_checks
 
         checks = reference_checks(summary, spec.true_values)
         paper += ("<h3>Checks</h3><table><tr><th class=l>check</th><th>result</th><th class=l>detail</th></tr>"
-                  + "".join(f"<tr><td class=l>{html.escape(c['check'])}</td><td>{'PASS' if c['passed'] else 'FAIL'}"
-                            f"</td><td class=l>{html.escape(c['detail'])}</td></tr>" for c in checks) + "</table>")
+                  + "".join(f"<tr><td class=l>{html.escape(c['check'])}</td><td>{check_label(c)}"
+                            f"</td><td class=l>{html.escape(c['detail'])}"
+                            + (f"<br><i>documented difference: {html.escape(c['documented'])}</i>"
+                               if c.get("documented") else "") + "</td></tr>" for c in checks) + "</table>")
 
     warns = [f"<li>{html.escape(r['name'])}: {html.escape(w)}</li>" for r in summary["models"] for w in r["warnings"]]
     body = [f"<h1>ardflow study {html.escape(spec.name)}</h1>",
