@@ -26,7 +26,9 @@ structure that remains (spectral peaks, the states that needed noise).
 
 Rooms: the residual tests live in :mod:`ardcore.residual_tests`, the free run and its
 prediction band in :mod:`ardcore.freerun`, the evidence screen in :mod:`ardcore.screen`,
-the library in :mod:`ardcore.effects`; this module holds the loop.
+the library in :mod:`ardcore.effects`, the confirmations (re-selection, halves check, joint
+fit, process pool) in :mod:`ardcore.confirm`, the verdict's words in :mod:`ardcore.verdict`;
+this module holds the residuals and the loop.
 """
 
 from __future__ import annotations
@@ -38,18 +40,18 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-import sympy as sp
 from scipy import optimize
 
 from .data import Dataset
 from .ekf import compile_model
-from .effects import Effect, augment, candidate_effects, dynamic_states, oscillator_pairs, with_columns
+from .effects import Effect, dynamic_states, with_columns
 from .errors import SpecError
 from .model import ModelSpec
 from .freerun import _posterior_draws, free_run, free_run_of  # noqa: F401
 from .residual_tests import acf, dominant_frequency, harmonics, residual_tests, spectral_peaks  # noqa: F401
-from .screen import Screened, distinct_candidates, screen_effects
+from .confirm import joint_fit, physical, pool_mapper, split_stability, trace_and_confirm
 from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
+from .verdict import character, unexplained
 
 INF = math.inf
 
@@ -212,21 +214,6 @@ def _fitted(cand: CandidateSpec, row: dict) -> tuple[ModelSpec, dict]:
     return spec, phi
 
 
-def _essential_from_row(cand: CandidateSpec, row: dict) -> tuple[dict, dict]:
-    """Priors of the fitted model with kept ARD terms frozen at their optimal alpha; pruned terms fixed."""
-    from .priors import Flat, Normal
-
-    priors = dict(cand.priors)
-    fixed = dict(cand.fixed)
-    for k, a in row["psi_opt"].items():
-        if a == "inf" or a == INF:
-            fixed[k] = 0.0
-        else:
-            a = float(a)
-            priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
-    return priors, fixed
-
-
 def _errors(res: Residuals, fr: dict, row: dict, col: str) -> dict:
     t = res.tests[col]
     keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error",
@@ -291,7 +278,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     rounds, arrays = [], {}
     cur_data, cur_test = data, test_data
     workers = config.workers or min(os.cpu_count() or 1, max(config.top_k, 2))
-    mapper, close = _pool_mapper(workers)
+    mapper, close = pool_mapper(workers)
     try:
         for rnd in range(config.max_rounds + 1):
             fspec, phi = _fitted(cand, row)
@@ -311,14 +298,14 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 rounds[-1]["after"] = err
             if rnd == config.max_rounds:
                 break
-            ranked, confirmed = _trace_and_confirm(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
+            ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
                                                    extra_effects, say, mapper)
             survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
             if config.split_z is not None:
                 for c in survivors:
                     if c["_effect"].where == "noise":
                         continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
-                    c["stability"] = _split_stability(spec, c, config, say, mapper)
+                    c["stability"] = split_stability(spec, c, config, say, mapper)
                     c["survives"] = c["stability"]["stable"]
                     if c["survives"] and not config.joint:
                         break  # the best stable one is added
@@ -337,14 +324,14 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                    "added": None}
             rounds.append(rec)
             if not survivors:
-                rec["verdict"] = _unexplained(res, ranked, confirmed, col, config)
+                rec["verdict"] = unexplained(res, ranked, confirmed, col, config)
                 break
             best = survivors[0]
             chosen, fit = [best], (best["_cand"], best["_row"], best["_mr"], best["_data"])
             if config.joint and len(survivors) > 1:
                 # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
                 # others make redundant; taken when it beats the best single effect by more than min_log_bf
-                j = _joint_fit(spec, cand, row, best, survivors, cur_data, config, say)
+                j = joint_fit(spec, cand, row, best, survivors, cur_data, config, say)
                 if j is not None and j[1]["log_evidence"] > best["log_evidence"] + config.min_log_bf:
                     chosen, fit = j[4], j[:4]
             jrow = fit[1]
@@ -352,10 +339,10 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             for c in chosen:
                 eff = c["_effect"]
                 names = list(c["scales"])
-                post = {n: _physical(jrow, n, c["scales"][n]) for n in names if n in jrow["mean"]}
+                post = {n: physical(jrow, n, c["scales"][n]) for n in names if n in jrow["mean"]}
                 recs.append({"effect": eff.name, "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
                              "posterior": post, "log_bayes_factor": c["log_bayes_factor"],
-                             "character": _character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
+                             "character": character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
             rec["added"], rec["added_with"] = recs[0], recs[1:]
             rec["_effects"] = [c["_effect"] for c in chosen]
             say(f"round {rnd}: added " + ", ".join(f"{r['effect']} to {r['target']} (ln BF {r['log_bayes_factor']:.1f})"
@@ -394,274 +381,6 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     out["_initial"] = initial
     out["_final"] = {"spec": fspec, "phi": phi, "effects": [e for r in rounds for e in r.get("_effects", [])],
                      "substeps": cand.substeps}
-    return out
-
-
-def _warm_with(sampler, names: list[str], values: list[float]):
-    """``sampler`` (a SamplerResult) whose best point also carries ``names`` at ``values`` (for warm starts)."""
-    import dataclasses
-
-    keep = [i for i, n in enumerate(sampler.names) if n not in names]
-    return dataclasses.replace(sampler, names=[sampler.names[i] for i in keep] + list(names),
-                               phi_star=np.concatenate([np.asarray(sampler.phi_star)[keep], np.asarray(values, float)]))
-
-
-def _fit_task(args):
-    """One re-selection (a picklable unit of work for the confirmation pool)."""
-    cand, data, spec, warm, posterior = args
-    return run_candidate(cand, data, spec, 0, warm=warm, final_posterior=posterior)
-
-
-def _pool_mapper(workers: int):
-    """(map function, closer): confirmations and halves run side by side on ``workers`` processes."""
-    if workers <= 1:
-        return (lambda fn, tasks: [fn(t) for t in tasks]), (lambda: None)
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    # fork from a single-threaded process: a plain script without a __main__ guard keeps working (spawn
-    # re-runs the script in every worker) and compiled kernels come along; with other threads alive (a host
-    # application) a fork could copy a held lock, so spawn, which loads kernels from the on-disk cache
-    import threading
-
-    method = "fork" if threading.active_count() == 1 and "fork" in mp.get_all_start_methods() else "spawn"
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context(method))
-
-    def run(fn, tasks):
-        if len(tasks) <= 1:
-            return [fn(t) for t in tasks]
-        return list(pool.map(fn, tasks))
-    return run, (lambda: pool.shutdown(cancel_futures=True))
-
-
-def _trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper):
-    """Screen the whole library by evidence, then confirm the best few by the full ARD re-selection."""
-    peaks = [p for p in res.tests[col]["spectrum"]["peaks"] if not p.get("harmonic")]
-    scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
-    # forcing frequencies: innovation peaks that are not harmonics of the oscillation (refined by the screen)
-    effects = candidate_effects(fspec, scales=scales, frequencies=[p["f"] for p in peaks[:2]],
-                                extra=list(extra_effects))
-    screened = screen_effects(fspec, phi, data, effects, dynamic_states(fspec), list(fspec.observed_columns),
-                              substeps=cand.substeps, progress=say)
-    ranked = [{**c.to_json(), "_screened": c} for c in screened]
-    say("screen: " + ", ".join(f"{c['effect']} -> {c['target']} (ln BF ~ {c['log_bayes_factor']:.1f})"
-                               for c in ranked[:5]))
-    priors, fixed = _essential_from_row(cand, row)
-    cspec = spec.model_copy(update={"maximiser": spec.maximiser.model_copy(
-        update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
-    confirmed = []
-    picked = distinct_candidates(fspec, phi, data, screened, config.top_k, config.min_score, substeps=cand.substeps)
-    redundant = [c for c in screened[:12] if getattr(c, "conditional_on", None)]
-    # a redundant candidate the screen cannot tell from the one it was dropped for (a saturating stiffness and
-    # a free-play; a smooth sign of two widths) is confirmed too: the full evidence decides between the twins
-    rivals = {}
-    for c in redundant:
-        near = [p for p in picked if p.effect.name in c.conditional_on and id(p) not in rivals.values()
-                and abs(p.log_bayes_factor - c.log_bayes_factor) <= config.rival_nats]
-        if near:
-            rivals[id(c)] = id(near[0])
-    redundant = [c for c in redundant if id(c) not in rivals]
-    if redundant:
-        say("not confirmed (explained by a better candidate): " + ", ".join(
-            f"{c.effect.name} -> {c.target}" for c in redundant))
-    by_id = {id(c["_screened"]): c for c in ranked}
-    chosen = [by_id[id(p)] for p in picked] + [by_id[i] for i in rivals]
-    tasks = []
-    for c in chosen:
-        sc: Screened = c["_screened"]
-        aspec, names = augment(cand.model_spec(), sc.effect, c["target"], sc.scales)
-        acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed,
-                              ard=names, substeps=cand.substeps)
-        # new terms start at the screen's estimate (a Laplace search from 0 would walk there by Nelder-Mead)
-        warm = _warm_with(bmr.sampler, names, sc.coefficients) if spec.evidence == "laplace" else bmr.sampler
-        tasks.append((acand, with_columns(data, sc.effect), cspec, warm, config.posterior))
-    if chosen:
-        say("confirming by evidence: " + ", ".join(f"{c['effect']} -> {c['target']}" for c in chosen))
-    results = mapper(_fit_task, tasks)
-    for c, (acand, adata, *_), (arow, amr) in zip(chosen, tasks, results):
-        sc = c["_screened"]
-        eff: Effect = sc.effect
-        names = list(acand.ard_names)
-        # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam factor
-        gain = arow["log_evidence"] - row["log_evidence"] - sc.shape_occam
-        kept = [n for n in names if n in arow["kept"]]
-        scale = dict(zip(names, sc.scales))
-        confirmed.append({"effect": eff.name, "target": c["target"], "score": c["log_bayes_factor"],
-                          "screened_log_bayes_factor": c["log_bayes_factor"],
-                          "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],
-                          "log_bayes_factor": gain, "kept_terms": kept, "psi_opt": arow["psi_opt"],
-                          # coefficients in the term's own units (the fit uses the normalised ones)
-                          "posterior": {n: _physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
-                          "scales": scale,
-                          "survives": bool(kept) and gain > config.min_log_bf,
-                          "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff,
-                          "_screened": sc})
-        say(f"  {eff.name}: ln BF = {gain:.2f}, ARD keeps {kept or 'nothing'}")
-    # of two twins only the one with the higher evidence goes on
-    by_screen = {id(c["_screened"]): c for c in confirmed}
-    for rid, pid in rivals.items():
-        a, b = by_screen.get(rid), by_screen.get(pid)
-        if a and b and a["survives"] and b["survives"]:
-            lo, hi = sorted((a, b), key=lambda c: c["log_evidence"])
-            lo["survives"] = False
-            lo["rival_of"] = hi["effect"]
-            say(f"  {lo['effect']} and {hi['effect']} explain the same; {hi['effect']} has the higher evidence")
-    return ranked, confirmed
-
-
-def _joint_fit(spec, cand, row, best, survivors, data, config, say):
-    """The current model with every surviving effect added, each new term at the ARD precision its own
-    re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
-
-    Returns (candidate, row, maximiser result, data, survivors) or None."""
-    from .priors import Flat, Normal
-
-    priors, fixed = _essential_from_row(cand, row)
-    aspec, adata = cand.model_spec(), data
-    for c in survivors:
-        n = list(c["scales"])
-        aspec, n = augment(aspec, c["_effect"], c["target"], [c["scales"][k] for k in n], names=n)
-        adata = with_columns(adata, c["_effect"])
-        for k in n:
-            a = c["psi_opt"].get(k, 0.0)
-            if k not in c["kept_terms"] or a == "inf" or a == INF:
-                fixed[k] = 0.0
-            else:
-                a = float(a)
-                priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
-    acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed, ard=[], substeps=cand.substeps)
-    say("fitting the distinct survivors together: " + ", ".join(c["effect"] for c in survivors))
-    arow, amr = run_candidate(acand, adata, spec, 0, warm=best["_mr"].sampler, final_posterior=config.posterior)
-    say(f"  together: ln BF = {arow['log_evidence'] - row['log_evidence']:.2f}")
-    return acand, arow, amr, adata, survivors
-
-
-def _physical(row: dict, name: str, scale: float) -> dict:
-    """Posterior summary of a normalised coefficient in physical units (scale > 0)."""
-    return {"mean": row["mean"][name] * scale, "sd": row["sd"][name] * scale,
-            "q005": row["q005"][name] * scale, "q995": row["q995"][name] * scale}
-
-
-def _split_stability(spec: StudySpec, c: dict, config: DiagnoseConfig, say, mapper) -> dict:
-    """Refit the augmented model on each half of the record, the new terms' ARD priors frozen at psi_opt."""
-    from .priors import Flat, Normal
-
-    acand: CandidateSpec = c["_cand"]
-    data: Dataset = c["_data"]
-    priors = dict(acand.priors)
-    for n in c["kept_terms"]:
-        a = float(c["psi_opt"][n])
-        priors[n] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
-    fixed = dict(acand.fixed)
-    fixed.update({n: 0.0 for n in acand.ard_names if n not in c["kept_terms"]})
-    half = CandidateSpec(model=acand.model, name=acand.label, priors=priors, fixed=fixed, ard=[],
-                         substeps=acand.substeps)
-    # halves of the *observed* samples (a record may end in missing values)
-    seen = np.flatnonzero(np.any(np.column_stack([np.isfinite(data.columns[o])
-                                                  for o in acand.model_spec().observed_columns]), axis=1))
-    n = len(data)
-    mid = int(seen[seen.size // 2]) if seen.size >= 4 else n // 2
-    parts = []
-    warm = c["_mr"].sampler
-    tasks = [(half, data.slice(lo, hi), spec, warm, config.posterior) for lo, hi in ((0, mid), (mid, n))]
-    for r, _ in mapper(_fit_task, tasks):
-        parts.append({k: (r["mean"][k], r["sd"][k]) for k in c["kept_terms"]})
-    z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])
-         for k in c["kept_terms"]}
-    rel = {k: abs(parts[0][k][0] - parts[1][k][0]) / max(abs(parts[0][k][0]), abs(parts[1][k][0]), 1e-300)
-           for k in c["kept_terms"]}
-    same_sign = all(parts[0][k][0] * parts[1][k][0] > 0 for k in c["kept_terms"])
-    # disagreement beyond the noise AND large against the effect's own size (long records have tiny se)
-    stable = all(z[k] <= config.split_z or (same_sign and rel[k] <= config.split_rel) for k in z)
-    say(f"  {c['effect']}: halves give " + ", ".join(
-        f"{k} = {parts[0][k][0]:.4g} +- {parts[0][k][1]:.2g} / {parts[1][k][0]:.4g} +- {parts[1][k][1]:.2g} "
-        f"(z = {z[k]:.1f})" for k in z) + ("" if stable else ": NOT stable over the record"))
-    return {"stable": stable, "z": z, "relative_difference": rel, "halves": parts}
-
-
-_ODD = ("cubic_stiffness", "quintic_stiffness", "saturation")
-
-
-def _character(spec: ModelSpec, phi: dict, eff: Effect, best: dict) -> str | None:
-    """'hardening' or 'softening' for an odd stiffness term (its sign against the linear restoring slope);
-    even and asymmetric terms (x^2, x|x|, x^4) make the stiffness differ between the two sides instead."""
-    if eff.kind != "stiffness" or len(eff.terms) != 1 or not best["posterior"]:
-        return None
-    if not eff.name.startswith(_ODD):
-        return "asymmetric (stiffer on one side)"
-    pairs = oscillator_pairs(spec)
-    if not pairs:
-        return None
-    x, v = pairs[0]
-    sm = spec.sym
-    i = spec.states.index(best["target"])
-    xs = sp.Symbol(x, real=True)
-    slope = sp.diff(sm.drift[i], xs).subs({p: phi[str(p)] for p in sm.params})
-    slope = slope.subs({s: 0 for s in sm.states}).subs({u: 0 for u in sm.inputs})
-    try:
-        slope = float(slope)
-    except TypeError:
-        return None
-    coef = next(iter(best["posterior"].values()))["mean"]
-    if slope == 0 or coef == 0:
-        return None
-    return "hardening" if np.sign(coef) == np.sign(slope) else "softening"
-
-
-def _unexplained(res: Residuals, ranked: list, confirmed: list, col: str, config: DiagnoseConfig) -> str:
-    t = res.tests[col]
-    white = t["ljung_box_p"] > 0.01
-    parts = []
-    if white and not t["spectrum"]["peaks"]:
-        parts.append("the innovations are white (Ljung-Box p = %.3g) with no spectral peak: "
-                     "no evidence of a missing effect" % t["ljung_box_p"])
-    else:
-        parts.append("the residual is NOT explained by any effect in the library")
-        parts.append("Ljung-Box Q = %.1f (p = %.2g)" % (t["ljung_box"], t["ljung_box_p"]))
-        if t["spectrum"]["peaks"]:
-            parts.append("innovation spectral peaks at " + ", ".join(
-                "%.4g%s" % (p["f"], f" (harmonic {p['harmonic']})" if p.get("harmonic") else "")
-                for p in t["spectrum"]["peaks"][:5]))
-        var = {s: float(np.nanvar(r)) for s, r in res.process_noise_rate.items()}
-        if var:
-            parts.append("injected process noise per state (variance of rate): " + ", ".join(
-                f"{s} {v:.3g}" for s, v in var.items()))
-        share = _injected_share(res)
-        if share:
-            parts.append("the noise the filter injects is " + ", ".join(
-                f"{100 * v:.2g} % of the rms rate of change of {s}" for s, v in share.items())
-                + ("" if max(share.values()) > 0.1 else
-                   " (small: the model's dynamics carry the data; what remains is small or outside the dynamics, "
-                   "e.g. coloured measurement noise)"))
-        if ranked and not any(c["log_bayes_factor"] > config.min_score for c in ranked):
-            parts.append("no effect of the library is supported by the evidence, so the model is adequate as far "
-                         "as the library can tell")
-    unstable = [c for c in confirmed if c.get("stability") and not c["stability"]["stable"]]
-    if unstable:
-        parts.append("supported by evidence but NOT stable between the two halves of the record (a term "
-                     "compensating for something that changes over time, not the missing effect): " + ", ".join(
-                         f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f}, z = "
-                         f"{max(c['stability']['z'].values()):.1f})" for c in unstable))
-    rest = [c for c in confirmed if c not in unstable]
-    if rest:
-        parts.append("tested by evidence and rejected: " + ", ".join(
-            f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f})" for c in rest))
-    elif ranked and not confirmed:
-        parts.append(f"no candidate's screened ln Bayes factor reaches {config.min_score:g} (best: "
-                     f"{ranked[0]['effect']} on {ranked[0]['target']}, {ranked[0]['log_bayes_factor']:.1f})")
-    return "; ".join(parts)
-
-
-def _injected_share(res: Residuals) -> dict:
-    """rms of the injected noise rate / rms rate of change of each dynamic state (how much the filter had to push)."""
-    out = {}
-    for s, r in res.process_noise_rate.items():
-        if s not in res.states:
-            continue
-        rate = np.diff(res.smoothed[:, res.states.index(s)]) / res.dt
-        d = float(np.sqrt(np.nanmean((rate - np.nanmean(rate)) ** 2)))
-        if d > 0 and np.isfinite(d):
-            out[s] = float(np.sqrt(np.nanmean(r ** 2))) / d
     return out
 
 

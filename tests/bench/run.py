@@ -318,6 +318,9 @@ def _study(args: list[str], out: Path) -> dict:
             "probability": {r["name"]: r["probability"] for r in s["models"]},
             "pruned": {r["name"]: r["pruned"] for r in s["models"]},
             "trials": {r["name"]: r["iterations"] for r in s["models"]},
+            "sampled_trials": {r["name"]: r.get("sampled_trials") for r in s["models"]},
+            # every likelihood evaluation: start optimisation, burn-in, stationary draws, Chib-Jeliazkov proposals
+            "evaluations": sum(int(r.get("n_evaluations", 0)) for r in s["models"]),
             "checks": {c["check"]: c["passed"] for c in reference_checks(s, spec["true_values"])}}
 
 
