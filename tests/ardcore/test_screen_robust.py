@@ -7,7 +7,8 @@ from scipy import linalg, optimize, signal
 from ardcore.ekf import compile_model
 from ardcore.effects import Effect, candidate_effects
 from ardcore.library import builtin
-from ardcore.screen import innovation_background, screen_effects, spectral_score_cov
+from ardcore.robust import innovation_background, spectral_score_cov
+from ardcore.screen import screen_effects
 from ardcore.simulate import simulate_model
 
 
