@@ -64,9 +64,12 @@ def unexplained(res, ranked: list, confirmed: list, col: str, config) -> str:
                 + ("" if max(share.values()) > 0.1 else
                    " (small: the model's dynamics carry the data; what remains is small or outside the dynamics, "
                    "e.g. coloured measurement noise)"))
-        if ranked and not any(c["log_bayes_factor"] > config.min_score for c in ranked):
+        screened_out = ranked and not any(c["log_bayes_factor"] > config.min_score for c in ranked)
+        # every confirmed candidate rejected by the full evidence (not merely unstable): the same conclusion
+        rejected = confirmed and not any(c.get("survives") or c.get("stability") for c in confirmed)
+        if screened_out or rejected:
             parts.append("no effect of the library is supported by the evidence, so the model is adequate as far "
-                         "as the library can tell")
+                         "as the library can tell (the correlation left is outside the library or the noise model)")
     unstable = [c for c in confirmed if c.get("stability") and not c["stability"]["stable"]]
     if unstable:
         parts.append("supported by evidence but NOT stable between the two halves of the record (a term "

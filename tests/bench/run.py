@@ -423,6 +423,33 @@ def bench_loop() -> dict:
     return out
 
 
+def bench_fresh() -> dict:
+    """``make demo`` on a clean clone of HEAD: venv, install, cold kernel cache, the study and its report.
+
+    Key: fresh_demo_s (wall time of ``make demo`` in the clone), fresh_demo_evaluations.
+    """
+    import shutil
+    import tempfile
+
+    tmp = Path(tempfile.mkdtemp(prefix="ardflow-fresh-"))
+    try:
+        subprocess.run(["git", "clone", "-q", str(ROOT), str(tmp / "ardflow")], check=True)
+        clone = tmp / "ardflow"
+        # the shared data sits next to the repository, as in the original layout
+        if not (tmp / "shared").exists() and (ROOT.parent / "shared").exists():
+            (tmp / "shared").symlink_to(ROOT.parent / "shared")
+        env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "ARDFLOW_CACHE_DIR")}
+        env["ARDFLOW_CACHE_DIR"] = str(tmp / "kernel-cache")  # cold: every kernel generated and compiled
+        t0 = time.perf_counter()
+        subprocess.run(["make", "demo"], cwd=clone, env=env, check=True, stdout=subprocess.DEVNULL)
+        wall = time.perf_counter() - t0
+        s = json.loads((clone / "runs" / "demo" / "summary.json").read_text())
+        return {"fresh_demo_s": wall,
+                "fresh_demo_evaluations": sum(int(r.get("n_evaluations", 0)) for r in s["models"])}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def _save_partial(res: dict) -> None:
     """Merge figures measured so far into .bench/results.json (a long group must not lose them on a crash)."""
     path = ROOT / ".bench" / "results.json"
@@ -433,7 +460,7 @@ def _save_partial(res: dict) -> None:
 
 
 BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "study": bench_study,
-           "loop": bench_loop}
+           "loop": bench_loop, "fresh": bench_fresh}
 
 
 def main(argv=None) -> int:
