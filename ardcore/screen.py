@@ -44,6 +44,9 @@ from .robust import innovation_background, sandwich, spectral_score_cov
 PRIOR_SD = 1.0
 """Prior sd of a normalised coefficient in the screen (1 = an effect the size of the target's dynamics)."""
 
+COHERENCE_P = 1e-3
+"""A forcing whose coefficients differ between segments of the record beyond this p-value is not a forcing."""
+
 SHAPE_OCCAM = 2.0
 """Least nats taken off a shaped effect's screened ln BF (see :func:`_shape_occam`): its shape is the profile
 maximum, not integrated over its prior."""
@@ -76,6 +79,8 @@ class Screened:
     coefficients: list
     scales: list
     shape_profile: list = field(default_factory=list)
+    coherence_p: float | None = None
+    """A forcing's coherence over the record (:func:`_coherence_p`; None for other effects)."""
     shape_occam: float = 0.0
     """Nats the profiled shape costs (already taken off ``log_bayes_factor``; the confirmation, which holds
     the shape fixed, takes them off its ln BF too)."""
@@ -88,7 +93,7 @@ class Screened:
         return {"effect": self.effect.name, "kind": self.effect.kind, "terms": list(self.effect.terms),
                 "target": self.target, "where": self.effect.where,
                 "log_bayes_factor": float(self.log_bayes_factor), "score": float(self.log_bayes_factor),
-                "shape_occam": float(self.shape_occam),
+                "shape_occam": float(self.shape_occam), "coherence_p": self.coherence_p,
                 "delta_loglik": float(self.delta_loglik),
                 "coefficients": self.physical, "normalised_coefficients": [float(c) for c in self.coefficients],
                 "scales": [float(s) for s in self.scales]}
@@ -400,7 +405,48 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
     best.shape_occam = _shape_occam(e, cache, data)
     best.log_bayes_factor -= best.shape_occam
     best.shape_profile = sorted((float(v), float(r.log_bayes_factor)) for v, r in cache.items() if r is not None)
+    if e.shape[0] == "f" and sc.eps is not None:
+        best.coherence_p = _coherence_p(sc, e, best, t, k)
+        if best.coherence_p < COHERENCE_P:
+            # a narrow-band random process (a lightly damped mode driven by noise), not a forcing: its phase
+            # wanders over the record, which a sinusoid of fixed amplitude and phase cannot follow
+            best.log_bayes_factor = min(best.log_bayes_factor, 0.0)
     return best
+
+
+def _coherence_p(sc: _Screener, e: Effect, c: Screened, target: str, k: int) -> float:
+    """p-value of a forcing's coherence over the record: its sine/cosine coefficients estimated on K segments
+    (at least 10 cycles and 200 samples each, K <= 8) must agree within their noise (chi-square on 2(K-1)
+    degrees of freedom, each segment's variance from the innovations' spectrum as in the screen)."""
+    from scipy import stats
+
+    n = sc.eps.size
+    cycles = c.effect.frequency * float(sc.data.t[-1] - sc.data.t[0])
+    K = int(min(8, cycles // 10, n // 200))
+    if K < 2:
+        return 1.0
+    groups, g, Inf, psi = sc.batch([(e, target, c.scales)], [c.effect.frequency])  # e: the profiled kernel
+    grp, th = groups[0], np.arange(k)
+    Itt = Inf[np.ix_(th, th)]
+    A = Inf[np.ix_(grp, th)] @ np.linalg.pinv(Itt, rcond=1e-10)
+    eff = psi[grp] - A @ psi[th]
+    H = eff @ eff.T
+    k_hat = np.linalg.pinv(H, rcond=1e-10) @ (-(eff @ sc.eps))
+    psd = innovation_background(sc.eps + eff.T @ k_hat)
+    if psd is None:
+        return 1.0
+    est, prec = [], []
+    for seg in np.array_split(np.arange(n), K):
+        P, e = eff[:, seg], sc.eps[seg]
+        Hs = P @ P.T
+        Vs = spectral_score_cov(P, psd)
+        Hinv = np.linalg.pinv(Hs, rcond=1e-10)
+        est.append(Hinv @ (-(P @ e)))
+        prec.append(np.linalg.pinv(Hinv @ Vs @ Hinv, rcond=1e-10))
+    W = sum(prec)
+    mean = np.linalg.pinv(W, rcond=1e-10) @ sum(p @ x for p, x in zip(prec, est))
+    chi2 = float(sum((x - mean) @ p @ (x - mean) for p, x in zip(prec, est)))
+    return float(stats.chi2.sf(chi2, len(grp) * (K - 1)))
 
 
 def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: list[Screened], k: int,
