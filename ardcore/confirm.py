@@ -124,17 +124,23 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
         gain = arow["log_evidence"] - row["log_evidence"] - sc.shape_occam
         kept = [n for n in names if n in arow["kept"]]
         scale = dict(zip(names, sc.scales))
+        # the EKF evidence takes coloured innovations as white: the support it gives is divided by the factor
+        # the screen found the score's variance understated by (1 for white innovations)
+        adjusted = gain / max(sc.inflation, 1.0) if gain > 0 else gain
         confirmed.append({"effect": eff.name, "target": c["target"], "score": c["log_bayes_factor"],
                           "screened_log_bayes_factor": c["log_bayes_factor"],
                           "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],
-                          "log_bayes_factor": gain, "kept_terms": kept, "psi_opt": arow["psi_opt"],
+                          "log_bayes_factor": gain, "adjusted_log_bayes_factor": adjusted,
+                          "inflation": sc.inflation, "kept_terms": kept, "psi_opt": arow["psi_opt"],
                           # coefficients in the term's own units (the fit uses the normalised ones)
                           "posterior": {n: physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
                           "scales": scale,
-                          "survives": bool(kept) and gain > config.min_log_bf,
+                          "survives": bool(kept) and adjusted > config.min_log_bf,
                           "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff,
                           "_screened": sc})
-        say(f"  {eff.name}: ln BF = {gain:.2f}, ARD keeps {kept or 'nothing'}")
+        say(f"  {eff.name}: ln BF = {gain:.2f}" + (f" ({adjusted:.2f} adjusted for coloured innovations, "
+                                                     f"x 1/{sc.inflation:.2g})" if sc.inflation > 1.05 else "")
+            + f", ARD keeps {kept or 'nothing'}")
     # of two twins only the one with the higher evidence goes on
     by_screen = {id(c["_screened"]): c for c in confirmed}
     for rid, pid in rivals.items():

@@ -76,7 +76,9 @@ class DiagnoseConfig:
         Candidates confirmed by the full re-selection per round (the best screened ones above
         ``min_score``).
     min_log_bf : float
-        Evidence gain (nats) over the base model an added effect needs, on top of ARD keeping it.
+        Evidence gain (nats) over the base model an added effect needs, on top of ARD keeping it; the gain is
+        first divided by the factor by which the EKF understates its score's variance (``inflation`` of the
+        screen: coloured innovations), so a likelihood that takes coloured noise as white cannot add a term.
     init_samples : int
         Samples of a held-out record used to initialise the free run (filtered state).
     max_rounds : int

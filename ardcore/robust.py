@@ -57,7 +57,7 @@ def spectral_score_cov(psi: np.ndarray, psd) -> np.ndarray:
     return 0.5 * (V + V.T)
 
 
-def sandwich(H: np.ndarray, gb: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sandwich(H: np.ndarray, gb: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Information and score of the likelihood adjusted to the score's actual variance ``V``.
 
     The EKF likelihood assumes white innovations; when they are not (coloured measurement noise, a
@@ -67,11 +67,14 @@ def sandwich(H: np.ndarray, gb: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, 
     ``H V^-1 g``, which keeps the estimate ``H^-1 g`` and gives it the sandwich variance
     ``H^-1 V H^-1``. Directions in which the score varies *less* than ``H`` says are left as they are:
     the screen never claims more evidence than the model's own likelihood.
+
+    Returns the adjusted information and score, and the largest factor by which the likelihood
+    understated the score's variance (1 for a correct likelihood).
     """
     w, U = np.linalg.eigh(H)
     keep = w > 1e-12 * max(float(w.max()), 1e-300)
     if not keep.any():
-        return H, gb
+        return H, gb, 1.0
     M = U[:, keep] * np.sqrt(w[keep])                 # H = M M' on its range
     Minv = (U[:, keep] / np.sqrt(w[keep])).T
     A = Minv @ V @ Minv.T                             # V relative to H: identity for a correct likelihood
@@ -79,4 +82,4 @@ def sandwich(H: np.ndarray, gb: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, 
     Ainv = (Q / np.maximum(c, 1.0)) @ Q.T
     Hs = M @ Ainv @ M.T
     gs = M @ Ainv @ (Minv @ gb)
-    return 0.5 * (Hs + Hs.T), gs
+    return 0.5 * (Hs + Hs.T), gs, float(max(np.max(c), 1.0))

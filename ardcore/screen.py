@@ -79,6 +79,9 @@ class Screened:
     coefficients: list
     scales: list
     shape_profile: list = field(default_factory=list)
+    inflation: float = 1.0
+    """How much the EKF likelihood understates the variance of this candidate's score (its innovations are
+    coloured; :func:`~ardcore.robust.sandwich`): the confirmation divides its ln Bayes factor by it."""
     coherence_p: float | None = None
     """A forcing's coherence over the record (:func:`_coherence_p`; None for other effects)."""
     shape_occam: float = 0.0
@@ -94,6 +97,7 @@ class Screened:
                 "target": self.target, "where": self.effect.where,
                 "log_bayes_factor": float(self.log_bayes_factor), "score": float(self.log_bayes_factor),
                 "shape_occam": float(self.shape_occam), "coherence_p": self.coherence_p,
+                "inflation": float(self.inflation),
                 "delta_loglik": float(self.delta_loglik),
                 "coefficients": self.physical, "normalised_coefficients": [float(c) for c in self.coefficients],
                 "scales": [float(s) for s in self.scales]}
@@ -238,7 +242,7 @@ class _Screener:
 
 
 def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: np.ndarray | None = None,
-                  eps: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
+                  eps: np.ndarray | None = None) -> tuple[float, float, np.ndarray, float]:
     """Laplace ln BF, profile gain and coefficients of one group, the first k parameters profiled out.
 
     With the innovations' sensitivities ``psi`` and the standardised innovations ``eps`` themselves, the
@@ -256,6 +260,7 @@ def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: 
     H = Inf[np.ix_(grp, grp)] - Ibt @ Itt_inv @ Ibt.T
     H = 0.5 * (H + H.T)
     gb = g[grp] - Ibt @ Itt_inv @ g[th]
+    inflation = 1.0
     if psi is not None and eps is not None:
         # the efficient score's sensitivities (what a refit of the model's own parameters cannot absorb); their
         # Gram matrix is H, so only the colour of the innovations is added: V = H + psi (S - 1) psi'
@@ -264,7 +269,7 @@ def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: 
         psd = innovation_background(eps + eff.T @ k_hat)
         if psd is not None:
             V = H + spectral_score_cov(eff, psd) - eff @ eff.T
-            H, gb = sandwich(H, gb, V)
+            H, gb, inflation = sandwich(H, gb, V)
     w, V = np.linalg.eigh(H)
     w = np.maximum(w, 0.0)
     z = V.T @ gb
@@ -272,7 +277,7 @@ def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: 
     lbf = float(0.5 * np.sum(z ** 2 / (w + 1 / s2)) - 0.5 * np.sum(np.log1p(s2 * w)))
     gain = float(0.5 * np.sum(np.where(w > 1e-12 * max(w.max(), 1e-300), z ** 2 / np.maximum(w, 1e-300), 0.0)))
     coef = V @ (z / (w + 1 / s2))
-    return lbf, gain, coef
+    return lbf, gain, coef, inflation
 
 
 def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effect], targets: list[str],
@@ -315,8 +320,8 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
         chunk = items[b:b + batch_size]
         groups, g, Inf, C = sc.batch(chunk)
         for (e, t, s), grp in zip(chunk, groups):
-            lbf, gain, coef = _bayes_factor(g, Inf, k, grp, C, sc.eps)
-            out.append(Screened(e, t, lbf, gain, [float(c) for c in coef], s))
+            lbf, gain, coef, infl = _bayes_factor(g, Inf, k, grp, C, sc.eps)
+            out.append(Screened(e, t, lbf, gain, [float(c) for c in coef], s, inflation=infl))
     say(f"screened {len(items)} plain candidates")
     for e, t in shaped:
         best = _screen_shape(sc, e, t, data, k, shape_grid)
@@ -370,8 +375,8 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
         r = None
         if s is not None:
             groups, g, Inf, C = sc.batch([(e, t, s)], [v])
-            lbf, gain, coef = _bayes_factor(g, Inf, k, groups[0], C, sc.eps)
-            r = Screened(ef, t, lbf, gain, [float(c) for c in coef], s)
+            lbf, gain, coef, infl = _bayes_factor(g, Inf, k, groups[0], C, sc.eps)
+            r = Screened(ef, t, lbf, gain, [float(c) for c in coef], s, inflation=infl)
         cache[v] = r
         return r
 
@@ -472,7 +477,7 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
                 with_data = with_columns(with_data, p.effect)
             groups, g, Inf, C = sc.batch(items, data=with_data)
             nuis = base + sum(len(gr) for gr in groups[:-1])
-            lbf, _, _ = _bayes_factor(g, Inf, nuis, groups[-1], C, sc.eps)
+            lbf, *_ = _bayes_factor(g, Inf, nuis, groups[-1], C, sc.eps)
             if lbf <= min_log_bf:
                 c.conditional_on = [p.effect.name for p in picked]
                 continue
