@@ -307,7 +307,7 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
                     "converged": res.converged, "acceptance": res.acceptance,
                     "burnin_acceptance": res.burnin_acceptance,
                     # every likelihood evaluation of the trial: start, burn-in, stationary draws, CJ proposals
-                    "n_evaluations": int(res.n_evaluations) + int(getattr(ev, "n_evaluations", 0))}
+                    "n_evaluations": int(res.n_evaluations) + int(ev.n_evaluations)}
         if res is not None:
             post.setdefault("_map", dict(zip(res.names, map(float, res.phi_star))))
         tr = Trial(it, dict(trial_psi), ev, False, action, time.perf_counter() - t0, post, diag)
@@ -342,6 +342,9 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
         history.append(tr)
         return tr, resample_states(bres, rw.weights, seed + 1009 * it)
 
+    def label(k, a):
+        return f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> {math.log10(a):.2f}"
+
     def step(k, stp, direction):
         """One line-search step of ``stp`` decades: (trial, target, state), or None when the step is known to
         be worse without sampling it.
@@ -353,16 +356,14 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
         starting at draws resampled with the weights.
         """
         a = psi[k] * 10.0 ** (direction * stp)
-        label = f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> {math.log10(a):.2f}"
-        tr, state = reweighted(dict(psi, **{k: a}), label)
+        tr, state = reweighted(dict(psi, **{k: a}), label(k, a))
         if tr is not None:
             return tr, None, state
         rw = state
         sub = stp / 2.0
         while sub >= config.reweight_min_step - 1e-12:
             b = psi[k] * 10.0 ** (direction * sub)
-            t2, st2 = reweighted(dict(psi, **{k: b}), f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> "
-                                                      f"{math.log10(b):.2f}")
+            t2, st2 = reweighted(dict(psi, **{k: b}), label(k, b))
             if t2 is not None:
                 if better(t2, best, config.step_noise_k):
                     return t2, None, st2
@@ -370,12 +371,12 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
                     on_trial(t2)
                 return None
             sub /= 2.0
-        btr, bres = base
+        bres = base[1]
         # resampled starts need distinct draws to resample: with a few heavy weights the chains would all
         # start at one point, so then they continue from where the best trial's chains are
         spread = rw is not None and rw.ess >= 10 * len(bres.states)
         warm = resample_states(bres, rw.weights, seed + 1009 * counter[0]) if spread else best_res
-        return run(dict(psi, **{k: a}), warm, label)
+        return run(dict(psi, **{k: a}), warm, label(k, a))
 
     def diff_se(a: Trial, b: Trial) -> float:
         """se of ln Z(a) - ln Z(b): a reweighted trial shares its base's estimate, so only the reweighting's
@@ -399,13 +400,13 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
         if tr.sampled:
             base = (tr, res)
 
-    def settle(k: str):
+    def settle():
         """The accepted optimum is sampled (never left as a reweighted estimate). A prune test in between
         compares its sampled alpha = inf trial with the reweighted estimate, whose se carries both the base
         trial's and the reweighting's error."""
         if best.sampled:
             return
-        tr, target, res = run(dict(psi), best_res, f"{k}: sampled at the line-search optimum")
+        tr, target, res = run(dict(psi), best_res, "optimum: sampled at the line-search optimum")
         accept(tr, target, res)
         if on_trial:
             on_trial(tr)
@@ -465,5 +466,5 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
                 if on_trial:
                     on_trial(tr)
             settled[k] = dict(psi)
-    settle("optimum")
+    settle()
     return MaximiserResult(psi, best, best_res, best_target, history)

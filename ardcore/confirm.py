@@ -126,7 +126,7 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
         scale = dict(zip(names, sc.scales))
         # the EKF evidence takes coloured innovations as white: the support it gives is divided by the factor
         # the screen found the score's variance understated by (1 for white innovations)
-        adjusted = gain / max(sc.inflation, 1.0) if gain > 0 else gain
+        adjusted = gain / sc.inflation if gain > 0 else gain
         confirmed.append({"effect": eff.name, "target": c["target"], "score": c["log_bayes_factor"],
                           "screened_log_bayes_factor": c["log_bayes_factor"],
                           "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],

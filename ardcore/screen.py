@@ -156,7 +156,6 @@ class _Screener:
         if robust and fr.standardized.ndim == 2 and fr.standardized.shape[1] == 1:
             e = fr.standardized[:, 0]
             self.eps = np.where(np.isfinite(e), e, 0.0)
-        self.n_obs = len(data)
 
     def term_scale(self, effect: Effect, target: str, data: Dataset) -> list[float] | None:
         """scale per term so that scale * term has the rms of the target's dynamics (None if a term is ~0)."""
@@ -241,6 +240,16 @@ class _Screener:
         return groups, g, Inf, psi
 
 
+def _nuisance_map(Inf: np.ndarray, k: int, grp: np.ndarray) -> np.ndarray:
+    """I_bt I_tt^-1: how a group's score and sensitivities are projected off the first k (the model's own)
+    parameters, whose refit would absorb that much of the group."""
+    th = np.arange(k)
+    Itt = Inf[np.ix_(th, th)]
+    d = np.sqrt(np.maximum(np.diag(Itt), 1e-300))
+    Itt_inv = np.linalg.pinv(Itt / np.outer(d, d), rcond=1e-10) / np.outer(d, d)
+    return Inf[np.ix_(grp, th)] @ Itt_inv
+
+
 def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: np.ndarray | None = None,
                   eps: np.ndarray | None = None) -> tuple[float, float, np.ndarray, float]:
     """Laplace ln BF, profile gain and coefficients of one group, the first k parameters profiled out.
@@ -253,18 +262,15 @@ def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: 
     running median does not step over as it does a line) does not count as noise against it.
     """
     th = np.arange(k)
-    Itt = Inf[np.ix_(th, th)]
-    d = np.sqrt(np.maximum(np.diag(Itt), 1e-300))
-    Itt_inv = np.linalg.pinv(Itt / np.outer(d, d), rcond=1e-10) / np.outer(d, d)
-    Ibt = Inf[np.ix_(grp, th)]
-    H = Inf[np.ix_(grp, grp)] - Ibt @ Itt_inv @ Ibt.T
+    A = _nuisance_map(Inf, k, grp)
+    H = Inf[np.ix_(grp, grp)] - A @ Inf[np.ix_(grp, th)].T
     H = 0.5 * (H + H.T)
-    gb = g[grp] - Ibt @ Itt_inv @ g[th]
+    gb = g[grp] - A @ g[th]
     inflation = 1.0
     if psi is not None and eps is not None:
         # the efficient score's sensitivities (what a refit of the model's own parameters cannot absorb); their
         # Gram matrix is H, so only the colour of the innovations is added: V = H + psi (S - 1) psi'
-        eff = psi[grp] - (Ibt @ Itt_inv) @ psi[th]
+        eff = psi[grp] - A @ psi[th]
         k_hat = np.linalg.pinv(H, rcond=1e-10) @ gb
         psd = innovation_background(eps + eff.T @ k_hat)
         if psd is not None:
@@ -431,10 +437,8 @@ def _coherence_p(sc: _Screener, e: Effect, c: Screened, target: str, k: int) -> 
     if K < 2:
         return 1.0
     groups, g, Inf, psi = sc.batch([(e, target, c.scales)], [c.effect.frequency])  # e: the profiled kernel
-    grp, th = groups[0], np.arange(k)
-    Itt = Inf[np.ix_(th, th)]
-    A = Inf[np.ix_(grp, th)] @ np.linalg.pinv(Itt, rcond=1e-10)
-    eff = psi[grp] - A @ psi[th]
+    grp = groups[0]
+    eff = psi[grp] - _nuisance_map(Inf, k, grp) @ psi[np.arange(k)]
     H = eff @ eff.T
     k_hat = np.linalg.pinv(H, rcond=1e-10) @ (-(eff @ sc.eps))
     psd = innovation_background(sc.eps + eff.T @ k_hat)

@@ -11,6 +11,8 @@ from ardcore.robust import innovation_background, spectral_score_cov
 from ardcore.screen import screen_effects
 from ardcore.simulate import simulate_model
 
+from ..forced_oscillator import base_spec, forced_data
+
 
 def test_score_covariance_under_coloured_noise_is_exact():
     """Var(psi @ eps) for an MA(1) noise eps_t = (z_t + b z_t-1) / sqrt(1 + b^2): the spectral formula against
@@ -90,18 +92,11 @@ def test_coloured_measurement_noise_does_not_pass_for_a_forcing(seed):
     assert max(dyn.values()) < 3, sorted(dyn.items(), key=lambda kv: -kv[1])[:3]
 
 
-def _forced(seed, extra=None, params=None):
-    """Forced oscillator data (4000 samples); ``extra`` adds a truth variant (a forcing or a sensor mode)."""
-    rng = np.random.default_rng(seed)
-    n, dt = 4000, 0.02
-    t = np.arange(n) * dt
-    u = np.convolve(rng.standard_normal(n + 20), np.ones(8) / np.sqrt(8), mode="same")[:n]
-    base = builtin("forced_linear_oscillator").model_copy(update={"constants": {"gamma": 2e-3}}).revalidate()
-    truth, inputs = (extra(base, t) if extra else (base, {}))
-    d = simulate_model(truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3, **(params or {})}, t, seed,
-                       inputs={"u": u, **inputs}, x0=[0.0] * len(truth.states))
-    d = type(d)(d.t, {"y": d.columns["y"], "u": u}, d.meta)
-    return base, d, _fit(base, d, [16.0, 0.4, 8.0, 0.3])
+def _forced(seed, truth=None, params=None, columns=None):
+    """Forced oscillator data, the base model and its fit (see tests/forced_oscillator.py)."""
+    data = forced_data(seed, truth, params, columns)
+    base = base_spec()
+    return base, data, _fit(base, data, [16.0, 0.4, 8.0, 0.3])
 
 
 def _forcing_candidate(f):
@@ -117,24 +112,22 @@ def test_a_forcing_is_coherent_and_a_noise_driven_mode_is_not():
 
     forcing = Effect("forcing(f=1.37)", "forcing", ("forcing0_sin", "forcing0_cos"), frequency=1.37, code="fo0")
 
-    def with_forcing(base, t):
-        spec, _ = augment(base, forcing, "v")
-        return spec, forcing.columns_for(t)
-    spec, data, phi = _forced(1, with_forcing, {"k_fo00_v": 0.5, "k_fo01_v": 0.5})
+    truth, _ = augment(base_spec(), forcing, "v")
+    spec, data, phi = _forced(1, truth, {"k_fo00_v": 0.5, "k_fo01_v": 0.5}, forcing.columns_for)
     got = screen_effects(spec, phi, data, [_forcing_candidate(1.37)], ["v"], ["y"])[0]
     assert got.log_bayes_factor > 30 and got.coherence_p > 0.01, (got.log_bayes_factor, got.coherence_p)
 
     w, zeta = 2 * np.pi * 1.7, 0.02
 
-    def with_mode(base, t):
-        return base.model_copy(update={
-            "name": "mode", "states": ["y", "v", "z", "zd"],
-            "drift": {**base.drift, "z": "zd", "zd": f"-{w * w:.6g}*z - {2 * zeta * w:.6g}*zd"},
-            "diffusion": {**base.diffusion, "zd": "3.0"},
-            "observations": [{"column": "y", "expr": "y + z", "noise_std": "gamma"}],
-            "initial_std": {"y": 0.1, "v": 10.0, "z": 0.0, "zd": 0.0}}).revalidate(), {}
+    base = base_spec()
+    mode = base.model_copy(update={
+        "name": "mode", "states": ["y", "v", "z", "zd"],
+        "drift": {**base.drift, "z": "zd", "zd": f"-{w * w:.6g}*z - {2 * zeta * w:.6g}*zd"},
+        "diffusion": {**base.diffusion, "zd": "3.0"},
+        "observations": [{"column": "y", "expr": "y + z", "noise_std": "gamma"}],
+        "initial_std": {"y": 0.1, "v": 10.0, "z": 0.0, "zd": 0.0}}).revalidate()
     for seed in (1, 2):
-        spec, data, phi = _forced(seed, with_mode)
+        spec, data, phi = _forced(seed, mode)
         plain = screen_effects(spec, phi, data, [_forcing_candidate(1.7)], ["v"], ["y"], robust=False)[0]
         got = screen_effects(spec, phi, data, [_forcing_candidate(1.7)], ["v"], ["y"])[0]
         assert plain.log_bayes_factor > 30  # the white-noise likelihood takes the mode's peak for a forcing

@@ -8,35 +8,21 @@ must hold the truth; a shaped effect's shape must be within 25 % of the truth. O
 nothing is added.
 """
 
-import numpy as np
 import pytest
 
 from ardcore.diagnose import DiagnoseConfig, diagnose, jsonable
 from ardcore.effects import Effect, augment
-from ardcore.library import builtin
-from ardcore.simulate import simulate_model
 from ardcore.study import StudySpec
+
+from ..forced_oscillator import base_spec, forced_data
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 
-TRUE = {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}
-
-
-def base_spec():
-    return builtin("forced_linear_oscillator").model_copy(update={"constants": {"gamma": 2e-3}}).revalidate()
-
-
-def make_data(seed, effect=None, target="v", value=0.0, n=4000, dt=0.02):
-    rng = np.random.default_rng(seed)
-    t = np.arange(n) * dt
-    u = np.convolve(rng.standard_normal(n + 20), np.ones(8) / np.sqrt(8), mode="same")[:n]
-    truth, params, inputs = base_spec(), dict(TRUE), {"u": u}
-    if effect is not None:
-        truth, names = augment(truth, effect, target)
-        params.update({nm: value for nm in names})
-        inputs.update(effect.columns_for(t))
-    d = simulate_model(truth, params, t, seed, inputs=inputs, x0=[0.0, 0.0])
-    return type(d)(d.t, {"y": d.columns["y"], "u": u}, d.meta)  # a forcing's own columns are not given
+def make_data(seed, effect=None, target="v", value=0.0):
+    if effect is None:
+        return forced_data(seed)
+    truth, names = augment(base_spec(), effect, target)
+    return forced_data(seed, truth, {nm: value for nm in names}, effect.columns_for)
 
 
 def study(seed=2):
