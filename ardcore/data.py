@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -132,7 +133,10 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
     text = path.read_text()
     if not text.strip():
         raise DataError(f"{path}: empty file")
-    rows = list(csv.reader(io.StringIO(text)))
+    try:
+        rows = list(csv.reader(io.StringIO(text)))
+    except csv.Error as exc:  # e.g. a cell over the csv module's field size limit
+        raise DataError(f"{path}: not a CSV table ({exc})") from None
     header = [h.strip().strip('"').strip() for h in rows[0]]
     body = [r for r in rows[1:] if any(c.strip() for c in r)]
     keep = [i for i, h in enumerate(header) if h]
@@ -184,8 +188,8 @@ def read_columns(path: str | Path) -> dict[str, np.ndarray]:
         try:
             with np.load(path, allow_pickle=False) as z:
                 cols = {k: np.asarray(z[k], dtype=float).ravel() for k in z.files}
-        except (ValueError, OSError) as exc:
-            raise DataError(f"{path}: cannot read NPZ file ({exc})") from None
+        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as exc:  # truncated or not a zip
+            raise DataError(f"{path}: cannot read NPZ file ({exc or type(exc).__name__})") from None
     elif suf == ".mat":
         cols = _read_mat(path)
     else:

@@ -24,7 +24,7 @@ import sympy as sp
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from .errors import ModelError
-from .expr import CONSTANTS, FUNCTIONS, parse_expression
+from .expr import CONSTANTS, FUNCTIONS, expanded_size, parse_expression
 
 NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -248,9 +248,15 @@ def symbolic(spec: ModelSpec) -> SymbolicModel:
         return e.xreplace(subs)
 
     known: list[str] = []
+    sizes: dict[str, int] = {}
     for k, src in spec.derived.items():
+        sizes[k] = expanded_size(src, sizes, where=f"model {spec.name!r}, derived[{k!r}]")
         subs[S(k)] = parse(src, f"derived[{k!r}]", known)
         known.append(k)
+    for where, src in ([(f"drift[{n!r}]", spec.drift[n]) for n in spec.states]
+                       + [(f"diffusion[{n!r}]", v) for n, v in spec.diffusion.items()]
+                       + [(f"observations[{j}].expr", o.expr) for j, o in enumerate(spec.observations)]):
+        expanded_size(src, sizes, where=f"model {spec.name!r}, {where}")
     dnames = list(spec.derived)
     drift = [sp.expand(parse(spec.drift[n], f"drift[{n!r}]", dnames), deep=False) for n in spec.states]
     diffusion = [parse(spec.diffusion[n], f"diffusion[{n!r}]", dnames) if n in spec.diffusion else sp.S.Zero

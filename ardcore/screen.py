@@ -87,6 +87,10 @@ class Screened:
     shape_occam: float = 0.0
     """Nats the profiled shape costs (already taken off ``log_bayes_factor``; the confirmation, which holds
     the shape fixed, takes them off its ln BF too)."""
+    conditional_log_bayes_factor: float | None = None
+    """ln BF given the candidates picked before it (:func:`distinct_candidates`; None if not scored so)."""
+    rows: tuple | None = field(default=None, repr=False)
+    basis: "_Basis | None" = field(default=None, repr=False)
 
     @property
     def physical(self) -> list[float]:
@@ -98,6 +102,8 @@ class Screened:
                 "log_bayes_factor": float(self.log_bayes_factor), "score": float(self.log_bayes_factor),
                 "shape_occam": float(self.shape_occam), "coherence_p": self.coherence_p,
                 "inflation": float(self.inflation),
+                "conditional_log_bayes_factor": None if self.conditional_log_bayes_factor is None
+                else float(self.conditional_log_bayes_factor),
                 "delta_loglik": float(self.delta_loglik),
                 "coefficients": self.physical, "normalised_coefficients": [float(c) for c in self.coefficients],
                 "scales": [float(s) for s in self.scales]}
@@ -139,6 +145,48 @@ def target_scale(spec: ModelSpec, phi: dict, target: str, X: np.ndarray, U: np.n
     return max(_rms(y - np.nanmean(y)), 1e-12)
 
 
+@dataclass
+class _Basis:
+    """The model's own sensitivities and innovations at the fit: with any candidates' sensitivity rows
+    (:attr:`Screened.rows`) they give the joint score and information, with no further filter pass."""
+
+    De: np.ndarray
+    DS: np.ndarray
+    e0: np.ndarray
+    S0: np.ndarray
+    ok: np.ndarray
+    eps: np.ndarray | None
+
+    @property
+    def k(self) -> int:
+        return self.De.shape[0]
+
+    def score(self, De: np.ndarray, DS: np.ndarray):
+        """Score g, information and standardised sensitivities on the time grid (None without ``eps``) of the
+        parameters whose innovation sensitivities are the rows of ``De``, ``DS``."""
+        e0, S0 = self.e0, self.S0
+        g = -(De @ (e0 / S0)) - 0.5 * (DS @ (1 / S0 - e0 ** 2 / S0 ** 2))
+        Inf = (De / S0) @ De.T + 0.5 * (DS / S0 ** 2) @ DS.T
+        psi = None
+        if self.eps is not None:
+            # the innovations' sensitivities on the time grid (zero where there is no observation), standardised
+            psi = np.zeros((De.shape[0], self.ok.size))
+            psi[:, self.ok] = De / np.sqrt(S0)
+        return g, Inf, psi
+
+    def conditional(self, c: "Screened", given: list["Screened"]) -> float:
+        """Screened ln BF of ``c`` with the coefficients of ``given`` profiled out with the model's own."""
+        rows = [self.De] + [p.rows[0] for p in given] + [c.rows[0]]
+        srows = [self.DS] + [p.rows[1] for p in given] + [c.rows[1]]
+        g, Inf, psi = self.score(np.vstack(rows), np.vstack(srows))
+        n = g.size
+        grp = np.arange(n - c.rows[0].shape[0], n)
+        lbf = _bayes_factor(g, Inf, n - grp.size, grp, psi, self.eps)[0] - c.shape_occam
+        if c.coherence_p is not None and c.coherence_p < COHERENCE_P:
+            lbf = min(lbf, 0.0)  # an incoherent "forcing" stays rejected whatever is profiled with it
+        return lbf
+
+
 class _Screener:
     """Score/information of the EKF likelihood for a batch of normalised candidate terms."""
 
@@ -150,6 +198,8 @@ class _Screener:
                   else np.zeros((len(data), 0)))
         self.theta = list(spec.free_parameters)
         self._models: dict = {}
+        self.basis: _Basis | None = None
+        self.last_rows: list = []
         # the standardised innovations on the time grid (zero where there is no observation): their actual
         # spectrum, which the likelihood takes as flat, is what each candidate's score really varies by
         self.eps = None
@@ -225,18 +275,17 @@ class _Screener:
         De, DS = np.array(D_e), np.array(D_S)
         bad = ~np.all(np.isfinite(De), axis=0) | ~np.all(np.isfinite(DS), axis=0)
         De[:, bad], DS[:, bad] = 0.0, 0.0
-        g = -(De @ (e0 / S0)) - 0.5 * (DS @ (1 / S0 - e0 ** 2 / S0 ** 2))
-        Inf = (De / S0) @ De.T + 0.5 * (DS / S0 ** 2) @ DS.T
         k = len(self.theta)
+        if self.basis is None:
+            # at zero coefficients every candidate's filter is the model's own: the model's sensitivities and
+            # innovations are the same in every batch, and any set of candidates can be scored jointly later
+            self.basis = _Basis(De[:k].copy(), DS[:k].copy(), e0, S0, ok, self.eps)
         groups, pos = [], k
         for nm in names:
             groups.append(np.arange(pos, pos + len(nm)))
             pos += len(nm)
-        psi = None
-        if self.eps is not None:
-            # the innovations' sensitivities on the time grid (zero where there is no observation), standardised
-            psi = np.zeros((len(allp), ok.size))
-            psi[:, ok] = De / np.sqrt(S0)
+        self.last_rows = [(De[gr], DS[gr]) for gr in groups]
+        g, Inf, psi = self.basis.score(De, DS)
         return groups, g, Inf, psi
 
 
@@ -325,9 +374,10 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
     for b in range(0, len(items), batch_size):
         chunk = items[b:b + batch_size]
         groups, g, Inf, C = sc.batch(chunk)
-        for (e, t, s), grp in zip(chunk, groups):
+        for (e, t, s), grp, rows in zip(chunk, groups, sc.last_rows):
             lbf, gain, coef, infl = _bayes_factor(g, Inf, k, grp, C, sc.eps)
-            out.append(Screened(e, t, lbf, gain, [float(c) for c in coef], s, inflation=infl))
+            out.append(Screened(e, t, lbf, gain, [float(c) for c in coef], s, inflation=infl, rows=rows,
+                                basis=sc.basis))
     say(f"screened {len(items)} plain candidates")
     for e, t in shaped:
         best = _screen_shape(sc, e, t, data, k, shape_grid)
@@ -382,7 +432,8 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
         if s is not None:
             groups, g, Inf, C = sc.batch([(e, t, s)], [v])
             lbf, gain, coef, infl = _bayes_factor(g, Inf, k, groups[0], C, sc.eps)
-            r = Screened(ef, t, lbf, gain, [float(c) for c in coef], s, inflation=infl)
+            r = Screened(ef, t, lbf, gain, [float(c) for c in coef], s, inflation=infl, rows=sc.last_rows[0],
+                         basis=sc.basis)
         cache[v] = r
         return r
 
@@ -459,15 +510,48 @@ def _coherence_p(sc: _Screener, e: Effect, c: Screened, target: str, k: int) -> 
 
 
 def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: list[Screened], k: int,
-                        min_log_bf: float, *, substeps: int | None = None, look: int = 12,
+                        min_log_bf: float, *, substeps: int | None = None, look: int = 40,
                         robust: bool = True) -> list[Screened]:
-    """Up to ``k`` of the best screened candidates, each still worth ``min_log_bf`` given the ones before it.
+    """Up to ``k`` candidates by forward selection on the screened evidence.
 
-    Candidate B is skipped when its screened ln BF *conditional on* the candidates already picked (their
-    coefficients profiled out with the model's own) falls below ``min_log_bf``: it explains what they
-    explain (a constant on the velocity equation and a bias on the measurement, a cubic and a saturating
-    stiffness), and confirming both would double the cost for one effect.
+    The first is the best screened one; each next one is the candidate with the highest ln BF *conditional
+    on* those already picked (their coefficients profiled out with the model's own), as long as that
+    exceeds ``min_log_bf``. So a candidate that only explains what a better one explains (a constant on the
+    velocity equation and a bias on the measurement, a cubic and a saturating stiffness) is not confirmed
+    twice, and one that explains what the first leaves over (an even stiffness next to the cubic one) is
+    found even when on its own it ranks low. Candidates of the first ``look`` that are left out because the
+    picked ones explain them get ``conditional_on``. The joint score comes from the sensitivities the screen
+    computed (:class:`_Basis`): no further filter pass.
     """
+    pool = [c for c in screened[:look] if c.rows is not None and c.basis is not None]
+    if len(pool) < len(screened[:look]):
+        return _distinct_by_refit(spec, phi, data, screened, k, min_log_bf, substeps=substeps, robust=robust)
+    picked: list[Screened] = []
+    if pool and pool[0].log_bayes_factor > min_log_bf:
+        picked.append(pool[0])
+    while picked and len(picked) < k:
+        best, best_lbf = None, min_log_bf
+        for c in pool:
+            if c in picked:
+                continue
+            c.conditional_log_bayes_factor = c.basis.conditional(c, picked)
+            if c.conditional_log_bayes_factor > best_lbf:
+                best, best_lbf = c, c.conditional_log_bayes_factor
+        if best is None:
+            break
+        picked.append(best)
+    for c in pool:
+        if c in picked or c.log_bayes_factor <= min_log_bf:
+            continue
+        lbf = c.basis.conditional(c, picked)
+        if lbf <= min_log_bf:
+            c.conditional_on = [p.effect.name for p in picked]
+    return picked
+
+
+def _distinct_by_refit(spec, phi, data, screened, k, min_log_bf, *, substeps=None, look=12, robust=True):
+    """:func:`distinct_candidates` for candidates screened elsewhere (no stored sensitivities): greedy in
+    screened order, each conditional score from a new batch."""
     sc = _Screener(spec, phi, data, substeps, robust)
     base = len(sc.theta)
     picked: list[Screened] = []

@@ -14,313 +14,50 @@ import hmac
 import io
 import json
 import logging
-import math
 import re
 import secrets
+import shutil
 import threading
 import time
 from pathlib import Path
-from typing import Any, Optional
 
 import numpy as np
 from fastapi import Depends, FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field
 
 from ardcore.errors import ArdflowError
 from ardcore.study import StudySpec
 
+from .guard import RequestGuard
+from .validate import Rejected, check_budget, check_models
+from .schemas import (API_VERSION, FINAL, ID_RE, DashboardLink, DatasetInfo, DiagnoseRequest,  # noqa: F401
+                      DiagnosisStatus, Health, Progress, Settings, StudyCreated, StudyStatus, _finite)
+from .registry import ProgressCache, Registry, Runner  # noqa: F401
+
 log = logging.getLogger("ardflow.service")
-
-API_VERSION = "v1"
-ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
-FINAL = {"done", "failed", "cancelled"}
-
-
-class Settings(BaseModel):
-    """Service settings (``ardflow serve`` options)."""
-
-    model_config = ConfigDict(extra="forbid")
-    root: Path = Field(description="directory holding the registry, data sets and study stores")
-    token: Optional[str] = Field(None, description="API token; None disables authentication")
-    max_body_mb: float = Field(20.0, gt=0)
-    max_upload_rows: int = Field(2_000_000, gt=0)
-
-
-# ------------------------------------------------------------------ response schemas
-class Health(BaseModel):
-    status: str
-    version: str
-    workers: int
-
-
-class DatasetInfo(BaseModel):
-    id: str
-    rows: int
-    columns: list[str]
-
-
-class StudyCreated(BaseModel):
-    id: str
-    status: str
-
-
-class Progress(BaseModel):
-    model: Optional[str] = None
-    stage: Optional[str] = None
-    iteration: Optional[int] = None
-    psi: Optional[dict[str, Any]] = None
-    best_log_evidence: Optional[float] = None
-    rhat: Optional[list[Optional[float]]] = None
-    trials_done: int = 0
-    elapsed_s: float = 0.0
-    eta_s: Optional[float] = None
-
-
-class StudyStatus(BaseModel):
-    id: str
-    name: str
-    status: str
-    created: float
-    error: Optional[str] = None
-    models: dict[str, Progress] = Field(default_factory=dict)
-
-
-class DiagnoseRequest(BaseModel):
-    """Close the loop on one model of a finished study (``ardflow diagnose`` on the study's store)."""
-
-    model_config = ConfigDict(extra="forbid")
-    model: Optional[str] = Field(None, pattern=r"^[A-Za-z][A-Za-z0-9_]{0,31}$",
-                                 description="default: the study's best model")
-    top_k: int = Field(3, ge=1, le=10, description="candidates confirmed by evidence per round")
-    max_rounds: int = Field(3, ge=1, le=10, description="effects added one after another at most")
-    test_dataset: Optional[str] = Field(None, pattern=r"^[a-f0-9]{16}$",
-                                        description="uploaded held-out record for the free run")
-
-
-class DiagnosisStatus(BaseModel):
-    model: str
-    status: str
-    error: Optional[str] = None
-    verdict: Optional[str] = None
-    figures: list[str] = Field(default_factory=list)
-
-
-class DashboardLink(BaseModel):
-    url: Optional[str]
-
-
-def _finite(x):
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
-# ------------------------------------------------------------------ the study registry
-class Registry:
-    """Durable registry: ``root/studies/<id>/{meta.json, store/}``, ``root/datasets/<id>.csv``."""
-
-    def __init__(self, root: Path):
-        self.root = Path(root)
-        (self.root / "studies").mkdir(parents=True, exist_ok=True)
-        (self.root / "datasets").mkdir(parents=True, exist_ok=True)
-
-    def study_dir(self, sid: str) -> Path:
-        if not ID_RE.match(sid):
-            raise HTTPException(404, f"no study {sid!r}")
-        return self.root / "studies" / sid
-
-    def ids(self) -> list[str]:
-        return sorted(p.name for p in (self.root / "studies").iterdir() if (p / "meta.json").exists())
-
-    def meta(self, sid: str) -> dict:
-        p = self.study_dir(sid) / "meta.json"
-        if not p.exists():
-            raise HTTPException(404, f"no study {sid!r}")
-        return json.loads(p.read_text())
-
-    def write_meta(self, sid: str, meta: dict) -> None:
-        from workers.store import atomic_write_text
-
-        atomic_write_text(self.study_dir(sid) / "meta.json", json.dumps(meta))
-
-    def store(self, sid: str):
-        from workers.store import StudyStore
-
-        return StudyStore(self.study_dir(sid) / "store")
-
-
-class Runner:
-    """Runs each study's driver (``ardflow resume STORE --scheduler ADDR``) as a child process.
-
-    The API process only serves requests; the maximisers' work never competes with
-    the event loop. A driver that dies is relaunched on the next service start from
-    the durable registry, and continues from the store.
-    """
-
-    def __init__(self, registry: Registry, client):
-        self.registry, self.client = registry, client
-        self.threads: dict[str, threading.Thread] = {}
-        self.procs: dict[str, Any] = {}
-        self.closing = False
-
-    def start(self, sid: str) -> None:
-        if sid in self.threads and self.threads[sid].is_alive():
-            return
-        th = threading.Thread(target=self._run, args=(sid,), name=f"study-{sid}", daemon=True)
-        self.threads[sid] = th
-        th.start()
-
-    def _run(self, sid: str) -> None:
-        import subprocess
-        import sys
-
-        reg = self.registry
-        meta = reg.meta(sid)
-        meta["status"] = "running"
-        reg.write_meta(sid, meta)
-        store = reg.store(sid)
-        log_path = reg.study_dir(sid) / "driver.log"
-        with open(log_path, "a") as logf:
-            p = subprocess.Popen([sys.executable, "-m", "service.cli", "resume", str(store),
-                                  "--scheduler", self.client.scheduler.address],
-                                 stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-            self.procs[sid] = p
-            rc = p.wait()
-        if self.closing:
-            return  # the service is stopping: the study resumes on the next start
-        st = store.meta.get("status")
-        if rc == 0 and st == "done":
-            meta["status"] = "done"
-        elif st == "cancelled":
-            meta["status"] = "cancelled"
-        else:
-            tail = log_path.read_text()[-2000:].strip().splitlines()
-            meta["status"] = "failed"
-            meta["error"] = store.meta.get("error") or (tail[-1] if tail else f"driver exit {rc}")
-        reg.write_meta(sid, meta)
-
-    def cancel(self, sid: str) -> None:
-        from workers.graph import cancel_study
-
-        study_id = self.registry.store(sid).meta.get("study_id")
-        if study_id:
-            cancel_study(self.client, study_id)
-
-    def diagnose(self, sid: str, model: str, req: "DiagnoseRequest") -> None:
-        """``ardflow diagnose STORE --model M --out studies/<id>/diagnoses/<M>`` in a child process."""
-        import subprocess
-        import sys
-
-        reg = self.registry
-        out = reg.study_dir(sid) / "diagnoses" / model
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "status.json").write_text(json.dumps({"status": "running", "started": time.time()}))
-        cmd = [sys.executable, "-m", "service.cli", "diagnose", str(reg.store(sid)), "--model", model,
-               "--out", str(out), "--top-k", str(req.top_k), "--max-rounds", str(req.max_rounds)]
-        if req.test_dataset:
-            cmd += ["--test-data", str(reg.root / "datasets" / f"{req.test_dataset}.csv")]
-
-        def run():
-            with open(out / "diagnose.log", "w") as logf:
-                p = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-                self.procs[f"{sid}/diagnose/{model}"] = p
-                rc = p.wait()
-            if self.closing:
-                return
-            if rc == 0 and (out / "diagnosis.json").exists():
-                st = {"status": "done"}
-            else:
-                tail = (out / "diagnose.log").read_text()[-2000:].strip().splitlines()
-                st = {"status": "failed", "error": tail[-1] if tail else f"exit {rc}"}
-            (out / "status.json").write_text(json.dumps(st))
-
-        threading.Thread(target=run, name=f"diagnose-{sid}-{model}", daemon=True).start()
-
-    def stop(self) -> None:
-        self.closing = True
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.terminate()
-
-
-# ------------------------------------------------------------------ progress
-class ProgressCache:
-    """Per-study progress folded incrementally from the store's progress logs (status stays cheap)."""
-
-    def __init__(self, reg: Registry):
-        self.reg = reg
-        self.lock = threading.Lock()
-        self.entries: dict[str, dict] = {}
-
-    def get(self, sid: str) -> dict[str, Progress]:
-        from workers.graph import read_progress
-
-        with self.lock:
-            e = self.entries.get(sid)
-            if e is None:
-                store = self.reg.store(sid)
-                if not store.exists():
-                    return {}
-                meta = store.meta
-                e = self.entries[sid] = {
-                    "store": store, "offsets": {}, "models": {},
-                    "max_trials": meta.get("spec", {}).get("maximiser", {}).get("max_trials", 60),
-                    "started": meta.get("started")}
-            store = e["store"]
-            if e["started"] is None:
-                e["started"] = store.meta.get("started")
-            started = e["started"] or time.time()
-            out = e["models"]
-            for ev in read_progress(store, e["offsets"]):
-                m = ev.get("model")
-                p = out.setdefault(m, Progress(model=m))
-                if ev.get("stage") != "note":
-                    p.stage = ev.get("stage")
-                p.elapsed_s = max(0.0, float(ev.get("time", started)) - started)
-                if ev.get("stage") == "burnin":
-                    p.rhat = _finite(ev.get("rhat"))
-                if ev.get("stage") == "trial":
-                    p.trials_done += 1
-                    p.iteration = ev.get("iteration")
-                    p.psi = _finite(ev.get("psi"))
-                    le = ev.get("log_evidence")
-                    if ev.get("accepted") and isinstance(le, (int, float)) and math.isfinite(le):
-                        p.best_log_evidence = le if p.best_log_evidence is None else max(p.best_log_evidence, le)
-                if ev.get("stage") == "model_done":
-                    p.eta_s = 0.0
-                elif p.trials_done:
-                    # an upper bound: the maximiser stops at max_trials at the latest
-                    p.eta_s = p.elapsed_s / p.trials_done * max(0, e["max_trials"] - p.trials_done)
-            return {k: v.model_copy() for k, v in out.items()}
-
+COLUMN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
+_render_lock = threading.Lock()  # matplotlib (mathtext, font cache) is not thread-safe
 
 # ------------------------------------------------------------------ the app
 def create_app(settings: Settings, client) -> FastAPI:
     """The FastAPI app over a Dask ``client`` (which it never exposes)."""
     reg = Registry(settings.root)
-    runner = Runner(reg, client)
+    runner = Runner(reg, client, max_running=settings.max_running, cancel_grace_s=settings.cancel_grace_s)
     progress_cache = ProgressCache(reg)
     app = FastAPI(title="ardflow", version="0.1.0",
                   description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")
     app.state.registry, app.state.runner, app.state.settings = reg, runner, settings
     max_body = int(settings.max_body_mb * 1024 * 1024)
 
-    @app.middleware("http")
-    async def limit_body(request: Request, call_next):
-        cl = request.headers.get("content-length")
-        if cl is not None:
-            try:
-                if int(cl) > max_body:
-                    return JSONResponse({"detail": f"request body larger than {settings.max_body_mb:g} MB"}, 413)
-            except ValueError:
-                return JSONResponse({"detail": "invalid Content-Length"}, 400)
-        return await call_next(request)
+    app.add_middleware(RequestGuard, max_body=max_body, allowed_hosts=settings.allowed_hosts,
+                       csv_paths=(f"/{API_VERSION}/datasets",))
+
+    @app.exception_handler(Exception)
+    async def unexpected(request: Request, exc: Exception):
+        # never a traceback to the caller; the log keeps it
+        log.exception("unexpected error on %s %s", request.method, request.url.path)
+        return JSONResponse({"detail": f"internal error ({type(exc).__name__}); see the service log"}, 500)
 
     @app.exception_handler(RequestValidationError)
     async def bad_request(request: Request, exc: RequestValidationError):
@@ -370,18 +107,31 @@ def create_app(settings: Settings, client) -> FastAPI:
             text = body.decode("utf-8")
         except UnicodeDecodeError:
             raise HTTPException(422, "data set must be UTF-8 CSV text") from None
-        if text.count("\n") > settings.max_upload_rows:
+        rows = max(text.count("\n"), text.count("\r"))
+        if rows > settings.max_upload_rows:
             raise HTTPException(413, f"data set has more than {settings.max_upload_rows} rows")
+        header = text.lstrip("\ufeff").splitlines()[0] if text.strip() else ""
+        for name in (h.strip().strip('"') for h in header.split(",")):
+            if not COLUMN_RE.match(name):
+                raise HTTPException(422, f"column name {name[:40]!r} is not allowed: letters, digits and "
+                                         "underscores, starting with a letter (at most 64)")
         did = secrets.token_hex(8)
         tmp = reg.root / "datasets" / f".{did}.csv"
-        tmp.write_text(text)
         try:
+            tmp.write_text(text)
             from ardcore.data import read_dataset
 
             ds = await asyncio.to_thread(read_dataset, tmp)
         except ArdflowError as exc:
-            tmp.unlink(missing_ok=True)
             raise HTTPException(422, str(exc).replace(str(tmp), "data set")) from None
+        except Exception as exc:  # noqa: BLE001 - csv.Error (a field over its size limit) and friends: a 422
+            raise HTTPException(422, f"cannot read the data set: {str(exc)[:200] or type(exc).__name__}") from None
+        finally:
+            if "ds" not in locals():
+                tmp.unlink(missing_ok=True)  # never a temporary file left behind
+        if len(ds) > settings.max_upload_rows:
+            tmp.unlink(missing_ok=True)
+            raise HTTPException(413, f"data set has more than {settings.max_upload_rows} rows")
         tmp.replace(reg.root / "datasets" / f"{did}.csv")
         return DatasetInfo(id=did, rows=len(ds), columns=["t", *ds.columns])
 
@@ -390,19 +140,35 @@ def create_app(settings: Settings, client) -> FastAPI:
         if spec.data.path is not None:
             raise HTTPException(422, "data.path is not accepted over the API: upload the data set "
                                      "(POST /v1/datasets) and give data.dataset")
+        if len(runner.queue) >= settings.max_queued:
+            raise HTTPException(429, f"{len(runner.queue)} studies are waiting already; try again later",
+                                headers={"Retry-After": "60"})
+        try:
+            # compiled in a child process with limits: a poison model is a 422 now, never a busy worker later
+            await asyncio.to_thread(check_models, spec, timeout_s=settings.check_timeout_s,
+                                    memory_mb=settings.check_memory_mb)
+        except Rejected as exc:
+            raise HTTPException(exc.status, str(exc)) from None
         sid = f"{spec.name}-{secrets.token_hex(4)}"
         d = reg.study_dir(sid)
         d.mkdir(parents=True)
         from workers.graph import prepare_store
 
         try:
-            await asyncio.to_thread(prepare_store, spec, d / "store", datasets=reg.root / "datasets", study_id=sid)
+            store = await asyncio.to_thread(prepare_store, spec, d / "store", datasets=reg.root / "datasets",
+                                            study_id=sid)
+            estimate = check_budget(spec, int(store.meta.get("data", {}).get("n") or 0), settings.max_study_cost)
+            reg.write_meta(sid, {"id": sid, "name": spec.name, "status": "queued", "created": time.time(),
+                                 "estimate": estimate})
+        except Rejected as exc:
+            shutil.rmtree(d, ignore_errors=True)
+            raise HTTPException(exc.status, str(exc)) from None
         except ArdflowError as exc:
-            import shutil
-
             shutil.rmtree(d, ignore_errors=True)
             raise HTTPException(422, str(exc)) from None
-        reg.write_meta(sid, {"id": sid, "name": spec.name, "status": "queued", "created": time.time()})
+        except BaseException:
+            shutil.rmtree(d, ignore_errors=True)  # never a half-made study directory
+            raise
         runner.start(sid)
         return StudyCreated(id=sid, status="queued")
 
@@ -450,8 +216,17 @@ def create_app(settings: Settings, client) -> FastAPI:
         m = reg.meta(sid)
         if m.get("status") in FINAL:
             raise HTTPException(409, f"study {sid} is already {m['status']}")
-        runner.cancel(sid)
+        runner.cancel(sid)  # recorded durably before this answer
         return _status(sid)
+
+    @app.delete(f"{v1}/studies/{{sid}}", status_code=204, dependencies=[Depends(auth)])
+    def delete(sid: str) -> Response:
+        m = reg.meta(sid)
+        if m.get("status") not in FINAL or sid in runner.running():
+            raise HTTPException(409, f"study {sid} is {m.get('status')}: cancel it first")
+        shutil.rmtree(reg.study_dir(sid), ignore_errors=True)
+        progress_cache.forget(sid)
+        return Response(status_code=204)
 
     @app.get(f"{v1}/studies/{{sid}}/summary", dependencies=[Depends(auth)])
     def summary(sid: str) -> JSONResponse:
@@ -507,7 +282,8 @@ def create_app(settings: Settings, client) -> FastAPI:
         if name not in FIGURES:
             raise HTTPException(404, f"no figure {name!r} (available: {sorted(FIGURES)})")
         try:
-            png = render(name, reg.store(sid))
+            with _render_lock:
+                png = render(name, reg.store(sid))
         except LookupError as exc:
             raise HTTPException(409, str(exc)) from None
         return Response(png, media_type="image/png")
@@ -571,11 +347,14 @@ def create_app(settings: Settings, client) -> FastAPI:
         return Response((d / name).read_bytes(), media_type="image/png")
 
     # reattach: studies that were queued or running when the service stopped continue
+    waiting = []
     for sid in reg.ids():
         try:
-            st = reg.meta(sid).get("status")
+            m = reg.meta(sid)
         except Exception:  # noqa: BLE001 - a damaged entry must not stop the service
             continue
-        if st in ("queued", "running"):
-            runner.start(sid)
+        if m.get("status") in ("queued", "running"):
+            waiting.append((m.get("created", 0.0), sid))
+    for _, sid in sorted(waiting):
+        runner.start(sid)
     return app

@@ -255,8 +255,9 @@ class _Cluster:
             self.client = Client(self.scheduler)
         else:
             n = self.workers or os.cpu_count() or 1
+            # the dashboard has no authentication: loopback only
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                        dashboard_address=":8787", silence_logs=40)
+                                        dashboard_address="127.0.0.1:8787", silence_logs=40)
             self.client = Client(self.cluster)
             # compute yields to the driver, the API and the scheduler on a shared machine
             self.client.run(os.nice, 10)
@@ -338,6 +339,8 @@ def cmd_resume(a) -> int:
     if store.meta.get("status") == "done":
         print(f"[ardflow] study already finished: {store}/summary.json")
         return 0
+    if (Path(a.store) / "CANCELLED").exists():
+        raise SpecError(f"{a.store}: the study was cancelled; it is not resumed")
     t0 = time.perf_counter()
     print(f"[ardflow] resuming study {store.meta['study_id']} in {store}", flush=True)
     summary = _run_on_dask(a, store)
@@ -361,6 +364,8 @@ def cmd_serve(a) -> int:
     import os
     import secrets
 
+    from ardcore.errors import SpecError
+
     import uvicorn
 
     from .app import Settings, create_app
@@ -368,13 +373,22 @@ def cmd_serve(a) -> int:
     root = Path(a.root)
     root.mkdir(parents=True, exist_ok=True)
     token = a.token or os.environ.get("ARDFLOW_TOKEN")
-    if token is None and not _is_loopback(a.host) and not a.no_auth:
-        token = secrets.token_urlsafe(24)
-        (root / "token").write_text(token)
-        os.chmod(root / "token", 0o600)
-        print(f"[ardflow] bound to {a.host}: API token required; generated one in {root / 'token'}", flush=True)
+    loopback = _is_loopback(a.host)
+    if a.insecure_no_auth and not loopback:
+        raise SpecError(f"--insecure-no-auth is only allowed on a loopback address, not {a.host}")
+    if token is None and not a.insecure_no_auth:
+        # a token always, unless asked otherwise on loopback: any local process or web page could talk to us
+        tf = root / "token"
+        token = tf.read_text().strip() if tf.exists() else secrets.token_urlsafe(24)
+        tf.write_text(token)
+        os.chmod(tf, 0o600)
+        print(f"[ardflow] API token required (X-API-Token or Bearer); it is in {tf} "
+              f"(export ARDFLOW_TOKEN=$(cat {tf}))", flush=True)
+    # a page in the user's browser may not reach a loopback service under another name (DNS rebinding)
+    hosts = ["127.0.0.1", "localhost", "[::1]", "::1"] if loopback else None
     with _Cluster(a.scheduler, a.workers) as client:
-        app = create_app(Settings(root=root, token=token, max_body_mb=a.max_body_mb), client)
+        app = create_app(Settings(root=root, token=token, max_body_mb=a.max_body_mb, max_running=a.max_running,
+                                  allowed_hosts=hosts), client)
         print(f"[ardflow] API on http://{a.host}:{a.port}/v1 (OpenAPI: /docs), registry {root.resolve()}", flush=True)
         try:
             uvicorn.run(app, host=a.host, port=a.port, log_level="warning")
@@ -504,8 +518,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--host", default="127.0.0.1")
     s.add_argument("--port", type=int, default=8000)
     s.add_argument("--root", default="runs/service", help="registry directory (studies and data sets)")
-    s.add_argument("--token", default=None, help="API token (default: $ARDFLOW_TOKEN; generated off loopback)")
-    s.add_argument("--no-auth", action="store_true", help="no token even off loopback (behind your own proxy)")
+    s.add_argument("--token", default=None,
+                   help="API token (default: $ARDFLOW_TOKEN, else generated into ROOT/token)")
+    s.add_argument("--insecure-no-auth", action="store_true",
+                   help="no token (loopback only: any local process can then submit studies)")
+    s.add_argument("--max-running", type=int, default=2, help="study drivers at once; the others wait queued")
     s.add_argument("--scheduler", default=None)
     s.add_argument("--workers", type=int, default=None)
     s.add_argument("--max-body-mb", type=float, default=20.0)

@@ -1,0 +1,87 @@
+"""Complete validation of a study's models: parse, differentiate and generate each kernel's source.
+
+The schema accepts any expression text; what an expression costs shows only when it is differentiated and
+turned into a kernel. The service runs :func:`check_study` at submit in a child process with a time and
+memory limit (``python -m ardcore.check`` reads the study as JSON on stdin), so a poison model is a 422
+naming its field instead of a worker busy forever. Exit status 0: fine; 2: the first line of stderr is the
+user's error; anything else: the check itself failed.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from .errors import ArdflowError, ModelError
+
+
+def parse_models(spec) -> None:
+    """Parse every expression of every candidate of ``spec`` (cheap and bounded: :mod:`ardcore.expr` caps
+    size, depth, exponents and constants), without differentiating. The service runs this in-process
+    before the child-process check, so that most bad models are answered at once."""
+    from .expr import expanded_size, parse_expression
+
+    for cand in spec.models:
+        ms = cand.model_spec()
+        base = set(ms.states) | set(ms.parameters) | set(ms.constants) | set(ms.inputs)
+        known: list[str] = []
+        sizes: dict[str, int] = {}
+        fields = []
+        for k, src in ms.derived.items():
+            w = f"model {ms.name!r}, derived[{k!r}]"
+            sizes[k] = expanded_size(src, sizes, where=w)
+            parse_expression(src, base | set(known), where=w)
+            known.append(k)
+        fields += [(f"drift[{n!r}]", ms.drift[n]) for n in ms.states]
+        fields += [(f"diffusion[{n!r}]", v) for n, v in ms.diffusion.items()]
+        fields += [(f"observations[{j}].expr", o.expr) for j, o in enumerate(ms.observations)]
+        fields += [(f"observations[{j}].noise_std", o.noise_std) for j, o in enumerate(ms.observations)]
+        for w, src in fields:
+            expanded_size(src, sizes, where=f"model {ms.name!r}, {w}")
+            parse_expression(src, base | set(known), where=f"model {ms.name!r}, {w}")
+        for n in ms.states:
+            for w, d in (("initial_mean", ms.initial_mean), ("initial_std", ms.initial_std)):
+                if n in d:
+                    parse_expression(d[n], base, where=f"model {ms.name!r}, {w}[{n!r}]")
+
+
+def check_study(spec) -> None:
+    """Parse, differentiate and generate the kernel source of every candidate of ``spec`` (a StudySpec).
+
+    Raises
+    ------
+    ModelError
+        Naming the model and the field of the first expression that cannot become a kernel.
+    """
+    from .codegen import generate_source
+
+    for i, cand in enumerate(spec.models):
+        ms = cand.model_spec()
+        try:
+            src = generate_source(ms)
+            compile(src, f"<kernel {ms.name}>", "exec")
+        except ArdflowError:
+            raise
+        except (RecursionError, MemoryError):
+            raise ModelError(f"models[{i}] ({cand.label}): the model is too large to compile") from None
+        except (ValueError, TypeError, ArithmeticError, SyntaxError) as exc:
+            raise ModelError(f"models[{i}] ({cand.label}): cannot compile the model: {exc}") from None
+
+
+def main() -> int:
+    from .study import StudySpec
+
+    try:
+        spec = StudySpec.model_validate(json.loads(sys.stdin.read()))
+        check_study(spec)
+    except ArdflowError as exc:
+        print(str(exc).splitlines()[0] if str(exc) else type(exc).__name__, file=sys.stderr)
+        return 2
+    except ValueError as exc:  # pydantic's ValidationError is a ValueError
+        print(str(exc).replace("\n", " ")[:500], file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,92 @@
+"""Submit-time checks of a study: its models compiled in a child process with limits, its cost estimated."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+
+from ardcore.study import StudySpec
+
+_checked: set[str] = set()
+_lock = threading.Lock()
+
+
+class Rejected(Exception):
+    """A study that must not run: ``status`` (422 or 413) and a message naming the field."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+
+
+def _limits(memory_mb: int):
+    def apply():
+        import resource
+
+        b = memory_mb * 1024 * 1024
+        resource.setrlimit(resource.RLIMIT_AS, (b, b))
+    return apply
+
+
+def check_models(spec: StudySpec, *, timeout_s: float = 30.0, memory_mb: int = 2048) -> None:
+    """Parse, differentiate and generate every model's kernel (:mod:`ardcore.check`) in a child process
+    with a wall-clock and an address-space limit; a model seen before (same structure) is not re-checked.
+
+    Raises
+    ------
+    Rejected
+        422 with the checker's message, or naming the limit the model ran into.
+    """
+    from ardcore.check import parse_models
+    from ardcore.errors import ArdflowError
+
+    try:
+        parse_models(spec)  # bounded and cheap: most bad models are answered here, at once
+    except ArdflowError as exc:
+        raise Rejected(422, str(exc)) from None
+    keys = [c.model_spec().structure_hash() for c in spec.models]
+    with _lock:
+        if all(k in _checked for k in keys):
+            return
+    try:
+        r = subprocess.run([sys.executable, "-m", "ardcore.check"], input=json.dumps(spec.model_dump(mode="json")),
+                           capture_output=True, text=True, timeout=timeout_s, preexec_fn=_limits(memory_mb))
+    except subprocess.TimeoutExpired:
+        raise Rejected(422, f"models: compiling the models took longer than {timeout_s:g} s; "
+                            "simplify the expressions (derived chains, powers, nesting)") from None
+    if r.returncode == 2:
+        raise Rejected(422, (r.stderr.strip().splitlines() or ["invalid model"])[0])
+    if r.returncode != 0:
+        tail = r.stderr.strip().splitlines()
+        why = "it ran out of memory" if any("MemoryError" in t for t in tail) else f"exit {r.returncode}"
+        raise Rejected(422, f"models: the models could not be compiled within {memory_mb} MB / "
+                            f"{timeout_s:g} s ({why}); simplify the expressions")
+    with _lock:
+        _checked.update(keys)
+
+
+def estimate_evaluations(spec: StudySpec) -> float:
+    """An upper estimate of a study's likelihood evaluations: every model runs ``max_trials`` trials, each
+    with its start optimisation, every burn-in round (with delayed rejection: up to two per proposal), the
+    stationary draws and the Chib-Jeliazkov proposal draws."""
+    s, m = spec.sampler, spec.maximiser
+    per_trial = (s.n_chains * (s.start_maxfev + 2 * s.max_burnin_rounds * s.round_size + s.n_stationary)
+                 + s.n_proposal * s.n_chains)
+    return float(len(spec.models) * m.max_trials * per_trial)
+
+
+def check_budget(spec: StudySpec, n_rows: int, budget: float) -> dict:
+    """Reject a study whose estimated cost (evaluations x data rows) exceeds ``budget``.
+
+    Returns the estimate; raises :class:`Rejected` (413) with it.
+    """
+    ev = estimate_evaluations(spec)
+    cost = ev * max(1, n_rows)
+    est = {"evaluations": ev, "rows": n_rows, "cost": cost, "budget": budget}
+    if cost > budget:
+        raise Rejected(413, f"study too large for this service: about {ev:.3g} likelihood evaluations x "
+                            f"{n_rows} rows = {cost:.3g} > budget {budget:.3g} (lower sampler.max_burnin_rounds, "
+                            f"n_stationary, n_chains or maximiser.max_trials)")
+    return est

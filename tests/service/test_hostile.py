@@ -1,0 +1,266 @@
+"""Hostile and careless requests against the real app over HTTP: every one answered at request time with a
+4xx naming the problem, never a 5xx; poison models rejected at submit; a real queue; cancel that holds."""
+
+import copy
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import httpx
+import pytest
+from distributed import Client as DaskClient
+from distributed import LocalCluster
+
+from service.app import Settings, create_app
+
+from .test_api import ROOT, SPEC, TOKEN, Server, free_port
+
+H = {"X-API-Token": TOKEN}
+POLY = {"name": "poly", "states": ["z"], "drift": {"z": 0.0},
+        "observations": [{"column": "y", "expr": "a0 + a1*x", "noise_std": "gamma"}],
+        "parameters": ["a0", "a1", "gamma"], "inputs": ["x"], "initial_std": {"z": 0.0}, "substeps": 1,
+        "integrator": "euler"}
+
+
+def poly_study(**model_update):
+    m = dict(copy.deepcopy(POLY), **model_update)
+    return {"name": "poison", "data": {"generator": "appendix_a", "seed": 2},
+            "models": [{"model": m, "priors": {"a0": {"kind": "normal", "mean": 0, "sd": 10},
+                                               "a1": {"kind": "normal", "mean": 0, "sd": 10},
+                                               "gamma": {"kind": "lognormal", "median": 0.3, "cov": 50}}}],
+            "sampler": SPEC["sampler"], "maximiser": SPEC["maximiser"], "seed": 1}
+
+
+def obs(expr=None, noise=None):
+    o = dict(POLY["observations"][0])
+    if expr is not None:
+        o["expr"] = expr
+    if noise is not None:
+        o["noise_std"] = noise
+    return [o]
+
+
+POISON_EXPRESSIONS = [
+    "9**9**9**9", "2**2000*x", "x/0", "a0/(x-x)", "sqrt(-1)*x", "(-8)**(1/3)*x", "exp(1000)*x",
+    "x*10**300*10**300", "x**100000", "x**-100000", "+".join(["x"] * 1000), "-" * 1999 + "x",
+    "sin(" * 120 + "x" + ")" * 120, "__import__('os')", "x.real", "lambda: x", "'a'*3", "[x]", "x if x else a0",
+    "x < a0", "x // 2", "x % 2", "x @ x", "~x", "not x", "x & 1", "x ^ 2", "open('f')", "eval('1')", "a0 + b9",
+    "sin(x, x)", "sin", "exp(x=1)", "1e309*x", "x ** x ** x ** x ** 1000", "",
+]
+
+
+@pytest.fixture(scope="module")
+def hostile(tmp_path_factory):
+    root = tmp_path_factory.mktemp("hostile")
+    port = free_port()
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=":0") as cl, \
+            DaskClient(cl) as dc:
+        settings = Settings(root=root, token=TOKEN, max_running=1, max_upload_rows=5000, max_body_mb=1.0,
+                            allowed_hosts=["127.0.0.1", "localhost"], max_study_cost=1e10, check_timeout_s=20)
+        app = create_app(settings, dc)
+        with Server(app, port):
+            yield f"http://127.0.0.1:{port}", root, app
+
+
+def _answers(url):
+    """(description, httpx request kwargs) of every bad request; none may get a 2xx or a 5xx."""
+    v1 = f"{url}/v1"
+    J = dict(H, **{"Content-Type": "application/json"})
+    C = dict(H, **{"Content-Type": "text/csv"})
+    out = []
+    # -- poison models, in every field an expression can sit in
+    for e in POISON_EXPRESSIONS:
+        out.append((f"obs expr {e[:20]!r}", dict(method="POST", url=f"{v1}/studies", headers=J,
+                                                 content=json.dumps(poly_study(observations=obs(expr=e))))))
+    for e in POISON_EXPRESSIONS[:12]:
+        out.append((f"noise_std {e[:20]!r}", dict(method="POST", url=f"{v1}/studies", headers=J,
+                                                  content=json.dumps(poly_study(observations=obs(noise=e))))))
+        out.append((f"drift {e[:20]!r}", dict(method="POST", url=f"{v1}/studies", headers=J,
+                                              content=json.dumps(poly_study(drift={"z": e})))))
+    chain = {f"d{i}": (f"d{i - 1}*d{i - 1} + d{i - 1}" if i else "x*x") for i in range(64)}
+    out.append(("derived chain", dict(method="POST", url=f"{v1}/studies", headers=J,
+                                      content=json.dumps(poly_study(derived=chain, observations=obs("a0 + d63"))))))
+    # -- schema: wrong types, NaN, extra fields, limits
+    bad_specs = [
+        {}, {"name": "x"}, dict(SPEC, name="../x"), dict(SPEC, name="a" * 200), dict(SPEC, seed="one"),
+        dict(SPEC, extra=1), dict(SPEC, models=[]), dict(SPEC, models="quad"),
+        dict(SPEC, sampler=dict(SPEC["sampler"], n_chains=1)), dict(SPEC, sampler=dict(SPEC["sampler"], n_chains=65)),
+        dict(SPEC, sampler=dict(SPEC["sampler"], round_size=-5)), dict(SPEC, maximiser=dict(max_trials=0)),
+        dict(SPEC, data={"path": "/etc/passwd"}), dict(SPEC, data={"dataset": "../../etc/passwd"}),
+        dict(SPEC, data={"dataset": "0123456789abcdef"}), dict(SPEC, data={"generator": "nope"}),
+        dict(SPEC, models=[dict(SPEC["models"][0], model="no_such_model")]),
+        dict(SPEC, models=[dict(SPEC["models"][0], priors={"zz": {"kind": "normal", "mean": 0, "sd": 1}})]),
+        dict(SPEC, models=[dict(SPEC["models"][0], fixed={"a3": "inf"})]),
+    ]
+    for i, b in enumerate(bad_specs):
+        out.append((f"bad spec {i}", dict(method="POST", url=f"{v1}/studies", headers=J, content=json.dumps(b))))
+    for i, raw in enumerate(["{", "[]", "null", "1", '{"name": NaN}', json.dumps(SPEC).replace('"sd": 10', '"sd": NaN', 1),
+                             json.dumps(SPEC).replace('"sd": 10', '"sd": Infinity', 1), "\xff\xfe", "{" * 5000]):
+        out.append((f"bad json {i}", dict(method="POST", url=f"{v1}/studies", headers=J, content=raw)))
+    # -- the compute budget: the largest settings the schema allows
+    huge = dict(SPEC, sampler=dict(SPEC["sampler"], n_chains=64, n_stationary=10_000_000, n_proposal=10_000_000,
+                                   max_burnin_rounds=10_000))
+    out.append(("budget", dict(method="POST", url=f"{v1}/studies", headers=J, content=json.dumps(huge))))
+    # -- content types and sizes, before authentication
+    out += [
+        ("text/plain study", dict(method="POST", url=f"{v1}/studies", headers=dict(H, **{"Content-Type": "text/plain"}),
+                                  content=json.dumps(SPEC))),
+        ("form study", dict(method="POST", url=f"{v1}/studies",
+                            headers=dict(H, **{"Content-Type": "application/x-www-form-urlencoded"}), content="a=1")),
+        ("no content type", dict(method="POST", url=f"{v1}/studies", headers=H, content=json.dumps(SPEC).encode())),
+        ("json data set", dict(method="POST", url=f"{v1}/datasets", headers=J, content="t,y\n0,1\n")),
+        ("text/plain data set", dict(method="POST", url=f"{v1}/datasets",
+                                     headers=dict(H, **{"Content-Type": "text/plain"}), content="t,y\n0,1\n")),
+        ("big body declared", dict(method="POST", url=f"{v1}/studies", headers=J, content=b"x" * (2 * 2**20))),
+        ("big body chunked, no token", dict(method="POST", url=f"{v1}/studies",
+                                            headers={"Content-Type": "application/json"},
+                                            content=(b"x" * 65536 for _ in range(40)))),
+        ("big csv chunked", dict(method="POST", url=f"{v1}/datasets", headers=C,
+                                 content=(b"1,2\n" * 16384 for _ in range(40)))),
+    ]
+    # -- authentication
+    for route in ("studies", "datasets", "dashboard", "studies/x-1"):
+        out.append((f"no token {route}", dict(method="GET", url=f"{v1}/{route}")))
+        out.append((f"wrong token {route}", dict(method="GET", url=f"{v1}/{route}", headers={"X-API-Token": "nope"})))
+        out.append((f"bearer wrong {route}", dict(method="GET", url=f"{v1}/{route}",
+                                                   headers={"Authorization": "Bearer nope"})))
+    # -- the Host header (DNS rebinding)
+    for host in ("evil.example", "127.0.0.1.evil.example", "localhost.evil"):
+        out.append((f"host {host}", dict(method="GET", url=f"{v1}/health", headers={"Host": host})))
+    # -- data sets
+    csvs = {
+        "empty": "", "blank": "\n\n  \n", "header only": "t,y\n", "numbers header": "1,2\n3,4\n",
+        "non numeric": "t,y\n0,a\n1,b\n", "not increasing": "t,y\n0,1\n0,2\n", "inf": "t,y\n0,inf\n1,2\n",
+        "zarr.json column": "t,zarr.json\n0,1\n1,2\n2,3\n", "traversal column": "t,../../../../tmp/x\n0,1\n1,2\n",
+        "slash column": "t,a/b\n0,1\n1,2\n", "dup columns": "t,y,y\n0,1,2\n1,2,3\n",
+        "space column": "t,y z\n0,1\n1,2\n", "dot column": "t,.y\n0,1\n1,2\n",
+        "long cell": "t,y\n0," + "9" * 140_000 + "\n",
+        "quote cell": 't,y\n0,"' + "9" * 140_000 + '\n',
+        "CR rows": "t,y\r" + "".join(f"{i},1\r" for i in range(6000)),
+        "LF rows": "t,y\n" + "".join(f"{i},1\n" for i in range(6000)),
+        "nul": "t,y\n0,\x001\n", "no time": "a,y\n0,1\n1,2\n", "ragged": "t,y\n0,1,5\n1,2\n",
+        "unnamed values": "t,,y\n0,1,2\n1,2,3\n",
+    }
+    for k, text in csvs.items():
+        out.append((f"csv {k}", dict(method="POST", url=f"{v1}/datasets", headers=C, content=text.encode())))
+    out.append(("csv latin-1", dict(method="POST", url=f"{v1}/datasets", headers=C, content="t,\xe9\n0,1\n".encode("latin-1"))))
+    # -- paths and parameters
+    for p in ("studies/..%2F..%2Fetc", "studies/a%00b", "studies/" + "a" * 100, "studies/nope-1",
+              "studies/nope-1/summary", "studies/nope-1/posterior/quad", "studies/nope-1/figures/evidence.png",
+              "studies/nope-1/report/report.html", "studies/nope-1/diagnoses/quad", "studies/nope-1/events"):
+        out.append((f"path {p[:30]}", dict(method="GET", url=f"{v1}/{p}", headers=H)))
+    for p in ("studies/nope-1/cancel", "studies/nope-1/diagnoses"):
+        out.append((f"post {p}", dict(method="POST", url=f"{v1}/{p}", headers=J, content="{}")))
+    out.append(("delete unknown", dict(method="DELETE", url=f"{v1}/studies/nope-1", headers=H)))
+    out.append(("wrong method", dict(method="PUT", url=f"{v1}/studies", headers=J, content="{}")))
+    out.append(("unknown route", dict(method="GET", url=f"{v1}/nothing", headers=H)))
+    return out
+
+
+def test_hostile_requests_get_4xx_at_request_time(hostile):
+    url, root, app = hostile
+    cases = _answers(url)
+    assert len(cases) >= 150
+    bad = []
+    with httpx.Client(timeout=60) as c:
+        for what, kw in cases:
+            r = c.request(**kw)
+            detail = r.json().get("detail") if r.headers.get("content-type", "").startswith("application/json") else None
+            if not (400 <= r.status_code < 500) or not detail:
+                bad.append((what, r.status_code, r.text[:200]))
+    assert not bad, bad
+    # nothing half-made: no study directory without its meta.json, no temporary data file
+    studies = [p for p in (root / "studies").iterdir()]
+    assert all((p / "meta.json").exists() for p in studies), studies
+    assert not list((root / "datasets").glob(".*"))
+    assert app.state.runner.queue == [] and not app.state.runner.running()
+
+
+def test_poison_rejected_at_submit_naming_the_field(hostile):
+    url, _, _ = hostile
+    with httpx.Client(timeout=60, headers=H) as c:
+        for expr, words in (("9**9**9**9", "finite"), ("2**2000*x", "finite"), ("x/0", "finite"),
+                            ("sqrt(-1)*x", "real"), ("__import__('os')", "not allowed"), ("x**100000", "exponent")):
+            t0 = time.perf_counter()
+            r = c.post(f"{url}/v1/studies", json=poly_study(observations=obs(expr=expr)))
+            assert r.status_code == 422 and words in r.text and "observations[0].expr" in r.text, r.text
+            assert time.perf_counter() - t0 < 20
+        chain = {f"d{i}": (f"d{i - 1}*d{i - 1} + d{i - 1}" if i else "x*x") for i in range(64)}
+        r = c.post(f"{url}/v1/studies", json=poly_study(derived=chain, observations=obs("a0 + d63")))
+        assert r.status_code == 422 and "derived" in r.text
+
+
+def test_queue_cancel_delete_and_concurrent_figures(hostile):
+    """max_running=1: the second study waits queued; a queued study cancelled never runs; a running one
+    cancelled stops; finished ones are deleted; 12 concurrent figure requests all succeed."""
+    url, root, app = hostile
+    with httpx.Client(timeout=60, headers=H) as c:
+        a = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=11)).json()["id"]
+        b = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=12)).json()["id"]
+        d = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=13)).json()["id"]
+        assert c.get(f"{url}/v1/studies/{d}").json()["status"] == "queued"
+        r = c.post(f"{url}/v1/studies/{d}/cancel")
+        assert r.status_code == 200 and r.json()["status"] == "cancelled"
+        assert (root / "studies" / d / "store" / "CANCELLED").exists()
+        assert c.delete(f"{url}/v1/studies/{a}").status_code == 409  # running or queued: cancel first
+        deadline = time.time() + 300
+        while c.get(f"{url}/v1/studies/{b}").json()["status"] != "done" and time.time() < deadline:
+            time.sleep(0.5)
+        assert c.get(f"{url}/v1/studies/{a}").json()["status"] == "done"
+        assert c.get(f"{url}/v1/studies/{b}").json()["status"] == "done"
+        assert c.get(f"{url}/v1/studies/{d}").json()["status"] == "cancelled"
+        assert app.state.runner.peak_running == 1
+        with ThreadPoolExecutor(12) as ex:
+            codes = list(ex.map(lambda _: httpx.get(f"{url}/v1/studies/{a}/figures/data.png", headers=H,
+                                                    timeout=120).status_code, range(12)))
+        assert codes == [200] * 12
+        assert c.delete(f"{url}/v1/studies/{b}").status_code == 204
+        assert c.get(f"{url}/v1/studies/{b}").status_code == 404
+        assert not (root / "studies" / b).exists()
+
+
+def test_cancel_survives_sigkill_and_restart(tmp_path):
+    """Cancel, SIGKILL the whole service, restart: the study stays cancelled and is never relaunched."""
+    root = tmp_path / "svc"
+    port = free_port()
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(root), "--workers", "2",
+           "--token", TOKEN]
+
+    def start():
+        p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             start_new_session=True)
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/v1/health", timeout=2).status_code == 200:
+                    return p
+            except httpx.HTTPError:
+                time.sleep(0.3)
+        raise RuntimeError("service did not start")
+
+    p = start()
+    try:
+        with httpx.Client(timeout=60, headers=H) as c:
+            sid = c.post(f"http://127.0.0.1:{port}/v1/studies", json=dict(SPEC, seed=21)).json()["id"]
+            while c.get(f"http://127.0.0.1:{port}/v1/studies/{sid}").json()["status"] != "running":
+                time.sleep(0.2)
+            assert c.post(f"http://127.0.0.1:{port}/v1/studies/{sid}/cancel").json()["status"] == "cancelled"
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+        p = start()
+        time.sleep(3)
+        with httpx.Client(timeout=60, headers=H) as c:
+            st = c.get(f"http://127.0.0.1:{port}/v1/studies/{sid}").json()
+        assert st["status"] == "cancelled"
+        log = (root / "studies" / sid / "driver.log").read_text()
+        assert log.count("resuming study") <= 1  # the driver was never launched again
+        # and the store refuses a manual resume
+        r = subprocess.run([sys.executable, "-m", "service.cli", "resume", str(root / "studies" / sid / "store")],
+                           cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and "cancelled" in r.stderr
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
