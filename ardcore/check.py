@@ -68,8 +68,19 @@ def check_study(spec) -> None:
             raise ModelError(f"models[{i}] ({cand.label}): cannot compile the model: {exc}") from None
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
     from .study import StudySpec
+
+    ap = argparse.ArgumentParser(prog="python -m ardcore.check", description="check a study's models (JSON on stdin)")
+    ap.add_argument("--memory-mb", type=int, default=None, help="address-space limit of this process")
+    a = ap.parse_args(argv)
+    if a.memory_mb:
+        import resource
+
+        b = a.memory_mb * 1024 * 1024
+        resource.setrlimit(resource.RLIMIT_AS, (b, b))
 
     try:
         spec = StudySpec.model_validate(json.loads(sys.stdin.read()))
@@ -80,6 +91,9 @@ def main() -> int:
     except ValueError as exc:  # pydantic's ValidationError is a ValueError
         print(str(exc).replace("\n", " ")[:500], file=sys.stderr)
         return 2
+    except MemoryError:
+        print("MemoryError: the models need more memory than allowed to compile", file=sys.stderr)
+        return 3
     return 0
 
 

@@ -402,7 +402,11 @@ def _client(a):
 
     from .client import Client
 
-    return Client(a.url, token=a.token or os.environ.get("ARDFLOW_TOKEN"))
+    token = a.token or os.environ.get("ARDFLOW_TOKEN")
+    local = Path("runs/service/token")  # what `ardflow serve` generates with its default --root
+    if token is None and local.exists():
+        token = local.read_text().strip()
+    return Client(a.url, token=token)
 
 
 def cmd_submit(a) -> int:

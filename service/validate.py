@@ -11,6 +11,7 @@ from ardcore.study import StudySpec
 
 _checked: set[str] = set()
 _lock = threading.Lock()
+_slots = threading.BoundedSemaphore(2)  # child compilers at once: a burst of submissions cannot fork dozens
 
 
 class Rejected(Exception):
@@ -19,15 +20,6 @@ class Rejected(Exception):
     def __init__(self, status: int, message: str):
         super().__init__(message)
         self.status = status
-
-
-def _limits(memory_mb: int):
-    def apply():
-        import resource
-
-        b = memory_mb * 1024 * 1024
-        resource.setrlimit(resource.RLIMIT_AS, (b, b))
-    return apply
 
 
 def check_models(spec: StudySpec, *, timeout_s: float = 30.0, memory_mb: int = 2048) -> None:
@@ -47,12 +39,19 @@ def check_models(spec: StudySpec, *, timeout_s: float = 30.0, memory_mb: int = 2
     except ArdflowError as exc:
         raise Rejected(422, str(exc)) from None
     keys = [c.model_spec().structure_hash() for c in spec.models]
-    with _lock:
-        if all(k in _checked for k in keys):
-            return
+    with _slots:
+        with _lock:
+            if all(k in _checked for k in keys):  # also when a concurrent submission of the same models just did
+                return
+        _check_in_child(spec, keys, timeout_s, memory_mb)
+
+
+def _check_in_child(spec: StudySpec, keys: list[str], timeout_s: float, memory_mb: int) -> None:
     try:
-        r = subprocess.run([sys.executable, "-m", "ardcore.check"], input=json.dumps(spec.model_dump(mode="json")),
-                           capture_output=True, text=True, timeout=timeout_s, preexec_fn=_limits(memory_mb))
+        # the child sets its own memory limit (preexec_fn is not safe in a threaded server)
+        r = subprocess.run([sys.executable, "-m", "ardcore.check", "--memory-mb", str(memory_mb)],
+                           input=json.dumps(spec.model_dump(mode="json")), capture_output=True, text=True,
+                           timeout=timeout_s)
     except subprocess.TimeoutExpired:
         raise Rejected(422, f"models: compiling the models took longer than {timeout_s:g} s; "
                             "simplify the expressions (derived chains, powers, nesting)") from None

@@ -132,3 +132,30 @@ def test_a_forcing_is_coherent_and_a_noise_driven_mode_is_not():
         got = screen_effects(spec, phi, data, [_forcing_candidate(1.7)], ["v"], ["y"])[0]
         assert plain.log_bayes_factor > 30  # the white-noise likelihood takes the mode's peak for a forcing
         assert got.coherence_p < 1e-3 and got.log_bayes_factor <= 0, (got.coherence_p, got.log_bayes_factor)
+
+
+def test_forward_selection_scores_jointly_and_finds_what_the_first_leaves():
+    """distinct_candidates: the joint score from the screen's stored sensitivities reproduces each marginal
+    ln BF exactly (no conditioning), a candidate conditioned on itself is worth nothing, and with a cubic and
+    an even (y^2) stiffness planted together both are picked, the second by its conditional evidence."""
+    from ardcore.effects import augment
+    from ardcore.screen import distinct_candidates
+
+    lib = {e.name: e for e in candidate_effects(base_spec())}
+    truth, _ = augment(base_spec(), lib["cubic_stiffness(y)"], "v")
+    truth, _ = augment(truth, lib["quadratic_stiffness(y)"], "v")
+    spec, data, phi = _forced(3, truth, {"k_s3y_v": -40.0, "k_s2y_v": 12.0})
+    scales = {"y": float(np.std(data.columns["y"])), "v": float(np.std(np.diff(data.columns["y"])) / 0.02)}
+    effects = [e for e in candidate_effects(spec, scales=scales) if not e.shape]
+    got = screen_effects(spec, phi, data, effects, ["v"], ["y"])
+    for c in got[:8]:
+        assert c.basis.conditional(c, []) == pytest.approx(c.log_bayes_factor, rel=1e-9, abs=1e-9)
+        assert c.basis.conditional(c, [c]) < 1.0
+    picked = distinct_candidates(spec, phi, data, got, 3, 3.0)
+    names = [p.effect.name for p in picked]
+    assert names[0] == got[0].effect.name
+    assert {"cubic_stiffness(y)", "quadratic_stiffness(y)"} <= set(names), [(c.effect.name, c.log_bayes_factor,
+                                                                            c.conditional_log_bayes_factor)
+                                                                           for c in got[:8]]
+    second = next(p for p in picked[1:] if p.effect.name in ("cubic_stiffness(y)", "quadratic_stiffness(y)"))
+    assert second.conditional_log_bayes_factor > 3.0

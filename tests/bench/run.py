@@ -244,7 +244,14 @@ def bench_dask() -> dict:
 
 
 def bench_api() -> dict:
-    """Status requests from 20 concurrent clients while a study runs (real server over HTTP)."""
+    """The service under load (real ``ardflow serve`` over HTTP, 2 drivers at most): 20 concurrent
+    submissions of the Sec 3.3 study while 20 clients poll their status.
+
+    Keys: api_status_p95_ms / _p50_ms (status latency under that load), api_requests, api_errors (answers
+    other than 200/202 to valid requests), api_rss_mb (largest resident memory of the API process),
+    api_max_drivers (most studies ``running`` at once, as the status reports them), api_max_running (the
+    setting), api_queued_seen (most studies ``queued`` at once).
+    """
     import asyncio
     import json as _json
     import signal
@@ -254,16 +261,26 @@ def bench_api() -> dict:
 
     import httpx
 
-    token = "bench-token"
+    token, max_running = "bench-token", 2
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     root = Path(tempfile.mkdtemp())
     p = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(root),
-                          "--token", token], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                         start_new_session=True)
+                          "--token", token, "--max-running", str(max_running)], stdout=subprocess.DEVNULL,
+                         stderr=subprocess.DEVNULL, start_new_session=True)
     base = f"http://127.0.0.1:{port}/v1"
     h = {"X-API-Token": token}
+
+    def rss_mb() -> float:
+        try:
+            for line in Path(f"/proc/{p.pid}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+        except OSError:
+            pass
+        return float("nan")
+
     try:
         for _ in range(600):
             try:
@@ -272,31 +289,58 @@ def bench_api() -> dict:
             except httpx.HTTPError:
                 time.sleep(0.2)
         spec = _json.loads((Path(__file__).resolve().parents[2] / "examples" / "sec33.json").read_text())
-        sid = httpx.post(f"{base}/studies", json=spec, headers=h, timeout=60).json()["id"]
-        while httpx.get(f"{base}/studies/{sid}", headers=h).json()["status"] != "running":
-            time.sleep(0.2)
-        time.sleep(5)  # chains are running
+        ids: list[str] = []
+        lat: list[float] = []
+        errors: list = []
+        peak = {"running": 0, "queued": 0, "rss": rss_mb()}
 
-        async def client_loop(n, lat, errors):
-            async with httpx.AsyncClient(headers=h, timeout=30) as c:
-                for _ in range(n):
-                    t0 = time.perf_counter()
-                    r = await c.get(f"{base}/studies/{sid}")
-                    lat.append((time.perf_counter() - t0) * 1e3)
-                    if r.status_code != 200:
-                        errors.append(r.status_code)
+        async def submit(c, i):
+            r = await c.post(f"{base}/studies", json=dict(spec, seed=100 + i))
+            if r.status_code != 202:
+                errors.append(("submit", r.status_code, r.text[:200]))
+            else:
+                ids.append(r.json()["id"])
+
+        async def poll(c, n):
+            while not ids:
+                await asyncio.sleep(0.05)
+            for _ in range(n):
+                t0 = time.perf_counter()
+                r = await c.get(f"{base}/studies/{ids[len(lat) % len(ids)]}")
+                lat.append((time.perf_counter() - t0) * 1e3)
+                if r.status_code != 200:
+                    errors.append(("status", r.status_code))
+                await asyncio.sleep(0.02)
+
+        async def watch(c, stop):
+            while not stop.is_set():
+                r = await c.get(f"{base}/studies")
+                if r.status_code == 200:
+                    st = [x["status"] for x in r.json()]
+                    peak["running"] = max(peak["running"], st.count("running"))
+                    peak["queued"] = max(peak["queued"], st.count("queued"))
+                peak["rss"] = max(peak["rss"], rss_mb())
+                await asyncio.sleep(0.25)
 
         async def main():
-            lat, errors = [], []
-            await asyncio.gather(*(client_loop(25, lat, errors) for _ in range(20)))
-            return lat, errors
+            stop = asyncio.Event()
+            async with httpx.AsyncClient(headers=h, timeout=60) as c:
+                w = asyncio.create_task(watch(c, stop))
+                await asyncio.gather(*(submit(c, i) for i in range(20)), *(poll(c, 40) for _ in range(20)))
+                await asyncio.sleep(5)
+                stop.set()
+                await w
 
-        lat, errors = asyncio.run(main())
-        httpx.post(f"{base}/studies/{sid}/cancel", headers=h)
+        asyncio.run(main())
+        for sid in ids:
+            httpx.post(f"{base}/studies/{sid}/cancel", headers=h)
     finally:
         os.killpg(p.pid, signal.SIGKILL)
-    return {"api_status_p95_ms": float(np.percentile(lat, 95)), "api_status_p50_ms": float(np.percentile(lat, 50)),
-            "api_requests": len(lat), "api_errors": len(errors)}
+    return {"api_status_p95_ms": float(np.percentile(lat, 95)) if lat else float("nan"),
+            "api_status_p50_ms": float(np.percentile(lat, 50)) if lat else float("nan"),
+            "api_requests": len(lat), "api_errors": len(errors), "api_error_samples": errors[:5],
+            "api_rss_mb": peak["rss"], "api_max_drivers": peak["running"], "api_max_running": max_running,
+            "api_queued_seen": peak["queued"], "api_submitted": len(ids)}
 
 
 def _study(args: list[str], out: Path) -> dict:
