@@ -25,7 +25,7 @@ When no candidate survives, the result says so and describes the residual
 structure that remains (spectral peaks, the states that needed noise).
 
 Rooms: the residual tests live in :mod:`ardcore.residual_tests`, the free run and its
-prediction band in :mod:`ardcore.freerun`, the evidence screen in :mod:`ardcore.screen`,
+prediction band in :mod:`ardcore.freerun`, the evidence screen in :mod:`ardcore.screen` (its EKF score machinery in :mod:`ardcore.score`),
 the library in :mod:`ardcore.effects`, the confirmations (re-selection, halves check, joint
 fit, process pool) in :mod:`ardcore.confirm`, the verdict's words in :mod:`ardcore.verdict`;
 this module holds the residuals and the loop.

@@ -23,8 +23,11 @@ regression on a residual:
   grid and then a golden-section refinement (a profile over the shape).
 
 It costs two filter runs per parameter and per candidate term, so the whole library
-is screened (not only the best few of a ranking); the decision remains the full ARD
-re-selection of the candidates the screen ranks highest.
+is screened (not only the best few of a ranking). The candidates sent to the full ARD
+re-selection are chosen by forward selection on the screened evidence
+(:func:`distinct_candidates`): each next one is the best given those picked, scored
+jointly from the sensitivities already computed. The score and information machinery
+lives in :mod:`ardcore.score`.
 """
 
 from __future__ import annotations
@@ -33,16 +36,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import sympy as sp
 
 from .data import Dataset
-from .ekf import compile_model
-from .effects import Effect, augment, feature_functions, with_columns
+from .effects import Effect, with_columns
 from .model import ModelSpec
-from .robust import innovation_background, sandwich, spectral_score_cov
-
-PRIOR_SD = 1.0
-"""Prior sd of a normalised coefficient in the screen (1 = an effect the size of the target's dynamics)."""
+from .robust import innovation_background, spectral_score_cov
+from .score import PRIOR_SD, Basis, Screener, bayes_factor, nuisance_map  # noqa: F401
 
 COHERENCE_P = 1e-3
 """A forcing whose coefficients differ between segments of the record beyond this p-value is not a forcing."""
@@ -90,7 +89,7 @@ class Screened:
     conditional_log_bayes_factor: float | None = None
     """ln BF given the candidates picked before it (:func:`distinct_candidates`; None if not scored so)."""
     rows: tuple | None = field(default=None, repr=False)
-    basis: "_Basis | None" = field(default=None, repr=False)
+    basis: Basis | None = field(default=None, repr=False)
 
     @property
     def physical(self) -> list[float]:
@@ -107,232 +106,6 @@ class Screened:
                 "delta_loglik": float(self.delta_loglik),
                 "coefficients": self.physical, "normalised_coefficients": [float(c) for c in self.coefficients],
                 "scales": [float(s) for s in self.scales]}
-
-
-def _rms(a: np.ndarray) -> float:
-    a = np.asarray(a, dtype=float)
-    a = a[np.isfinite(a)]
-    return float(np.sqrt(np.mean(a ** 2))) if a.size else 0.0
-
-
-def _eval_exprs(spec: ModelSpec, exprs: list[str], X: np.ndarray, U: np.ndarray) -> list[np.ndarray]:
-    _, fns = feature_functions(spec, exprs)
-    n = X.shape[0]
-    out = []
-    for f in fns:
-        v = np.asarray(f(*X.T, *U.T), dtype=float)
-        out.append(np.broadcast_to(v, (n,)).copy() if v.ndim == 0 else v)
-    return out
-
-
-def target_scale(spec: ModelSpec, phi: dict, target: str, X: np.ndarray, U: np.ndarray, data: Dataset) -> float:
-    """Size of what an effect on ``target`` competes with: rms of its drift, or of the observed signal."""
-    if target in spec.states:
-        sm = spec.sym
-        i = spec.states.index(target)
-        e = sm.drift[i].subs({p: phi[str(p)] for p in sm.params if str(p) in phi})
-        syms = list(sm.states) + list(sm.inputs)
-        f = sp.lambdify(syms, e, modules=[{"sign": np.sign}, "numpy"])
-        v = np.asarray(f(*X.T, *U.T), dtype=float)
-        r = _rms(v - np.nanmean(v)) if v.ndim else 0.0
-        if r > 0:
-            return r
-        # a state with no drift yet: its rate of change in the data
-        x = X[:, i]
-        dt = float(np.median(np.diff(data.t)))
-        return max(_rms(np.diff(x)) / dt, 1e-12)
-    y = data.columns[target]
-    return max(_rms(y - np.nanmean(y)), 1e-12)
-
-
-@dataclass
-class _Basis:
-    """The model's own sensitivities and innovations at the fit: with any candidates' sensitivity rows
-    (:attr:`Screened.rows`) they give the joint score and information, with no further filter pass."""
-
-    De: np.ndarray
-    DS: np.ndarray
-    e0: np.ndarray
-    S0: np.ndarray
-    ok: np.ndarray
-    eps: np.ndarray | None
-
-    @property
-    def k(self) -> int:
-        return self.De.shape[0]
-
-    def score(self, De: np.ndarray, DS: np.ndarray):
-        """Score g, information and standardised sensitivities on the time grid (None without ``eps``) of the
-        parameters whose innovation sensitivities are the rows of ``De``, ``DS``."""
-        e0, S0 = self.e0, self.S0
-        g = -(De @ (e0 / S0)) - 0.5 * (DS @ (1 / S0 - e0 ** 2 / S0 ** 2))
-        Inf = (De / S0) @ De.T + 0.5 * (DS / S0 ** 2) @ DS.T
-        psi = None
-        if self.eps is not None:
-            # the innovations' sensitivities on the time grid (zero where there is no observation), standardised
-            psi = np.zeros((De.shape[0], self.ok.size))
-            psi[:, self.ok] = De / np.sqrt(S0)
-        return g, Inf, psi
-
-    def conditional(self, c: "Screened", given: list["Screened"]) -> float:
-        """Screened ln BF of ``c`` with the coefficients of ``given`` profiled out with the model's own."""
-        rows = [self.De] + [p.rows[0] for p in given] + [c.rows[0]]
-        srows = [self.DS] + [p.rows[1] for p in given] + [c.rows[1]]
-        g, Inf, psi = self.score(np.vstack(rows), np.vstack(srows))
-        n = g.size
-        grp = np.arange(n - c.rows[0].shape[0], n)
-        lbf = _bayes_factor(g, Inf, n - grp.size, grp, psi, self.eps)[0] - c.shape_occam
-        if c.coherence_p is not None and c.coherence_p < COHERENCE_P:
-            lbf = min(lbf, 0.0)  # an incoherent "forcing" stays rejected whatever is profiled with it
-        return lbf
-
-
-class _Screener:
-    """Score/information of the EKF likelihood for a batch of normalised candidate terms."""
-
-    def __init__(self, spec: ModelSpec, phi: dict, data: Dataset, substeps: int | None, robust: bool = True):
-        self.spec, self.phi, self.data, self.substeps = spec, dict(phi), data, substeps
-        fr = compile_model(spec).filter(phi, data, substeps)
-        self.X = np.where(np.isfinite(fr.filtered), fr.filtered, 0.0)
-        self.U = (np.column_stack([data.columns[u] for u in spec.inputs]) if spec.inputs
-                  else np.zeros((len(data), 0)))
-        self.theta = list(spec.free_parameters)
-        self._models: dict = {}
-        self.basis: _Basis | None = None
-        self.last_rows: list = []
-        # the standardised innovations on the time grid (zero where there is no observation): their actual
-        # spectrum, which the likelihood takes as flat, is what each candidate's score really varies by
-        self.eps = None
-        if robust and fr.standardized.ndim == 2 and fr.standardized.shape[1] == 1:
-            e = fr.standardized[:, 0]
-            self.eps = np.where(np.isfinite(e), e, 0.0)
-
-    def term_scale(self, effect: Effect, target: str, data: Dataset) -> list[float] | None:
-        """scale per term so that scale * term has the rms of the target's dynamics (None if a term is ~0)."""
-        if effect.where == "noise":
-            return [1.0]  # k is already dimensionless: the log of the noise factor
-        cols = effect.columns_for(data.t)
-        U = np.column_stack([self.U] + [cols[c] for c in cols]) if cols else self.U
-        fspec = self.spec.model_copy(update={"inputs": list(self.spec.inputs) + list(cols)}) if cols else self.spec
-        vals = _eval_exprs(fspec, list(effect.terms), self.X, U)
-        R = target_scale(self.spec, self.phi, target, self.X, self.U, data)
-        out = []
-        for v in vals:
-            if not np.all(np.isfinite(v)):
-                return None
-            r = _rms(v)
-            if r <= 1e-300 * max(R, 1e-300) or r == 0:
-                return None
-            out.append(R / r)
-        return out
-
-    def batch(self, items: list[tuple[Effect, str, list[float]]], shape_values: list | None = None,
-              data: Dataset | None = None) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
-        """Score g and information I over (theta, every item's coefficients); returns per-item index lists.
-
-        Scales and shape values are parameters of the screening model (not literals), so one
-        compiled kernel serves every value a shape profile tries.
-        """
-        shape_values = shape_values or [None] * len(items)
-        key = tuple((e.name if not e.shape else e.name + "#" + e.shape[0], t, len(s)) for e, t, s in items)
-        spec = self.spec
-        data = data or self.data
-        names, values = [], {}
-        for j, ((eff, target, scales), sv) in enumerate(zip(items, shape_values)):
-            nm = [f"zq{j}_{i}" for i in range(len(eff.terms))]
-            cn = [f"zc{j}_{i}" for i in range(len(eff.terms))]
-            e2 = eff
-            if eff.shape and eff.shape[0] != "f":
-                pname = f"zs{j}"
-                e2 = Effect(eff.name, eff.kind, tuple(t.replace("{" + eff.shape[0] + "}", pname) for t in eff.terms),
-                            code=eff.code, where=eff.where)
-                values[pname] = float(sv)
-            spec, _ = augment(spec, e2, target, cn, names=nm)
-            extra = [f"zs{j}"] if f"zs{j}" in values else []
-            spec = spec.model_copy(update={"name": "screen", "parameters": list(spec.parameters) + cn + extra})
-            values.update({c: float(s) for c, s in zip(cn, scales)})
-            names.append(nm)
-            data = with_columns(data, eff if not eff.shape or eff.shape[0] != "f" else eff.at(float(sv)))
-        if key not in self._models:
-            self._models[key] = compile_model(spec.revalidate())
-        lik = self._models[key].bind(data, self.substeps)
-        allp = self.theta + [n for nm in names for n in nm]
-        base = {**{p: self.phi[p] for p in self.theta}, **{n: 0.0 for nm in names for n in nm}, **values}
-        f0 = lik.filter(base)
-        e0, S0 = f0.innovations.ravel(), f0.innovation_var.ravel()
-        ok = np.isfinite(e0) & np.isfinite(S0) & (S0 > 0)
-        e0, S0 = e0[ok], S0[ok]
-        D_e, D_S = [], []
-        for p in allp:
-            v = base[p]
-            h = 1e-4 * abs(v) if v != 0 else 1e-5
-            r = []
-            for sgn in (1, -1):
-                fr = lik.filter({**base, p: v + sgn * h})
-                r.append((fr.innovations.ravel()[ok], fr.innovation_var.ravel()[ok]))
-            D_e.append((r[0][0] - r[1][0]) / (2 * h))
-            D_S.append((r[0][1] - r[1][1]) / (2 * h))
-        De, DS = np.array(D_e), np.array(D_S)
-        bad = ~np.all(np.isfinite(De), axis=0) | ~np.all(np.isfinite(DS), axis=0)
-        De[:, bad], DS[:, bad] = 0.0, 0.0
-        k = len(self.theta)
-        if self.basis is None:
-            # at zero coefficients every candidate's filter is the model's own: the model's sensitivities and
-            # innovations are the same in every batch, and any set of candidates can be scored jointly later
-            self.basis = _Basis(De[:k].copy(), DS[:k].copy(), e0, S0, ok, self.eps)
-        groups, pos = [], k
-        for nm in names:
-            groups.append(np.arange(pos, pos + len(nm)))
-            pos += len(nm)
-        self.last_rows = [(De[gr], DS[gr]) for gr in groups]
-        g, Inf, psi = self.basis.score(De, DS)
-        return groups, g, Inf, psi
-
-
-def _nuisance_map(Inf: np.ndarray, k: int, grp: np.ndarray) -> np.ndarray:
-    """I_bt I_tt^-1: how a group's score and sensitivities are projected off the first k (the model's own)
-    parameters, whose refit would absorb that much of the group."""
-    th = np.arange(k)
-    Itt = Inf[np.ix_(th, th)]
-    d = np.sqrt(np.maximum(np.diag(Itt), 1e-300))
-    Itt_inv = np.linalg.pinv(Itt / np.outer(d, d), rcond=1e-10) / np.outer(d, d)
-    return Inf[np.ix_(grp, th)] @ Itt_inv
-
-
-def _bayes_factor(g: np.ndarray, Inf: np.ndarray, k: int, grp: np.ndarray, psi: np.ndarray | None = None,
-                  eps: np.ndarray | None = None) -> tuple[float, float, np.ndarray, float]:
-    """Laplace ln BF, profile gain and coefficients of one group, the first k parameters profiled out.
-
-    With the innovations' sensitivities ``psi`` and the standardised innovations ``eps`` themselves, the
-    likelihood is first adjusted to the score's actual variance (:func:`~ardcore.robust.sandwich`,
-    :func:`~ardcore.robust.spectral_score_cov`): the spectrum is that of the innovations *with the candidate fitted*
-    (linearised, ``eps + psi' k``), as a sandwich variance is estimated from the residuals of the
-    fitted model, so that a real effect's own signature (a chirp of a decaying oscillation, which a
-    running median does not step over as it does a line) does not count as noise against it.
-    """
-    th = np.arange(k)
-    A = _nuisance_map(Inf, k, grp)
-    H = Inf[np.ix_(grp, grp)] - A @ Inf[np.ix_(grp, th)].T
-    H = 0.5 * (H + H.T)
-    gb = g[grp] - A @ g[th]
-    inflation = 1.0
-    if psi is not None and eps is not None:
-        # the efficient score's sensitivities (what a refit of the model's own parameters cannot absorb); their
-        # Gram matrix is H, so only the colour of the innovations is added: V = H + psi (S - 1) psi'
-        eff = psi[grp] - A @ psi[th]
-        k_hat = np.linalg.pinv(H, rcond=1e-10) @ gb
-        psd = innovation_background(eps + eff.T @ k_hat)
-        if psd is not None:
-            V = H + spectral_score_cov(eff, psd) - eff @ eff.T
-            H, gb, inflation = sandwich(H, gb, V)
-    w, V = np.linalg.eigh(H)
-    w = np.maximum(w, 0.0)
-    z = V.T @ gb
-    s2 = PRIOR_SD ** 2
-    lbf = float(0.5 * np.sum(z ** 2 / (w + 1 / s2)) - 0.5 * np.sum(np.log1p(s2 * w)))
-    gain = float(0.5 * np.sum(np.where(w > 1e-12 * max(w.max(), 1e-300), z ** 2 / np.maximum(w, 1e-300), 0.0)))
-    coef = V @ (z / (w + 1 / s2))
-    return lbf, gain, coef, inflation
 
 
 def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effect], targets: list[str],
@@ -359,7 +132,7 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
         own spectrum (:func:`~ardcore.robust.sandwich`): coloured innovations then do not pass for support.
     """
     say = progress or (lambda s: None)
-    sc = _Screener(spec, phi, data, substeps, robust)
+    sc = Screener(spec, phi, data, substeps, robust)
     k = len(sc.theta)
     pairs = [(e, t) for e in effects if e.where == "drift" for t in targets]
     pairs += [(e, c) for e in effects if e.where in ("observation", "noise") for c in obs_targets]
@@ -375,7 +148,7 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
         chunk = items[b:b + batch_size]
         groups, g, Inf, C = sc.batch(chunk)
         for (e, t, s), grp, rows in zip(chunk, groups, sc.last_rows):
-            lbf, gain, coef, infl = _bayes_factor(g, Inf, k, grp, C, sc.eps)
+            lbf, gain, coef, infl = bayes_factor(g, Inf, k, grp, C, sc.eps)
             out.append(Screened(e, t, lbf, gain, [float(c) for c in coef], s, inflation=infl, rows=rows,
                                 basis=sc.basis))
     say(f"screened {len(items)} plain candidates")
@@ -417,7 +190,7 @@ def _shape_occam(e: Effect, cache: dict, data: Dataset) -> float:
     return max(SHAPE_OCCAM, math.log(rng / (math.sqrt(2 * math.pi) * sd)))
 
 
-def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_grid: int) -> Screened | None:
+def _screen_shape(sc: Screener, e: Effect, t: str, data: Dataset, k: int, n_grid: int) -> Screened | None:
     """Profile a shaped effect over its shape parameter: grid (log-spaced), then golden-section refinement."""
     _, lo, hi = e.shape
     cache: dict[float, Screened | None] = {}
@@ -431,7 +204,7 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
         r = None
         if s is not None:
             groups, g, Inf, C = sc.batch([(e, t, s)], [v])
-            lbf, gain, coef, infl = _bayes_factor(g, Inf, k, groups[0], C, sc.eps)
+            lbf, gain, coef, infl = bayes_factor(g, Inf, k, groups[0], C, sc.eps)
             r = Screened(ef, t, lbf, gain, [float(c) for c in coef], s, inflation=infl, rows=sc.last_rows[0],
                          basis=sc.basis)
         cache[v] = r
@@ -476,7 +249,7 @@ def _screen_shape(sc: _Screener, e: Effect, t: str, data: Dataset, k: int, n_gri
     return best
 
 
-def _coherence_p(sc: _Screener, e: Effect, c: Screened, target: str, k: int) -> float:
+def _coherence_p(sc: Screener, e: Effect, c: Screened, target: str, k: int) -> float:
     """p-value of a forcing's coherence over the record: its sine/cosine coefficients estimated on K segments
     (at least 10 cycles and 200 samples each, K <= 8) must agree within their noise (chi-square on 2(K-1)
     degrees of freedom, each segment's variance from the innovations' spectrum as in the screen)."""
@@ -489,7 +262,7 @@ def _coherence_p(sc: _Screener, e: Effect, c: Screened, target: str, k: int) -> 
         return 1.0
     groups, g, Inf, psi = sc.batch([(e, target, c.scales)], [c.effect.frequency])  # e: the profiled kernel
     grp = groups[0]
-    eff = psi[grp] - _nuisance_map(Inf, k, grp) @ psi[np.arange(k)]
+    eff = psi[grp] - nuisance_map(Inf, k, grp) @ psi[np.arange(k)]
     H = eff @ eff.T
     k_hat = np.linalg.pinv(H, rcond=1e-10) @ (-(eff @ sc.eps))
     psd = innovation_background(sc.eps + eff.T @ k_hat)
@@ -509,6 +282,21 @@ def _coherence_p(sc: _Screener, e: Effect, c: Screened, target: str, k: int) -> 
     return float(stats.chi2.sf(chi2, len(grp) * (K - 1)))
 
 
+def conditional_log_bayes_factor(c: Screened, given: list[Screened]) -> float:
+    """Screened ln BF of ``c`` with the coefficients of ``given`` profiled out with the model's own (from the
+    sensitivities the screen stored: no filter pass)."""
+    b = c.basis
+    rows = [b.De] + [p.rows[0] for p in given] + [c.rows[0]]
+    srows = [b.DS] + [p.rows[1] for p in given] + [c.rows[1]]
+    g, Inf, psi = b.score(np.vstack(rows), np.vstack(srows))
+    n = g.size
+    grp = np.arange(n - c.rows[0].shape[0], n)
+    lbf = bayes_factor(g, Inf, n - grp.size, grp, psi, b.eps)[0] - c.shape_occam
+    if c.coherence_p is not None and c.coherence_p < COHERENCE_P:
+        lbf = min(lbf, 0.0)  # an incoherent "forcing" stays rejected whatever is profiled with it
+    return lbf
+
+
 def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: list[Screened], k: int,
                         min_log_bf: float, *, substeps: int | None = None, look: int = 40,
                         robust: bool = True) -> list[Screened]:
@@ -521,7 +309,7 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
     twice, and one that explains what the first leaves over (an even stiffness next to the cubic one) is
     found even when on its own it ranks low. Candidates of the first ``look`` that are left out because the
     picked ones explain them get ``conditional_on``. The joint score comes from the sensitivities the screen
-    computed (:class:`_Basis`): no further filter pass.
+    computed (:class:`Basis`): no further filter pass.
     """
     pool = [c for c in screened[:look] if c.rows is not None and c.basis is not None]
     if len(pool) < len(screened[:look]):
@@ -534,7 +322,7 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
         for c in pool:
             if c in picked:
                 continue
-            c.conditional_log_bayes_factor = c.basis.conditional(c, picked)
+            c.conditional_log_bayes_factor = conditional_log_bayes_factor(c, picked)
             if c.conditional_log_bayes_factor > best_lbf:
                 best, best_lbf = c, c.conditional_log_bayes_factor
         if best is None:
@@ -543,7 +331,7 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
     for c in pool:
         if c in picked or c.log_bayes_factor <= min_log_bf:
             continue
-        lbf = c.basis.conditional(c, picked)
+        lbf = conditional_log_bayes_factor(c, picked)
         if lbf <= min_log_bf:
             c.conditional_on = [p.effect.name for p in picked]
     return picked
@@ -552,7 +340,7 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
 def _distinct_by_refit(spec, phi, data, screened, k, min_log_bf, *, substeps=None, look=12, robust=True):
     """:func:`distinct_candidates` for candidates screened elsewhere (no stored sensitivities): greedy in
     screened order, each conditional score from a new batch."""
-    sc = _Screener(spec, phi, data, substeps, robust)
+    sc = Screener(spec, phi, data, substeps, robust)
     base = len(sc.theta)
     picked: list[Screened] = []
     for c in [c for c in screened if c.log_bayes_factor > min_log_bf][:look]:
@@ -565,7 +353,7 @@ def _distinct_by_refit(spec, phi, data, screened, k, min_log_bf, *, substeps=Non
                 with_data = with_columns(with_data, p.effect)
             groups, g, Inf, C = sc.batch(items, data=with_data)
             nuis = base + sum(len(gr) for gr in groups[:-1])
-            lbf, *_ = _bayes_factor(g, Inf, nuis, groups[-1], C, sc.eps)
+            lbf, *_ = bayes_factor(g, Inf, nuis, groups[-1], C, sc.eps)
             if lbf <= min_log_bf:
                 c.conditional_on = [p.effect.name for p in picked]
                 continue

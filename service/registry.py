@@ -239,11 +239,13 @@ class ProgressCache:
                     "max_trials": meta.get("spec", {}).get("maximiser", {}).get("max_trials", 60),
                     "started": meta.get("started")}
             store = e["store"]
-            if e["started"] is None:
+            events = read_progress(store, e["offsets"])
+            if e["started"] is None and events:
+                # the store's attributes are a zarr read: only once the driver has written something
                 e["started"] = store.meta.get("started")
             started = e["started"] or time.time()
             out = e["models"]
-            for ev in read_progress(store, e["offsets"]):
+            for ev in events:
                 m = ev.get("model")
                 p = out.setdefault(m, Progress(model=m))
                 if ev.get("stage") != "note":
