@@ -24,8 +24,8 @@ class Settings(BaseModel):
     max_upload_rows: int = Field(2_000_000, gt=0)
     max_running: int = Field(2, ge=1, description="study drivers running at once; the others wait queued")
     max_queued: int = Field(100, ge=1, description="studies waiting at most (more: 429)")
-    max_study_cost: float = Field(1e12, gt=0, description="estimated likelihood evaluations x data rows a "
-                                                          "study may cost (more: 413 with the estimate)")
+    max_study_cost: float = Field(1e13, gt=0, description="estimated likelihood evaluations x data rows x "
+                                                          "sub-steps a study may cost (more: 413 with the estimate)")
     check_timeout_s: float = Field(30.0, gt=0, description="time allowed to compile a study's models at submit")
     check_memory_mb: int = Field(2048, ge=256, description="memory allowed to compile a study's models")
     cancel_grace_s: float = Field(10.0, ge=0, description="a cancelled driver is killed after this")

@@ -77,15 +77,17 @@ def estimate_evaluations(spec: StudySpec) -> float:
 
 
 def check_budget(spec: StudySpec, n_rows: int, budget: float) -> dict:
-    """Reject a study whose estimated cost (evaluations x data rows) exceeds ``budget``.
+    """Reject a study whose estimated cost (evaluations x data rows x sub-steps) exceeds ``budget``.
 
     Returns the estimate; raises :class:`Rejected` (413) with it.
     """
     ev = estimate_evaluations(spec)
-    cost = ev * max(1, n_rows)
-    est = {"evaluations": ev, "rows": n_rows, "cost": cost, "budget": budget}
+    # a likelihood costs a filter step per sub-step per row
+    sub = max((c.substeps or c.model_spec().substeps) for c in spec.models)
+    cost = ev * max(1, n_rows) * sub
+    est = {"evaluations": ev, "rows": n_rows, "substeps": sub, "cost": cost, "budget": budget}
     if cost > budget:
         raise Rejected(413, f"study too large for this service: about {ev:.3g} likelihood evaluations x "
-                            f"{n_rows} rows = {cost:.3g} > budget {budget:.3g} (lower sampler.max_burnin_rounds, "
-                            f"n_stationary, n_chains or maximiser.max_trials)")
+                            f"{n_rows} rows x {sub} sub-steps = {cost:.3g} > budget {budget:.3g} (lower "
+                            f"sampler.max_burnin_rounds, n_stationary, n_chains, maximiser.max_trials or substeps)")
     return est

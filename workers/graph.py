@@ -41,6 +41,55 @@ log = logging.getLogger("ardflow.workers")
 # --------------------------------------------------------------------------- chain tasks
 
 
+class StoppableTarget:
+    """A posterior target that stops the task running it when its study is cancelled.
+
+    Cancellation is otherwise seen by the driver between rounds; a round (or a start optimisation, or the
+    Chib-Jeliazkov proposals) of a slow likelihood can take minutes, during which the worker would stay
+    busy after a cancel. Every ``check_s`` seconds of calls the study's cancel event is read (one small
+    scheduler request), and a set event raises :class:`~ardcore.mcmc.Cancelled` in the task, which frees
+    the worker at once.
+    """
+
+    check_s = 2.0
+
+    def __init__(self, target, study_id: str):
+        self.target, self.study_id = target, study_id
+        self._last, self._event = time.monotonic(), None
+
+    def __getstate__(self):
+        return {"target": self.target, "study_id": self.study_id}
+
+    def __setstate__(self, d):
+        self.target, self.study_id = d["target"], d["study_id"]
+        self._last, self._event = time.monotonic(), None
+
+    def __getattr__(self, name):
+        if name in ("target", "study_id"):
+            raise AttributeError(name)
+        return getattr(self.target, name)
+
+    def __call__(self, x):
+        now = time.monotonic()
+        if now - self._last > self.check_s:
+            self._last = now
+            if self._cancelled():
+                from ardcore.mcmc import Cancelled
+
+                raise Cancelled(f"study {self.study_id} was cancelled")
+        return self.target(x)
+
+    def _cancelled(self) -> bool:
+        try:
+            if self._event is None:
+                from distributed import Event
+
+                self._event = Event(cancel_event_name(self.study_id))
+            return bool(self._event.is_set())
+        except Exception:  # noqa: BLE001 - no cluster reachable (a local run): nothing to stop for
+            return False
+
+
 def _burnin_round_task(args, prefix: str, chain: int, round_index: int):
     """One burn-in round of one chain; the statistics go to the coordinator actor."""
     res = _round_task(args)
@@ -164,7 +213,8 @@ class StoredEvaluator(EvidenceEvaluator):
         if self.method == "laplace" or iteration is None:
             return super().__call__(psi, seed, warm, final=final, iteration=iteration)
         model, store = self.model, self.store
-        target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
+        target = StoppableTarget(build_target(self.spec, self.essential, psi, self.data, self.substeps),
+                                 self.study_id)
         rec = store.trial_record(model, iteration)
         if rec is not None and rec["psi"] == _json(psi):
             ev, res = _from_record(rec, store, model, iteration)

@@ -63,7 +63,7 @@ def hostile(tmp_path_factory):
                             allowed_hosts=["127.0.0.1", "localhost"], max_study_cost=1e10, check_timeout_s=20)
         app = create_app(settings, dc)
         with Server(app, port):
-            yield f"http://127.0.0.1:{port}", root, app
+            yield f"http://127.0.0.1:{port}", root, app, dc
 
 
 def _answers(url):
@@ -162,7 +162,7 @@ def _answers(url):
 
 
 def test_hostile_requests_get_4xx_at_request_time(hostile):
-    url, root, app = hostile
+    url, root, app, _ = hostile
     cases = _answers(url)
     assert len(cases) >= 150
     bad = []
@@ -181,7 +181,7 @@ def test_hostile_requests_get_4xx_at_request_time(hostile):
 
 
 def test_poison_rejected_at_submit_naming_the_field(hostile):
-    url, _, _ = hostile
+    url, _, _, _ = hostile
     with httpx.Client(timeout=60, headers=H) as c:
         for expr, words in (("9**9**9**9", "finite"), ("2**2000*x", "finite"), ("x/0", "finite"),
                             ("sqrt(-1)*x", "real"), ("__import__('os')", "not allowed"), ("x**100000", "exponent")):
@@ -197,7 +197,7 @@ def test_poison_rejected_at_submit_naming_the_field(hostile):
 def test_queue_cancel_delete_and_concurrent_figures(hostile):
     """max_running=1: the second study waits queued; a queued study cancelled never runs; a running one
     cancelled stops; finished ones are deleted; 12 concurrent figure requests all succeed."""
-    url, root, app = hostile
+    url, root, app, _ = hostile
     with httpx.Client(timeout=60, headers=H) as c:
         a = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=11)).json()["id"]
         b = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=12)).json()["id"]
@@ -264,3 +264,43 @@ def test_cancel_survives_sigkill_and_restart(tmp_path):
         assert r.returncode == 2 and "cancelled" in r.stderr
     finally:
         os.killpg(p.pid, signal.SIGKILL)
+
+
+def test_cancel_frees_a_worker_busy_inside_a_task(hostile, tmp_path):
+    """A study whose every likelihood takes seconds (the reference data at 2000 sub-steps): its start
+    optimisation keeps a worker busy for many minutes inside one task. Cancelled, the task itself stops
+    (the target reads the study's cancel event every 2 s) and the workers are free within the grace period."""
+    _, _, _, dc = hostile
+    port = free_port()
+    app = create_app(Settings(root=tmp_path, token=TOKEN, max_running=1, cancel_grace_s=5.0), dc)
+    slow = {"name": "slow", "data": {"generator": "reference", "seed": 1},
+            "models": [{"model": "M2true", "substeps": 2000, "priors": {
+                "B": {"kind": "lognormal", "median": 0.2, "cov": 50}, "a1": {"kind": "uniform", "low": -2, "high": 0},
+                "a2": {"kind": "uniform", "low": -2, "high": 0}, "a3": {"kind": "uniform", "low": -250, "high": 250},
+                "a4": {"kind": "uniform", "low": -1000, "high": 0},
+                "sigma": {"kind": "lognormal", "median": 0.002, "cov": 50}}}],
+            "sampler": {"n_chains": 2, "round_size": 50, "n_stationary": 100, "n_proposal": 100, "start_maxfev": 400,
+                        "max_burnin_rounds": 5},
+            "maximiser": {"max_trials": 2}, "seed": 1}
+    with Server(app, port), httpx.Client(timeout=60, headers=H) as c:
+        base = f"http://127.0.0.1:{port}/v1"
+        r = c.post(f"{base}/studies", json=slow)
+        assert r.status_code == 202, r.text
+        sid = r.json()["id"]
+        deadline = time.time() + 120
+        while not any(dc.processing().values()) and time.time() < deadline:
+            time.sleep(0.5)
+        assert any(dc.processing().values()), "the study never started a task"
+        time.sleep(3)
+        t0 = time.time()
+        assert c.post(f"{base}/studies/{sid}/cancel").json()["status"] == "cancelled"
+        def busy():  # tasks a worker thread is still executing (the scheduler forgets a dead client's at once)
+            return sum(dc.run(lambda dask_worker: len(dask_worker.state.executing)).values())
+
+        while busy() and time.time() - t0 < 30:
+            time.sleep(0.25)
+        freed = time.time() - t0
+        assert not busy()
+        assert freed < 5.0 + 2.0 + 3.0, freed  # grace period + one check interval + slack
+        assert c.get(f"{base}/studies/{sid}").json()["status"] == "cancelled"
+        app.state.runner.stop()
