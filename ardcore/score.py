@@ -96,6 +96,8 @@ class Screener:
     def __init__(self, spec: ModelSpec, phi: dict, data: Dataset, substeps: int | None, robust: bool = True):
         self.spec, self.phi, self.data, self.substeps = spec, dict(phi), data, substeps
         fr = compile_model(spec).filter(phi, data, substeps)
+        e, S = fr.innovations.ravel(), fr.innovation_var.ravel()
+        self._ref_ok = np.isfinite(e) & np.isfinite(S) & (S > 0)
         self.X = np.where(np.isfinite(fr.filtered), fr.filtered, 0.0)
         self.U = (np.column_stack([data.columns[u] for u in spec.inputs]) if spec.inputs
                   else np.zeros((len(data), 0)))
@@ -179,16 +181,19 @@ class Screener:
         bad = ~np.all(np.isfinite(De), axis=0) | ~np.all(np.isfinite(DS), axis=0)
         De[:, bad], DS[:, bad] = 0.0, 0.0
         k = len(self.theta)
-        if self.basis is None:
-            # at zero coefficients every candidate's filter is the model's own: the model's sensitivities and
-            # innovations are the same in every batch, and any set of candidates can be scored jointly later
+        own = Basis(De[:k], DS[:k], e0, S0, ok, self.eps)
+        # at zero coefficients a candidate's filter is the model's own, so the model's sensitivities and
+        # innovations are the same in every batch and any set of candidates can be scored jointly later --
+        # unless a term is not finite somewhere (0 * inf): then that batch's rows are not stored
+        same = ok.shape == self._ref_ok.shape and bool(np.array_equal(ok, self._ref_ok))
+        if same and self.basis is None:
             self.basis = Basis(De[:k].copy(), DS[:k].copy(), e0, S0, ok, self.eps)
         groups, pos = [], k
         for nm in names:
             groups.append(np.arange(pos, pos + len(nm)))
             pos += len(nm)
-        self.last_rows = [(De[gr], DS[gr]) for gr in groups]
-        g, Inf, psi = self.basis.score(De, DS)
+        self.last_rows = [(De[gr], DS[gr]) if same else None for gr in groups]
+        g, Inf, psi = own.score(De, DS)
         return groups, g, Inf, psi
 
 

@@ -311,9 +311,10 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
     picked ones explain them get ``conditional_on``. The joint score comes from the sensitivities the screen
     computed (:class:`Basis`): no further filter pass.
     """
-    pool = [c for c in screened[:look] if c.rows is not None and c.basis is not None]
-    if len(pool) < len(screened[:look]):
+    if not screened or screened[0].rows is None or screened[0].basis is None:
         return _distinct_by_refit(spec, phi, data, screened, k, min_log_bf, substeps=substeps, robust=robust)
+    # a candidate whose terms are not finite along the fit has no stored rows: it cannot be scored jointly
+    pool = [c for c in screened[:look] if c.rows is not None and c.basis is screened[0].basis]
     picked: list[Screened] = []
     if pool and pool[0].log_bayes_factor > min_log_bf:
         picked.append(pool[0])
