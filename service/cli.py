@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from .progress import LiveProgress, _num, _print_table, print_progress  # noqa: F401
 
 
 def _kv(items: list[str] | None, what: str) -> dict[str, str]:
@@ -204,41 +205,6 @@ def cmd_demo(a) -> int:
     return 0
 
 
-def print_progress(p: dict) -> None:
-    """One line per event of a running study (stdout, flushed)."""
-    st = p.get("stage")
-    m = p.get("model", "")
-    if st == "model_done":
-        print(f"[{m}] done: ln Z = {p['log_evidence']:.3f}", flush=True)
-    elif st == "trial":
-        mark = "accepted" if p["accepted"] else "rejected"
-        print(f"[{m}] trial {p['iteration']:>3}  {p['action']:<40s} ln Z = {p['log_evidence']:.3f} "
-              f"+- {p['log_evidence_se']:.3f}  {mark}", flush=True)
-    elif st == "note":
-        print(f"[{m}]   {p['message']}", flush=True)
-    elif st == "burnin" and (p["round"] == 1 or p["round"] % 5 == 0):
-        r = max(_num(v) for v in p["rhat"])
-        print(f"[{m}]   burn-in round {p['round']:>3}: max R-hat {r:.3f}, best ln post {_num(p['best_lp']):.2f}, "
-              f"acceptance {_num(p['acceptance']):.2f}", flush=True)
-
-
-def _num(v) -> float:
-    """A number from a progress event (non-finite values arrive as the strings 'inf', '-inf', 'nan')."""
-    try:
-        return float(v)
-    except (TypeError, ValueError):
-        return math.nan
-
-
-def _print_table(summary: dict) -> None:
-    print(f"\n{'model':<12s} {'ln Z':>12s} {'se':>7s} {'GoF':>12s} {'EIG':>8s} {'P(M|d)':>8s}  kept / pruned")
-    for r in summary["models"]:
-        print(f"{r['name']:<12s} {r['log_evidence']:12.3f} {r['log_evidence_se']:7.3f} {r['goodness_of_fit']:12.3f} "
-              f"{r['information_gain']:8.3f} {r['probability']:8.4f}  {r['kept']} / {r['pruned']}")
-        for w in r["warnings"]:
-            print(f"  warning: {w}")
-
-
 class _Cluster:
     """A client on an existing scheduler, or an embedded LocalCluster (workers = cores)."""
 
@@ -281,8 +247,9 @@ def _run_on_dask(a, store) -> dict:
             from distributed import performance_report
 
             ctx = performance_report(filename=a.performance_report)
-        with ctx:
-            summary = run_study(client, store, progress=print_progress)
+        max_trials = store.meta.get("spec", {}).get("maximiser", {}).get("max_trials", 60)
+        with ctx, LiveProgress(max_trials) as live:
+            summary = run_study(client, store, progress=live)
     if not store.remote:
         from .html_report import write_report
 
@@ -316,14 +283,15 @@ def cmd_select(a) -> int:
         print(f"\nsummary: {store}/summary.json  ({time.perf_counter() - t0:.1f} s)")
         return 0
     elif a.executor == "serial":
-        summary = select(spec, out=out, progress=print_progress, base=base)
+        with LiveProgress(spec.maximiser.max_trials) as live:
+            summary = select(spec, out=out, progress=live, base=base)
     else:
         from concurrent.futures import ProcessPoolExecutor
 
         from ardcore.mcmc import executor_map
 
-        with ProcessPoolExecutor(max_workers=a.workers) as ex:
-            summary = select(spec, out=out, progress=print_progress, map_fn=executor_map(ex), base=base)
+        with ProcessPoolExecutor(max_workers=a.workers) as ex, LiveProgress(spec.maximiser.max_trials) as live:
+            summary = select(spec, out=out, progress=live, map_fn=executor_map(ex), base=base)
     _print_table(summary)
     print(f"\nsummary: {(out / 'summary.json').resolve()}  ({time.perf_counter() - t0:.1f} s)")
     return 0

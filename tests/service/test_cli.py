@@ -77,3 +77,29 @@ def test_diagnose_held_out_file_with_its_own_column_names(tmp_path):
     assert r.returncode == 0, r.stderr
     rep = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
     assert rep["n_test"] == 400
+
+
+def test_live_progress_bars_and_plain_lines(capsys):
+    """On an interactive terminal each model gets a bar that advances per trial and completes at model_done;
+    in logs and CI the same events are plain lines."""
+    from service.progress import LiveProgress
+
+    events = [{"model": "M1", "stage": "burnin", "round": 1, "rhat": [1.5, "inf"], "best_lp": 1.0, "acceptance": 0.3},
+              {"model": "M1", "stage": "trial", "iteration": 0, "action": "start", "log_evidence": 10.0,
+               "log_evidence_se": 0.1, "accepted": True},
+              {"model": "M2", "stage": "trial", "iteration": 0, "action": "start", "log_evidence": 12.0,
+               "log_evidence_se": 0.1, "accepted": True},
+              {"model": "M1", "stage": "trial", "iteration": 1, "action": "a3: log10 alpha -10 -> -8",
+               "log_evidence": 11.0, "log_evidence_se": 0.1, "accepted": True},
+              {"model": "M1", "stage": "model_done", "log_evidence": 11.0}]
+    with LiveProgress(20, live=True) as live:
+        for ev in events:
+            live(ev)
+        tasks = {t.fields["model"]: t for t in live._progress.tasks}
+        assert tasks["M1"].completed == tasks["M1"].total == 20 and "11.000" in tasks["M1"].fields["status"]
+        assert tasks["M2"].completed == 1 and "best ln Z 12.00" in tasks["M2"].fields["status"]
+    with LiveProgress(20, live=False) as plain:
+        for ev in events:
+            plain(ev)
+    out = capsys.readouterr().out
+    assert "[M1] trial   1  a3: log10 alpha -10 -> -8" in out and "[M1] done: ln Z = 11.000" in out
