@@ -174,6 +174,20 @@ def test_auth_and_limits(service):
     assert r.status_code == 422
 
 
+def start_service(cmd: list[str], port: int):
+    """``ardflow serve`` as its own process group; returns the process once /v1/health answers."""
+    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        try:
+            with Client(f"http://127.0.0.1:{port}", token=TOKEN, timeout=2) as c:
+                c.health()
+                return p
+        except Exception:
+            time.sleep(0.3)
+    raise RuntimeError("service did not start")
+
+
 def test_service_restart_mid_study(tmp_path):
     """Kill the whole service (API and its embedded cluster) mid-study; a restarted service finishes it."""
     root = tmp_path / "svc"
@@ -182,17 +196,7 @@ def test_service_restart_mid_study(tmp_path):
            "--token", TOKEN]
 
     def start():
-        p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                             start_new_session=True)
-        deadline = time.time() + 120
-        while time.time() < deadline:
-            try:
-                with Client(f"http://127.0.0.1:{port}", token=TOKEN, timeout=2) as c:
-                    c.health()
-                    return p
-            except Exception:
-                time.sleep(0.3)
-        raise RuntimeError("service did not start")
+        return start_service(cmd, port)
 
     p = start()
     try:

@@ -17,7 +17,7 @@ from distributed import LocalCluster
 
 from service.app import Settings, create_app
 
-from .test_api import ROOT, SPEC, TOKEN, Server, free_port
+from .test_api import ROOT, SPEC, TOKEN, Server, free_port, start_service
 
 H = {"X-API-Token": TOKEN}
 POLY = {"name": "poly", "states": ["z"], "drift": {"z": 0.0},
@@ -231,16 +231,7 @@ def test_cancel_survives_sigkill_and_restart(tmp_path):
            "--token", TOKEN]
 
     def start():
-        p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                             start_new_session=True)
-        deadline = time.time() + 120
-        while time.time() < deadline:
-            try:
-                if httpx.get(f"http://127.0.0.1:{port}/v1/health", timeout=2).status_code == 200:
-                    return p
-            except httpx.HTTPError:
-                time.sleep(0.3)
-        raise RuntimeError("service did not start")
+        return start_service(cmd, port)
 
     p = start()
     try:
