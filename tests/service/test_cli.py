@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 
@@ -44,9 +45,22 @@ def test_simulate_other_model_with_input(tmp_path):
     (["simulate", "pendulum", "--out", "x.csv", "--param", "w2=abc"], "is not a number"),
     (["loglik", "missing.csv", "--model", "M2"], "no such file"),
     (["data", "check", "empty.csv"], "empty file"),
+    (["loglik", "cut.npz", "--model", "M2"], "cannot read NPZ file"),
+    (["loglik", "ok.csv", "--model", "big.json"], "nested too deeply"),
+    (["data", "check", "long.csv"], "not a CSV table"),
 ])
 def test_errors_are_one_line_without_traceback(tmp_path, args, msg):
     (tmp_path / "empty.csv").write_text("")
+    (tmp_path / "ok.csv").write_text("t,y\n" + "".join(f"{i},{i % 3}\n" for i in range(20)))
+    (tmp_path / "long.csv").write_text("t,y\n0," + "9" * 140_000 + "\n")
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, t=np.arange(100.0), y=np.ones(100))
+    (tmp_path / "cut.npz").write_bytes(buf.getvalue()[:300])  # a truncated download
+    big = {"name": "big", "states": ["x"], "drift": {"x": "+".join(["x"] * 1000)},
+           "observations": [{"column": "y", "expr": "x", "noise_std": "0.1"}]}
+    (tmp_path / "big.json").write_text(json.dumps(big))
     r = run(*args, cwd=tmp_path)
     assert r.returncode == 2
     assert msg in r.stderr and "Traceback" not in r.stderr
