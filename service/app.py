@@ -70,15 +70,25 @@ def create_app(settings: Settings, client) -> FastAPI:
     async def user_error(request: Request, exc: ArdflowError):
         return JSONResponse({"detail": str(exc)}, 422)
 
-    async def auth(request: Request) -> None:
-        if settings.token is None:
-            return
+    tokens = dict(settings.tokens or {})
+    if settings.token is not None:
+        tokens.setdefault("default", settings.token)
+
+    async def auth(request: Request) -> str:
+        """The caller's name (the token's owner; "anonymous" without authentication)."""
+        if not tokens:
+            return "anonymous"
         given = request.headers.get("x-api-token")
         if given is None:
             h = request.headers.get("authorization", "")
             given = h[7:] if h.lower().startswith("bearer ") else None
-        if given is None or not hmac.compare_digest(given.encode(), settings.token.encode()):
+        owner = None
+        for name, tok in tokens.items():  # every comparison in constant time, all of them made
+            if given is not None and hmac.compare_digest(given.encode(), tok.encode()):
+                owner = name
+        if owner is None:
             raise HTTPException(401, "missing or wrong API token", headers={"WWW-Authenticate": "Bearer"})
+        return owner
 
     v1 = f"/{API_VERSION}"
 
@@ -135,13 +145,18 @@ def create_app(settings: Settings, client) -> FastAPI:
         tmp.replace(reg.root / "datasets" / f"{did}.csv")
         return DatasetInfo(id=did, rows=len(ds), columns=["t", *ds.columns])
 
-    @app.post(f"{v1}/studies", response_model=StudyCreated, status_code=202, dependencies=[Depends(auth)])
-    async def submit(spec: StudySpec) -> StudyCreated:
+    @app.post(f"{v1}/studies", response_model=StudyCreated, status_code=202)
+    async def submit(spec: StudySpec, owner: str = Depends(auth)) -> StudyCreated:
         if spec.data.path is not None:
             raise HTTPException(422, "data.path is not accepted over the API: upload the data set "
                                      "(POST /v1/datasets) and give data.dataset")
         if len(runner.queue) >= settings.max_queued:
             raise HTTPException(429, f"{len(runner.queue)} studies are waiting already; try again later",
+                                headers={"Retry-After": "60"})
+        active = sum(1 for m in reg.metas() if m.get("owner") == owner and m.get("status") in ("queued", "running"))
+        if active >= settings.max_active_per_token:
+            raise HTTPException(429, f"{active} of your studies are queued or running (at most "
+                                     f"{settings.max_active_per_token} per token); try again later",
                                 headers={"Retry-After": "60"})
         try:
             # compiled in a child process with limits: a poison model is a 422 now, never a busy worker later
@@ -159,7 +174,7 @@ def create_app(settings: Settings, client) -> FastAPI:
                                             study_id=sid)
             estimate = check_budget(spec, int(store.meta.get("data", {}).get("n") or 0), settings.max_study_cost)
             reg.write_meta(sid, {"id": sid, "name": spec.name, "status": "queued", "created": time.time(),
-                                 "estimate": estimate})
+                                 "estimate": estimate, "owner": owner})
         except Rejected as exc:
             shutil.rmtree(d, ignore_errors=True)
             raise HTTPException(exc.status, str(exc)) from None

@@ -355,8 +355,9 @@ def cmd_serve(a) -> int:
     # a page in the user's browser may not reach a loopback service under another name (DNS rebinding)
     hosts = ["127.0.0.1", "localhost", "[::1]", "::1"] if loopback else None
     with _Cluster(a.scheduler, a.workers) as client:
-        app = create_app(Settings(root=root, token=token, max_body_mb=a.max_body_mb, max_running=a.max_running,
-                                  allowed_hosts=hosts), client)
+        tokens = json.loads(Path(a.tokens_file).read_text()) if a.tokens_file else None
+        app = create_app(Settings(root=root, token=token, tokens=tokens, max_body_mb=a.max_body_mb,
+                                  max_running=a.max_running, allowed_hosts=hosts), client)
         print(f"[ardflow] API on http://{a.host}:{a.port}/v1 (OpenAPI: /docs), registry {root.resolve()}", flush=True)
         try:
             uvicorn.run(app, host=a.host, port=a.port, log_level="warning")
@@ -495,6 +496,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--insecure-no-auth", action="store_true",
                    help="no token (loopback only: any local process can then submit studies)")
     s.add_argument("--max-running", type=int, default=2, help="study drivers at once; the others wait queued")
+    s.add_argument("--tokens-file", default=None,
+                   help='JSON {"owner": "token", ...}: one token per user, each limited separately')
     s.add_argument("--scheduler", default=None)
     s.add_argument("--workers", type=int, default=None)
     s.add_argument("--max-body-mb", type=float, default=20.0)

@@ -39,6 +39,16 @@ class Registry:
             raise HTTPException(404, f"no study {sid!r}")
         return json.loads(p.read_text())
 
+    def metas(self) -> list[dict]:
+        """Every study's meta (damaged entries skipped)."""
+        out = []
+        for sid in self.ids():
+            try:
+                out.append(self.meta(sid))
+            except (OSError, ValueError, HTTPException):
+                continue
+        return out
+
     def write_meta(self, sid: str, meta: dict) -> None:
         from workers.store import atomic_write_text
 

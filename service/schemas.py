@@ -19,7 +19,10 @@ class Settings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     root: Path = Field(description="directory holding the registry, data sets and study stores")
-    token: Optional[str] = Field(None, description="API token; None disables authentication")
+    token: Optional[str] = Field(None, description="API token; None (and no `tokens`) disables authentication")
+    tokens: Optional[dict[str, str]] = Field(None, description="more API tokens by owner name (each owner's "
+                                                               "active studies are limited separately)")
+    max_active_per_token: int = Field(20, ge=1, description="queued + running studies one token may have")
     max_body_mb: float = Field(20.0, gt=0)
     max_upload_rows: int = Field(2_000_000, gt=0)
     max_running: int = Field(2, ge=1, description="study drivers running at once; the others wait queued")

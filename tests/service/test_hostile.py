@@ -295,3 +295,21 @@ def test_cancel_frees_a_worker_busy_inside_a_task(hostile, tmp_path):
         assert freed < 5.0 + 2.0 + 3.0, freed  # grace period + one check interval + slack
         assert c.get(f"{base}/studies/{sid}").json()["status"] == "cancelled"
         app.state.runner.stop()
+
+
+def test_active_studies_are_limited_per_token(hostile, tmp_path):
+    _, _, _, dc = hostile
+    port = free_port()
+    app = create_app(Settings(root=tmp_path, tokens={"alice": "tok-a", "bob": "tok-b"}, max_running=1,
+                              max_active_per_token=1), dc)
+    with Server(app, port), httpx.Client(timeout=60) as c:
+        base = f"http://127.0.0.1:{port}/v1"
+        first = c.post(f"{base}/studies", json=dict(SPEC, seed=31), headers={"X-API-Token": "tok-a"})
+        again = c.post(f"{base}/studies", json=dict(SPEC, seed=32), headers={"X-API-Token": "tok-a"})
+        other = c.post(f"{base}/studies", json=dict(SPEC, seed=33), headers={"X-API-Token": "tok-b"})
+        assert first.status_code == 202 and other.status_code == 202
+        assert again.status_code == 429 and "per token" in again.json()["detail"]
+        assert c.get(f"{base}/studies", headers={"X-API-Token": "nope"}).status_code == 401
+        for r in (first, other):
+            c.post(f"{base}/studies/{r.json()['id']}/cancel", headers={"X-API-Token": "tok-a"})
+        app.state.runner.stop()
