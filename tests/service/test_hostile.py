@@ -81,6 +81,11 @@ def _answers(url):
                                                   content=json.dumps(poly_study(observations=obs(noise=e))))))
         out.append((f"drift {e[:20]!r}", dict(method="POST", url=f"{v1}/studies", headers=J,
                                               content=json.dumps(poly_study(drift={"z": e})))))
+    for e in POISON_EXPRESSIONS[:8]:
+        out.append((f"initial_std {e[:20]!r}", dict(method="POST", url=f"{v1}/studies", headers=J,
+                                                    content=json.dumps(poly_study(initial_std={"z": e})))))
+        out.append((f"derived {e[:20]!r}", dict(method="POST", url=f"{v1}/studies", headers=J, content=json.dumps(
+            poly_study(derived={"q": e}, observations=obs("a0 + q*a1"))))))
     chain = {f"d{i}": (f"d{i - 1}*d{i - 1} + d{i - 1}" if i else "x*x") for i in range(64)}
     out.append(("derived chain", dict(method="POST", url=f"{v1}/studies", headers=J,
                                       content=json.dumps(poly_study(derived=chain, observations=obs("a0 + d63"))))))
