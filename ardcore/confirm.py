@@ -116,6 +116,11 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     if chosen:
         say("confirming by evidence: " + ", ".join(f"{c['effect']} -> {c['target']}" for c in chosen))
     results = mapper(_fit_task, tasks)
+    # the prior odds of each of the N candidates tried (Scott and Berger 2010): its ln BF also pays ln N
+    threshold = config.min_log_bf + (math.log(max(1, len(screened))) if config.library_prior else 0.0)
+    if chosen and config.library_prior:
+        say(f"  an effect must gain {threshold:.1f} nats: {config.min_log_bf:g} + ln {len(screened)} "
+            f"(the prior odds of one of the {len(screened)} candidates tried)")
     for c, (acand, adata, *_), (arow, amr) in zip(chosen, tasks, results):
         sc = c["_screened"]
         eff: Effect = sc.effect
@@ -135,7 +140,7 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
                           # coefficients in the term's own units (the fit uses the normalised ones)
                           "posterior": {n: physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
                           "scales": scale,
-                          "survives": bool(kept) and adjusted > config.min_log_bf,
+                          "survives": bool(kept) and adjusted > threshold,
                           "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff,
                           "_screened": sc})
         say(f"  {eff.name}: ln BF = {gain:.2f}" + (f" ({adjusted:.2f} adjusted for coloured innovations, "

@@ -79,6 +79,11 @@ class DiagnoseConfig:
         Evidence gain (nats) over the base model an added effect needs, on top of ARD keeping it; the gain is
         first divided by the factor by which the EKF understates its score's variance (``inflation`` of the
         screen: coloured innovations), so a likelihood that takes coloured noise as white cannot add a term.
+    library_prior : bool
+        Each of the N candidates the screen tried is a priori one of N equally likely additions, so its prior
+        odds against "nothing missing" are 1/N and its ln Bayes factor must also pay ln N (Scott and Berger
+        2010's multiplicity correction: the more candidates tried, the more one of them fits noise by chance).
+        With the library on an oscillator, N ~ 25-35 and ln N ~ 3.5 nats. False: ``min_log_bf`` alone.
     init_samples : int
         Samples of a held-out record used to initialise the free run (filtered state).
     max_rounds : int
@@ -122,6 +127,7 @@ class DiagnoseConfig:
     min_score: float = 3.0
     top_k: int = 3
     min_log_bf: float = 3.0
+    library_prior: bool = True
     init_samples: int = 50
     max_rounds: int = 3
     split_z: float | None = 3.0
