@@ -10,6 +10,7 @@ were running.
 from __future__ import annotations
 
 import asyncio
+import functools
 import hmac
 import io
 import json
@@ -17,8 +18,10 @@ import logging
 import re
 import secrets
 import shutil
+import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +52,14 @@ def create_app(settings: Settings, client) -> FastAPI:
                   description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")
     app.state.registry, app.state.runner, app.state.settings = reg, runner, settings
     max_body = int(settings.max_body_mb * 1024 * 1024)
+    # parsing, data loading and store creation hold the GIL for long stretches: one thread for them, and
+    # the GIL handed over every 1 ms (not 5), so a burst of submissions cannot starve the event loop that
+    # answers status requests
+    heavy_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="submit")
+    sys.setswitchinterval(0.001)
+
+    async def heavy(fn, *args, **kw):
+        return await asyncio.get_running_loop().run_in_executor(heavy_pool, functools.partial(fn, *args, **kw))
 
     app.add_middleware(RequestGuard, max_body=max_body, allowed_hosts=settings.allowed_hosts,
                        csv_paths=(f"/{API_VERSION}/datasets",))
@@ -131,7 +142,7 @@ def create_app(settings: Settings, client) -> FastAPI:
             tmp.write_text(text)
             from ardcore.data import read_dataset
 
-            ds = await asyncio.to_thread(read_dataset, tmp)
+            ds = await heavy(read_dataset, tmp)
         except ArdflowError as exc:
             raise HTTPException(422, str(exc).replace(str(tmp), "data set")) from None
         except Exception as exc:  # noqa: BLE001 - csv.Error (a field over its size limit) and friends: a 422
@@ -160,8 +171,7 @@ def create_app(settings: Settings, client) -> FastAPI:
                                 headers={"Retry-After": "60"})
         try:
             # compiled in a child process with limits: a poison model is a 422 now, never a busy worker later
-            await asyncio.to_thread(check_models, spec, timeout_s=settings.check_timeout_s,
-                                    memory_mb=settings.check_memory_mb)
+            await heavy(check_models, spec, timeout_s=settings.check_timeout_s, memory_mb=settings.check_memory_mb)
         except Rejected as exc:
             raise HTTPException(exc.status, str(exc)) from None
         sid = f"{spec.name}-{secrets.token_hex(4)}"
@@ -170,8 +180,7 @@ def create_app(settings: Settings, client) -> FastAPI:
         from workers.graph import prepare_store
 
         try:
-            store = await asyncio.to_thread(prepare_store, spec, d / "store", datasets=reg.root / "datasets",
-                                            study_id=sid)
+            store = await heavy(prepare_store, spec, d / "store", datasets=reg.root / "datasets", study_id=sid)
             estimate = check_budget(spec, int(store.meta.get("data", {}).get("n") or 0), settings.max_study_cost)
             reg.write_meta(sid, {"id": sid, "name": spec.name, "status": "queued", "created": time.time(),
                                  "estimate": estimate, "owner": owner})
@@ -191,11 +200,21 @@ def create_app(settings: Settings, client) -> FastAPI:
     def list_studies() -> list[StudyStatus]:
         return [_status(sid, progress=False) for sid in reg.ids()]
 
+    recent: dict[str, tuple[float, StudyStatus]] = {}
+    STATUS_TTL = 0.2  # s: clients polling faster than this share one read of the registry and the logs
+
     def _status(sid: str, progress: bool = True) -> StudyStatus:
+        now = time.monotonic()
+        hit = recent.get(sid) if progress else None
+        if hit is not None and now - hit[0] < STATUS_TTL:
+            return hit[1]
         m = reg.meta(sid)
-        return StudyStatus(id=sid, name=m.get("name", sid), status=m.get("status", "unknown"),
-                           created=m.get("created", 0.0), error=m.get("error"),
-                           models=progress_cache.get(sid) if progress else {})
+        st = StudyStatus(id=sid, name=m.get("name", sid), status=m.get("status", "unknown"),
+                         created=m.get("created", 0.0), error=m.get("error"),
+                         models=progress_cache.get(sid) if progress else {})
+        if progress:
+            recent[sid] = (now, st)
+        return st
 
     @app.get(f"{v1}/studies/{{sid}}", response_model=StudyStatus, dependencies=[Depends(auth)])
     async def status(sid: str) -> StudyStatus:
@@ -232,6 +251,7 @@ def create_app(settings: Settings, client) -> FastAPI:
         if m.get("status") in FINAL:
             raise HTTPException(409, f"study {sid} is already {m['status']}")
         runner.cancel(sid)  # recorded durably before this answer
+        recent.pop(sid, None)
         return _status(sid)
 
     @app.delete(f"{v1}/studies/{{sid}}", status_code=204, dependencies=[Depends(auth)])
@@ -241,6 +261,7 @@ def create_app(settings: Settings, client) -> FastAPI:
             raise HTTPException(409, f"study {sid} is {m.get('status')}: cancel it first")
         shutil.rmtree(reg.study_dir(sid), ignore_errors=True)
         progress_cache.forget(sid)
+        recent.pop(sid, None)
         return Response(status_code=204)
 
     @app.get(f"{v1}/studies/{{sid}}/summary", dependencies=[Depends(auth)])

@@ -125,7 +125,8 @@ class Runner:
         store = reg.store(sid)
         log_path = reg.study_dir(sid) / "driver.log"
         with open(log_path, "a") as logf:
-            p = subprocess.Popen([sys.executable, "-m", "service.cli", "resume", str(store),
+            # the driver yields to the API process (status requests stay quick under load)
+            p = subprocess.Popen(["nice", "-n", "5", sys.executable, "-m", "service.cli", "resume", str(store),
                                   "--scheduler", self.client.scheduler.address],
                                  stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
             self.procs[sid] = p

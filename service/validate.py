@@ -49,7 +49,7 @@ def check_models(spec: StudySpec, *, timeout_s: float = 30.0, memory_mb: int = 2
 def _check_in_child(spec: StudySpec, keys: list[str], timeout_s: float, memory_mb: int) -> None:
     try:
         # the child sets its own memory limit (preexec_fn is not safe in a threaded server)
-        r = subprocess.run([sys.executable, "-m", "ardcore.check", "--memory-mb", str(memory_mb)],
+        r = subprocess.run(["nice", "-n", "5", sys.executable, "-m", "ardcore.check", "--memory-mb", str(memory_mb)],
                            input=json.dumps(spec.model_dump(mode="json")), capture_output=True, text=True,
                            timeout=timeout_s)
     except subprocess.TimeoutExpired:
