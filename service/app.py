@@ -46,7 +46,8 @@ _render_lock = threading.Lock()  # matplotlib (mathtext, font cache) is not thre
 def create_app(settings: Settings, client) -> FastAPI:
     """The FastAPI app over a Dask ``client`` (which it never exposes)."""
     reg = Registry(settings.root)
-    runner = Runner(reg, client, max_running=settings.max_running, cancel_grace_s=settings.cancel_grace_s)
+    runner = Runner(reg, client, max_running=settings.max_running, cancel_grace_s=settings.cancel_grace_s,
+                    max_task_s=settings.max_task_s)
     progress_cache = ProgressCache(reg)
     app = FastAPI(title="ardflow", version="0.1.0",
                   description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")

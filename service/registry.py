@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import threading
 import time
 from pathlib import Path
@@ -71,9 +72,10 @@ class Runner:
     ``cancel_grace_s``, killed; it is never relaunched.
     """
 
-    def __init__(self, registry: Registry, client, *, max_running: int = 2, cancel_grace_s: float = 10.0):
+    def __init__(self, registry: Registry, client, *, max_running: int = 2, cancel_grace_s: float = 10.0,
+                 max_task_s: float = 21600.0):
         self.registry, self.client = registry, client
-        self.max_running, self.cancel_grace_s = max_running, cancel_grace_s
+        self.max_running, self.cancel_grace_s, self.max_task_s = max_running, cancel_grace_s, max_task_s
         self.threads: dict[str, threading.Thread] = {}
         self.procs: dict[str, Any] = {}
         self.queue: list[str] = []
@@ -128,7 +130,8 @@ class Runner:
             # the driver yields to the API process (status requests stay quick under load)
             p = subprocess.Popen(["nice", "-n", "5", sys.executable, "-m", "service.cli", "resume", str(store),
                                   "--scheduler", self.client.scheduler.address],
-                                 stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+                                 stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                 env={**os.environ, "ARDFLOW_MAX_TASK_S": str(self.max_task_s)})
             self.procs[sid] = p
             rc = p.wait()
         if self.closing:

@@ -32,6 +32,8 @@ class Settings(BaseModel):
     check_timeout_s: float = Field(30.0, gt=0, description="time allowed to compile a study's models at submit")
     check_memory_mb: int = Field(2048, ge=256, description="memory allowed to compile a study's models")
     cancel_grace_s: float = Field(10.0, ge=0, description="a cancelled driver is killed after this")
+    max_task_s: float = Field(21600.0, gt=0, description="a chain task running longer fails its study "
+                                                         "(the backstop behind cancellation)")
     allowed_hosts: Optional[list[str]] = Field(None, description="Host header names served (None: any)")
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 import uuid
 from concurrent.futures import CancelledError
@@ -85,7 +86,7 @@ class StoredEvaluator(EvidenceEvaluator):
             return super().__call__(psi, seed, warm, final=final, iteration=iteration)
         model, store = self.model, self.store
         target = StoppableTarget(build_target(self.spec, self.essential, psi, self.data, self.substeps),
-                                 self.study_id)
+                                 self.study_id, max_task_s=float(os.environ.get("ARDFLOW_MAX_TASK_S", 21600)))
         rec = store.trial_record(model, iteration)
         if rec is not None and rec["psi"] == _json(psi):
             ev, res = _from_record(rec, store, model, iteration)

@@ -34,19 +34,19 @@ class StoppableTarget:
 
     check_s = 2.0
 
-    def __init__(self, target, study_id: str):
-        self.target, self.study_id = target, study_id
+    def __init__(self, target, study_id: str, max_task_s: float | None = None):
+        self.target, self.study_id, self.max_task_s = target, study_id, max_task_s
         self._last, self._event = time.monotonic(), None
 
     def __getstate__(self):
-        return {"target": self.target, "study_id": self.study_id}
+        return {"target": self.target, "study_id": self.study_id, "max_task_s": self.max_task_s}
 
     def __setstate__(self, d):
-        self.target, self.study_id = d["target"], d["study_id"]
+        self.target, self.study_id, self.max_task_s = d["target"], d["study_id"], d.get("max_task_s")
         self._last, self._event = time.monotonic(), None
 
     def __getattr__(self, name):
-        if name in ("target", "study_id"):
+        if name in ("target", "study_id", "max_task_s"):
             raise AttributeError(name)
         return getattr(self.target, name)
 
@@ -58,7 +58,23 @@ class StoppableTarget:
                 from ardcore.mcmc import Cancelled
 
                 raise Cancelled(f"study {self.study_id} was cancelled")
+            self._check_wall_clock()
         return self.target(x)
+
+    def _check_wall_clock(self) -> None:
+        """The backstop: a task running longer than ``max_task_s`` (as the worker timed it) fails the trial
+        with a message, instead of holding its worker indefinitely."""
+        if not self.max_task_s:
+            return
+        from distributed.worker import thread_state
+
+        start = getattr(thread_state, "start_time", None)
+        if start is not None and time.time() - start > self.max_task_s:
+            from ardcore.mcmc import SamplerError
+
+            raise SamplerError(f"a task of study {self.study_id} ran longer than its limit of "
+                               f"{self.max_task_s:g} s (ARDFLOW_MAX_TASK_S); use fewer sub-steps or rows per "
+                               f"likelihood, or raise the limit")
 
     def _cancelled(self) -> bool:
         try:

@@ -242,3 +242,32 @@ def test_report_for_any_study(tmp_path, thread_cluster):
     assert len(shown["images"]) == len(imgs)
     assert all(i["complete"] and i["width"] > 100 for i in shown["images"]), shown["images"]
     assert not shown["blocked"] and not shown["failed"] and not shown["errors"], shown
+
+
+class _SlowTarget:
+    names = ["x"]
+
+    def __call__(self, x):
+        time.sleep(0.05)
+        return 0.0, 0.0
+
+
+def _calls_for(target, seconds):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        target([0.0])
+    return "finished"
+
+
+def test_task_wall_clock_limit_is_the_backstop(thread_cluster):
+    """A task whose likelihood calls go on past ``max_task_s`` (as the worker timed the task) fails with a
+    message naming the limit; within the limit it finishes."""
+    from ardcore.mcmc import SamplerError
+    from workers.tasks import StoppableTarget
+
+    t = StoppableTarget(_SlowTarget(), "no-such-study", max_task_s=1.0)
+    t.check_s = 0.1
+    fut = thread_cluster.submit(_calls_for, t, 4.0, pure=False)
+    with pytest.raises(SamplerError, match="ran longer than its limit of 1 s"):
+        fut.result(timeout=30)
+    assert thread_cluster.submit(_calls_for, t, 0.5, pure=False).result(timeout=30) == "finished"
