@@ -629,21 +629,12 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
     scale = initial_scale(target.prior)
     n_eval = nc
     if warm is not None:
-        from .reweight import conditioned_on_pruned
-
         idx = {n: i for i, n in enumerate(warm.names)}
-        cond = conditioned_on_pruned(warm, names)  # a pruned parameter: start from the conditional posterior
         states = []
         for c in range(nc):
             ws = warm.states[c % len(warm.states)]
             x = np.array([ws.x[idx[n]] if n in idx else 0.0 for n in names])
             lp, ll = target(x)
-            if cond is not None:
-                xc = np.array([cond[0][n][c % len(warm.states)] if n in idx else 0.0 for n in names])
-                lpc, llc = target(xc)
-                n_eval += 1
-                if lpc > -math.inf:
-                    x, lp, ll = xc, lpc, llc
             if not lp > -math.inf:
                 x = np.array([warm.phi_star[idx[n]] if n in idx else 0.0 for n in names])
                 lp, ll = target(x)
@@ -653,7 +644,7 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
         for i, a in enumerate(sel):
             for j, b in enumerate(sel):
                 if a is not None and b is not None:
-                    cov[i, j] = cond[1][names[i], names[j]] if cond is not None else warm.proposal_cov[a, b]
+                    cov[i, j] = warm.proposal_cov[a, b]
         for i, a in enumerate(sel):
             if a is None:  # a new parameter: a small step, not the prior's width
                 cov[i, i] = (0.01 * scale[i]) ** 2

@@ -120,33 +120,3 @@ def weighted_summary(names: list[str], samples: np.ndarray, weights: np.ndarray)
         out[n] = {"mean": m, "sd": float(math.sqrt(max(w @ (x - m) ** 2, 0.0))), "q005": q[0], "q995": q[1]}
     return out
 
-
-def conditioned_on_pruned(warm, names: list[str]) -> tuple[dict[str, np.ndarray], dict[tuple[str, str], float]] | None:
-    """Chain states and proposal covariance for a target that lacks some of ``warm``'s parameters (pruned:
-    fixed at 0), from the Gaussian conditional of the previous posterior given those parameters = 0.
-
-    A pruned parameter correlated with a kept one (a5 and a3 at -0.96 in the demo's M3) leaves the kept one's
-    chains off their new posterior when it is simply set to 0, and the old proposal's marginal block is too
-    wide along the correlation; both cost burn-in rounds. With P the previous proposal covariance (the
-    posterior covariance scaled), each chain's kept values move by -P_kd P_dd^-1 x_d and the proposal becomes
-    the Schur complement P_kk - P_kd P_dd^-1 P_dk: exact for a Gaussian posterior.
-
-    Returns ({name: value per warm chain}, {(name, name): covariance}) over the kept parameters, or None
-    when nothing was pruned.
-    """
-    idx = {n: i for i, n in enumerate(warm.names)}
-    want = set(names)
-    dropped = [i for n, i in idx.items() if n not in want]
-    kept = [n for n in names if n in idx]
-    if not dropped or not kept:
-        return None
-    k = [idx[n] for n in kept]
-    P = np.asarray(warm.proposal_cov, float)
-    Pdd, Pkd = P[np.ix_(dropped, dropped)], P[np.ix_(k, dropped)]
-    B = Pkd @ np.linalg.pinv(Pdd, rcond=1e-12)
-    X = np.array([s.x for s in warm.states], float)
-    Xk = X[:, k] - X[:, dropped] @ B.T
-    Pk = P[np.ix_(k, k)] - B @ Pkd.T
-    Pk = 0.5 * (Pk + Pk.T)
-    return ({n: Xk[:, j] for j, n in enumerate(kept)},
-            {(a, b): float(Pk[i, j]) for i, a in enumerate(kept) for j, b in enumerate(kept)})

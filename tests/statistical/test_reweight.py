@@ -89,26 +89,3 @@ def test_maximiser_reweights_steps_and_every_reported_evidence_is_right():
             (t.action, t.evidence.log_evidence, exact(t.psi), t.evidence.log_evidence_se)
     print(f"\nsampled trials {len(sampled)} (+{len(reweighted)} reweighted) vs {len(off.history)} without reweighting")
 
-
-def test_prune_start_is_the_gaussian_conditional():
-    """A pruned parameter correlated with a kept one: the next trial's chains start at the conditional mean
-    given it is 0 and propose with the conditional covariance (the Schur complement), exactly for a
-    Gaussian; a kept value is otherwise unchanged."""
-    from types import SimpleNamespace
-
-    from ardcore.reweight import conditioned_on_pruned
-
-    rng = np.random.default_rng(0)
-    C = np.array([[2.0, 0.6, -1.2], [0.6, 1.0, 0.3], [-1.2, 0.3, 1.5]])
-    X = rng.multivariate_normal([1.0, -2.0, 0.5], C, size=4)
-    warm = SimpleNamespace(names=["a", "b", "c"], proposal_cov=C,
-                           states=[SimpleNamespace(x=list(x)) for x in X])
-    start, cov = conditioned_on_pruned(warm, ["a", "b"])  # c pruned
-    for i, x in enumerate(X):
-        # E[a, b | c = 0] given the current a, b, c: move along the regression on c
-        want = x[:2] - C[:2, 2] / C[2, 2] * x[2]
-        assert start["a"][i] == pytest.approx(want[0]) and start["b"][i] == pytest.approx(want[1])
-    schur = C[:2, :2] - np.outer(C[:2, 2], C[2, :2]) / C[2, 2]
-    got = np.array([[cov["a", "a"], cov["a", "b"]], [cov["b", "a"], cov["b", "b"]]])
-    assert np.allclose(got, schur, atol=1e-12)
-    assert conditioned_on_pruned(warm, ["a", "b", "c"]) is None  # nothing pruned: the plain warm start
