@@ -16,33 +16,13 @@ from .errors import ArdflowError, ModelError
 
 
 def parse_models(spec) -> None:
-    """Parse every expression of every candidate of ``spec`` (cheap and bounded: :mod:`ardcore.expr` caps
-    size, depth, exponents and constants), without differentiating. The service runs this in-process
-    before the child-process check, so that most bad models are answered at once."""
-    from .expr import expanded_size, parse_expression
+    """Parse every expression of every candidate of ``spec`` (:func:`ardcore.model.parse_model`: cheap and
+    bounded), without differentiating. The service runs this in-process before the child-process check,
+    so that most bad models are answered at once."""
+    from .model import parse_model
 
     for cand in spec.models:
-        ms = cand.model_spec()
-        base = set(ms.states) | set(ms.parameters) | set(ms.constants) | set(ms.inputs)
-        known: list[str] = []
-        sizes: dict[str, int] = {}
-        fields = []
-        for k, src in ms.derived.items():
-            w = f"model {ms.name!r}, derived[{k!r}]"
-            sizes[k] = expanded_size(src, sizes, where=w)
-            parse_expression(src, base | set(known), where=w)
-            known.append(k)
-        fields += [(f"drift[{n!r}]", ms.drift[n]) for n in ms.states]
-        fields += [(f"diffusion[{n!r}]", v) for n, v in ms.diffusion.items()]
-        fields += [(f"observations[{j}].expr", o.expr) for j, o in enumerate(ms.observations)]
-        fields += [(f"observations[{j}].noise_std", o.noise_std) for j, o in enumerate(ms.observations)]
-        for w, src in fields:
-            expanded_size(src, sizes, where=f"model {ms.name!r}, {w}")
-            parse_expression(src, base | set(known), where=f"model {ms.name!r}, {w}")
-        for n in ms.states:
-            for w, d in (("initial_mean", ms.initial_mean), ("initial_std", ms.initial_std)):
-                if n in d:
-                    parse_expression(d[n], base, where=f"model {ms.name!r}, {w}[{n!r}]")
+        parse_model(cand.model_spec())
 
 
 def check_study(spec) -> None:

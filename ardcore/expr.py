@@ -127,9 +127,8 @@ def parse_expression(source: str, names: Iterable[str], *, where: str = "express
                 tok = _OP_TOKENS.get(type(node.op), type(node.op).__name__)
                 raise ModelError(f"{where}: operator {tok!r} is not allowed in {text!r}")
             a, b = visit(node.left), visit(node.right)
-            if isinstance(node.op, ast.Pow) and not b.is_number and a.free_symbols:
-                pass  # a symbolic exponent: fine
-            elif isinstance(node.op, ast.Pow) and b.is_number and a.free_symbols:
+            # a numeric power of a symbolic base is bounded (a symbolic exponent is not a blow-up)
+            if isinstance(node.op, ast.Pow) and b.is_number and a.free_symbols:
                 if not (b.is_real and abs(float(b)) <= MAX_EXPONENT):
                     raise ModelError(f"{where}: exponent {_token(node.right, text)!r} is too large "
                                      f"(at most {MAX_EXPONENT}) in {text!r}")

@@ -227,8 +227,24 @@ class SymbolicModel:
     init_std: tuple
 
 
-def symbolic(spec: ModelSpec) -> SymbolicModel:
-    """Parse and differentiate a model.
+@dataclass(frozen=True)
+class ParsedModel:
+    """Every expression of a model parsed (bounded, :mod:`ardcore.expr`), with derived quantities, constants
+    and fixed values substituted; not yet differentiated. ``drift`` is as written (not expanded)."""
+
+    states: tuple
+    inputs: tuple
+    drift: tuple
+    diffusion: tuple
+    obs: tuple
+    obs_std: tuple
+    init_mean: tuple
+    init_std: tuple
+
+
+def parse_model(spec: ModelSpec) -> ParsedModel:
+    """Parse every expression of ``spec``: cheap and bounded (sizes, depths, exponents, constants and derived
+    chains written out are capped), so it is also the submit-time check of a model.
 
     Raises
     ------
@@ -255,10 +271,11 @@ def symbolic(spec: ModelSpec) -> SymbolicModel:
         known.append(k)
     for where, src in ([(f"drift[{n!r}]", spec.drift[n]) for n in spec.states]
                        + [(f"diffusion[{n!r}]", v) for n, v in spec.diffusion.items()]
-                       + [(f"observations[{j}].expr", o.expr) for j, o in enumerate(spec.observations)]):
+                       + [(f"observations[{j}].expr", o.expr) for j, o in enumerate(spec.observations)]
+                       + [(f"observations[{j}].noise_std", o.noise_std) for j, o in enumerate(spec.observations)]):
         expanded_size(src, sizes, where=f"model {spec.name!r}, {where}")
     dnames = list(spec.derived)
-    drift = [sp.expand(parse(spec.drift[n], f"drift[{n!r}]", dnames), deep=False) for n in spec.states]
+    drift = [parse(spec.drift[n], f"drift[{n!r}]", dnames) for n in spec.states]
     diffusion = [parse(spec.diffusion[n], f"diffusion[{n!r}]", dnames) if n in spec.diffusion else sp.S.Zero
                  for n in spec.states]
     obs = [parse(o.expr, f"observations[{j}].expr", dnames) for j, o in enumerate(spec.observations)]
@@ -272,8 +289,22 @@ def symbolic(spec: ModelSpec) -> SymbolicModel:
     for n, e in zip(spec.states, init_mean + init_std):
         if e.free_symbols & (sset | set(inputs)):
             raise ModelError(f"model {spec.name!r}: initial mean/std of {n!r} must not depend on states or inputs")
-    J = sp.Matrix([[_sign_derivative_zero(sp.diff(f, x)) for x in states] for f in drift])
-    H = sp.Matrix([[_sign_derivative_zero(sp.diff(h, x)) for x in states] for h in obs])
-    params = [S(p) for p in spec.free_parameters]
-    return SymbolicModel(tuple(states), tuple(params), tuple(inputs), tuple(drift), J, tuple(diffusion),
-                         tuple(obs), H, tuple(obs_std), tuple(init_mean), tuple(init_std))
+    return ParsedModel(tuple(states), tuple(inputs), tuple(drift), tuple(diffusion), tuple(obs), tuple(obs_std),
+                       tuple(init_mean), tuple(init_std))
+
+
+def symbolic(spec: ModelSpec) -> SymbolicModel:
+    """Parse (:func:`parse_model`) and differentiate a model.
+
+    Raises
+    ------
+    ModelError
+        As :func:`parse_model`.
+    """
+    pm = parse_model(spec)
+    drift = [sp.expand(f, deep=False) for f in pm.drift]
+    J = sp.Matrix([[_sign_derivative_zero(sp.diff(f, x)) for x in pm.states] for f in drift])
+    H = sp.Matrix([[_sign_derivative_zero(sp.diff(h, x)) for x in pm.states] for h in pm.obs])
+    params = [sp.Symbol(p, real=True) for p in spec.free_parameters]
+    return SymbolicModel(pm.states, tuple(params), pm.inputs, tuple(drift), J, pm.diffusion, pm.obs, H,
+                         pm.obs_std, pm.init_mean, pm.init_std)

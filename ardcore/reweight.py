@@ -119,4 +119,3 @@ def weighted_summary(names: list[str], samples: np.ndarray, weights: np.ndarray)
         q = [float(x[order][min(np.searchsorted(c, p), x.size - 1)]) for p in (0.005, 0.995)]
         out[n] = {"mean": m, "sd": float(math.sqrt(max(w @ (x - m) ** 2, 0.0))), "q005": q[0], "q995": q[1]}
     return out
-

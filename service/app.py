@@ -18,7 +18,6 @@ import logging
 import re
 import secrets
 import shutil
-import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -53,11 +52,9 @@ def create_app(settings: Settings, client) -> FastAPI:
                   description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")
     app.state.registry, app.state.runner, app.state.settings = reg, runner, settings
     max_body = int(settings.max_body_mb * 1024 * 1024)
-    # parsing, data loading and store creation hold the GIL for long stretches: one thread for them, and
-    # the GIL handed over every 1 ms (not 5), so a burst of submissions cannot starve the event loop that
-    # answers status requests
+    # parsing, data loading and store creation hold the GIL for long stretches: one thread for them, so a
+    # burst of submissions cannot starve the event loop that answers status requests
     heavy_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="submit")
-    sys.setswitchinterval(0.001)
 
     async def heavy(fn, *args, **kw):
         return await asyncio.get_running_loop().run_in_executor(heavy_pool, functools.partial(fn, *args, **kw))
@@ -144,13 +141,11 @@ def create_app(settings: Settings, client) -> FastAPI:
             from ardcore.data import read_dataset
 
             ds = await heavy(read_dataset, tmp)
-        except ArdflowError as exc:
-            raise HTTPException(422, str(exc).replace(str(tmp), "data set")) from None
         except Exception as exc:  # noqa: BLE001 - csv.Error (a field over its size limit) and friends: a 422
-            raise HTTPException(422, f"cannot read the data set: {str(exc)[:200] or type(exc).__name__}") from None
-        finally:
-            if "ds" not in locals():
-                tmp.unlink(missing_ok=True)  # never a temporary file left behind
+            tmp.unlink(missing_ok=True)  # never a temporary file left behind
+            msg = (str(exc).replace(str(tmp), "data set") if isinstance(exc, ArdflowError)
+                   else f"cannot read the data set: {str(exc)[:200] or type(exc).__name__}")
+            raise HTTPException(422, msg) from None
         if len(ds) > settings.max_upload_rows:
             tmp.unlink(missing_ok=True)
             raise HTTPException(413, f"data set has more than {settings.max_upload_rows} rows")

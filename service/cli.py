@@ -354,6 +354,8 @@ def cmd_serve(a) -> int:
               f"(export ARDFLOW_TOKEN=$(cat {tf}))", flush=True)
     # a page in the user's browser may not reach a loopback service under another name (DNS rebinding)
     hosts = ["127.0.0.1", "localhost", "[::1]", "::1"] if loopback else None
+    # the API's event loop gets the GIL back every 1 ms (not 5) from the threads that parse submissions
+    sys.setswitchinterval(0.001)
     with _Cluster(a.scheduler, a.workers) as client:
         tokens = json.loads(Path(a.tokens_file).read_text()) if a.tokens_file else None
         app = create_app(Settings(root=root, token=token, tokens=tokens, max_body_mb=a.max_body_mb,

@@ -174,8 +174,11 @@ def test_auth_and_limits(service):
     assert r.status_code == 422
 
 
-def start_service(cmd: list[str], port: int):
-    """``ardflow serve`` as its own process group; returns the process once /v1/health answers."""
+def start_service(root: Path, port: int):
+    """``ardflow serve`` (2 workers, the test token) on ``root`` as its own process group; returns the
+    process once /v1/health answers."""
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(root), "--workers", "2",
+           "--token", TOKEN]
     p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 120
     while time.time() < deadline:
@@ -192,11 +195,9 @@ def test_service_restart_mid_study(tmp_path):
     """Kill the whole service (API and its embedded cluster) mid-study; a restarted service finishes it."""
     root = tmp_path / "svc"
     port = free_port()
-    cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(root), "--workers", "2",
-           "--token", TOKEN]
 
     def start():
-        return start_service(cmd, port)
+        return start_service(root, port)
 
     p = start()
     try:

@@ -232,11 +232,9 @@ def test_cancel_survives_sigkill_and_restart(tmp_path):
     """Cancel, SIGKILL the whole service, restart: the study stays cancelled and is never relaunched."""
     root = tmp_path / "svc"
     port = free_port()
-    cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(root), "--workers", "2",
-           "--token", TOKEN]
 
     def start():
-        return start_service(cmd, port)
+        return start_service(root, port)
 
     p = start()
     try:
