@@ -2,7 +2,7 @@
 
 The schema accepts any expression text; what an expression costs shows only when it is differentiated and
 turned into a kernel. The service runs :func:`check_study` at submit in a child process with a time and
-memory limit (``python -m ardcore.check`` reads the study as JSON on stdin), so a poison model is a 422
+memory limit (``python -m ardflow.ardcore.check`` reads the study as JSON on stdin), so a poison model is a 422
 naming its field instead of a worker busy forever. Exit status 0: fine; 2: the first line of stderr is the
 user's error; anything else: the check itself failed.
 """
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from .study import StudySpec
 
-    ap = argparse.ArgumentParser(prog="python -m ardcore.check", description="check a study's models (JSON on stdin)")
+    ap = argparse.ArgumentParser(prog="python -m ardflow.ardcore.check", description="check a study's models (JSON on stdin)")
     ap.add_argument("--memory-mb", type=int, default=None, help="address-space limit of this process")
     a = ap.parse_args(argv)
     if a.memory_mb:

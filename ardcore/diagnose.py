@@ -129,12 +129,16 @@ def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig,
 # --------------------------------------------------------------------------- fit, free run, loop
 
 
-def _fitted(cand: CandidateSpec, row: dict) -> tuple[ModelSpec, dict]:
-    """The candidate's model with pruned terms fixed at 0, and its posterior mean."""
+def fitted_spec(cand: CandidateSpec, row: dict) -> ModelSpec:
+    """The candidate's model with the terms its optimal psi pruned fixed at 0."""
     spec = cand.model_spec()
     pruned = {k: 0.0 for k, v in row["psi_opt"].items() if v == "inf" or v == INF}
-    if pruned:
-        spec = spec.with_fixed(**pruned)
+    return spec.with_fixed(**pruned) if pruned else spec
+
+
+def _fitted(cand: CandidateSpec, row: dict) -> tuple[ModelSpec, dict]:
+    """The candidate's model with pruned terms fixed at 0, and its posterior mean."""
+    spec = fitted_spec(cand, row)
     phi = {k: float(row["mean"][k]) for k in spec.free_parameters}
     return spec, phi
 

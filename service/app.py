@@ -11,27 +11,26 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import hmac
-import io
 import json
 import logging
 import re
 import secrets
 import shutil
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
 from fastapi import Depends, FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
-from ardcore.errors import ArdflowError
-from ardcore.study import StudySpec
+from ardflow.ardcore.errors import ArdflowError
+from ardflow.ardcore.study import StudySpec
 
+from .auth import TokenAuth
 from .guard import RequestGuard
+from .page import page_router
+from .results import results_router
 from .validate import Rejected, check_budget, check_models
 from .schemas import (API_VERSION, FINAL, ID_RE, DashboardLink, DatasetInfo, DiagnoseRequest,  # noqa: F401
                       DiagnosisStatus, Health, Progress, Settings, StudyCreated, StudyStatus, _finite)
@@ -39,7 +38,6 @@ from .registry import ProgressCache, Registry, Runner  # noqa: F401
 
 log = logging.getLogger("ardflow.service")
 COLUMN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
-_render_lock = threading.Lock()  # matplotlib (mathtext, font cache) is not thread-safe
 
 # ------------------------------------------------------------------ the app
 def create_app(settings: Settings, client) -> FastAPI:
@@ -83,21 +81,7 @@ def create_app(settings: Settings, client) -> FastAPI:
     if settings.token is not None:
         tokens.setdefault("default", settings.token)
 
-    async def auth(request: Request) -> str:
-        """The caller's name (the token's owner; "anonymous" without authentication)."""
-        if not tokens:
-            return "anonymous"
-        given = request.headers.get("x-api-token")
-        if given is None:
-            h = request.headers.get("authorization", "")
-            given = h[7:] if h.lower().startswith("bearer ") else None
-        owner = None
-        for name, tok in tokens.items():  # every comparison in constant time, all of them made
-            if given is not None and hmac.compare_digest(given.encode(), tok.encode()):
-                owner = name
-        if owner is None:
-            raise HTTPException(401, "missing or wrong API token", headers={"WWW-Authenticate": "Bearer"})
-        return owner
+    auth = TokenAuth(tokens)
 
     v1 = f"/{API_VERSION}"
 
@@ -138,7 +122,7 @@ def create_app(settings: Settings, client) -> FastAPI:
         tmp = reg.root / "datasets" / f".{did}.csv"
         try:
             tmp.write_text(text)
-            from ardcore.data import read_dataset
+            from ardflow.ardcore.data import read_dataset
 
             ds = await heavy(read_dataset, tmp)
         except Exception as exc:  # noqa: BLE001 - csv.Error (a field over its size limit) and friends: a 422
@@ -173,7 +157,7 @@ def create_app(settings: Settings, client) -> FastAPI:
         sid = f"{spec.name}-{secrets.token_hex(4)}"
         d = reg.study_dir(sid)
         d.mkdir(parents=True)
-        from workers.graph import prepare_store
+        from ardflow.workers.graph import prepare_store
 
         try:
             store = await heavy(prepare_store, spec, d / "store", datasets=reg.root / "datasets", study_id=sid)
@@ -223,7 +207,7 @@ def create_app(settings: Settings, client) -> FastAPI:
         reg.meta(sid)
 
         async def gen():
-            from workers.graph import read_progress
+            from ardflow.workers.graph import read_progress
 
             offsets: dict[str, int] = {}
             store = reg.store(sid)
@@ -259,79 +243,6 @@ def create_app(settings: Settings, client) -> FastAPI:
         progress_cache.forget(sid)
         recent.pop(sid, None)
         return Response(status_code=204)
-
-    @app.get(f"{v1}/studies/{{sid}}/summary", dependencies=[Depends(auth)])
-    def summary(sid: str) -> JSONResponse:
-        reg.meta(sid)
-        text = reg.store(sid).read_text("summary.json")
-        if text is None:
-            raise HTTPException(409, f"study {sid} has no summary yet (status {reg.meta(sid).get('status')})")
-        return JSONResponse(json.loads(text))
-
-    def _best_trial(sid: str, model: str) -> int:
-        if not ID_RE.match(model):
-            raise HTTPException(404, f"no model {model!r}")
-        store = reg.store(sid)
-        try:
-            g = store.group("r")
-            mg = g[f"models/{model}"]
-        except Exception:  # noqa: BLE001 - missing group
-            raise HTTPException(404, f"study {sid} has no model {model!r}") from None
-        it = mg.attrs.get("best_iteration")
-        if it is None:
-            raise HTTPException(409, f"model {model!r} of study {sid} is not finished")
-        return int(it)
-
-    @app.get(f"{v1}/studies/{{sid}}/posterior/{{model}}", dependencies=[Depends(auth)],
-             responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}})
-    def posterior(sid: str, model: str, format: str = "json", max_draws: int = 2000):
-        reg.meta(sid)
-        if format not in ("json", "npz"):
-            raise HTTPException(422, "format must be 'json' or 'npz'")
-        if not 1 <= max_draws <= 1_000_000:
-            raise HTTPException(422, "max_draws must be between 1 and 1000000")
-        it = _best_trial(sid, model)
-        try:
-            samples, lp, ll, names = reg.store(sid).read_samples(model, it)
-        except (KeyError, FileNotFoundError):
-            raise HTTPException(409, f"model {model!r} of study {sid} has no stored samples") from None
-        if format == "npz":
-            buf = io.BytesIO()
-            np.savez_compressed(buf, names=np.array(names), samples=samples, log_posterior=lp, log_likelihood=ll)
-            return Response(buf.getvalue(), media_type="application/octet-stream",
-                            headers={"Content-Disposition": f'attachment; filename="{sid}_{model}.npz"'})
-        flat = samples.reshape(-1, samples.shape[-1])
-        step = max(1, flat.shape[0] // max_draws)
-        return JSONResponse({"model": model, "iteration": it, "names": names, "n_chains": samples.shape[0],
-                             "thin": step, "samples": _finite(flat[::step].tolist())})
-
-    @app.get(f"{v1}/studies/{{sid}}/figures/{{name}}", dependencies=[Depends(auth)],
-             responses={200: {"content": {"image/png": {}}}})
-    def figure(sid: str, name: str):
-        reg.meta(sid)
-        from service.figures import FIGURES, render
-
-        if name not in FIGURES:
-            raise HTTPException(404, f"no figure {name!r} (available: {sorted(FIGURES)})")
-        try:
-            with _render_lock:
-                png = render(name, reg.store(sid))
-        except LookupError as exc:
-            raise HTTPException(409, str(exc)) from None
-        return Response(png, media_type="image/png")
-
-    @app.get(f"{v1}/studies/{{sid}}/report/{{name}}", dependencies=[Depends(auth)],
-             responses={200: {"content": {"text/html": {}, "image/png": {}}}})
-    def report_file(sid: str, name: str):
-        """The study's report (``report.html``) and its figures (PNG), as written when the study finished."""
-        meta = reg.meta(sid)
-        d = reg.store(sid).path / "report"
-        if not re.match(r"^[A-Za-z0-9_]{1,60}\.(png|html)$", name) or not (d / name).is_file():
-            if meta.get("status") != "done":
-                raise HTTPException(409, f"study {sid} is {meta.get('status')}: the report is written when it finishes")
-            raise HTTPException(404, f"no report file {name!r}")
-        kind = "text/html; charset=utf-8" if name.endswith(".html") else "image/png"
-        return Response((d / name).read_bytes(), media_type=kind)
 
     def _diag_dir(sid: str, model: str) -> Path:
         if not re.match(r"^[A-Za-z][A-Za-z0-9_]{0,31}$", model):
@@ -377,6 +288,9 @@ def create_app(settings: Settings, client) -> FastAPI:
         if not re.match(r"^[a-z_]{1,40}\.png$", name) or not (d / name).exists():
             raise HTTPException(404, f"no figure {name!r}")
         return Response((d / name).read_bytes(), media_type="image/png")
+
+    app.include_router(results_router(reg, auth))
+    app.include_router(page_router(auth))
 
     # reattach: studies that were queued or running when the service stopped continue
     waiting = []

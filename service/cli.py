@@ -18,7 +18,7 @@ from .progress import LiveProgress, _num, _print_table, print_progress  # noqa: 
 
 
 def _kv(items: list[str] | None, what: str) -> dict[str, str]:
-    from ardcore.errors import SpecError
+    from ardflow.ardcore.errors import SpecError
 
     out = {}
     for it in items or []:
@@ -30,7 +30,7 @@ def _kv(items: list[str] | None, what: str) -> dict[str, str]:
 
 
 def _floats(d: dict[str, str], what: str) -> dict[str, float]:
-    from ardcore.errors import SpecError
+    from ardflow.ardcore.errors import SpecError
 
     out = {}
     for k, v in d.items():
@@ -45,9 +45,9 @@ def _floats(d: dict[str, str], what: str) -> dict[str, float]:
 
 
 def _load_model(name_or_file: str):
-    from ardcore.errors import ModelError
-    from ardcore.library import BUILTINS, builtin
-    from ardcore.model import ModelSpec
+    from ardflow.ardcore.errors import ModelError
+    from ardflow.ardcore.library import BUILTINS, builtin
+    from ardflow.ardcore.model import ModelSpec
 
     if name_or_file in BUILTINS:
         return builtin(name_or_file)
@@ -67,8 +67,8 @@ def _write_sidecar(path: Path, meta: dict) -> None:
 
 
 def cmd_simulate(a) -> int:
-    from ardcore.errors import SpecError
-    from ardcore.simulate import simulate_model, simulate_reference
+    from ardflow.ardcore.errors import SpecError
+    from ardflow.ardcore.simulate import simulate_model, simulate_reference
 
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -86,7 +86,7 @@ def cmd_simulate(a) -> int:
         inputs = {}
         rng = np.random.default_rng(a.seed + 1_000_003)
         for c in spec.inputs:
-            from ardcore.simulate import lowpass
+            from ardflow.ardcore.simulate import lowpass
 
             inputs[c] = a.input_std * lowpass(rng.standard_normal(a.n), 1.0 / a.dt, 0.2 / a.dt) * np.sqrt(5.0)
         ds = simulate_model(spec, params, t, a.seed, nsub=a.nsub, inputs=inputs)
@@ -97,8 +97,8 @@ def cmd_simulate(a) -> int:
 
 
 def cmd_loglik(a) -> int:
-    from ardcore.ekf import compile_model
-    from ardcore.errors import SpecError
+    from ardflow.ardcore.ekf import compile_model
+    from ardflow.ardcore.errors import SpecError
 
     ds = _read_data(a)
     spec = _load_model(a.model)
@@ -116,14 +116,14 @@ def cmd_loglik(a) -> int:
 
 
 def _read_data(a):
-    from ardcore.data import read_dataset
+    from ardflow.ardcore.data import read_dataset
 
     rename = _kv(getattr(a, "rename", None), "--rename")
     return read_dataset(a.data, fs=getattr(a, "fs", None), rename=rename)
 
 
 def cmd_data(a) -> int:
-    from ardcore.data import read_columns
+    from ardflow.ardcore.data import read_columns
 
     if a.action == "check":
         ds = _read_data(a)
@@ -133,7 +133,7 @@ def cmd_data(a) -> int:
         print(json.dumps(info, indent=2))
     else:  # convert
         cols = read_columns(a.data)
-        from ardcore.data import Dataset
+        from ardflow.ardcore.data import Dataset
 
         rename = _kv(a.rename, "--rename")
         for o, n in rename.items():
@@ -146,7 +146,7 @@ def cmd_data(a) -> int:
 
 
 def cmd_models(a) -> int:
-    from ardcore.library import BUILTINS, builtin
+    from ardflow.ardcore.library import BUILTINS, builtin
 
     if a.name:
         print(_load_model(a.name).model_dump_json(indent=2))
@@ -157,13 +157,36 @@ def cmd_models(a) -> int:
     return 0
 
 
+# the examples folder: beside the source folders in a checkout, package data (ardflow/examples) in a wheel
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def cmd_example(a) -> int:
+    """List the example study specs, or write one out to start your own study from."""
+    names = sorted(p.stem for p in EXAMPLES.glob("*.json"))
+    if not a.name:
+        for n in names:
+            desc = json.loads((EXAMPLES / f"{n}.json").read_text()).get("description", "")
+            print(f"{n:22s} {desc[:90]}")
+        return 0
+    if a.name not in names:
+        raise SystemExit(f"error: no example {a.name!r} (examples: {', '.join(names)})")
+    text = (EXAMPLES / f"{a.name}.json").read_text()
+    if a.out:
+        Path(a.out).write_text(text)
+        print(f"wrote {a.out}")
+    else:
+        print(text)
+    return 0
+
+
 def cmd_demo(a) -> int:
     """The main job: the paper's Section 3.6 study (M1, M2, M3 with ARD) on an embedded LocalCluster."""
-    from ardcore.study import load_spec
-    from workers.graph import prepare_store
-    from workers.store import StudyStore
+    from ardflow.ardcore.study import load_spec
+    from ardflow.workers.graph import prepare_store
+    from ardflow.workers.store import StudyStore
 
-    spec_path = Path(__file__).resolve().parents[1] / "examples" / "sec36.json"
+    spec_path = EXAMPLES / "sec36.json"
     spec = load_spec(spec_path)
     if a.full:
         spec = full_settings(spec)
@@ -239,7 +262,7 @@ class _Cluster:
 def _run_on_dask(a, store) -> dict:
     import contextlib
 
-    from workers.graph import run_study
+    from ardflow.workers.graph import run_study
 
     with _Cluster(a.scheduler, a.workers) as client:
         ctx = contextlib.nullcontext()
@@ -258,7 +281,7 @@ def _run_on_dask(a, store) -> dict:
 
 
 def cmd_select(a) -> int:
-    from ardcore.study import load_spec, select
+    from ardflow.ardcore.study import load_spec, select
 
     spec = load_spec(a.spec)
     if a.full:
@@ -267,12 +290,12 @@ def cmd_select(a) -> int:
     t0 = time.perf_counter()
     base = Path(a.spec).resolve().parent
     if a.executor == "dask":
-        from workers.graph import prepare_store
-        from workers.store import StudyStore
+        from ardflow.workers.graph import prepare_store
+        from ardflow.workers.store import StudyStore
 
         existing = StudyStore(a.out)
         if existing.exists() and existing.meta.get("status") not in (None, "created"):
-            from ardcore.errors import SpecError
+            from ardflow.ardcore.errors import SpecError
 
             raise SpecError(f"{a.out} already holds a study (status {existing.meta.get('status')!r}); "
                             f"continue it with 'ardflow resume {a.out}' or choose another --out")
@@ -288,7 +311,7 @@ def cmd_select(a) -> int:
     else:
         from concurrent.futures import ProcessPoolExecutor
 
-        from ardcore.mcmc import executor_map
+        from ardflow.ardcore.mcmc import executor_map
 
         with ProcessPoolExecutor(max_workers=a.workers) as ex, LiveProgress(spec.maximiser.max_trials) as live:
             summary = select(spec, out=out, progress=live, map_fn=executor_map(ex), base=base)
@@ -298,8 +321,8 @@ def cmd_select(a) -> int:
 
 
 def cmd_resume(a) -> int:
-    from ardcore.errors import SpecError
-    from workers.store import StudyStore
+    from ardflow.ardcore.errors import SpecError
+    from ardflow.workers.store import StudyStore
 
     store = StudyStore(a.store)
     if not store.exists() or "spec" not in store.meta:
@@ -332,7 +355,7 @@ def cmd_serve(a) -> int:
     import os
     import secrets
 
-    from ardcore.errors import SpecError
+    from ardflow.ardcore.errors import SpecError
 
     import uvicorn
 
@@ -431,7 +454,7 @@ def cmd_fetch(a) -> int:
 
 def full_settings(spec):
     """The paper-scale sampler settings (method.md section 6): the engine's defaults."""
-    from ardcore.mcmc import SamplerConfig
+    from ardflow.ardcore.mcmc import SamplerConfig
 
     keys = ("n_chains", "round_size", "n_stationary", "n_proposal")
     return spec.model_copy(update={"sampler": spec.sampler.model_copy(
@@ -543,6 +566,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("name", nargs="?")
     s.set_defaults(fn=cmd_models)
 
+    s = sub.add_parser("example", help="list the example study specs, or write one out")
+    s.add_argument("name", nargs="?")
+    s.add_argument("--out", help="file to write (default: print it)")
+    s.set_defaults(fn=cmd_example)
+
     s = sub.add_parser("demo", help="the main job: the Section 3.6 study on an embedded cluster, with its report")
     s.add_argument("--out", default="runs/demo")
     s.add_argument("--full", action="store_true", help="paper-scale sampler settings")
@@ -555,16 +583,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cmd_diagnose(a) -> int:
     """Close the loop on one model of a study spec or of a finished study store."""
-    from ardcore.data import read_dataset
-    from ardcore.diagnose import DiagnoseConfig, diagnose
-    from ardcore.errors import SpecError
-    from ardcore.study import StudySpec, load_spec
+    from ardflow.ardcore.data import read_dataset
+    from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
+    from ardflow.ardcore.errors import SpecError
+    from ardflow.ardcore.study import StudySpec, load_spec
 
     from .diagnose_report import write_diagnosis
 
     src = Path(a.spec)
     if src.is_dir():
-        from workers.store import StudyStore
+        from ardflow.workers.store import StudyStore
 
         store = StudyStore(src)
         if not store.exists():
@@ -601,7 +629,7 @@ def cmd_diagnose(a) -> int:
     t0 = time.perf_counter()
     fit = None
     if store is not None:
-        from workers.graph import stored_fit
+        from ardflow.workers.graph import stored_fit
 
         fit = stored_fit(store, spec.models[0].label)  # the study's own fit: no refit
     rep = diagnose(spec, data, test_data=test, config=cfg, base=fit,
@@ -615,7 +643,7 @@ def cmd_diagnose(a) -> int:
 def main(argv: list[str] | None = None) -> int:
     from pydantic import ValidationError
 
-    from ardcore.errors import ArdflowError
+    from ardflow.ardcore.errors import ArdflowError
 
     args = build_parser().parse_args(argv)
     if args.cmd == "data" and args.action == "convert" and not args.out:

@@ -1,6 +1,6 @@
 """Python client of the ardflow REST API.
 
-    from service.client import Client
+    from ardflow.service.client import Client
     c = Client("http://127.0.0.1:8000", token="...")
     sid = c.submit("examples/sec33.json")
     c.wait(sid)                       # progress on stderr
@@ -173,12 +173,24 @@ class Client:
         (out / "report.html").write_text(page)
         return out / "report.html"
 
-    def posterior(self, sid: str, model: str, *, as_xarray: bool = False):
+    def posterior(self, sid: str, model: str, *, as_xarray: bool = False, as_inference_data: bool = False,
+                  log_likelihood: bool = False, max_draws: int | None = None):
         """Stationary posterior samples of ``model``'s optimal nested model.
 
-        Returns ``(names, samples)`` with samples of shape (chain, draw, param),
-        or an ``xarray.Dataset`` with named dimensions.
+        Returns ``(names, samples)`` with samples of shape (chain, draw, param); an ``xarray.Dataset``
+        with named dimensions (``as_xarray``); or ArviZ data, an ``xarray.DataTree`` with groups
+        posterior, sample_stats, observed_data and, with ``log_likelihood=True``, the EKF's pointwise
+        one-step predictive log density for ``az.loo``/``az.compare`` (``as_inference_data``; needs arviz).
+        ``max_draws`` thins every group to that many draws in all (default 1000 with ``log_likelihood``).
         """
+        if as_inference_data:
+            from ardflow.workers.inference import InferenceGroups
+
+            params = {"log_likelihood": str(bool(log_likelihood)).lower()}
+            if max_draws is not None:
+                params["max_draws"] = int(max_draws)
+            r = self._check(self.http.get(f"/studies/{sid}/inference_data/{model}", params=params))
+            return InferenceGroups.from_npz(r.content).to_datatree()
         r = self._check(self.http.get(f"/studies/{sid}/posterior/{model}", params={"format": "npz"}))
         with np.load(io.BytesIO(r.content)) as z:
             names = [str(x) for x in z["names"]]

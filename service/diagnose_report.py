@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ardcore.diagnose import jsonable
+from ardflow.ardcore.diagnose import jsonable
 
 from .report import _plt, _save
 

@@ -37,7 +37,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
     out : path, optional
         Directory for the report (default: ``STORE/report`` for a local store).
     """
-    from ardcore.study import StudySpec
+    from ardflow.ardcore.study import StudySpec
 
     summary = json.loads(store.read_text("summary.json") or "null")
     if summary is None:

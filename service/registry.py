@@ -51,12 +51,12 @@ class Registry:
         return out
 
     def write_meta(self, sid: str, meta: dict) -> None:
-        from workers.store import atomic_write_text
+        from ardflow.workers.store import atomic_write_text
 
         atomic_write_text(self.study_dir(sid) / "meta.json", json.dumps(meta))
 
     def store(self, sid: str):
-        from workers.store import StudyStore
+        from ardflow.workers.store import StudyStore
 
         return StudyStore(self.study_dir(sid) / "store")
 
@@ -128,7 +128,7 @@ class Runner:
         log_path = reg.study_dir(sid) / "driver.log"
         with open(log_path, "a") as logf:
             # the driver yields to the API process (status requests stay quick under load)
-            p = subprocess.Popen(["nice", "-n", "5", sys.executable, "-m", "service.cli", "resume", str(store),
+            p = subprocess.Popen(["nice", "-n", "5", sys.executable, "-m", "ardflow.service.cli", "resume", str(store),
                                   "--scheduler", self.client.scheduler.address],
                                  stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                  env={**os.environ, "ARDFLOW_MAX_TASK_S": str(self.max_task_s)})
@@ -153,8 +153,8 @@ class Runner:
 
     def cancel(self, sid: str) -> None:
         """Mark ``sid`` cancelled durably, then stop its driver (cooperatively, then by force)."""
-        from workers.graph import cancel_study
-        from workers.store import atomic_write_text
+        from ardflow.workers.graph import cancel_study
+        from ardflow.workers.store import atomic_write_text
 
         reg = self.registry
         with self.lock:
@@ -196,7 +196,7 @@ class Runner:
         out = reg.study_dir(sid) / "diagnoses" / model
         out.mkdir(parents=True, exist_ok=True)
         (out / "status.json").write_text(json.dumps({"status": "running", "started": time.time()}))
-        cmd = [sys.executable, "-m", "service.cli", "diagnose", str(reg.store(sid)), "--model", model,
+        cmd = [sys.executable, "-m", "ardflow.service.cli", "diagnose", str(reg.store(sid)), "--model", model,
                "--out", str(out), "--top-k", str(req.top_k), "--max-rounds", str(req.max_rounds)]
         if req.test_dataset:
             cmd += ["--test-data", str(reg.root / "datasets" / f"{req.test_dataset}.csv")]
@@ -239,7 +239,7 @@ class ProgressCache:
             self.entries.pop(sid, None)
 
     def get(self, sid: str) -> dict[str, Progress]:
-        from workers.graph import read_progress
+        from ardflow.workers.graph import read_progress
 
         with self.lock:
             e = self.entries.get(sid)

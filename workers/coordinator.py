@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import time
 
-from ardcore.mcmc import AdaptationPool
+from ardflow.ardcore.mcmc import AdaptationPool
 
 log = logging.getLogger(__name__)
 

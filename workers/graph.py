@@ -29,10 +29,10 @@ from typing import Callable
 
 import numpy as np
 
-from ardcore.ard import EvidenceEvaluator, build_target
-from ardcore.evidence import ChainEvidence, Evidence, chib_jeliazkov
-from ardcore.mcmc import ChainState, SamplerResult, sample
-from ardcore.study import StudySpec, compare, run_candidate
+from ardflow.ardcore.ard import EvidenceEvaluator, build_target
+from ardflow.ardcore.evidence import ChainEvidence, Evidence, chib_jeliazkov
+from ardflow.ardcore.mcmc import ChainState, SamplerResult, sample
+from ardflow.ardcore.study import StudySpec, compare, run_candidate
 
 from .coordinator import ActorPool, wait_connected
 from .store import StudyStore, _json
@@ -298,7 +298,7 @@ def run_study(client, store: StudyStore, *, progress: Callable[[dict], None] | N
             progress(ev)
     exc = comp.exception()
     if exc is not None:
-        from ardcore.mcmc import Cancelled
+        from ardflow.ardcore.mcmc import Cancelled
 
         store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
         raise exc

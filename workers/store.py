@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from ardcore.study import to_jsonable
+from ardflow.ardcore.study import to_jsonable
 
 STORE_VERSION = 1
 
@@ -164,7 +164,7 @@ class StudyStore:
         g.attrs["ardflow"] = meta
 
     def load_data(self):
-        from ardcore.data import Dataset
+        from ardflow.ardcore.data import Dataset
 
         dg = self.group("r")["data"]
         cols = {k: np.asarray(dg[k][:]) for k in dg.array_keys() if k != "t"}

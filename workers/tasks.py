@@ -7,7 +7,7 @@ import logging
 import time
 from concurrent.futures import CancelledError
 
-from ardcore.mcmc import _round_task
+from ardflow.ardcore.mcmc import _round_task
 
 from .coordinator import actor_variable_name, wait_connected
 from .store import StudyStore
@@ -55,7 +55,7 @@ class StoppableTarget:
         if now - self._last > self.check_s:
             self._last = now
             if self._cancelled():
-                from ardcore.mcmc import Cancelled
+                from ardflow.ardcore.mcmc import Cancelled
 
                 raise Cancelled(f"study {self.study_id} was cancelled")
             self._check_wall_clock()
@@ -70,7 +70,7 @@ class StoppableTarget:
 
         start = getattr(thread_state, "start_time", None)
         if start is not None and time.time() - start > self.max_task_s:
-            from ardcore.mcmc import SamplerError
+            from ardflow.ardcore.mcmc import SamplerError
 
             raise SamplerError(f"a task of study {self.study_id} ran longer than its limit of "
                                f"{self.max_task_s:g} s (ARDFLOW_MAX_TASK_S); use fewer sub-steps or rows per "

@@ -3,8 +3,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ardcore.data import (SILVERBOX_SPLITS, Dataset, load_pendulum, load_silverbox, read_dataset)
-from ardcore.errors import DataError
+from ardflow.ardcore.data import (SILVERBOX_SPLITS, Dataset, load_pendulum, load_silverbox, read_dataset)
+from ardflow.ardcore.errors import DataError
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
 

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 from scipy import optimize
 
-from ardcore.diagnose import DiagnoseConfig, diagnose, residual_tests
-from ardcore.screen import screen_effects
-from ardcore.ekf import compile_model
-from ardcore.effects import augment, candidate_effects, dynamic_states, feature_functions, oscillator_pairs
-from ardcore.library import builtin
-from ardcore.simulate import simulate_model
-from ardcore.study import StudySpec
+from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose, residual_tests
+from ardflow.ardcore.screen import screen_effects
+from ardflow.ardcore.ekf import compile_model
+from ardflow.ardcore.effects import augment, candidate_effects, dynamic_states, feature_functions, oscillator_pairs
+from ardflow.ardcore.library import builtin
+from ardflow.ardcore.simulate import simulate_model
+from ardflow.ardcore.study import StudySpec
 
 CFG = DiagnoseConfig()
 
@@ -137,7 +137,7 @@ def test_screen_finds_a_measurement_feedthrough(seed):
 
 def test_screen_finds_the_outflow_law_of_a_level_model():
     """A tank h' = q u - a sqrt(h) proposed as the linear h' = q u - a h: a first-order model, no oscillator."""
-    from ardcore.model import ModelSpec
+    from ardflow.ardcore.model import ModelSpec
 
     def tank(drift, params):
         return ModelSpec(name="tank", states=["h"], inputs=["u"], drift={"h": drift}, diffusion={"h": "s"},

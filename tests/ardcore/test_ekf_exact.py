@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from ardcore.data import Dataset
-from ardcore.ekf import compile_model
-from ardcore.library import builtin
-from ardcore.simulate import simulate_model
+from ardflow.ardcore.data import Dataset
+from ardflow.ardcore.ekf import compile_model
+from ardflow.ardcore.library import builtin
+from ardflow.ardcore.simulate import simulate_model
 
 PARAMS = {"a11": -0.1, "a12": 1.0, "a21": -1.0, "a22": -0.2, "q1": 0.05, "q2": 0.2, "r": 0.1}
 
@@ -190,7 +190,7 @@ def test_filter_outputs_are_consistent(data):
 
 
 def test_wrong_parameter_vector_is_rejected(data):
-    from ardcore.errors import ModelError
+    from ardflow.ardcore.errors import ModelError
 
     cm = compile_model(builtin("linear_gaussian"))
     with pytest.raises(ModelError, match="expected 7 parameters"):

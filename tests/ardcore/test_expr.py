@@ -1,8 +1,8 @@
 import pytest
 import sympy as sp
 
-from ardcore.errors import ModelError
-from ardcore.expr import parse_expression
+from ardflow.ardcore.errors import ModelError
+from ardflow.ardcore.expr import parse_expression
 
 NAMES = {"x", "y", "a"}
 

@@ -1,9 +1,9 @@
 import pytest
 from pydantic import ValidationError
 
-from ardcore.errors import ModelError
-from ardcore.library import BUILTINS, builtin
-from ardcore.model import ModelSpec
+from ardflow.ardcore.errors import ModelError
+from ardflow.ardcore.library import BUILTINS, builtin
+from ardflow.ardcore.model import ModelSpec
 
 
 def base(**kw):

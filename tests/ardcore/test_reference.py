@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from ardcore.ekf import compile_model
-from ardcore.library import AERO_TRUE, builtin
-from ardcore.simulate import lco_stats, simulate_reference
+from ardflow.ardcore.ekf import compile_model
+from ardflow.ardcore.library import AERO_TRUE, builtin
+from ardflow.ardcore.simulate import lco_stats, simulate_reference
 
 SEEDS = [0, 1, 2, 3, 4]
 

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 from scipy import linalg, optimize, signal
 
-from ardcore.ekf import compile_model
-from ardcore.effects import Effect, candidate_effects
-from ardcore.library import builtin
-from ardcore.robust import innovation_background, spectral_score_cov
-from ardcore.screen import screen_effects
-from ardcore.simulate import simulate_model
+from ardflow.ardcore.ekf import compile_model
+from ardflow.ardcore.effects import Effect, candidate_effects
+from ardflow.ardcore.library import builtin
+from ardflow.ardcore.robust import innovation_background, spectral_score_cov
+from ardflow.ardcore.screen import screen_effects
+from ardflow.ardcore.simulate import simulate_model
 
 from ..forced_oscillator import base_spec, forced_data
 
@@ -108,7 +108,7 @@ def test_a_forcing_is_coherent_and_a_noise_driven_mode_is_not():
     """A sinusoid of fixed amplitude and phase keeps its coefficients over the record; a lightly damped mode
     driven by noise (a narrow-band random process, narrower than the spectrum's bins) does not, and is not
     taken for a forcing however large its spectral peak."""
-    from ardcore.effects import augment
+    from ardflow.ardcore.effects import augment
 
     forcing = Effect("forcing(f=1.37)", "forcing", ("forcing0_sin", "forcing0_cos"), frequency=1.37, code="fo0")
 
@@ -138,8 +138,8 @@ def test_forward_selection_scores_jointly_and_finds_what_the_first_leaves():
     """distinct_candidates: the joint score from the screen's stored sensitivities reproduces each marginal
     ln BF exactly (no conditioning), a candidate conditioned on itself is worth nothing, and with a cubic and
     an even (y^2) stiffness planted together both are picked, the second by its conditional evidence."""
-    from ardcore.effects import augment
-    from ardcore.screen import conditional_log_bayes_factor, distinct_candidates
+    from ardflow.ardcore.effects import augment
+    from ardflow.ardcore.screen import conditional_log_bayes_factor, distinct_candidates
 
     lib = {e.name: e for e in candidate_effects(base_spec())}
     truth, _ = augment(base_spec(), lib["cubic_stiffness(y)"], "v")

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from ardcore.data import Dataset
-from ardcore.ekf import compile_model
-from ardcore.library import builtin
+from ardflow.ardcore.data import Dataset
+from ardflow.ardcore.ekf import compile_model
+from ardflow.ardcore.library import builtin
 
 from .test_ekf_exact import PARAMS, euler_transition
 

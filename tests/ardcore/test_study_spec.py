@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from ardcore.errors import SpecError
-from ardcore.study import StudySpec, load_spec, model_probabilities
+from ardflow.ardcore.errors import SpecError
+from ardflow.ardcore.study import StudySpec, load_spec, model_probabilities
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

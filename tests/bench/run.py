@@ -37,9 +37,9 @@ def _median_ms(fn, repeats: int, number: int) -> float:
 _FIRST_CALL = """
 import time, json, sys
 t0 = time.perf_counter()
-from ardcore.simulate import simulate_reference
-from ardcore.ekf import compile_model
-from ardcore.library import builtin, AERO_TRUE
+from ardflow.ardcore.simulate import simulate_reference
+from ardflow.ardcore.ekf import compile_model
+from ardflow.ardcore.library import builtin, AERO_TRUE
 ds = simulate_reference(1)
 t1 = time.perf_counter()
 cm = compile_model(builtin("M2"))
@@ -55,9 +55,9 @@ def first_call_seconds(cache: str) -> float:
 
 
 def bench_ekf() -> dict:
-    from ardcore.ekf import compile_model
-    from ardcore.library import AERO_GAMMA_EKF, AERO_TRUE, builtin
-    from ardcore.simulate import simulate_reference
+    from ardflow.ardcore.ekf import compile_model
+    from ardflow.ardcore.library import AERO_GAMMA_EKF, AERO_TRUE, builtin
+    from ardflow.ardcore.simulate import simulate_reference
     from tests.bench.baselines import ekf_m2_handwritten, ekf_m2_numpy
 
     ds = simulate_reference(1)
@@ -102,9 +102,9 @@ def bench_ekf() -> dict:
 def silverbox_substep_table() -> dict:
     """Sub-step convergence on Silverbox: ln L on the estimation segment and the multisine free-run error of a
     Duffing model with input feedthrough (parameters fitted once by the loop, rounded), per scheme and hold."""
-    from ardcore.data import SILVERBOX_SPLITS, load_silverbox
-    from ardcore.ekf import compile_model
-    from ardcore.model import ModelSpec
+    from ardflow.ardcore.data import SILVERBOX_SPLITS, load_silverbox
+    from ardflow.ardcore.ekf import compile_model
+    from ardflow.ardcore.model import ModelSpec
 
     d = load_silverbox(ROOT.parent / "shared" / "data" / "real" / "SNLS80mV.csv")
     est, test = d.slice(*SILVERBOX_SPLITS["estimation"]), d.slice(*SILVERBOX_SPLITS["test_multisine"])
@@ -129,9 +129,9 @@ def silverbox_substep_table() -> dict:
 
 
 def _m2_target(psi):
-    from ardcore.ard import build_target
-    from ardcore.simulate import simulate_reference
-    from ardcore.study import load_spec
+    from ardflow.ardcore.ard import build_target
+    from ardflow.ardcore.simulate import simulate_reference
+    from ardflow.ardcore.study import load_spec
 
     spec = load_spec(Path(__file__).resolve().parents[2] / "examples" / "sec35.json")
     cand = spec.models[0]
@@ -142,8 +142,8 @@ def bench_engine() -> dict:
     """Evidence noise over independent seeds, and single-core sampler throughput (M2, reference data)."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from ardcore.evidence import chib_jeliazkov
-    from ardcore.mcmc import ChainState, SamplerConfig, executor_map, run_round, sample
+    from ardflow.ardcore.evidence import chib_jeliazkov
+    from ardflow.ardcore.mcmc import ChainState, SamplerConfig, executor_map, run_round, sample
 
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": float("inf"), "a6": float("inf")}  # the paper's psi_opt
     target = _m2_target(psi)
@@ -185,12 +185,12 @@ def bench_dask() -> dict:
 
     from distributed import Client, LocalCluster
 
-    from ardcore.ard import EvidenceEvaluator
-    from ardcore.mcmc import SamplerConfig, executor_map, sample
-    from ardcore.simulate import simulate_reference
-    from ardcore.study import load_spec
-    from workers.graph import DaskMap, StoredEvaluator
-    from workers.store import StudyStore
+    from ardflow.ardcore.ard import EvidenceEvaluator
+    from ardflow.ardcore.mcmc import SamplerConfig, executor_map, sample
+    from ardflow.ardcore.simulate import simulate_reference
+    from ardflow.ardcore.study import load_spec
+    from ardflow.workers.graph import DaskMap, StoredEvaluator
+    from ardflow.workers.store import StudyStore
 
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": float("inf"), "a6": float("inf")}
     target = _m2_target(psi)
@@ -266,7 +266,7 @@ def bench_api() -> dict:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     root = Path(tempfile.mkdtemp())
-    p = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(root),
+    p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root", str(root),
                           "--token", token, "--max-running", str(max_running)], stdout=subprocess.DEVNULL,
                          stderr=subprocess.DEVNULL, start_new_session=True)
     base = f"http://127.0.0.1:{port}/v1"
@@ -347,11 +347,11 @@ def _study(args: list[str], out: Path) -> dict:
     """Run an ardflow command that writes a Section 3.6 study to ``out`` (fresh); wall time and results."""
     import shutil
 
-    from service.paper import reference_checks
+    from ardflow.service.paper import reference_checks
 
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "service.cli", *args, "--out", str(out)], check=True,
+    subprocess.run([sys.executable, "-m", "ardflow.service.cli", *args, "--out", str(out)], check=True,
                    stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
     s = json.loads((out / "summary.json").read_text())
@@ -388,11 +388,11 @@ def bench_loop() -> dict:
     loop_peer_{arx,narx,pysindy,sysidentpy}_{multisine,arrow}_mv, loop_peer_best_multisine_mv,
     loop_peer_best_arrow_mv, loop_peer_narx_pendulum_rad, loop_silverbox_added, loop_pendulum_added.
     """
-    from ardcore.data import SILVERBOX_SPLITS, load_pendulum, load_silverbox
-    from ardcore.diagnose import DiagnoseConfig, diagnose
-    from ardcore.freerun import free_run_of
-    from ardcore.simulate import simulate_reference
-    from ardcore.study import StudySpec, load_spec
+    from ardflow.ardcore.data import SILVERBOX_SPLITS, load_pendulum, load_silverbox
+    from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
+    from ardflow.ardcore.freerun import free_run_of
+    from ardflow.ardcore.simulate import simulate_reference
+    from ardflow.ardcore.study import StudySpec, load_spec
 
     from . import peers
 

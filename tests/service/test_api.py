@@ -17,8 +17,8 @@ import uvicorn
 from distributed import Client as DaskClient
 from distributed import LocalCluster
 
-from service.app import Settings, create_app
-from service.client import APIError, Client
+from ardflow.service.app import Settings, create_app
+from ardflow.service.client import APIError, Client
 
 ROOT = Path(__file__).resolve().parents[2]
 SPEC = json.loads((ROOT / "tests" / "workers" / "small_study.json").read_text())
@@ -73,6 +73,16 @@ def test_submit_watch_summary_posterior(service, tmp_path):
         assert samples.ndim == 3 and samples.shape[2] == len(names)
         ds = c.posterior(sid, "quad", as_xarray=True)
         assert ds["samples"].dims == ("chain", "draw", "param")
+        # ArviZ over HTTP: the same draws, with the EKF's pointwise log-likelihood for LOO
+        az = pytest.importorskip("arviz")
+        dt = c.posterior(sid, "quad", as_inference_data=True, log_likelihood=True, max_draws=60)
+        assert dt["log_likelihood"]["y"].dims == ("chain", "draw", "time")
+        np.testing.assert_allclose(dt["log_likelihood"]["y"].sum("time").values,
+                                   dt["sample_stats"]["log_likelihood"].values, rtol=1e-9)
+        assert np.isfinite(float(az.loo(dt).elpd)) and "r_hat" in az.summary(dt).columns
+        with pytest.raises(APIError) as e:
+            c.posterior(sid, "quad", as_inference_data=True, log_likelihood=True, max_draws=10**5)
+        assert e.value.status == 422
         png = c.figure(sid, "evidence.png")
         assert png[:8] == b"\x89PNG\r\n\x1a\n"
         st = c.status(sid)
@@ -91,7 +101,7 @@ def test_submit_watch_summary_posterior(service, tmp_path):
 
 def test_uploaded_csv_study(service, tmp_path):
     url, _ = service
-    from ardcore.study import appendix_a_data
+    from ardflow.ardcore.study import appendix_a_data
 
     ds = appendix_a_data(3)
     csv = tmp_path / "d.csv"
@@ -177,7 +187,7 @@ def test_auth_and_limits(service):
 def start_service(root: Path, port: int):
     """``ardflow serve`` (2 workers, the test token) on ``root`` as its own process group; returns the
     process once /v1/health answers."""
-    cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(root), "--workers", "2",
+    cmd = [sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root", str(root), "--workers", "2",
            "--token", TOKEN]
     p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 120
@@ -240,7 +250,7 @@ def test_cli_submit_status_fetch(service, tmp_path):
     url, _ = service
     spec = tmp_path / "spec.json"
     spec.write_text(json.dumps(dict(SPEC, models=SPEC["models"][:1], name="cli")))
-    base = [sys.executable, "-m", "service.cli"]
+    base = [sys.executable, "-m", "ardflow.service.cli"]
     common = ["--url", url, "--token", TOKEN]
     r = subprocess.run(base + ["submit", str(spec), "--wait"] + common, cwd=ROOT, capture_output=True, text=True,
                        timeout=300)

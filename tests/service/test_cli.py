@@ -10,7 +10,7 @@ import pytest
 
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "ardflow.service.cli", *args], capture_output=True, text=True,
                           cwd=cwd, env=dict(os.environ), timeout=300)
 
 
@@ -70,7 +70,7 @@ def test_diagnose_held_out_file_with_its_own_column_names(tmp_path):
     """A held-out file whose columns are named differently (yVal) is renamed by --test-rename."""
     import numpy as np
 
-    from ardcore.simulate import simulate_model
+    from ardflow.ardcore.simulate import simulate_model
 
     t = np.arange(1200) * 0.02
     d = simulate_model("linear_oscillator", {"k": 16.0, "c": 0.1, "sigma": 0.05}, t, 4, x0=[1.0, 0.0])
@@ -96,7 +96,7 @@ def test_diagnose_held_out_file_with_its_own_column_names(tmp_path):
 def test_live_progress_bars_and_plain_lines(capsys):
     """On an interactive terminal each model gets a bar that advances per trial and completes at model_done;
     in logs and CI the same events are plain lines."""
-    from service.progress import LiveProgress
+    from ardflow.service.progress import LiveProgress
 
     events = [{"model": "M1", "stage": "burnin", "round": 1, "rhat": [1.5, "inf"], "best_lp": 1.0, "acceptance": 0.3},
               {"model": "M1", "stage": "trial", "iteration": 0, "action": "start", "log_evidence": 10.0,

@@ -15,7 +15,7 @@ import pytest
 from distributed import Client as DaskClient
 from distributed import LocalCluster
 
-from service.app import Settings, create_app
+from ardflow.service.app import Settings, create_app
 
 from .test_api import ROOT, SPEC, TOKEN, Server, free_port, start_service
 
@@ -253,7 +253,7 @@ def test_cancel_survives_sigkill_and_restart(tmp_path):
         log = (root / "studies" / sid / "driver.log").read_text()
         assert log.count("resuming study") <= 1  # the driver was never launched again
         # and the store refuses a manual resume
-        r = subprocess.run([sys.executable, "-m", "service.cli", "resume", str(root / "studies" / sid / "store")],
+        r = subprocess.run([sys.executable, "-m", "ardflow.service.cli", "resume", str(root / "studies" / sid / "store")],
                            cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and "cancelled" in r.stderr
     finally:

@@ -12,7 +12,7 @@ from .test_api import TOKEN, service  # noqa: E402,F401  (the real server fixtur
 
 
 def test_every_operation(service):  # noqa: F811
-    from service.client import Client
+    from ardflow.service.client import Client
 
     url, _ = service
     schema = schemathesis.openapi.from_url(f"{url}/openapi.json")

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ardcore.data import load_pendulum, load_silverbox
-from ardcore.diagnose import DiagnoseConfig, diagnose, jsonable
-from ardcore.effects import Effect, augment
-from ardcore.library import aero_true
-from ardcore.simulate import simulate_reference
-from ardcore.study import StudySpec, load_spec
+from ardflow.ardcore.data import load_pendulum, load_silverbox
+from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose, jsonable
+from ardflow.ardcore.effects import Effect, augment
+from ardflow.ardcore.library import aero_true
+from ardflow.ardcore.simulate import simulate_reference
+from ardflow.ardcore.study import StudySpec, load_spec
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(3600)]
 ROOT = Path(__file__).resolve().parents[2]
@@ -136,7 +136,7 @@ def test_silverbox_hardening_cubic_on_the_test_segment():
     print(json.dumps({"before": j["before"]["free_run"], "after": j["after"]["free_run"],
                       "added": j["added"]}, indent=1))
     # the customary second test record: the arrow (rows 100-40575), free run of the final model
-    from ardcore.freerun import free_run_of
+    from ardflow.ardcore.freerun import free_run_of
 
     arrow_err = {when: free_run_of(rep[when], full.slice(100, 40575))["rms_error"] for when in ("_initial", "_final")}
     print(f"[silverbox] arrow test segment: free-run RMS error {arrow_err['_initial']:.4g} -> "

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from ardcore.mcmc import ChainState, SamplerConfig, rhat, run_round, sample
-from ardcore.posterior import FunctionTarget
-from ardcore.priors import JointPrior, Normal
+from ardflow.ardcore.mcmc import ChainState, SamplerConfig, rhat, run_round, sample
+from ardflow.ardcore.posterior import FunctionTarget
+from ardflow.ardcore.priors import JointPrior, Normal
 
 from .targets import GaussianLoglik, correlated_cov
 

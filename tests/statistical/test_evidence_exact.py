@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal as mvn
 
-from ardcore.data import Dataset
-from ardcore.evidence import chib_jeliazkov, laplace
-from ardcore.library import builtin
-from ardcore.mcmc import SamplerConfig, sample
-from ardcore.model import ModelSpec
-from ardcore.posterior import FunctionTarget, ModelPosterior
-from ardcore.priors import JointPrior, Normal
+from ardflow.ardcore.data import Dataset
+from ardflow.ardcore.evidence import chib_jeliazkov, laplace
+from ardflow.ardcore.library import builtin
+from ardflow.ardcore.mcmc import SamplerConfig, sample
+from ardflow.ardcore.model import ModelSpec
+from ardflow.ardcore.posterior import FunctionTarget, ModelPosterior
+from ardflow.ardcore.priors import JointPrior, Normal
 
 from .targets import GaussianLoglik, correlated_cov
 
@@ -105,7 +105,7 @@ def test_linear_gaussian_state_space_cj_within_015_nats():
     t = np.arange(n) * 0.1
     rng = np.random.default_rng(11)
     u = np.sin(0.9 * t) + 0.5 * rng.standard_normal(n)
-    from ardcore.simulate import simulate_model
+    from ardflow.ardcore.simulate import simulate_model
 
     ds = simulate_model(spec, {"b1": 1.5, "b2": -0.4, "c": 0.3}, t, seed=12, nsub=20, inputs={"u": u})
     prior_mean, prior_sd = np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.0, 1.0])
@@ -121,7 +121,7 @@ def test_linear_gaussian_state_space_cj_within_015_nats():
 
 def test_chains_in_different_modes_raise_a_warning():
     """Chains stuck in different modes give per-chain estimates that disagree: it must be reported."""
-    from ardcore.mcmc import ChainState, SamplerResult, rhat, run_round
+    from ardflow.ardcore.mcmc import ChainState, SamplerResult, rhat, run_round
 
     from .targets import TwoModes
 

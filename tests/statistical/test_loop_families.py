@@ -10,9 +10,9 @@ nothing is added.
 
 import pytest
 
-from ardcore.diagnose import DiagnoseConfig, diagnose, jsonable
-from ardcore.effects import Effect, augment
-from ardcore.study import StudySpec
+from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose, jsonable
+from ardflow.ardcore.effects import Effect, augment
+from ardflow.ardcore.study import StudySpec
 
 from ..forced_oscillator import base_spec, forced_data
 

@@ -4,8 +4,8 @@ import math
 
 import numpy as np
 
-from ardcore.ard import INF, MaximiserConfig, maximise
-from ardcore.evidence import Evidence
+from ardflow.ardcore.ard import INF, MaximiserConfig, maximise
+from ardflow.ardcore.evidence import Evidence
 
 
 def ard_gain(alpha, m, s):

@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from ardcore.mcmc import AdaptationPool, RoundStats, rhat
+from ardflow.ardcore.mcmc import AdaptationPool, RoundStats, rhat
 
 
 def halves_of(x):
@@ -50,9 +50,9 @@ def test_checkpoint_round_trip():
 def test_sampler_resumes_exactly_from_any_checkpoint():
     import copy
 
-    from ardcore.mcmc import SamplerConfig, sample
-    from ardcore.posterior import FunctionTarget
-    from ardcore.priors import JointPrior, Normal
+    from ardflow.ardcore.mcmc import SamplerConfig, sample
+    from ardflow.ardcore.posterior import FunctionTarget
+    from ardflow.ardcore.priors import JointPrior, Normal
 
     from .targets import GaussianLoglik, correlated_cov
 

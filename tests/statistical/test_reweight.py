@@ -6,12 +6,12 @@ import math
 import numpy as np
 import pytest
 
-from ardcore.ard import INF, EvidenceEvaluator, MaximiserConfig, maximise
-from ardcore.data import Dataset
-from ardcore.library import builtin
-from ardcore.mcmc import SamplerConfig
-from ardcore.priors import Normal
-from ardcore.reweight import reweight
+from ardflow.ardcore.ard import INF, EvidenceEvaluator, MaximiserConfig, maximise
+from ardflow.ardcore.data import Dataset
+from ardflow.ardcore.library import builtin
+from ardflow.ardcore.mcmc import SamplerConfig
+from ardflow.ardcore.priors import Normal
+from ardflow.ardcore.reweight import reweight
 
 GAMMA = 0.3
 ESSENTIAL = {"a0": 2.0, "a1": 3.0}

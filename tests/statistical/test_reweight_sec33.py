@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ardcore.ard import EvidenceEvaluator
-from ardcore.study import load_spec, run_candidate
+from ardflow.ardcore.ard import EvidenceEvaluator
+from ardflow.ardcore.study import load_spec, run_candidate
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(3600)]
 

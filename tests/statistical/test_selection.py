@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from ardcore.mcmc import executor_map
-from ardcore.study import load_spec, select
+from ardflow.ardcore.mcmc import executor_map
+from ardflow.ardcore.study import load_spec, select
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

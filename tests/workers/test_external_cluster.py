@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from ardcore.study import load_spec, select
+from ardflow.ardcore.study import load_spec, select
 
 ROOT = Path(__file__).resolve().parents[2]
 SPEC = ROOT / "tests" / "workers" / "small_study.json"
@@ -83,7 +83,7 @@ def reference_summary():
 def test_select_on_an_external_scheduler_with_a_worker_killed(cluster, tmp_path, reference_summary):
     addr, workers, elsewhere = cluster
     out = tmp_path / "study"
-    p = subprocess.Popen([sys.executable, "-m", "service.cli", "select", str(SPEC), "--out", str(out),
+    p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "select", str(SPEC), "--out", str(out),
                           "--scheduler", addr], cwd=elsewhere, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                          text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     # kill one worker once the study has trials in its store
@@ -109,7 +109,7 @@ def test_select_on_an_external_scheduler_with_a_worker_killed(cluster, tmp_path,
 def test_serve_on_an_external_scheduler(cluster, tmp_path, reference_summary):
     addr, _, elsewhere = cluster
     port = _port()
-    p = _spawn([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--root", str(tmp_path / "svc"),
+    p = _spawn([sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root", str(tmp_path / "svc"),
                 "--scheduler", addr, "--token", TOKEN], ROOT, tmp_path / "serve.log")
     base = f"http://127.0.0.1:{port}/v1"
     h = {"X-API-Token": TOKEN}

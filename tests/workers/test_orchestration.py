@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from distributed import Client, LocalCluster, get_task_stream
 
-from ardcore.study import load_spec, select
-from workers.graph import cancel_study, prepare_store, read_progress, run_study
-from workers.store import StudyStore
+from ardflow.ardcore.study import load_spec, select
+from ardflow.workers.graph import cancel_study, prepare_store, read_progress, run_study
+from ardflow.workers.store import StudyStore
 
 from ..browser import load_page
 
@@ -73,7 +73,7 @@ def test_store_opens_with_xarray_named_dims(tmp_path, thread_cluster):
 
 
 def test_cancel_takes_effect(tmp_path, thread_cluster):
-    from ardcore.mcmc import Cancelled
+    from ardflow.ardcore.mcmc import Cancelled
 
     store = prepare_store(load_spec(SPEC), tmp_path / "st")
     sid = store.meta["study_id"]
@@ -141,7 +141,7 @@ def test_lost_worker_process_study_completes(tmp_path, reference_summary):
 def test_killed_driver_resumes(tmp_path, reference_summary):
     out = tmp_path / "st"
     env = dict(os.environ)
-    p = subprocess.Popen([sys.executable, "-m", "service.cli", "select", str(SPEC), "--out", str(out),
+    p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "select", str(SPEC), "--out", str(out),
                           "--workers", "2"], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                          start_new_session=True)
     store = StudyStore(out)
@@ -155,7 +155,7 @@ def test_killed_driver_resumes(tmp_path, reference_summary):
     os.killpg(p.pid, signal.SIGKILL)  # the driver and its embedded cluster
     p.wait()
     assert trials >= 3 and not (out / "summary.json").exists()
-    r = subprocess.run([sys.executable, "-m", "service.cli", "resume", str(out), "--workers", "2"], cwd=ROOT,
+    r = subprocess.run([sys.executable, "-m", "ardflow.service.cli", "resume", str(out), "--workers", "2"], cwd=ROOT,
                        env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
     s = json.loads((out / "summary.json").read_text())
@@ -167,8 +167,8 @@ def test_killed_driver_resumes(tmp_path, reference_summary):
 
 
 def test_coordinator_actor_restored_after_its_worker_dies():
-    from ardcore.mcmc import AdaptationPool, RoundStats
-    from workers.coordinator import ActorPool
+    from ardflow.ardcore.mcmc import AdaptationPool, RoundStats
+    from ardflow.workers.coordinator import ActorPool
 
     rng = np.random.default_rng(0)
 
@@ -227,7 +227,7 @@ def test_fsspec_url_store(thread_cluster, reference_summary):
 def test_report_for_any_study(tmp_path, thread_cluster):
     import re
 
-    from service.html_report import write_report
+    from ardflow.service.html_report import write_report
 
     spec = load_spec(SPEC).model_copy(update={"true_values": {"a0": 3.0, "a1": 5.0, "gamma": 0.3}})
     store = prepare_store(spec, tmp_path / "st")
@@ -262,8 +262,8 @@ def _calls_for(target, seconds):
 def test_task_wall_clock_limit_is_the_backstop(thread_cluster):
     """A task whose likelihood calls go on past ``max_task_s`` (as the worker timed the task) fails with a
     message naming the limit; within the limit it finishes."""
-    from ardcore.mcmc import SamplerError
-    from workers.tasks import StoppableTarget
+    from ardflow.ardcore.mcmc import SamplerError
+    from ardflow.workers.tasks import StoppableTarget
 
     t = StoppableTarget(_SlowTarget(), "no-such-study", max_task_s=1.0)
     t.check_s = 0.1

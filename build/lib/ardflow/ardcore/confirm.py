@@ -1,0 +1,228 @@
+"""Confirmation of screened candidates by the full ARD re-selection (method.md section 9, step 4).
+
+:func:`trace_and_confirm` screens the library (:mod:`ardcore.screen`) and re-selects the model with each of
+the best distinct candidates added under ARD, side by side on a process pool; :func:`split_stability`
+refits a survivor on each half of the record; :func:`joint_fit` fits the distinct survivors of a round
+together. :func:`ardcore.diagnose.diagnose` runs the loop around them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .data import Dataset
+from .effects import Effect, augment, candidate_effects, dynamic_states, with_columns
+from .screen import Screened, distinct_candidates, screen_effects
+from .study import CandidateSpec, StudySpec, run_candidate
+
+INF = math.inf
+
+
+def essential_from_row(cand: CandidateSpec, row: dict) -> tuple[dict, dict]:
+    """Priors of the fitted model with kept ARD terms frozen at their optimal alpha; pruned terms fixed."""
+    from .priors import Flat, Normal
+
+    priors = dict(cand.priors)
+    fixed = dict(cand.fixed)
+    for k, a in row["psi_opt"].items():
+        if a == "inf" or a == INF:
+            fixed[k] = 0.0
+        else:
+            a = float(a)
+            priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+    return priors, fixed
+
+
+def warm_with(sampler, names: list[str], values: list[float]):
+    """``sampler`` (a SamplerResult) whose best point also carries ``names`` at ``values`` (for warm starts)."""
+    import dataclasses
+
+    keep = [i for i, n in enumerate(sampler.names) if n not in names]
+    return dataclasses.replace(sampler, names=[sampler.names[i] for i in keep] + list(names),
+                               phi_star=np.concatenate([np.asarray(sampler.phi_star)[keep], np.asarray(values, float)]))
+
+
+def _fit_task(args):
+    """One re-selection (a picklable unit of work for the confirmation pool)."""
+    cand, data, spec, warm, posterior = args
+    return run_candidate(cand, data, spec, 0, warm=warm, final_posterior=posterior)
+
+
+def pool_mapper(workers: int):
+    """(map function, closer): confirmations and halves run side by side on ``workers`` processes."""
+    if workers <= 1:
+        return (lambda fn, tasks: [fn(t) for t in tasks]), (lambda: None)
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    # fork from a single-threaded process: a plain script without a __main__ guard keeps working (spawn
+    # re-runs the script in every worker) and compiled kernels come along; with other threads alive (a host
+    # application) a fork could copy a held lock, so spawn, which loads kernels from the on-disk cache
+    import threading
+
+    method = "fork" if threading.active_count() == 1 and "fork" in mp.get_all_start_methods() else "spawn"
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context(method))
+
+    def run(fn, tasks):
+        if len(tasks) <= 1:
+            return [fn(t) for t in tasks]
+        return list(pool.map(fn, tasks))
+    return run, (lambda: pool.shutdown(cancel_futures=True))
+
+
+def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper):
+    """Screen the whole library by evidence, then confirm the best few by the full ARD re-selection."""
+    peaks = [p for p in res.tests[col]["spectrum"]["peaks"] if not p.get("harmonic")]
+    scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
+    # forcing frequencies: innovation peaks that are not harmonics of the oscillation (refined by the screen)
+    effects = candidate_effects(fspec, scales=scales, frequencies=[p["f"] for p in peaks[:2]],
+                                extra=list(extra_effects))
+    screened = screen_effects(fspec, phi, data, effects, dynamic_states(fspec), list(fspec.observed_columns),
+                              substeps=cand.substeps, progress=say)
+    ranked = [{**c.to_json(), "_screened": c} for c in screened]
+    say("screen: " + ", ".join(f"{c['effect']} -> {c['target']} (ln BF ~ {c['log_bayes_factor']:.1f})"
+                               for c in ranked[:5]))
+    priors, fixed = essential_from_row(cand, row)
+    cspec = spec.model_copy(update={"maximiser": spec.maximiser.model_copy(
+        update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
+    confirmed = []
+    picked = distinct_candidates(fspec, phi, data, screened, config.top_k, config.min_score, substeps=cand.substeps)
+    redundant = [c for c in screened[:12] if getattr(c, "conditional_on", None)]
+    # a redundant candidate the screen cannot tell from the one it was dropped for (a saturating stiffness and
+    # a free-play; a smooth sign of two widths) is confirmed too: the full evidence decides between the twins
+    rivals = {}
+    for c in redundant:
+        near = [p for p in picked if p.effect.name in c.conditional_on and id(p) not in rivals.values()
+                and abs(p.log_bayes_factor - c.log_bayes_factor) <= config.rival_nats]
+        if near:
+            rivals[id(c)] = id(near[0])
+    redundant = [c for c in redundant if id(c) not in rivals]
+    if redundant:
+        say("not confirmed (explained by a better candidate): " + ", ".join(
+            f"{c.effect.name} -> {c.target}" for c in redundant))
+    by_id = {id(c["_screened"]): c for c in ranked}
+    chosen = [by_id[id(p)] for p in picked] + [by_id[i] for i in rivals]
+    tasks = []
+    for c in chosen:
+        sc: Screened = c["_screened"]
+        aspec, names = augment(cand.model_spec(), sc.effect, c["target"], sc.scales)
+        acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed,
+                              ard=names, substeps=cand.substeps)
+        # new terms start at the screen's estimate (a Laplace search from 0 would walk there by Nelder-Mead)
+        warm = warm_with(bmr.sampler, names, sc.coefficients) if spec.evidence == "laplace" else bmr.sampler
+        tasks.append((acand, with_columns(data, sc.effect), cspec, warm, config.posterior))
+    if chosen:
+        say("confirming by evidence: " + ", ".join(f"{c['effect']} -> {c['target']}" for c in chosen))
+    results = mapper(_fit_task, tasks)
+    # the prior odds of each of the N candidates tried (Scott and Berger 2010): its ln BF also pays ln N
+    threshold = config.min_log_bf + (math.log(max(1, len(screened))) if config.library_prior else 0.0)
+    if chosen and config.library_prior:
+        say(f"  an effect must gain {threshold:.1f} nats: {config.min_log_bf:g} + ln {len(screened)} "
+            f"(the prior odds of one of the {len(screened)} candidates tried)")
+    for c, (acand, adata, *_), (arow, amr) in zip(chosen, tasks, results):
+        sc = c["_screened"]
+        eff: Effect = sc.effect
+        names = list(acand.ard_names)
+        # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam factor
+        gain = arow["log_evidence"] - row["log_evidence"] - sc.shape_occam
+        kept = [n for n in names if n in arow["kept"]]
+        scale = dict(zip(names, sc.scales))
+        # the EKF evidence takes coloured innovations as white: the support it gives is divided by the factor
+        # the screen found the score's variance understated by (1 for white innovations)
+        adjusted = gain / sc.inflation if gain > 0 else gain
+        confirmed.append({"effect": eff.name, "target": c["target"], "score": c["log_bayes_factor"],
+                          "screened_log_bayes_factor": c["log_bayes_factor"],
+                          "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],
+                          "log_bayes_factor": gain, "adjusted_log_bayes_factor": adjusted,
+                          "inflation": sc.inflation, "kept_terms": kept, "psi_opt": arow["psi_opt"],
+                          # coefficients in the term's own units (the fit uses the normalised ones)
+                          "posterior": {n: physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
+                          "scales": scale,
+                          "survives": bool(kept) and adjusted > threshold,
+                          "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff,
+                          "_screened": sc})
+        say(f"  {eff.name}: ln BF = {gain:.2f}" + (f" ({adjusted:.2f} adjusted for coloured innovations, "
+                                                     f"x 1/{sc.inflation:.2g})" if sc.inflation > 1.05 else "")
+            + f", ARD keeps {kept or 'nothing'}")
+    # of two twins only the one with the higher evidence goes on
+    by_screen = {id(c["_screened"]): c for c in confirmed}
+    for rid, pid in rivals.items():
+        a, b = by_screen.get(rid), by_screen.get(pid)
+        if a and b and a["survives"] and b["survives"]:
+            lo, hi = sorted((a, b), key=lambda c: c["log_evidence"])
+            lo["survives"] = False
+            lo["rival_of"] = hi["effect"]
+            say(f"  {lo['effect']} and {hi['effect']} explain the same; {hi['effect']} has the higher evidence")
+    return ranked, confirmed
+
+
+def joint_fit(spec, cand, row, best, survivors, data, config, say):
+    """The current model with every surviving effect added, each new term at the ARD precision its own
+    re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
+
+    Returns (candidate, row, maximiser result, data, survivors) or None."""
+    from .priors import Flat, Normal
+
+    priors, fixed = essential_from_row(cand, row)
+    aspec, adata = cand.model_spec(), data
+    for c in survivors:
+        n = list(c["scales"])
+        aspec, n = augment(aspec, c["_effect"], c["target"], [c["scales"][k] for k in n], names=n)
+        adata = with_columns(adata, c["_effect"])
+        for k in n:
+            a = c["psi_opt"].get(k, 0.0)
+            if k not in c["kept_terms"] or a == "inf" or a == INF:
+                fixed[k] = 0.0
+            else:
+                a = float(a)
+                priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+    acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed, ard=[], substeps=cand.substeps)
+    say("fitting the distinct survivors together: " + ", ".join(c["effect"] for c in survivors))
+    arow, amr = run_candidate(acand, adata, spec, 0, warm=best["_mr"].sampler, final_posterior=config.posterior)
+    say(f"  together: ln BF = {arow['log_evidence'] - row['log_evidence']:.2f}")
+    return acand, arow, amr, adata, survivors
+
+
+def physical(row: dict, name: str, scale: float) -> dict:
+    """Posterior summary of a normalised coefficient in physical units (scale > 0)."""
+    return {"mean": row["mean"][name] * scale, "sd": row["sd"][name] * scale,
+            "q005": row["q005"][name] * scale, "q995": row["q995"][name] * scale}
+
+
+def split_stability(spec: StudySpec, c: dict, config, say, mapper) -> dict:
+    """Refit the augmented model on each half of the record, the new terms' ARD priors frozen at psi_opt."""
+    from .priors import Flat, Normal
+
+    acand: CandidateSpec = c["_cand"]
+    data: Dataset = c["_data"]
+    priors = dict(acand.priors)
+    for n in c["kept_terms"]:
+        a = float(c["psi_opt"][n])
+        priors[n] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+    fixed = dict(acand.fixed)
+    fixed.update({n: 0.0 for n in acand.ard_names if n not in c["kept_terms"]})
+    half = CandidateSpec(model=acand.model, name=acand.label, priors=priors, fixed=fixed, ard=[],
+                         substeps=acand.substeps)
+    # halves of the *observed* samples (a record may end in missing values)
+    seen = np.flatnonzero(np.any(np.column_stack([np.isfinite(data.columns[o])
+                                                  for o in acand.model_spec().observed_columns]), axis=1))
+    n = len(data)
+    mid = int(seen[seen.size // 2]) if seen.size >= 4 else n // 2
+    parts = []
+    warm = c["_mr"].sampler
+    tasks = [(half, data.slice(lo, hi), spec, warm, config.posterior) for lo, hi in ((0, mid), (mid, n))]
+    for r, _ in mapper(_fit_task, tasks):
+        parts.append({k: (r["mean"][k], r["sd"][k]) for k in c["kept_terms"]})
+    z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])
+         for k in c["kept_terms"]}
+    rel = {k: abs(parts[0][k][0] - parts[1][k][0]) / max(abs(parts[0][k][0]), abs(parts[1][k][0]), 1e-300)
+           for k in c["kept_terms"]}
+    same_sign = all(parts[0][k][0] * parts[1][k][0] > 0 for k in c["kept_terms"])
+    # disagreement beyond the noise AND large against the effect's own size (long records have tiny se)
+    stable = all(z[k] <= config.split_z or (same_sign and rel[k] <= config.split_rel) for k in z)
+    say(f"  {c['effect']}: halves give " + ", ".join(
+        f"{k} = {parts[0][k][0]:.4g} +- {parts[0][k][1]:.2g} / {parts[1][k][0]:.4g} +- {parts[1][k][1]:.2g} "
+        f"(z = {z[k]:.1f})" for k in z) + ("" if stable else ": NOT stable over the record"))
+    return {"stable": stable, "z": z, "relative_difference": rel, "halves": parts}

@@ -1,0 +1,277 @@
+"""Data sets: named columns over a strictly increasing time axis.
+
+CSV (header row of names), NPZ (one array per name) and MATLAB ``.mat`` files
+(1-D variables of equal length) load through :func:`read_dataset`. Every
+problem is reported as a :class:`~ardcore.errors.DataError` whose message
+names the file, the column and, where it helps, the row.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataError
+
+MIN_POINTS = 10
+"""Fewest samples a data set may have."""
+
+SILVERBOX_FS = 1e7 / 2**14
+"""Silverbox sampling frequency, Hz."""
+
+
+@dataclass
+class Dataset:
+    """Sampled measurements.
+
+    Attributes
+    ----------
+    t : ndarray, shape (n,)
+        Strictly increasing sample times.
+    columns : dict of str to ndarray
+        Named data columns, each of shape (n,). NaN marks a missing
+        observation (allowed in observed columns only).
+    meta : dict
+        Free-form provenance (source file, sidecar contents, ...).
+    """
+
+    t: np.ndarray
+    columns: dict[str, np.ndarray]
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.t = np.ascontiguousarray(self.t, dtype=float)
+        self.columns = {k: np.ascontiguousarray(v, dtype=float) for k, v in self.columns.items()}
+        _validate(self.t, self.columns, self.meta.get("source", "data set"))
+
+    def __len__(self) -> int:
+        return self.t.size
+
+    def slice(self, start: int | None = None, stop: int | None = None) -> "Dataset":
+        """Rows ``start:stop`` as a new data set."""
+        s = slice(start, stop)
+        return Dataset(self.t[s].copy(), {k: v[s].copy() for k, v in self.columns.items()},
+                       dict(self.meta, slice=[start, stop]))
+
+    def arrays(self, observed: list[str], inputs: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Contiguous ``(t, Y, U)`` for a model's observed and input columns.
+
+        Raises
+        ------
+        DataError
+            If a column is missing, an input has NaN, or an observed column has
+            no finite value at all.
+        """
+        src = self.meta.get("source", "data set")
+        for c in list(observed) + list(inputs):
+            if c not in self.columns:
+                raise DataError(f"{src}: missing column {c!r} (columns: {sorted(self.columns)})")
+        for c in inputs:
+            bad = np.flatnonzero(~np.isfinite(self.columns[c]))
+            if bad.size:
+                raise DataError(f"{src}: input column {c!r} has NaN at row {bad[0] + 1}; inputs must be complete")
+        for c in observed:
+            if not np.isfinite(self.columns[c]).any():
+                raise DataError(f"{src}: observed column {c!r} has no values")
+        n = self.t.size
+        Y = np.empty((n, len(observed)))
+        for j, c in enumerate(observed):
+            Y[:, j] = self.columns[c]
+        U = np.zeros((n, max(len(inputs), 1)))
+        for j, c in enumerate(inputs):
+            U[:, j] = self.columns[c]
+        return self.t, Y, U
+
+    def to_csv(self, path: str | Path) -> None:
+        """Write ``t`` then the columns, full precision."""
+        names = ["t"] + list(self.columns)
+        M = np.column_stack([self.t] + [self.columns[k] for k in self.columns])
+        with open(path, "w", newline="") as fh:
+            fh.write(",".join(names) + "\n")
+            np.savetxt(fh, M, delimiter=",", fmt="%.17g")
+
+
+def _validate(t: np.ndarray, columns: dict[str, np.ndarray], src: str) -> None:
+    n = t.size
+    if t.ndim != 1:
+        raise DataError(f"{src}: time must be one-dimensional")
+    if n == 0:
+        raise DataError(f"{src}: no data rows")
+    if n < MIN_POINTS:
+        raise DataError(f"{src}: too few points ({n}); at least {MIN_POINTS} are needed")
+    if not np.isfinite(t).all():
+        i = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise DataError(f"{src}: time is not finite at row {i + 1}")
+    dt = np.diff(t)
+    if (dt <= 0).any():
+        i = int(np.flatnonzero(dt <= 0)[0])
+        raise DataError(f"{src}: time is not strictly increasing at row {i + 2} "
+                        f"(t={float(t[i + 1])!r} after t={float(t[i])!r})")
+    for k, v in columns.items():
+        if v.shape != (n,):
+            raise DataError(f"{src}: column {k!r} has {v.size} values for {n} times")
+        if np.isinf(v).any():
+            i = int(np.flatnonzero(np.isinf(v))[0])
+            raise DataError(f"{src}: column {k!r} has an infinite value at row {i + 1}")
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def _read_csv(path: Path) -> dict[str, np.ndarray]:
+    text = path.read_text()
+    if not text.strip():
+        raise DataError(f"{path}: empty file")
+    try:
+        rows = list(csv.reader(io.StringIO(text)))
+    except csv.Error as exc:  # e.g. a cell over the csv module's field size limit
+        raise DataError(f"{path}: not a CSV table ({exc})") from None
+    header = [h.strip().strip('"').strip() for h in rows[0]]
+    body = [r for r in rows[1:] if any(c.strip() for c in r)]
+    keep = [i for i, h in enumerate(header) if h]
+    # a trailing comma yields an unnamed, empty column (Silverbox's header): drop it
+    for i, h in enumerate(header):
+        if not h and any(i < len(r) and r[i].strip() for r in body):
+            raise DataError(f"{path}: column {i + 1} has values but no name in the header")
+    names = [header[i] for i in keep]
+    if len(set(names)) != len(names):
+        raise DataError(f"{path}: duplicate column names in header {names}")
+    if names and all(_is_number(h) for h in names):
+        raise DataError(f"{path}: the first row must be a header of column names, got numbers")
+    out = np.full((len(body), len(keep)), np.nan)
+    for r, row in enumerate(body):
+        for j, i in enumerate(keep):
+            cell = row[i].strip() if i < len(row) else ""
+            if cell == "" or cell.lower() in ("nan", "na"):
+                continue
+            try:
+                out[r, j] = float(cell)
+            except ValueError:
+                raise DataError(f"{path}: row {r + 2}, column {names[j]!r}: {cell!r} is not a number") from None
+    return {n: out[:, j] for j, n in enumerate(names)}
+
+
+def _read_mat(path: Path) -> dict[str, np.ndarray]:
+    from scipy.io import loadmat
+
+    try:
+        raw = loadmat(path)
+    except Exception as exc:  # scipy raises several types for bad files
+        raise DataError(f"{path}: cannot read MATLAB file ({exc})") from None
+    cols = {}
+    for k, v in raw.items():
+        if k.startswith("__") or not isinstance(v, np.ndarray) or v.dtype.kind not in "fiu":
+            continue
+        if v.ndim == 2 and 1 in v.shape and v.size > 1:
+            cols[k] = v.astype(float).ravel()
+    return cols
+
+
+def read_columns(path: str | Path) -> dict[str, np.ndarray]:
+    """Read named numeric columns from CSV, NPZ or MAT (no validation yet)."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such file")
+    suf = path.suffix.lower()
+    if suf == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                cols = {k: np.asarray(z[k], dtype=float).ravel() for k in z.files}
+        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as exc:  # truncated or not a zip
+            raise DataError(f"{path}: cannot read NPZ file ({exc or type(exc).__name__})") from None
+    elif suf == ".mat":
+        cols = _read_mat(path)
+    else:
+        cols = _read_csv(path)
+    if not cols:
+        raise DataError(f"{path}: no data columns")
+    lengths = {k: v.size for k, v in cols.items()}
+    if len(set(lengths.values())) > 1:
+        raise DataError(f"{path}: columns have different lengths {lengths}")
+    return cols
+
+
+def read_dataset(path: str | Path, *, time: str = "t", fs: float | None = None,
+                 rename: dict[str, str] | None = None, columns: list[str] | None = None) -> Dataset:
+    """Load and validate a data set.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.csv`` (header row), ``.npz`` or ``.mat``.
+    time : str
+        Name of the time column.
+    fs : float, optional
+        Sampling frequency; when given and there is no time column,
+        ``t = arange(n) / fs``.
+    rename : dict, optional
+        ``old -> new`` column names (applied before ``columns``).
+    columns : list of str, optional
+        Keep only these columns; an unknown name is an error.
+
+    Raises
+    ------
+    DataError
+        Empty file, non-numeric cells, missing time column, time not strictly
+        increasing, infinite values, too few points, unknown columns.
+    """
+    path = Path(path)
+    cols = read_columns(path)
+    for old, new in (rename or {}).items():
+        if old not in cols:
+            raise DataError(f"{path}: unknown column {old!r} (columns: {sorted(cols)})")
+        cols[new] = cols.pop(old)
+    if time in cols:
+        t = cols.pop(time)
+    elif fs is not None:
+        if not (fs > 0 and np.isfinite(fs)):
+            raise DataError(f"sampling frequency must be positive and finite, got {fs}")
+        n = len(next(iter(cols.values())))
+        t = np.arange(n) / fs
+    else:
+        raise DataError(f"{path}: no time column {time!r} (columns: {sorted(cols)}); "
+                        "name it, or give the sampling frequency")
+    if columns is not None:
+        unknown = [c for c in columns if c not in cols]
+        if unknown:
+            raise DataError(f"{path}: unknown column {unknown[0]!r} (columns: {sorted(cols)})")
+        cols = {c: cols[c] for c in columns}
+    if not cols:
+        raise DataError(f"{path}: no data columns besides time")
+    meta = {"source": str(path)}
+    side = path.with_suffix(".json")
+    if side.exists():
+        try:
+            meta["sidecar"] = json.loads(side.read_text())
+        except json.JSONDecodeError:
+            pass
+    return Dataset(t, cols, meta)
+
+
+def load_silverbox(path: str | Path) -> Dataset:
+    """Silverbox benchmark (Wigren & Schoukens 2013): ``u`` = V1 input, ``y`` = V2 output."""
+    return read_dataset(path, fs=SILVERBOX_FS, rename={"V1": "u", "V2": "y"})
+
+
+def load_pendulum(path: str | Path) -> Dataset:
+    """Free-decay pendulum record: ``t`` (s) and ``y`` = theta2 (rad)."""
+    return read_dataset(path, rename={"theta2": "y"}, columns=["y"])
+
+
+SILVERBOX_SPLITS = {
+    "estimation": (40650, 105712),
+    "test_multisine": (105712, 127400),
+    "test_arrow": (100, 40575),
+}
+"""Customary Silverbox segments (row ranges)."""

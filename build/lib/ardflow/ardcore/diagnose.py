@@ -1,0 +1,334 @@
+"""Closing the loop (method.md section 9): residuals, tests, trace, add, report.
+
+:func:`diagnose` takes a study spec with one candidate model and its data:
+
+1. fits the candidate (ARD evidence maximisation as in any study);
+2. computes the **residuals** at the posterior mean: standardised EKF
+   innovations; the free-run (deterministic simulation) error; and the
+   process noise the filter had to inject, per dynamic state, from an RTS
+   smoother on the model with a small diagnostic noise (its level fitted by
+   maximum likelihood) on every dynamic state;
+3. **tests** them: whiteness (autocorrelation with 95 % bands, Ljung-Box),
+   normality (Jarque-Bera), spectral peaks of the innovations;
+4. **traces** the residual to an effect: every candidate of
+   :mod:`ardcore.effects` on every dynamic state (and every measurement effect
+   on every observed channel) is **screened by evidence** (:mod:`ardcore.screen`:
+   a Laplace log Bayes factor from the EKF's own score and information, the
+   model's parameters profiled out, terms normalised, shape parameters such as a
+   free-play width or a forcing frequency profiled); the best few are
+   **confirmed** by the full ARD re-selection: each is added (normalised) under
+   an ARD prior and the candidate re-selected, so ARD decides whether the new
+   term survives;
+5. **reports** the error before and after.
+
+When no candidate survives, the result says so and describes the residual
+structure that remains (spectral peaks, the states that needed noise).
+
+Rooms: the residual tests live in :mod:`ardcore.residual_tests`, the free run and its
+prediction band in :mod:`ardcore.freerun`, the evidence screen in :mod:`ardcore.screen` (its EKF score machinery in :mod:`ardcore.score`),
+the library in :mod:`ardcore.effects`, the confirmations (re-selection, halves check, joint
+fit, process pool) in :mod:`ardcore.confirm`, the verdict's words in :mod:`ardcore.verdict`;
+this module holds the residuals and the loop.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy import optimize
+
+from .data import Dataset
+from .ekf import compile_model
+from .effects import Effect, dynamic_states, with_columns
+from .errors import SpecError
+from .model import ModelSpec
+from .freerun import _posterior_draws, free_run, free_run_of  # noqa: F401
+from .loop_config import DiagnoseConfig  # noqa: F401
+from .residual_tests import acf, dominant_frequency, harmonics, residual_tests, spectral_peaks  # noqa: F401
+from .confirm import joint_fit, physical, pool_mapper, split_stability, trace_and_confirm
+from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
+from .verdict import character, unexplained
+
+INF = math.inf
+
+
+# --------------------------------------------------------------------------- residuals
+
+
+@dataclass
+class Residuals:
+    """The residuals of a fitted model on one data set (see module docstring)."""
+
+    innovations: np.ndarray          # standardised, (n, m)
+    raw_innovations: np.ndarray      # (n, m)
+    smoothed: np.ndarray             # (n, n_x)
+    process_noise_rate: dict         # state -> (n-1,) injected drift w_k / dt
+    noise_std: dict                  # state -> fitted diagnostic noise std (or the model's own)
+    tests: dict                      # per observation channel
+    loglik: float
+    states: tuple = ()               # names of the smoothed columns
+    dt: float = 1.0                  # median sample interval
+
+
+def _diagnostic_spec(spec: ModelSpec, states: list[str]) -> tuple[ModelSpec, list[str]]:
+    """``spec`` with a noise parameter on every listed state that has none."""
+    add = [s for s in states if not spec.diffusion.get(s)]
+    names = [f"q_diag_{s}" for s in add]
+    if not add:
+        return spec, []
+    diff = dict(spec.diffusion)
+    diff.update({s: n for s, n in zip(add, names)})
+    new = spec.model_copy(update={"name": f"{spec.name}_diag", "diffusion": diff,
+                                  "parameters": list(spec.parameters) + names})
+    return new.revalidate(), names
+
+
+def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig, *,
+              substeps: int | None = None) -> Residuals:
+    """Residuals of ``spec`` at parameter values ``phi`` (dict over its free parameters)."""
+    cm = compile_model(spec)
+    fr = cm.filter(phi, data, substeps)
+    fs = 1.0 / float(np.median(np.diff(data.t)))
+    e = fr.standardized
+    fund = dominant_frequency(data.columns[spec.observed_columns[0]], fs)
+    tests = {c: residual_tests(e[:, j], fs, config, fundamental=fund) for j, c in enumerate(spec.observed_columns)}
+    dyn = dynamic_states(spec)
+    dspec, qnames = _diagnostic_spec(spec, dyn)
+    dcm = compile_model(dspec)
+    scale = np.nanstd(fr.filtered, axis=0)
+    q0 = {}
+    if qnames:
+        lik = dcm.bind(data, substeps)
+        idx = [spec.states.index(n[len("q_diag_"):]) for n in qnames]
+        # the injected noise is at most of the order of the state's rate of change
+        hi = np.log10(np.maximum(scale[idx] * fs, 1e-12))
+        lo = hi - 8
+
+        def nll(z):
+            z = np.clip(z, lo, hi)
+            v = lik({**phi, **{n: 10.0 ** zi for n, zi in zip(qnames, z)}})
+            return -v if np.isfinite(v) else 1e300
+
+        best = min((optimize.minimize(nll, np.full(len(qnames), s), method="Nelder-Mead",
+                                      options={"xatol": 0.05, "fatol": 0.05, "maxfev": 400})
+                    for s in (lo + 2, hi - 3)), key=lambda r: r.fun)
+        q0 = {n: float(10.0 ** np.clip(best.x, lo, hi)[i]) for i, n in enumerate(qnames)}
+    _, sm = dcm.smooth({**phi, **q0}, data, substeps)
+    dt = np.diff(data.t)
+    rates = {s: sm.process_noise[1:, spec.states.index(s)] / dt for s in dyn}
+    noise_std = {s: q0.get(f"q_diag_{s}") for s in dyn}
+    return Residuals(e, fr.innovations, sm.smoothed, rates, noise_std, tests, fr.loglik, tuple(spec.states),
+                     float(np.median(dt)))
+
+
+# --------------------------------------------------------------------------- fit, free run, loop
+
+
+def fitted_spec(cand: CandidateSpec, row: dict) -> ModelSpec:
+    """The candidate's model with the terms its optimal psi pruned fixed at 0."""
+    spec = cand.model_spec()
+    pruned = {k: 0.0 for k, v in row["psi_opt"].items() if v == "inf" or v == INF}
+    return spec.with_fixed(**pruned) if pruned else spec
+
+
+def _fitted(cand: CandidateSpec, row: dict) -> tuple[ModelSpec, dict]:
+    """The candidate's model with pruned terms fixed at 0, and its posterior mean."""
+    spec = fitted_spec(cand, row)
+    phi = {k: float(row["mean"][k]) for k in spec.free_parameters}
+    return spec, phi
+
+
+def _errors(res: Residuals, fr: dict, row: dict, col: str) -> dict:
+    t = res.tests[col]
+    keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error",
+            "band_coverage", "band_halfwidth_rms", "draws_rms_error", "n_draws")
+    # the first innovations carry the initial-state uncertainty, not the model's error
+    skip = min(10, max(0, res.raw_innovations.shape[0] // 10))
+    return {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[skip:, 0] ** 2))),
+            # what the model had to be pushed by (smoothed process noise, per unit time), per dynamic state
+            "injected_noise_rms": {s: float(np.sqrt(np.nanmean(r ** 2))) for s, r in res.process_noise_rate.items()},
+            "standardized_rms": t["rms"], "ljung_box": t["ljung_box"], "ljung_box_p": t["ljung_box_p"],
+            "free_run": {k: fr[k] for k in keep if k in fr},
+            "log_evidence": row["log_evidence"], "log_evidence_se": row["log_evidence_se"]}
+
+
+def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None,
+             config: DiagnoseConfig | None = None, progress: Callable[[str], None] | None = None,
+             extra_effects: list[Effect] = (), base: tuple[dict, object] | None = None) -> dict:
+    """Run the closed loop on the single candidate of ``spec`` (see module docstring).
+
+    Parameters
+    ----------
+    spec : StudySpec
+        Exactly one candidate: the model to diagnose, with its priors (ARD terms allowed).
+    data : Dataset
+        Estimation data.
+    test_data : Dataset, optional
+        Held-out record for the free-run error (default: ``data``).
+    extra_effects : list of Effect
+        Added to the built-in library.
+    base : (row, MaximiserResult), optional
+        An existing fit of the candidate (skips step 1).
+
+    Returns
+    -------
+    dict
+        ``before``/``after`` residual tests and errors, ``candidates`` (ranked), ``confirmed``
+        (evidence for the top few), ``added`` (the effect kept, or None), ``verdict`` (text),
+        and arrays for the figures under ``_arrays``.
+    """
+    config = config or DiagnoseConfig()
+    t_start = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if progress:
+            progress(f"[{time.perf_counter() - t_start:6.0f} s] {msg}")
+
+    if len(spec.models) != 1:
+        raise SpecError(f"diagnose: the spec must have exactly one model (it has {len(spec.models)})")
+    t0 = time.perf_counter()
+    cand = spec.models[0]
+    test_data = test_data or data
+    ms = cand.model_spec()
+    for what, d in (("data", data), ("held-out data", test_data)):
+        missing = [c for c in list(ms.observed_columns) + list(ms.inputs) if c not in d.columns]
+        if missing:  # before any fit: a free run at the end must not be what finds it
+            raise SpecError(f"diagnose: the {what} ({d.meta.get('source', 'given')}) has no column "
+                            f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
+    say(f"fitting {cand.label} ...")
+    row, bmr = base or run_candidate(cand, data, spec, 0, final_posterior=config.posterior)
+    col = cand.model_spec().observed_columns[0]
+    first = None
+    rounds, arrays = [], {}
+    cur_data, cur_test = data, test_data
+    workers = config.workers or min(os.cpu_count() or 1, max(config.top_k, 2))
+    mapper, close = pool_mapper(workers)
+    try:
+        for rnd in range(config.max_rounds + 1):
+            fspec, phi = _fitted(cand, row)
+            say(f"round {rnd}: {cand.label} ln Z = {row['log_evidence']:.3f}; computing residuals")
+            res = residuals(fspec, phi, cur_data, config, substeps=cand.substeps)
+            fr = free_run(fspec, phi, cur_test, init_samples=config.init_samples, substeps=cand.substeps,
+                          draws=_posterior_draws(bmr, fspec, config.band_draws, seed=rnd))
+            err = _errors(res, fr, row, col)
+            if first is None:
+                initial = {"spec": fspec, "phi": phi, "effects": [], "substeps": cand.substeps}
+                first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
+                         "base_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned",
+                                                           "mean", "sd")}}
+                arrays["before"] = _arrays(res, fr)
+            else:
+                arrays["after"] = _arrays(res, fr)
+                rounds[-1]["after"] = err
+            if rnd == config.max_rounds:
+                break
+            ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
+                                                   extra_effects, say, mapper)
+            survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
+            if config.split_z is not None:
+                for c in survivors:
+                    if c["_effect"].where == "noise":
+                        continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
+                    c["stability"] = split_stability(spec, c, config, say, mapper)
+                    c["survives"] = c["stability"]["stable"]
+                    if c["survives"] and not config.joint:
+                        break  # the best stable one is added
+                survivors = [c for c in survivors if c.get("stability", {}).get("stable", True) and c["survives"]]
+            # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
+            tried = {(c["effect"], c["target"]): c for c in confirmed}
+            order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
+            ranking = [{"effect": c["effect"], "target": c["target"], "log_bayes_factor": c["log_bayes_factor"],
+                        "survives": c["survives"]} for c in order]
+            ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"],
+                         "screened_log_bayes_factor": c["log_bayes_factor"]} for c in ranked
+                        if (c["effect"], c["target"]) not in tried]
+            rec = {"round": rnd, "model": cand.label, "ranking": ranking,
+                   "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
+                   "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
+                   "added": None}
+            rounds.append(rec)
+            if not survivors:
+                rec["verdict"] = unexplained(res, ranked, confirmed, col, config)
+                break
+            best = survivors[0]
+            chosen, fit = [best], (best["_cand"], best["_row"], best["_mr"], best["_data"])
+            if config.joint and len(survivors) > 1:
+                # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
+                # others make redundant; taken when it beats the best single effect by more than min_log_bf
+                j = joint_fit(spec, cand, row, best, survivors, cur_data, config, say)
+                if j is not None and j[1]["log_evidence"] > best["log_evidence"] + config.min_log_bf:
+                    chosen, fit = j[4], j[:4]
+            jrow = fit[1]
+            recs = []
+            for c in chosen:
+                eff = c["_effect"]
+                names = list(c["scales"])
+                post = {n: physical(jrow, n, c["scales"][n]) for n in names if n in jrow["mean"]}
+                recs.append({"effect": eff.name, "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
+                             "posterior": post, "log_bayes_factor": c["log_bayes_factor"],
+                             "character": character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
+            rec["added"], rec["added_with"] = recs[0], recs[1:]
+            rec["_effects"] = [c["_effect"] for c in chosen]
+            say(f"round {rnd}: added " + ", ".join(f"{r['effect']} to {r['target']} (ln BF {r['log_bayes_factor']:.1f})"
+                                                    for r in recs)
+                + (f"; together ln BF {jrow['log_evidence'] - row['log_evidence']:.1f}" if len(recs) > 1 else ""))
+            cand, row, bmr, cur_data = fit
+            for e in rec["_effects"]:
+                cur_test = with_columns(cur_test, e)
+    finally:
+        close()
+    added = [a for r in rounds if r["added"] for a in [r["added"], *r.get("added_with", [])]]
+    out = {"model": spec.models[0].label, "final_model": cand.label, "data": data.meta.get("source"),
+           "n": len(data), "n_test": len(test_data), **first,
+           "rounds": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
+           "candidates": rounds[0]["candidates"] if rounds else [],
+           "confirmed": rounds[0]["confirmed"] if rounds else [],
+           "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
+           "tests_after": None, "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd",
+                                                                    "q005", "q995")}}
+    if added:
+        a, b = out["after"], out["before"]
+        out["tests_after"] = _strip(arrays["after"]["tests"])
+        out["verdict"] = ("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
+                                                     f"{x['log_bayes_factor']:.1f}"
+                                                     + (f", {x['character']}" if x.get("character") else "") + ")"
+                                                     for x in added)
+                          + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
+                          f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
+                          f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
+                          + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
+    else:
+        out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
+    out["wall_s"] = time.perf_counter() - t0
+    out["_arrays"] = arrays
+    # the initial and final models, for free runs on further held-out records: free_run_of(out["_final"], record)
+    out["_initial"] = initial
+    out["_final"] = {"spec": fspec, "phi": phi, "effects": [e for r in rounds for e in r.get("_effects", [])],
+                     "substeps": cand.substeps}
+    return out
+
+
+def _strip(tests: dict) -> dict:
+    """JSON part of the tests (the spectrum arrays go to the figures)."""
+    out = {}
+    for c, t in tests.items():
+        d = {k: v for k, v in t.items() if k not in ("spectrum", "acf")}
+        d["acf"] = [float(x) for x in t["acf"]]
+        d["spectral_peaks"] = t["spectrum"]["peaks"]
+        out[c] = d
+    return out
+
+
+def _arrays(res: Residuals, fr: dict) -> dict:
+    return {"tests": res.tests, "innovations": res.innovations, "process_noise_rate": res.process_noise_rate,
+            "free_run": fr}
+
+
+def jsonable(report: dict) -> dict:
+    """The report without its arrays, ready for ``json.dump``."""
+    return to_jsonable({k: v for k, v in report.items() if not k.startswith("_")})

@@ -1,0 +1,220 @@
+"""Evidence estimators (method.md sections 3-5).
+
+Chib-Jeliazkov from the stationary fixed-proposal samples of each chain, at
+phi* = the best point any chain has seen; Laplace at the MAP; goodness of fit
+and expected information gain by Eq. 13. Everything in log space.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import logsumexp
+from scipy.stats import chi2
+
+from .mcmc import Map, SamplerError, SamplerResult, fd_hessian, local_mode, safe_cholesky, serial_map
+
+
+@dataclass
+class ChainEvidence:
+    log_evidence: float
+    se: float                  # batch-means noise of this chain's estimate
+    log_posterior_ordinate: float
+
+
+@dataclass
+class Evidence:
+    """An evidence estimate with its decomposition.
+
+    Attributes
+    ----------
+    log_evidence, log_evidence_se : float
+        Mean over chains and its standard error.
+    goodness_of_fit : float
+        ln p(d | phi*) (Eq. 13).
+    information_gain : float
+        goodness_of_fit - log_evidence.
+    per_chain : list of ChainEvidence
+    method : str
+    warnings : list of str
+    """
+
+    log_evidence: float
+    log_evidence_se: float
+    goodness_of_fit: float
+    information_gain: float
+    method: str
+    per_chain: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    n_evaluations: int = 0
+    """Likelihood evaluations the estimate itself made (Chib-Jeliazkov: the proposal draws)."""
+
+    def to_dict(self) -> dict:
+        return {
+            "log_evidence": self.log_evidence, "log_evidence_se": self.log_evidence_se,
+            "goodness_of_fit": self.goodness_of_fit, "information_gain": self.information_gain,
+            "method": self.method, "warnings": list(self.warnings),
+            "per_chain": [c.__dict__ for c in self.per_chain], "n_evaluations": self.n_evaluations,
+        }
+
+
+def _log_mvn_kernel(diff: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """log N(diff; 0, L L^T) for rows of diff."""
+    from scipy.linalg import solve_triangular
+
+    z = solve_triangular(L, diff.T, lower=True)
+    d = diff.shape[1]
+    return -0.5 * np.sum(z * z, axis=0) - np.sum(np.log(np.diag(L))) - 0.5 * d * math.log(2 * math.pi)
+
+
+def _batch_se(log_terms: np.ndarray, batches: int = 10) -> float:
+    """Standard error of ln(mean(exp(terms))) by batch means and the delta method."""
+    n = log_terms.size
+    b = max(2, min(batches, n // 10))
+    parts = np.array_split(log_terms, b)
+    lm = np.array([logsumexp(p) - math.log(p.size) for p in parts])
+    total = logsumexp(lm) - math.log(b)
+    rel = np.exp(lm - total)
+    return float(np.std(rel, ddof=1) / math.sqrt(b))
+
+
+def _cj_chain(args):
+    target, samples, lp, phi_star, lp_star, cov, J, seed = args
+    L = safe_cholesky(cov)
+    # numerator: (1/M) sum_g alpha(phi_g, phi*) q(phi* | phi_g)
+    log_alpha = np.minimum(0.0, lp_star - lp)
+    log_q = _log_mvn_kernel(phi_star[None, :] - samples, L)
+    num_terms = log_alpha + log_q
+    log_num = logsumexp(num_terms) - math.log(samples.shape[0])
+    # denominator: (1/J) sum_j alpha(phi*, phi_j), phi_j ~ q(. | phi*)
+    rng = np.random.default_rng(seed)
+    Z = rng.standard_normal((J, phi_star.size))
+    den_terms = np.empty(J)
+    for j in range(J):
+        lpj = target(phi_star + L @ Z[j])[0]
+        den_terms[j] = min(0.0, lpj - lp_star) if lpj > -math.inf else -math.inf
+    log_den = logsumexp(den_terms) - math.log(J)
+    ordinate = log_num - log_den
+    se = math.sqrt(_batch_se(num_terms) ** 2 + _batch_se(den_terms) ** 2)
+    return ordinate, se
+
+
+def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
+                   map_fn: Map = serial_map) -> Evidence:
+    """Chib-Jeliazkov evidence per chain at phi* (Eq. 10-12); mean and standard error over chains.
+
+    Raises
+    ------
+    ValueError
+        If a prior is improper (flat, or ARD with alpha = 0): the evidence is undefined.
+    """
+    if not target.prior.proper:
+        bad = [n for n, p in zip(target.prior.names, target.prior.priors) if not p.proper]
+        raise ValueError(f"evidence needs proper priors; improper: {bad}")
+    nc = res.samples.shape[0]
+    seeds = np.random.SeedSequence(seed).generate_state(nc)
+    # Z = int L pi <= max L: a chain whose estimate exceeds it never reached phi*'s mode (its draws
+    # put no proposal density at phi*), so its posterior ordinate is meaningless
+    bound = max(float(res.ll_star), float(np.nanmax(res.ll)) if np.isfinite(res.ll).any() else -math.inf)
+    warnings = []
+    phi_star, lp_star, ll_star = res.phi_star, res.lp_star, float(res.ll_star)
+    n_eval = 0
+    for attempt in range(2):
+        n_eval += nc * n_proposal
+        tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
+                  int(seeds[c])) for c in range(nc)]
+        out = map_fn(_cj_chain, tasks, label="cj")
+        per = [ChainEvidence(lp_star - o, se, o) for o, se in out]
+        valid = [p for p in per if math.isfinite(p.log_evidence) and p.log_evidence <= bound]
+        if valid or attempt == 1 or not np.isfinite(res.lp).any():
+            break
+        # phi* sits where no stationary draw goes: take the best stationary draw instead
+        c, i = np.unravel_index(np.nanargmax(res.lp), res.lp.shape)
+        warnings.append(f"no chain's stationary draws reached phi* (ln post {lp_star:.2f}); the evidence is "
+                        f"taken at the best stationary draw (ln post {res.lp[c, i]:.2f}); burn-in did not settle")
+        phi_star, lp_star, ll_star = res.samples[c, i], float(res.lp[c, i]), float(res.ll[c, i])
+    if len(valid) < nc:
+        bad = [i for i, p in enumerate(per) if p not in valid]
+        warnings.append(f"chains {bad} gave impossible ln evidence estimates (above the largest ln L seen, "
+                        f"{bound:.2f}): they never reached phi*'s mode and were left out")
+    if not valid:
+        raise SamplerError("Chib-Jeliazkov: no chain reached the mode of phi* (every estimate exceeds max ln L); "
+                           "the sampler did not converge")
+    vals = np.array([p.log_evidence for p in valid])
+    per, nc = valid, len(valid)
+    mean = float(vals.mean())
+    se = float(vals.std(ddof=1) / math.sqrt(nc)) if nc > 1 else float(per[0].se)
+    if nc > 1:
+        noise = np.array([max(p.se, 1e-3) for p in per])
+        stat = float(np.sum(((vals - mean) / noise) ** 2))
+        if stat > chi2.ppf(0.999, nc - 1) and np.ptp(vals) > 0.5:
+            warnings.append(f"per-chain ln evidence estimates disagree beyond their noise "
+                            f"(spread {np.ptp(vals):.2f} nats: {np.round(vals, 2).tolist()}); "
+                            "chains may sit in different modes")
+    gof = ll_star
+    return Evidence(mean, se, gof, gof - mean, "chib-jeliazkov", per, warnings, n_evaluations=n_eval)
+
+
+def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: int = 4000,
+            polish: int = 3, warm: bool = False) -> tuple[Evidence, np.ndarray, np.ndarray]:
+    """Laplace evidence ln p(d) ~ L(MAP) + d/2 ln 2 pi - 1/2 ln |H| (Appendices A-B).
+
+    With ``warm`` (``x0`` from a neighbouring trial), Newton steps start at ``x0`` and Nelder-Mead runs only
+    when they do not converge.
+
+    Returns
+    -------
+    evidence : Evidence
+    phi_map : ndarray
+    cov : ndarray
+        H^{-1}, the Laplace posterior covariance.
+    """
+    x0 = np.asarray(x0, dtype=float)
+    d = x0.size
+    if scale is None:
+        scale = np.maximum(np.abs(x0) * 0.1, 1e-3)
+    f = lambda v: -target(v)[0]  # noqa: E731
+
+    def newton(x, h, iters):
+        """Newton steps with a finite-difference Hessian; returns x, h and whether it converged (step < 1e-3 sd)."""
+        for _ in range(iters):
+            H = fd_hessian(f, x, h)
+            g = np.array([(f(x + h[i] * e) - f(x - h[i] * e)) / (2 * h[i]) for i, e in enumerate(np.eye(d))])
+            try:
+                step = np.linalg.solve(H, g)
+                C = np.linalg.inv(H)
+            except np.linalg.LinAlgError:
+                return x, h, False
+            sd = np.sqrt(np.abs(np.diag(C)))
+            ok = np.all(np.isfinite(sd)) and np.all(sd > 0) and np.all(np.diag(C) > 0)
+            if f(x - step) <= f(x):
+                x = x - step
+            elif not ok:
+                return x, h, False
+            h = np.where(np.isfinite(sd) & (sd > 0), 0.01 * sd, h)
+            if ok and np.all(np.abs(step) < 1e-3 * sd):
+                return x, h, True
+        return x, h, False
+
+    converged = False
+    if warm:
+        # a warm start is near the mode: Newton from there, Nelder-Mead only if Newton does not converge
+        x, h, converged = newton(x0.copy(), 1e-3 * scale, polish + 5)
+    if not converged:
+        x, _ = local_mode(target, x0, scale, maxfev)
+        x, h, _ = newton(x, 1e-3 * scale, polish)
+    H = fd_hessian(f, x, h)
+    sign, logdet = np.linalg.slogdet(H)
+    lp, ll = target(x)
+    warnings = []
+    if sign <= 0:
+        warnings.append("Hessian at the MAP is not positive definite: Laplace evidence invalid")
+    log_z = lp + 0.5 * d * math.log(2 * math.pi) - 0.5 * logdet
+    ev = Evidence(float(log_z), 0.0, float(ll), float(ll - log_z), "laplace", [], warnings)
+    try:
+        C = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        C = np.full((d, d), np.nan)
+    return ev, x, C

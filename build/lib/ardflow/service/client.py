@@ -1,0 +1,205 @@
+"""Python client of the ardflow REST API.
+
+    from ardflow.service.client import Client
+    c = Client("http://127.0.0.1:8000", token="...")
+    sid = c.submit("examples/sec33.json")
+    c.wait(sid)                       # progress on stderr
+    summary = c.summary(sid)
+    post = c.posterior(sid, "M2true", as_xarray=True)
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+
+class APIError(Exception):
+    """An error answer of the service: ``status`` and the server's message."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(f"HTTP {status}: {message}")
+        self.status, self.message = status, message
+
+
+class Client:
+    """A thin, typed wrapper over the REST API.
+
+    Parameters
+    ----------
+    url : str
+        Base URL of the service (``http://host:port``).
+    token : str, optional
+        API token (sent as ``X-API-Token``).
+    timeout : float
+        Seconds per request.
+    """
+
+    def __init__(self, url: str = "http://127.0.0.1:8000", token: str | None = None, timeout: float = 60.0):
+        headers = {"X-API-Token": token} if token else {}
+        self.http = httpx.Client(base_url=url.rstrip("/") + "/v1", headers=headers, timeout=timeout)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def _check(self, r: httpx.Response):
+        if r.status_code >= 400:
+            try:
+                detail = r.json().get("detail")
+            except ValueError:
+                detail = r.text
+            if isinstance(detail, list):
+                detail = "; ".join(f"{'.'.join(d.get('loc', []))}: {d.get('msg')}" for d in detail)
+            raise APIError(r.status_code, str(detail))
+        return r
+
+    # ---------------------------------------------------------------- calls
+    def health(self) -> dict:
+        return self._check(self.http.get("/health")).json()
+
+    def upload(self, csv_path: str | Path) -> str:
+        """Upload a CSV data set; returns its id (use it as ``data.dataset`` in a spec)."""
+        body = Path(csv_path).read_bytes()
+        return self._check(self.http.post("/datasets", content=body, headers={"Content-Type": "text/csv"})).json()["id"]
+
+    def submit(self, spec: dict | str | Path, csv: str | Path | None = None) -> str:
+        """Submit a study (a dict or a JSON file); with ``csv`` the file is uploaded first. Returns the study id."""
+        if not isinstance(spec, dict):
+            spec = json.loads(Path(spec).read_text())
+        if csv is not None:
+            spec = dict(spec, data={**{k: v for k, v in spec.get("data", {}).items() if k not in ("path", "generator")},
+                                    "dataset": self.upload(csv)})
+        return self._check(self.http.post("/studies", json=spec)).json()["id"]
+
+    def studies(self) -> list[dict]:
+        return self._check(self.http.get("/studies")).json()
+
+    def status(self, sid: str) -> dict:
+        return self._check(self.http.get(f"/studies/{sid}")).json()
+
+    def cancel(self, sid: str) -> dict:
+        return self._check(self.http.post(f"/studies/{sid}/cancel")).json()
+
+    def summary(self, sid: str) -> dict:
+        return self._check(self.http.get(f"/studies/{sid}/summary")).json()
+
+    def figure(self, sid: str, name: str = "evidence.png") -> bytes:
+        return self._check(self.http.get(f"/studies/{sid}/figures/{name}")).content
+
+    def wait(self, sid: str, *, poll_s: float = 2.0, timeout: float | None = None, progress: bool = True) -> dict:
+        """Block until the study ends; shows one progress line per model on stderr. Returns the final status."""
+        t0 = time.time()
+        while True:
+            st = self.status(sid)
+            if progress:
+                parts = []
+                for m, p in st["models"].items():
+                    be = p.get("best_log_evidence")
+                    eta = p.get("eta_s")
+                    parts.append(f"{m}: {p.get('trials_done', 0)} trials"
+                                 + (f", best ln Z {be:.2f}" if be is not None else "")
+                                 + (f", eta <= {eta:.0f}s" if eta else ""))
+                sys.stderr.write(f"\r[{st['status']}] " + " | ".join(parts) + " " * 8)
+                sys.stderr.flush()
+            if st["status"] in ("done", "failed", "cancelled"):
+                if progress:
+                    sys.stderr.write("\n")
+                if st["status"] == "failed":
+                    raise APIError(500, f"study {sid} failed: {st.get('error')}")
+                return st
+            if timeout is not None and time.time() - t0 > timeout:
+                raise TimeoutError(f"study {sid} still {st['status']} after {timeout} s")
+            time.sleep(poll_s)
+
+    def diagnose(self, sid: str, model: str | None = None, *, top_k: int = 3, max_rounds: int = 3,
+                 test_csv: str | Path | None = None, wait: bool = True, poll_s: float = 2.0,
+                 timeout: float | None = None) -> dict:
+        """Close the loop on a model of a finished study; with ``wait`` returns the finished diagnosis.
+
+        The diagnosis (``report``: residual tests before/after, ranked candidates, effects added,
+        errors before/after) is also available later from :meth:`diagnosis`.
+        """
+        body = {"top_k": top_k, "max_rounds": max_rounds}
+        if model:
+            body["model"] = model
+        if test_csv:
+            body["test_dataset"] = self.upload(test_csv)
+        st = self._check(self.http.post(f"/studies/{sid}/diagnoses", json=body)).json()
+        if not wait:
+            return st
+        t0 = time.monotonic()
+        while True:
+            d = self.diagnosis(sid, st["model"])
+            if d["status"] != "running":
+                if d["status"] == "failed":
+                    raise APIError(500, f"diagnosis failed: {d.get('error')}")
+                return d
+            if timeout is not None and time.monotonic() - t0 > timeout:
+                raise TimeoutError(f"diagnosis of {st['model']} still running after {timeout} s")
+            time.sleep(poll_s)
+
+    def diagnosis(self, sid: str, model: str) -> dict:
+        """State (``running``/``done``/``failed``) and, when done, the ``report`` of a diagnosis."""
+        return self._check(self.http.get(f"/studies/{sid}/diagnoses/{model}")).json()
+
+    def diagnosis_figure(self, sid: str, model: str, name: str = "free_run.png") -> bytes:
+        """A PNG of a finished diagnosis (tests, process_noise, candidates, free_run)."""
+        return self._check(self.http.get(f"/studies/{sid}/diagnoses/{model}/figures/{name}")).content
+
+    def report(self, sid: str, out: str | Path) -> Path:
+        """Download a finished study's report (``report.html`` and its PNG figures) into ``out``.
+
+        Returns the local path of ``report.html``; it opens offline (no external assets).
+        """
+        import re
+
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        page = self._check(self.http.get(f"/studies/{sid}/report/report.html")).text
+        for name in sorted(set(re.findall(r"<img src='([^'/]+\.png)'", page))):
+            (out / name).write_bytes(self._check(self.http.get(f"/studies/{sid}/report/{name}")).content)
+        (out / "report.html").write_text(page)
+        return out / "report.html"
+
+    def posterior(self, sid: str, model: str, *, as_xarray: bool = False, as_inference_data: bool = False,
+                  log_likelihood: bool = False, max_draws: int | None = None):
+        """Stationary posterior samples of ``model``'s optimal nested model.
+
+        Returns ``(names, samples)`` with samples of shape (chain, draw, param); an ``xarray.Dataset``
+        with named dimensions (``as_xarray``); or ArviZ data, an ``xarray.DataTree`` with groups
+        posterior, sample_stats, observed_data and, with ``log_likelihood=True``, the EKF's pointwise
+        one-step predictive log density for ``az.loo``/``az.compare`` (``as_inference_data``; needs arviz).
+        ``max_draws`` thins every group to that many draws in all (default 1000 with ``log_likelihood``).
+        """
+        if as_inference_data:
+            from ardflow.workers.inference import InferenceGroups
+
+            params = {"log_likelihood": str(bool(log_likelihood)).lower()}
+            if max_draws is not None:
+                params["max_draws"] = int(max_draws)
+            r = self._check(self.http.get(f"/studies/{sid}/inference_data/{model}", params=params))
+            return InferenceGroups.from_npz(r.content).to_datatree()
+        r = self._check(self.http.get(f"/studies/{sid}/posterior/{model}", params={"format": "npz"}))
+        with np.load(io.BytesIO(r.content)) as z:
+            names = [str(x) for x in z["names"]]
+            samples, lp, ll = z["samples"], z["log_posterior"], z["log_likelihood"]
+        if not as_xarray:
+            return names, samples
+        import xarray as xr
+
+        return xr.Dataset(
+            {"samples": (("chain", "draw", "param"), samples), "log_posterior": (("chain", "draw"), lp),
+             "log_likelihood": (("chain", "draw"), ll)},
+            coords={"param": names, "chain": np.arange(samples.shape[0]), "draw": np.arange(samples.shape[1])})

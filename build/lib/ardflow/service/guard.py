@@ -1,0 +1,77 @@
+"""Request guards applied before routing, authentication and parsing (pure ASGI middleware).
+
+* **Body size**: bytes are counted as they arrive, chunked or not; a request over the limit is answered
+  413 before its body is read whole (a ``Content-Length`` over the limit before any of it is read).
+* **Host**: with ``allowed_hosts`` the ``Host`` header must name one of them (a DNS-rebinding page cannot
+  talk to a service on loopback under its own name), else 400.
+* **Content type**: a body of a ``POST`` must be declared as JSON, or as CSV on the data-set route (a
+  cross-site form cannot send ``text/plain`` without a pre-flight), else 415.
+"""
+
+from __future__ import annotations
+
+import json
+
+
+async def _answer(send, status: int, detail: str) -> None:
+    body = json.dumps({"detail": detail}).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+    await send({"type": "http.response.body", "body": body})
+
+
+class RequestGuard:
+    """ASGI middleware: body-size limit, Host allow-list, Content-Type of POST bodies."""
+
+    def __init__(self, app, *, max_body: int, allowed_hosts: list[str] | None = None,
+                 csv_paths: tuple[str, ...] = ()):
+        self.app, self.max_body = app, max_body
+        self.allowed_hosts = {h.lower() for h in allowed_hosts} if allowed_hosts else None
+        self.csv_paths = csv_paths
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        if self.allowed_hosts is not None:
+            host = headers.get("host", "")
+            name = host.rsplit(":", 1)[0] if not host.startswith("[") else host.split("]")[0] + "]"
+            if name.lower() not in self.allowed_hosts:
+                return await _answer(send, 400, f"Host {host!r} is not served here")
+        cl = headers.get("content-length")
+        if cl is not None:
+            if not cl.isdigit():
+                return await _answer(send, 400, "invalid Content-Length")
+            if int(cl) > self.max_body:
+                return await _answer(send, 413, f"request body larger than {self.max_body / 2**20:g} MB")
+        method = scope.get("method", "GET")
+        if method in ("POST", "PUT", "PATCH") and (cl not in (None, "0") or "transfer-encoding" in headers):
+            ctype = headers.get("content-type", "").split(";")[0].strip().lower()
+            wanted = ("text/csv", "application/octet-stream") if scope["path"] in self.csv_paths \
+                else ("application/json",)
+            if ctype not in wanted:
+                return await _answer(send, 415, f"Content-Type must be {' or '.join(wanted)}, not {ctype or 'missing'!r}")
+        if method not in ("POST", "PUT", "PATCH"):
+            return await self.app(scope, receive, send)
+        # read the body here, counting bytes, so that no route, dependency or parser ever holds more
+        # than the limit (a chunked body has no Content-Length to refuse it by)
+        chunks, seen = [], 0
+        while True:
+            msg = await receive()
+            if msg["type"] == "http.disconnect":
+                return
+            body = msg.get("body", b"")
+            seen += len(body)
+            if seen > self.max_body:
+                return await _answer(send, 413, f"request body larger than {self.max_body / 2**20:g} MB")
+            chunks.append(body)
+            if not msg.get("more_body", False):
+                break
+        replay = [{"type": "http.request", "body": b"".join(chunks), "more_body": False}]
+
+        async def replayed():
+            if replay:
+                return replay.pop()
+            return await receive()
+
+        await self.app(scope, replayed, send)

@@ -1,0 +1,156 @@
+"""The study report: one self-contained HTML page with PNG figures beside it (no network assets)."""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .paper import FIG15_M2OPT_BOUNDS, TABLE10, TABLE10_OFFSET
+from .report import (TAU_SECONDS, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint,
+                     plot_marginals)
+
+_CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
+table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;padding:4px 8px;text-align:right}
+th{background:#eee}td.l,th.l{text-align:left}img{max-width:100%;border:1px solid #ddd;margin:.5em 0}
+.warn{color:#a40}"""
+
+
+def _fmt(x, nd=3):
+    if isinstance(x, str):
+        return html.escape(x)
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return f"{x:.{nd}f}" if abs(x) < 1e5 else f"{x:.{nd}e}"
+    return html.escape(str(x))
+
+
+def write_report(store, out: str | Path | None = None) -> Path:
+    """Write ``report.html`` and its figures for a finished study; returns the HTML path.
+
+    Parameters
+    ----------
+    store : workers.store.StudyStore
+    out : path, optional
+        Directory for the report (default: ``STORE/report`` for a local store).
+    """
+    from ardflow.ardcore.study import StudySpec
+
+    summary = json.loads(store.read_text("summary.json") or "null")
+    if summary is None:
+        raise LookupError("the study has no summary yet")
+    out = Path(out) if out is not None else Path(store.path) / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    spec = StudySpec.model_validate(store.meta["spec"])
+    reference = spec.data.generator == "reference"
+    data = store.load_data()
+    g = store.group("r")
+    figs: list[tuple[str, str]] = []
+
+    col = "y" if "y" in data.columns else next(iter(data.columns))
+    plot_data_and_psd(data.t, data.columns[col], out / "data_psd.png",
+                      cutoff=0.2295 if reference else None, tau_seconds=TAU_SECONDS if reference else None,
+                      title=f"{spec.name}: data ({col})", time_label="tau" if reference else "time")
+    figs.append(("Data and its power spectral density (Figs. 2-3)", "data_psd.png"))
+
+    histories = {r["name"]: list(g[f"models/{r['name']}"].attrs.get("history", [])) for r in summary["models"]}
+    plot_evidence_history(histories, out / "evidence.png")
+    figs.append(("ln evidence, goodness of fit and information gain per maximisation trial (Figs. 8, 11-14)",
+                 "evidence.png"))
+    for cand in spec.models:
+        ard = cand.ard_names
+        if ard and histories.get(cand.label):
+            f = f"ard_{cand.label}.png"
+            plot_ard_bounds(histories[cand.label], ard, out / f)
+            figs.append((f"{cand.label}: prior and posterior 99 % bounds of the ARD parameters per trial (Fig. 9)", f))
+
+    best = summary["best_model"]
+    mg = g[f"models/{best}"]
+    it = int(mg.attrs["best_iteration"])
+    samples, _, _, names = store.read_samples(best, it)
+    truth = dict(spec.true_values)
+    ref_bounds = FIG15_M2OPT_BOUNDS if (reference and best == "M2") else None
+    plot_marginals(names, samples, out / "marginals.png", truth, ref_bounds)
+    figs.append((f"{best} (optimal nested model): marginal posteriors, 99 % bounds, true values (Fig. 15)",
+                 "marginals.png"))
+    plot_joint(names, samples, out / "joint.png", truth)
+    figs.append((f"{best}: joint posteriors (Fig. 16)", "joint.png"))
+
+    rows = []
+    for r in summary["models"]:
+        rows.append("<tr>" + "".join([
+            f"<td class=l>{html.escape(r['name'])}</td>",
+            f"<td>{_fmt(r['goodness_of_fit'])}</td>", f"<td>{_fmt(r['information_gain'])}</td>",
+            f"<td>{_fmt(r['log_evidence'])} &plusmn; {_fmt(r['log_evidence_se'])}</td>",
+            f"<td>{_fmt(r['probability'], 4)}</td>",
+            f"<td class=l>{', '.join(r['kept']) or '-'}</td>", f"<td class=l>{', '.join(r['pruned']) or '-'}</td>",
+            f"<td class=l>{html.escape(json.dumps(r['psi_opt']))}</td>"]) + "</tr>")
+    table10 = ("<table><tr><th class=l>model</th><th>GoF</th><th>EIG</th><th>ln evidence</th><th>P(M|d)</th>"
+               "<th class=l>kept</th><th class=l>pruned</th><th class=l>psi_opt</th></tr>" + "".join(rows) + "</table>")
+
+    post_rows = []
+    for i, n in enumerate(names):
+        x = samples[..., i].ravel()
+        lo, hi = np.quantile(x, [0.005, 0.995])
+        tv = truth.get(n)
+        inside = "" if tv is None else ("yes" if lo <= tv <= hi else "<b class=warn>no</b>")
+        pb = ref_bounds.get(n) if ref_bounds else None
+        post_rows.append(f"<tr><td class=l>{n}</td><td>{_fmt(float(x.mean()), 4)}</td><td>{_fmt(float(x.std()), 4)}"
+                         f"</td><td>[{_fmt(float(lo), 4)}, {_fmt(float(hi), 4)}]</td><td>{_fmt(tv, 4)}</td>"
+                         f"<td>{inside}</td><td>{'-' if pb is None else f'[{pb[0]:g}, {pb[1]:g}]'}</td></tr>")
+    post_table = ("<table><tr><th class=l>parameter</th><th>mean</th><th>sd</th><th>99 % bounds</th><th>true</th>"
+                  "<th>true inside</th><th>paper 99 %</th></tr>" + "".join(post_rows) + "</table>")
+
+    paper = ""
+    if reference and {r["name"] for r in summary["models"]} <= set(TABLE10):
+        prow = []
+        best_here = max(r["log_evidence"] for r in summary["models"])
+        best_paper = max(TABLE10[r["name"]]["log_evidence"] for r in summary["models"])
+        for r in summary["models"]:
+            p = TABLE10[r["name"]]
+            prow.append(
+                f"<tr><td class=l>{r['name']}</td><td>{_fmt(p['log_evidence'] + TABLE10_OFFSET, 2)}</td>"
+                f"<td>{_fmt(r['log_evidence'], 2)}</td><td>{_fmt(p['log_evidence'] - best_paper, 2)}</td>"
+                f"<td>{_fmt(r['log_evidence'] - best_here, 2)}</td>"
+                f"<td>{_fmt(p['goodness_of_fit'] + TABLE10_OFFSET, 2)}</td>"
+                f"<td>{_fmt(r['goodness_of_fit'], 2)}</td><td>{_fmt(p['information_gain'], 2)}</td>"
+                f"<td>{_fmt(r['information_gain'], 2)}</td><td>{_fmt(p['probability'], 3)}</td>"
+                f"<td>{_fmt(r['probability'], 3)}</td><td class=l>{', '.join(p['pruned'])}</td>"
+                f"<td class=l>{', '.join(r['pruned']) or '-'}</td></tr>")
+        paper = ("<h2>This run against the paper (Table 10)</h2><p>Absolute values depend on the noise realisation "
+                 "and the filter; compare the ranking, the pruning pattern, the decomposition trends and the "
+                 "parameter recovery (&Delta; ln Z: against the best model of the same run).</p><table><tr>"
+                 "<th class=l>model</th><th>ln Z paper</th><th>ln Z here</th>"
+                 "<th>&Delta; ln Z paper</th><th>&Delta; ln Z here</th>"
+                 "<th>GoF paper</th><th>GoF here</th><th>EIG paper</th><th>EIG here</th><th>P paper</th>"
+                 "<th>P here</th><th class=l>pruned paper</th><th class=l>pruned here</th></tr>" + "".join(prow)
+                 + "</table>")
+        from .paper import check_label, reference_checks
+
+        checks = reference_checks(summary, spec.true_values)
+        paper += ("<h3>Checks</h3><table><tr><th class=l>check</th><th>result</th><th class=l>detail</th></tr>"
+                  + "".join(f"<tr><td class=l>{html.escape(c['check'])}</td><td>{check_label(c)}"
+                            f"</td><td class=l>{html.escape(c['detail'])}"
+                            + (f"<br><i>documented difference: {html.escape(c['documented'])}</i>"
+                               if c.get("documented") else "") + "</td></tr>" for c in checks) + "</table>")
+
+    warns = [f"<li>{html.escape(r['name'])}: {html.escape(w)}</li>" for r in summary["models"] for w in r["warnings"]]
+    body = [f"<h1>ardflow study {html.escape(spec.name)}</h1>",
+            f"<p>{html.escape(spec.description)}</p>",
+            f"<p>Data: {html.escape(str(summary['data'].get('source')))}, {summary['data'].get('n')} points. "
+            f"Best model: <b>{html.escape(best)}</b>. Wall time {summary['wall_s']:.0f} s.</p>",
+            "<h2>Model comparison (Table 10 analogue)</h2>", table10,
+            f"<h2>Posterior of {html.escape(best)}</h2>", post_table, paper,
+            "<h2>Warnings</h2><ul>" + ("".join(warns) or "<li>none</li>") + "</ul>",
+            "<h2>Figures</h2>"]
+    for cap, f in figs:
+        body.append(f"<figure><img src='{f}' alt='{html.escape(cap)}'><figcaption>{html.escape(cap)}</figcaption>"
+                    "</figure>")
+    page = (f"<!doctype html><html><head><meta charset='utf-8'><title>ardflow: {html.escape(spec.name)}</title>"
+            f"<style>{_CSS}</style></head><body>{''.join(body)}</body></html>")
+    path = out / "report.html"
+    path.write_text(page)
+    return path

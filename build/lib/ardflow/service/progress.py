@@ -1,0 +1,101 @@
+"""How a running study reports itself on a terminal: a live bar per model on an interactive terminal (rich),
+plain flushed lines in logs and CI; and the final table."""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+
+
+def print_progress(p: dict) -> None:
+    """One line per event of a running study (stdout, flushed)."""
+    st = p.get("stage")
+    m = p.get("model", "")
+    if st == "model_done":
+        print(f"[{m}] done: ln Z = {p['log_evidence']:.3f}", flush=True)
+    elif st == "trial":
+        mark = "accepted" if p["accepted"] else "rejected"
+        print(f"[{m}] trial {p['iteration']:>3}  {p['action']:<40s} ln Z = {p['log_evidence']:.3f} "
+              f"+- {p['log_evidence_se']:.3f}  {mark}", flush=True)
+    elif st == "note":
+        print(f"[{m}]   {p['message']}", flush=True)
+    elif st == "burnin" and (p["round"] == 1 or p["round"] % 5 == 0):
+        r = max(_num(v) for v in p["rhat"])
+        print(f"[{m}]   burn-in round {p['round']:>3}: max R-hat {r:.3f}, best ln post {_num(p['best_lp']):.2f}, "
+              f"acceptance {_num(p['acceptance']):.2f}", flush=True)
+
+
+def _num(v) -> float:
+    """A number from a progress event (non-finite values arrive as the strings 'inf', '-inf', 'nan')."""
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _print_table(summary: dict) -> None:
+    print(f"\n{'model':<12s} {'ln Z':>12s} {'se':>7s} {'GoF':>12s} {'EIG':>8s} {'P(M|d)':>8s}  kept / pruned")
+    for r in summary["models"]:
+        print(f"{r['name']:<12s} {r['log_evidence']:12.3f} {r['log_evidence_se']:7.3f} {r['goodness_of_fit']:12.3f} "
+              f"{r['information_gain']:8.3f} {r['probability']:8.4f}  {r['kept']} / {r['pruned']}")
+        for w in r["warnings"]:
+            print(f"  warning: {w}")
+
+
+class LiveProgress:
+    """A progress callback: with an interactive terminal (and not ``CI``), a live bar per model (trials done
+    of the maximiser's ``max_trials``, an upper bound, with its ETA; the last trial's action and the best
+    ln Z); otherwise :func:`print_progress`'s lines. Use as a context manager around the run."""
+
+    def __init__(self, max_trials: int = 60, *, live: bool | None = None):
+        self.max_trials = max_trials
+        if live is None:
+            live = sys.stdout.isatty() and not os.environ.get("CI") and os.environ.get("TERM") != "dumb"
+        self.live = live
+        self.bars: dict[str, int] = {}
+        self.best: dict[str, float] = {}
+        self._progress = None
+
+    def __enter__(self):
+        if self.live:
+            try:
+                from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+            except ImportError:  # rich is optional: plain lines
+                self.live = False
+                return self
+            self._progress = Progress(TextColumn("[bold]{task.fields[model]:<10}"), BarColumn(),
+                                      TextColumn("{task.completed:>3.0f}/{task.total:.0f} trials"),
+                                      TimeElapsedColumn(), TimeRemainingColumn(),
+                                      TextColumn("{task.fields[status]}"), transient=False)
+            self._progress.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._progress is not None:
+            self._progress.__exit__(*exc)
+            self._progress = None
+
+    def __call__(self, p: dict) -> None:
+        if self._progress is None:
+            print_progress(p)
+            return
+        m, st = p.get("model", ""), p.get("stage")
+        if m not in self.bars:
+            self.bars[m] = self._progress.add_task(m, total=self.max_trials, model=m, status="starting")
+        task = self.bars[m]
+        if st == "trial":
+            le = _num(p.get("log_evidence"))
+            if p.get("accepted") and math.isfinite(le):
+                self.best[m] = max(self.best.get(m, -math.inf), le)
+            best = self.best.get(m)
+            self._progress.update(task, advance=1, status=f"{p.get('action', '')[:38]:<38}"
+                                  + (f"  best ln Z {best:.2f}" if best is not None else ""))
+        elif st == "burnin":
+            r = max((_num(v) for v in p.get("rhat", [])), default=math.nan)
+            self._progress.update(task, status=f"burn-in round {p.get('round')}: max R-hat {r:.2f}")
+        elif st == "model_done":
+            self._progress.update(task, completed=self.max_trials, total=self.max_trials,
+                                  status=f"done: ln Z = {_num(p.get('log_evidence')):.3f}")
+        elif st == "note":
+            self._progress.console.print(f"[{m}]   {p.get('message', '')}")

@@ -1,0 +1,284 @@
+"""The service's durable registry of studies, the queue that runs their drivers, and their progress."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from fastapi import HTTPException
+
+from .schemas import ID_RE, DiagnoseRequest, Progress, _finite  # noqa: F401
+
+log = logging.getLogger("ardflow.service")
+
+# ------------------------------------------------------------------ the study registry
+class Registry:
+    """Durable registry: ``root/studies/<id>/{meta.json, store/}``, ``root/datasets/<id>.csv``."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        (self.root / "studies").mkdir(parents=True, exist_ok=True)
+        (self.root / "datasets").mkdir(parents=True, exist_ok=True)
+
+    def study_dir(self, sid: str) -> Path:
+        if not ID_RE.match(sid):
+            raise HTTPException(404, f"no study {sid!r}")
+        return self.root / "studies" / sid
+
+    def ids(self) -> list[str]:
+        return sorted(p.name for p in (self.root / "studies").iterdir() if (p / "meta.json").exists())
+
+    def meta(self, sid: str) -> dict:
+        p = self.study_dir(sid) / "meta.json"
+        if not p.exists():
+            raise HTTPException(404, f"no study {sid!r}")
+        return json.loads(p.read_text())
+
+    def metas(self) -> list[dict]:
+        """Every study's meta (damaged entries skipped)."""
+        out = []
+        for sid in self.ids():
+            try:
+                out.append(self.meta(sid))
+            except (OSError, ValueError, HTTPException):
+                continue
+        return out
+
+    def write_meta(self, sid: str, meta: dict) -> None:
+        from ardflow.workers.store import atomic_write_text
+
+        atomic_write_text(self.study_dir(sid) / "meta.json", json.dumps(meta))
+
+    def store(self, sid: str):
+        from ardflow.workers.store import StudyStore
+
+        return StudyStore(self.study_dir(sid) / "store")
+
+
+class Runner:
+    """Runs each study's driver (``ardflow resume STORE --scheduler ADDR``) as a child process, at most
+    ``max_running`` at once; the others wait ``queued`` in submission order.
+
+    The API process only serves requests; the maximisers' work never competes with the event loop. A
+    driver that dies is relaunched on the next service start from the durable registry and continues
+    from the store. A cancelled study is marked durably first (registry and a ``CANCELLED`` file in its
+    store, which ``ardflow resume`` refuses), then its driver is asked to stop and, after
+    ``cancel_grace_s``, killed; it is never relaunched.
+    """
+
+    def __init__(self, registry: Registry, client, *, max_running: int = 2, cancel_grace_s: float = 10.0,
+                 max_task_s: float = 21600.0):
+        self.registry, self.client = registry, client
+        self.max_running, self.cancel_grace_s, self.max_task_s = max_running, cancel_grace_s, max_task_s
+        self.threads: dict[str, threading.Thread] = {}
+        self.procs: dict[str, Any] = {}
+        self.queue: list[str] = []
+        self.lock = threading.RLock()
+        self.closing = False
+        self.peak_running = 0
+
+    def running(self) -> list[str]:
+        with self.lock:
+            return [s for s, t in self.threads.items() if t.is_alive()]
+
+    def start(self, sid: str) -> None:
+        """Queue ``sid``; it starts when fewer than ``max_running`` drivers run."""
+        with self.lock:
+            if sid not in self.queue and sid not in self.running():
+                self.queue.append(sid)
+        self._pump()
+
+    def _pump(self) -> None:
+        with self.lock:
+            while self.queue and not self.closing and len(self.running()) < self.max_running:
+                sid = self.queue.pop(0)
+                if self.registry.meta(sid).get("status") == "cancelled":
+                    continue
+                th = threading.Thread(target=self._run, args=(sid,), name=f"study-{sid}", daemon=True)
+                self.threads[sid] = th
+                th.start()
+                self.peak_running = max(self.peak_running, len(self.running()))
+
+    def _run(self, sid: str) -> None:
+        try:
+            self._drive(sid)
+        finally:
+            with self.lock:  # this thread is still alive: it must not count as running when it starts the next
+                self.threads.pop(sid, None)
+            self._pump()
+
+    def _drive(self, sid: str) -> None:
+        import subprocess
+        import sys
+
+        reg = self.registry
+        with self.lock:
+            meta = reg.meta(sid)
+            if meta.get("status") == "cancelled":
+                return
+            meta["status"] = "running"
+            reg.write_meta(sid, meta)
+        store = reg.store(sid)
+        log_path = reg.study_dir(sid) / "driver.log"
+        with open(log_path, "a") as logf:
+            # the driver yields to the API process (status requests stay quick under load)
+            p = subprocess.Popen(["nice", "-n", "5", sys.executable, "-m", "ardflow.service.cli", "resume", str(store),
+                                  "--scheduler", self.client.scheduler.address],
+                                 stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                 env={**os.environ, "ARDFLOW_MAX_TASK_S": str(self.max_task_s)})
+            self.procs[sid] = p
+            rc = p.wait()
+        if self.closing:
+            return  # the service is stopping: the study resumes on the next start
+        with self.lock:
+            meta = reg.meta(sid)
+            if meta.get("status") == "cancelled":
+                return
+            st = store.meta.get("status")
+            if rc == 0 and st == "done":
+                meta["status"] = "done"
+            elif st == "cancelled":
+                meta["status"] = "cancelled"
+            else:
+                tail = log_path.read_text()[-2000:].strip().splitlines()
+                meta["status"] = "failed"
+                meta["error"] = store.meta.get("error") or (tail[-1] if tail else f"driver exit {rc}")
+            reg.write_meta(sid, meta)
+
+    def cancel(self, sid: str) -> None:
+        """Mark ``sid`` cancelled durably, then stop its driver (cooperatively, then by force)."""
+        from ardflow.workers.graph import cancel_study
+        from ardflow.workers.store import atomic_write_text
+
+        reg = self.registry
+        with self.lock:
+            meta = reg.meta(sid)
+            meta.update(status="cancelled", cancelled=time.time())
+            atomic_write_text(reg.study_dir(sid) / "store" / "CANCELLED", str(meta["cancelled"]))
+            reg.write_meta(sid, meta)
+            if sid in self.queue:
+                self.queue.remove(sid)
+                return
+        study_id = reg.store(sid).meta.get("study_id")
+        if study_id:
+            try:
+                cancel_study(self.client, study_id)
+            except Exception:  # noqa: BLE001 - the driver is killed below in any case
+                log.warning("could not signal cancellation of %s to the cluster", sid)
+        p = self.procs.get(sid)
+        if p is not None and p.poll() is None:
+            threading.Thread(target=self._stop, args=(p,), name=f"cancel-{sid}", daemon=True).start()
+
+    def _stop(self, p) -> None:
+        import subprocess
+
+        try:
+            p.wait(self.cancel_grace_s)
+        except subprocess.TimeoutExpired:
+            p.terminate()
+            try:
+                p.wait(5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+    def diagnose(self, sid: str, model: str, req: "DiagnoseRequest") -> None:
+        """``ardflow diagnose STORE --model M --out studies/<id>/diagnoses/<M>`` in a child process."""
+        import subprocess
+        import sys
+
+        reg = self.registry
+        out = reg.study_dir(sid) / "diagnoses" / model
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "status.json").write_text(json.dumps({"status": "running", "started": time.time()}))
+        cmd = [sys.executable, "-m", "ardflow.service.cli", "diagnose", str(reg.store(sid)), "--model", model,
+               "--out", str(out), "--top-k", str(req.top_k), "--max-rounds", str(req.max_rounds)]
+        if req.test_dataset:
+            cmd += ["--test-data", str(reg.root / "datasets" / f"{req.test_dataset}.csv")]
+
+        def run():
+            with open(out / "diagnose.log", "w") as logf:
+                p = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+                self.procs[f"{sid}/diagnose/{model}"] = p
+                rc = p.wait()
+            if self.closing:
+                return
+            if rc == 0 and (out / "diagnosis.json").exists():
+                st = {"status": "done"}
+            else:
+                tail = (out / "diagnose.log").read_text()[-2000:].strip().splitlines()
+                st = {"status": "failed", "error": tail[-1] if tail else f"exit {rc}"}
+            (out / "status.json").write_text(json.dumps(st))
+
+        threading.Thread(target=run, name=f"diagnose-{sid}-{model}", daemon=True).start()
+
+    def stop(self) -> None:
+        self.closing = True
+        self.queue.clear()
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.terminate()
+
+
+# ------------------------------------------------------------------ progress
+class ProgressCache:
+    """Per-study progress folded incrementally from the store's progress logs (status stays cheap)."""
+
+    def __init__(self, reg: Registry):
+        self.reg = reg
+        self.lock = threading.Lock()
+        self.entries: dict[str, dict] = {}
+
+    def forget(self, sid: str) -> None:
+        with self.lock:
+            self.entries.pop(sid, None)
+
+    def get(self, sid: str) -> dict[str, Progress]:
+        from ardflow.workers.graph import read_progress
+
+        with self.lock:
+            e = self.entries.get(sid)
+            if e is None:
+                store = self.reg.store(sid)
+                if not store.exists():
+                    return {}
+                meta = store.meta
+                e = self.entries[sid] = {
+                    "store": store, "offsets": {}, "models": {},
+                    "max_trials": meta.get("spec", {}).get("maximiser", {}).get("max_trials", 60),
+                    "started": meta.get("started")}
+            store = e["store"]
+            events = read_progress(store, e["offsets"])
+            if e["started"] is None and events:
+                # the store's attributes are a zarr read: only once the driver has written something
+                e["started"] = store.meta.get("started")
+            started = e["started"] or time.time()
+            out = e["models"]
+            for ev in events:
+                m = ev.get("model")
+                p = out.setdefault(m, Progress(model=m))
+                if ev.get("stage") != "note":
+                    p.stage = ev.get("stage")
+                p.elapsed_s = max(0.0, float(ev.get("time", started)) - started)
+                if ev.get("stage") == "burnin":
+                    p.rhat = _finite(ev.get("rhat"))
+                if ev.get("stage") == "trial":
+                    p.trials_done += 1
+                    p.iteration = ev.get("iteration")
+                    p.psi = _finite(ev.get("psi"))
+                    le = ev.get("log_evidence")
+                    if ev.get("accepted") and isinstance(le, (int, float)) and math.isfinite(le):
+                        p.best_log_evidence = le if p.best_log_evidence is None else max(p.best_log_evidence, le)
+                if ev.get("stage") == "model_done":
+                    p.eta_s = 0.0
+                elif p.trials_done:
+                    # an upper bound: the maximiser stops at max_trials at the latest
+                    p.eta_s = p.elapsed_s / p.trials_done * max(0, e["max_trials"] - p.trials_done)
+            return {k: v.model_copy() for k, v in out.items()}
+
+

@@ -1,0 +1,178 @@
+"""Figures for reports (matplotlib, Agg backend, PNG files)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+TAU_SECONDS = 0.156 / (2 * 8.5)
+"""Seconds per non-dimensional time unit of the reference problem (c / 2U)."""
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: np.ndarray | None = None,
+                      cutoff: float | None = None, title: str = "Reference data",
+                      time_label: str = "non-dimensional time tau", tau_seconds: float | None = TAU_SECONDS) -> Path:
+    """The measured signal (paper Fig. 2) and its power spectral density (Fig. 3).
+
+    Parameters
+    ----------
+    t, y : ndarray
+        Sample times and the measured channel.
+    out : path
+        PNG file to write.
+    clean : ndarray, optional
+        Noise-free signal, drawn underneath.
+    cutoff : float, optional
+        Low-pass cut-off (cycles per time unit), marked on the spectrum.
+    tau_seconds : float, optional
+        When given, the spectrum's top axis is also labelled in Hz.
+    """
+    from scipy.signal import welch
+
+    plt = _plt()
+    fs = 1.0 / float(np.median(np.diff(t)))
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(9, 7))
+    if clean is not None:
+        a0.plot(t, clean, color="0.7", lw=2.0, label="clean theta")
+    a0.plot(t, y, lw=0.7, color="C0", label="measured (noisy, filtered)")
+    a0.set_xlabel(time_label)
+    a0.set_ylabel("pitch angle theta [rad]")
+    a0.set_title(title)
+    a0.legend(loc="upper left", fontsize=8)
+    f, pxx = welch(y - np.mean(y), fs=fs, nperseg=min(len(y), 2048))
+    a1.semilogy(f, pxx, color="C0")
+    if cutoff:
+        a1.axvline(cutoff, color="C3", ls="--", lw=1, label=f"low-pass cut-off {cutoff:g}")
+        a1.legend(fontsize=8)
+    a1.set_xlabel("frequency [cycles per time unit]")
+    a1.set_ylabel("PSD")
+    a1.set_xlim(0, min(fs / 2, 5 * cutoff) if cutoff else fs / 2)
+    if tau_seconds:
+        sec = a1.secondary_xaxis("top", functions=(lambda x: x / tau_seconds, lambda x: x * tau_seconds))
+        sec.set_xlabel("frequency [Hz]")
+    return _save(fig, out)
+
+
+def _save(fig, out):
+    """Save to a path (returned as Path) or a binary file object."""
+    plt = _plt()
+    fig.tight_layout()
+    if isinstance(out, (str, Path)):
+        out = Path(out)
+    fig.savefig(out, dpi=110, format="png")
+    plt.close(fig)
+    return out
+
+
+def plot_evidence_history(histories: dict[str, list[dict]], out):
+    """ln evidence, goodness of fit and information gain per maximisation trial (Figs. 8, 11-14)."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4))
+    for i, (model, hist) in enumerate(histories.items()):
+        it = [h["iteration"] for h in hist]
+        for ax, key, label in zip(axes, ("log_evidence", "goodness_of_fit", "information_gain"),
+                                  ("ln evidence", "goodness of fit", "information gain")):
+            y = np.array([h.get(key, np.nan) if isinstance(h.get(key), (int, float)) else np.nan for h in hist])
+            ax.plot(it, y, "-", color=f"C{i}", lw=1, label=model)
+            # sampled trials (MCMC + Chib-Jeliazkov) as dots, reweighted ones (no likelihood evaluated) as crosses
+            smp = np.array([h.get("sampled", True) for h in hist], dtype=bool)
+            ax.plot(np.asarray(it)[smp], y[smp], "o", color=f"C{i}", ms=3)
+            ax.plot(np.asarray(it)[~smp], y[~smp], "x", color=f"C{i}", ms=5)
+            acc = [j for j, h in enumerate(hist) if h.get("accepted")]
+            ax.plot([it[j] for j in acc], y[acc], "o", color=f"C{i}", ms=7, mfc="none")
+            ax.set_xlabel("trial")
+            ax.set_title(label)
+    axes[0].legend(fontsize=8, title="dots: sampled, x: reweighted\nopen circles: accepted")
+    return _save(fig, out)
+
+
+def plot_ard_bounds(history: list[dict], ard: list[str], out):
+    """Prior (+-2.576/sqrt(alpha)) and posterior 99 % bounds of each ARD parameter per trial (Fig. 9)."""
+    plt = _plt()
+    n = max(1, len(ard))
+    fig, axes = plt.subplots(1, n, figsize=(3.6 * n, 3.6), squeeze=False)
+    for ax, name in zip(axes[0], ard):
+        for h in history:
+            it = h["iteration"]
+            a = h["psi"].get(name)
+            post = h.get("posterior", {}).get(name)
+            if a == "inf":
+                rejected = str(h.get("action", "")).startswith(f"{name}: prune test") and not h.get("accepted")
+                ax.plot([it], [0.0], "x", color="C1" if rejected else "C3")
+                continue
+            half = 2.576 / np.sqrt(float(a))
+            ax.plot([it, it], [-half, half], color="0.75", lw=6, solid_capstyle="butt")
+            if post:
+                ax.plot([it, it], [post["q005"], post["q995"]], color="C0" if h.get("accepted") else "C1", lw=2)
+        ax.set_yscale("symlog", linthresh=1.0)
+        ax.set_title(name)
+        ax.set_xlabel("trial")
+    axes[0][0].set_ylabel("99 % bounds")
+    fig.suptitle("prior (grey), posterior (blue: accepted trial, orange: rejected); x: term removed "
+                 "(orange: its prune test, rejected)", fontsize=9)
+    return _save(fig, out)
+
+
+def plot_marginals(names: list[str], samples: np.ndarray, out, true_values: dict | None = None,
+                   reference_bounds: dict | None = None):
+    """Marginal posteriors with 99 % bounds and the true values (Fig. 15)."""
+    plt = _plt()
+    d = len(names)
+    cols = min(3, d)
+    rows = int(np.ceil(d / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
+    flat = samples.reshape(-1, d)
+    for i, name in enumerate(names):
+        ax = axes[i // cols][i % cols]
+        x = flat[:, i]
+        ax.hist(x, bins=60, density=True, color="C0", alpha=0.7)
+        lo, hi = np.quantile(x, [0.005, 0.995])
+        ax.axvspan(lo, hi, color="C0", alpha=0.1, label="99 % bounds")
+        if true_values and name in true_values:
+            ax.axvline(true_values[name], color="C3", lw=2, label="true")
+        if reference_bounds and name in reference_bounds:
+            rlo, rhi = reference_bounds[name]
+            ax.axvline(rlo, color="k", ls=":", lw=1, label="paper 99 %")
+            ax.axvline(rhi, color="k", ls=":", lw=1)
+        ax.set_title(name)
+    for j in range(d, rows * cols):
+        axes[j // cols][j % cols].axis("off")
+    axes[0][0].legend(fontsize=7)
+    return _save(fig, out)
+
+
+def plot_joint(names: list[str], samples: np.ndarray, out, true_values: dict | None = None, max_points: int = 3000):
+    """Pairwise joint posteriors (Fig. 16), thinned."""
+    plt = _plt()
+    d = len(names)
+    flat = samples.reshape(-1, d)
+    flat = flat[:: max(1, flat.shape[0] // max_points)]
+    fig, axes = plt.subplots(d, d, figsize=(2.0 * d, 2.0 * d), squeeze=False)
+    for i in range(d):
+        for j in range(d):
+            ax = axes[i][j]
+            if j > i:
+                ax.axis("off")
+                continue
+            if i == j:
+                ax.hist(flat[:, i], bins=40, color="C0")
+            else:
+                ax.plot(flat[:, j], flat[:, i], ".", ms=1, alpha=0.3, color="C0")
+                if true_values and names[i] in true_values and names[j] in true_values:
+                    ax.plot(true_values[names[j]], true_values[names[i]], "+", color="C3", ms=10, mew=2)
+            if i == d - 1:
+                ax.set_xlabel(names[j], fontsize=8)
+            if j == 0:
+                ax.set_ylabel(names[i], fontsize=8)
+            ax.tick_params(labelsize=6)
+    return _save(fig, out)

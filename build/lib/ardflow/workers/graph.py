@@ -1,0 +1,312 @@
+"""A study as Dask tasks.
+
+* one **maximiser** per candidate model, a driver thread that reacts to the
+  evidence of each trial (the decision logic is cheap; the work is in the
+  chain tasks it submits, so a lost worker never takes a maximiser with it);
+* per trial psi, **chain tasks** for every step: start optimisation, each
+  burn-in round (which reports to the trial's coordinator actor), each
+  stationary round (which writes its samples to the zarr store), and the
+  Chib-Jeliazkov ordinates;
+* a **comparison task** that depends on every maximiser task.
+
+Task keys are deterministic and readable on the dashboard, e.g.
+``burnin-<study>-M2-it003-r004-c1``. Everything a task needs to restart is in
+the store: finished trials are read back, the trial in flight resumes from its
+last checkpoint, so a lost worker costs at most one round and a killed
+driver continues with :func:`resume_study`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+import uuid
+from concurrent.futures import CancelledError
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ardflow.ardcore.ard import EvidenceEvaluator, build_target
+from ardflow.ardcore.evidence import ChainEvidence, Evidence, chib_jeliazkov
+from ardflow.ardcore.mcmc import ChainState, SamplerResult, sample
+from ardflow.ardcore.study import StudySpec, compare, run_candidate
+
+from .coordinator import ActorPool, wait_connected
+from .store import StudyStore, _json
+from .tasks import DaskMap, StoppableTarget, cancel_event_name  # noqa: F401
+
+log = logging.getLogger("ardflow.workers")
+
+# --------------------------------------------------------------------------- trials with a store
+
+
+def _record(psi: dict, ev: Evidence, res: SamplerResult) -> dict:
+    return _json({
+        "psi": psi, "evidence": ev.to_dict(), "names": res.names, "phi_star": res.phi_star, "lp_star": res.lp_star,
+        "ll_star": res.ll_star, "proposal_cov": res.proposal_cov, "states": [s.to_dict() for s in res.states],
+        "rhat": res.rhat, "rhat_history": res.rhat_history, "burnin_rounds": res.burnin_rounds,
+        "converged": res.converged, "acceptance": res.acceptance, "burnin_acceptance": res.burnin_acceptance,
+        "n_evaluations": res.n_evaluations, "warnings": res.warnings,
+    })
+
+
+def _from_record(rec: dict, store: StudyStore, model: str, iteration: int) -> tuple[Evidence, SamplerResult]:
+    e = rec["evidence"]
+    ev = Evidence(e["log_evidence"], e["log_evidence_se"], e["goodness_of_fit"], e["information_gain"], e["method"],
+                  [ChainEvidence(**c) for c in e["per_chain"]], list(e["warnings"]), e.get("n_evaluations", 0))
+    samples, lp, ll, names = store.read_samples(model, iteration)
+    res = SamplerResult(
+        names=list(rec["names"]), samples=samples, lp=lp, ll=ll, phi_star=np.array(rec["phi_star"]),
+        lp_star=rec["lp_star"], ll_star=rec["ll_star"], proposal_cov=np.array(rec["proposal_cov"]),
+        states=[ChainState.from_dict(s) for s in rec["states"]], rhat=np.array(rec["rhat"]),
+        rhat_history=rec["rhat_history"], burnin_rounds=rec["burnin_rounds"], converged=rec["converged"],
+        acceptance=rec["acceptance"], burnin_acceptance=rec["burnin_acceptance"],
+        n_evaluations=rec["n_evaluations"], warnings=list(rec["warnings"]))
+    return ev, res
+
+
+class StoredEvaluator(EvidenceEvaluator):
+    """Evidence at psi with chains on Dask, samples and checkpoints in the store.
+
+    A trial already finished in the store is read back instead of recomputed;
+    a trial with a checkpoint resumes from it.
+    """
+
+    def __init__(self, spec, essential, data, sampler, *, client, store: StudyStore, study_id: str, model: str,
+                 **kw):
+        super().__init__(spec, essential, data, sampler, **kw)
+        self.client, self.store, self.study_id, self.model = client, store, study_id, model
+        self.map_fn = DaskMap(client, f"{study_id}-{model}")
+
+    def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None):
+        if self.method == "laplace" or iteration is None:
+            return super().__call__(psi, seed, warm, final=final, iteration=iteration)
+        model, store = self.model, self.store
+        target = StoppableTarget(build_target(self.spec, self.essential, psi, self.data, self.substeps),
+                                 self.study_id, max_task_s=float(os.environ.get("ARDFLOW_MAX_TASK_S", 21600)))
+        rec = store.trial_record(model, iteration)
+        if rec is not None and rec["psi"] == _json(psi):
+            ev, res = _from_record(rec, store, model, iteration)
+            return target, ev, res
+        cfg = self.sampler
+        prefix = f"{self.study_id}-{model}-it{iteration:03d}"
+        store.create_trial(model, iteration, list(target.names), cfg.n_chains, cfg.n_stationary, cfg.round_size, psi)
+        ck = store.read_checkpoint(model, iteration)
+        if ck is not None and ck.get("psi") != _json(psi):
+            ck = None
+        if ck is not None and ck["stage"] == "stationary":
+            s, lp, ll, _ = store.read_samples(model, iteration)
+            ck.update(samples=s, lp=lp, ll=ll)
+        dmap = DaskMap(self.client, prefix, store, model, iteration, coordinator=True)
+        pools: list[ActorPool] = []
+
+        def factory(state):
+            p = ActorPool(self.client, state, prefix)
+            pools.append(p)
+            return p
+
+        def checkpoint(d):
+            store.write_checkpoint(model, iteration, {**d, "psi": _json(psi)})
+
+        try:
+            res = sample(target, cfg, seed=seed, map_fn=dmap, warm=warm, progress=self.progress, cancel=self.cancel,
+                         pool_factory=factory, checkpoint=checkpoint, resume=ck)
+        finally:
+            for p in pools:
+                p.close()
+        ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=seed + 7, map_fn=dmap)
+        ev.warnings = list(res.warnings) + ev.warnings
+        if pools and pools[0].restarts:
+            ev.warnings.append(f"coordinator actor restored {pools[0].restarts} time(s) after a lost worker")
+        store.finish_trial(model, iteration, _record(psi, ev, res))
+        return target, ev, res
+
+
+def stored_fit(store: StudyStore, model: str):
+    """The finished fit of ``model`` in ``store``: its summary row and a result whose ``sampler`` warm-starts
+    refits (the best trial's chains), or None when the model is not finished (or was fitted by Laplace)."""
+    from types import SimpleNamespace
+
+    try:
+        mg = store.group("r")[f"models/{model}"]
+    except Exception:  # noqa: BLE001 - no such model
+        return None
+    row, it = mg.attrs.get("result"), mg.attrs.get("best_iteration")
+    rec = store.trial_record(model, it) if it is not None else None
+    if not row or rec is None or "states" not in rec:
+        return None
+    _, res = _from_record(rec, store, model, it)
+    return row, SimpleNamespace(sampler=res)
+
+
+# --------------------------------------------------------------------------- study tasks
+
+
+def _progress_writer(store: StudyStore, model: str) -> Callable[[dict], None]:
+    rel = f"progress/{model}.jsonl"
+
+    def write(p: dict) -> None:
+        store.append_line(rel, json.dumps(_json({"time": time.time(), **p})))
+    return write
+
+
+def run_model(client, store_path: str, study_id: str, index: int) -> dict:
+    """The ARD evidence maximisation of one candidate, chains on ``client``."""
+    from distributed import Event
+
+    store = StudyStore(store_path)
+    spec = StudySpec.model_validate(store.meta["spec"])
+    data = store.load_data()
+    cand = spec.models[index]
+    model = cand.label
+    progress = _progress_writer(store, model)
+    ev = Event(cancel_event_name(study_id), client=client)
+
+    def cancel() -> bool:
+        try:
+            return ev.is_set()
+        except Exception:  # a dropped scheduler connection is not a cancellation
+            return False
+    history: list[dict] = []
+
+    def on_trial(tr):
+        history.append(tr.to_dict())
+        store.set_model_attrs(model, history=history)
+
+    def factory(*a, **kw):
+        return StoredEvaluator(*a, client=client, store=store, study_id=study_id, model=model, **kw)
+
+    row, mr = run_candidate(cand, data, spec, index, progress=progress, cancel=cancel, evaluator_factory=factory,
+                            on_trial=on_trial)
+    best_iteration = mr.best.iteration
+    if spec.evidence == "laplace":
+        # Laplace trials sample nothing; the posterior drawn at psi_opt gets a trial group of its own
+        res = mr.sampler
+        best_iteration = len(mr.history)
+        nc, M, d = res.samples.shape
+        store.create_trial(model, best_iteration, list(res.names), nc, M, M, mr.psi_opt)
+        for c in range(nc):
+            store.write_round(model, best_iteration, c, 0, res.samples[c], res.lp[c], res.ll[c])
+        store.finish_trial(model, best_iteration, {"psi": _json(mr.psi_opt), "final_laplace_posterior": True})
+    store.set_model_attrs(model, result=row, history=[t.to_dict() for t in mr.history],
+                          best_iteration=best_iteration)
+    progress({"stage": "model_done", "log_evidence": row["log_evidence"]})
+    return row
+
+
+def compare_task(store_path: str, wall_start: float, *rows: dict) -> dict:
+    """Comparison of the optimal nested models; writes the summary to the store."""
+    store = StudyStore(store_path)
+    spec = StudySpec.model_validate(store.meta["spec"])
+    meta = store.meta
+    summary = compare(list(rows), spec, meta.get("data", {}), time.time() - wall_start)
+    summary["study_id"] = meta.get("study_id")
+    g = store.group("r")
+    history = {r["name"]: list(g[f"models/{r['name']}"].attrs.get("history", [])) for r in rows}
+    store.write_text("history.json", json.dumps(_json(history), indent=2))
+    store.write_summary(summary)
+    return summary
+
+
+# --------------------------------------------------------------------------- driver side
+
+
+def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None = None,
+                  datasets: Path | None = None, study_id: str | None = None) -> StudyStore:
+    """Create the store with the spec and the data set (a new study id unless given)."""
+    data = spec.data.load(base, datasets)
+    store = StudyStore.create(store_path, spec.model_dump(mode="json"), data)
+    meta = store.meta
+    if not meta.get("study_id"):
+        store.update_meta(study_id=study_id or f"{spec.name}-{uuid.uuid4().hex[:8]}", status="created",
+                          data={"source": data.meta.get("source"), "n": len(data)})
+    return store
+
+
+def start_study(client, store: StudyStore):
+    """Start one maximiser thread per model and the comparison task that depends on them.
+
+    Returns the comparison future (as a ``concurrent.futures.Future`` resolving to the summary).
+    """
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    meta = store.meta
+    study_id = meta["study_id"]
+    spec = StudySpec.model_validate(meta["spec"])
+    start = meta.get("started") or time.time()
+    store.update_meta(status="running", started=start)
+    pool = ThreadPoolExecutor(max_workers=len(spec.models), thread_name_prefix=f"maximise-{study_id}")
+    rows = [pool.submit(run_model, client, str(store), study_id, i) for i in range(len(spec.models))]
+    out: Future = Future()
+
+    def finish():
+        try:
+            results = [f.result() for f in rows]
+            for attempt in range(3):
+                wait_connected(client)
+                comp = client.submit(compare_task, str(store), start, *results,
+                                     key=f"compare-{study_id}" + (f"-a{attempt}" if attempt else ""))
+                try:
+                    out.set_result(comp.result())
+                    break
+                except CancelledError:
+                    continue
+            else:
+                raise RuntimeError("the comparison task was cancelled three times (scheduler connection lost)")
+        except BaseException as exc:  # noqa: BLE001 - handed to the waiting caller
+            out.set_exception(exc)
+        finally:
+            pool.shutdown(wait=False)
+
+    import threading
+
+    threading.Thread(target=finish, name=f"compare-{study_id}", daemon=True).start()
+    return out
+
+
+def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[dict]:
+    """New progress events since ``offsets`` (updated in place)."""
+    out = []
+    for name in store.list_files("progress", ".jsonl"):
+        model = name[: -len(".jsonl")]
+        chunk = store.read_from(f"progress/{name}", offsets.get(model, 0))
+        complete = chunk[: chunk.rfind(b"\n") + 1]
+        offsets[model] = offsets.get(model, 0) + len(complete)
+        for line in complete.decode(errors="ignore").splitlines():
+            try:
+                out.append({"model": model, **json.loads(line)})
+            except json.JSONDecodeError:
+                continue
+    return out
+
+
+def run_study(client, store: StudyStore, *, progress: Callable[[dict], None] | None = None,
+              poll_s: float = 1.0) -> dict:
+    """Run (or continue) the study in ``store`` on ``client``; blocks until the summary exists."""
+    comp = start_study(client, store)
+    offsets: dict[str, int] = {}
+    while not comp.done():
+        for ev in read_progress(store, offsets):
+            if progress:
+                progress(ev)
+        time.sleep(poll_s)
+    for ev in read_progress(store, offsets):
+        if progress:
+            progress(ev)
+    exc = comp.exception()
+    if exc is not None:
+        from ardflow.ardcore.mcmc import Cancelled
+
+        store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
+        raise exc
+    return comp.result()
+
+
+def cancel_study(client, study_id: str) -> None:
+    """Cooperative cancellation: chains stop at the end of their current round."""
+    from distributed import Event
+
+    Event(cancel_event_name(study_id), client=client).set()

@@ -1,0 +1,249 @@
+"""The zarr result store of one study.
+
+Layout (a zarr v3 group; dimension names are stored, so ``xarray.open_zarr``
+gives labelled arrays)::
+
+    STORE/                               attrs["ardflow"] = {version, spec, status, progress, summary}
+      data/                              the data set used: t (time) and one array per column (time)
+      models/<model>/                    attrs["history"] = every maximisation trial; attrs["result"]
+        trials/<NNN>/                    one trial psi (NNN = iteration)
+          samples        (chain, draw, param)   stationary samples, chunk = one chain x one round
+          log_likelihood (chain, draw)
+          log_prior      (chain, draw)
+          param          (param)                parameter names
+          attrs: psi, evidence (with per-chain values), diagnostics, done
+      checkpoints/<model>/<NNN>.json     sampler checkpoint of a trial (atomic write-then-rename)
+      summary.json, history.json         the study summary and every trial of every model (also in attrs)
+
+Only the orchestrator creates arrays; chain tasks write their own chunks
+(region writes to distinct chunks are safe across processes) and a re-run
+task rewrites the same chunk.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+from ardflow.ardcore.study import to_jsonable
+
+STORE_VERSION = 1
+
+# zarr's own pools stay small: Dask provides the parallelism
+zarr.config.set({"async.concurrency": 4, "threading.max_workers": 2})
+
+
+_json = to_jsonable
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+class StudyStore:
+    """Read and write one study's store (a local directory).
+
+    Parameters
+    ----------
+    path : str or Path
+        The store: a local directory, or any fsspec URL (``s3://bucket/study``,
+        ``gcs://...``, ``memory://...``) that every worker can reach.
+    """
+
+    def __init__(self, path: str | Path):
+        text = str(path)
+        self.remote = "://" in text and not text.startswith("file://")
+        if self.remote:
+            import fsspec
+
+            self.url = text.rstrip("/")
+            self.fs, self.root = fsspec.core.url_to_fs(self.url)
+            self.path = None
+        else:
+            self.path = Path(text[len("file://"):] if text.startswith("file://") else text)
+            self.url = str(self.path)
+
+    def __str__(self) -> str:
+        return self.url
+
+    # ---------------------------------------------------------------- side files (JSON beside the zarr group)
+    def write_text(self, rel: str, text: str) -> None:
+        """Write a side file: atomically (write, then rename) on local disks, one object remotely."""
+        if self.remote:
+            with self.fs.open(f"{self.root}/{rel}", "w") as fh:
+                fh.write(text)
+        else:
+            atomic_write_text(self.path / rel, text)
+
+    def read_text(self, rel: str) -> str | None:
+        try:
+            if self.remote:
+                with self.fs.open(f"{self.root}/{rel}", "r") as fh:
+                    return fh.read()
+            return (self.path / rel).read_text()
+        except FileNotFoundError:
+            return None
+
+    def append_line(self, rel: str, line: str) -> None:
+        """Append one line (progress logs); remote stores rewrite the object."""
+        if self.remote:
+            old = self.read_text(rel) or ""
+            self.write_text(rel, old + line + "\n")
+        else:
+            p = self.path / rel
+            p.parent.mkdir(parents=True, exist_ok=True)
+            with open(p, "a") as fh:
+                fh.write(line + "\n")
+
+    def read_from(self, rel: str, offset: int) -> bytes:
+        """The bytes of a side file from ``offset`` on (a local file is not read from the start)."""
+        try:
+            if self.remote:
+                with self.fs.open(f"{self.root}/{rel}", "rb") as fh:
+                    fh.seek(offset)
+                    return fh.read()
+            with open(self.path / rel, "rb") as fh:
+                fh.seek(offset)
+                return fh.read()
+        except FileNotFoundError:
+            return b""
+
+    def list_files(self, rel: str, suffix: str) -> list[str]:
+        """Names of the side files in folder ``rel`` ending in ``suffix``."""
+        if self.remote:
+            try:
+                names = [p.rsplit("/", 1)[-1] for p in self.fs.ls(f"{self.root}/{rel}", detail=False)]
+            except FileNotFoundError:
+                return []
+        else:
+            d = self.path / rel
+            names = [p.name for p in d.iterdir()] if d.exists() else []
+        return sorted(n for n in names if n.endswith(suffix))
+
+    # ---------------------------------------------------------------- study level
+    @classmethod
+    def create(cls, path: str | Path, spec_json: dict, data=None) -> "StudyStore":
+        s = cls(path)
+        g = zarr.open_group(s.url, mode="a")
+        meta = dict(g.attrs.get("ardflow", {}))
+        meta.update({"version": STORE_VERSION, "spec": spec_json})
+        meta.setdefault("status", "created")
+        g.attrs["ardflow"] = _json(meta)
+        if data is not None and "data" not in g:
+            dg = g.require_group("data")
+            dg.create_array("t", data=np.asarray(data.t), dimension_names=["time"])
+            for k, v in data.columns.items():
+                dg.create_array(k, data=np.asarray(v), dimension_names=["time"])
+        return s
+
+    def exists(self) -> bool:
+        return self.read_text("zarr.json") is not None
+
+    def group(self, mode: str = "a"):
+        return zarr.open_group(self.url, mode=mode)
+
+    @property
+    def meta(self) -> dict:
+        return dict(self.group("r").attrs.get("ardflow", {}))
+
+    def update_meta(self, **kw) -> None:
+        g = self.group()
+        meta = dict(g.attrs.get("ardflow", {}))
+        meta.update(_json(kw))
+        g.attrs["ardflow"] = meta
+
+    def load_data(self):
+        from ardflow.ardcore.data import Dataset
+
+        dg = self.group("r")["data"]
+        cols = {k: np.asarray(dg[k][:]) for k in dg.array_keys() if k != "t"}
+        return Dataset(np.asarray(dg["t"][:]), cols, {"source": f"{self.url}/data"})
+
+    def write_summary(self, summary: dict) -> None:
+        self.write_text("summary.json", json.dumps(_json(summary), indent=2))
+        self.update_meta(status="done", summary=_json({k: v for k, v in summary.items() if k != "spec"}))
+
+    # ---------------------------------------------------------------- trials
+    def trial_path(self, model: str, iteration: int) -> str:
+        return f"models/{model}/trials/{iteration:03d}"
+
+    def create_trial(self, model: str, iteration: int, names: list[str], n_chains: int, n_draws: int,
+                     round_size: int, psi: dict) -> None:
+        """Create (or keep, when the shape matches) the arrays of one trial."""
+        g = self.group()
+        path = self.trial_path(model, iteration)
+        if path in g:
+            tg = g[path]
+            # a driver killed half-way through creating the trial leaves no "created" mark
+            if tg.attrs.get("created") and tg["samples"].shape == (n_chains, n_draws, len(names)):
+                return
+            del g[path]
+        tg = g.require_group(path)
+        d = len(names)
+        tg.create_array("samples", shape=(n_chains, n_draws, d), chunks=(1, round_size, d), dtype="f8",
+                        fill_value=np.nan, dimension_names=["chain", "draw", "param"])
+        for k in ("log_likelihood", "log_prior"):
+            tg.create_array(k, shape=(n_chains, n_draws), chunks=(1, round_size), dtype="f8", fill_value=np.nan,
+                            dimension_names=["chain", "draw"])
+        tg.create_array("param", data=np.array(names, dtype="U32"), dimension_names=["param"])
+        tg.create_array("chain", data=np.arange(n_chains), dimension_names=["chain"])
+        tg.create_array("draw", data=np.arange(n_draws), dimension_names=["draw"])
+        tg.attrs["psi"] = _json(psi)
+        tg.attrs["done"] = False
+        tg.attrs["created"] = True
+
+    def write_round(self, model: str, iteration: int, chain: int, start: int, samples: np.ndarray,
+                    lp: np.ndarray, ll: np.ndarray) -> None:
+        """Write one chain's round of stationary samples into its own chunk (idempotent)."""
+        tg = self.group()[self.trial_path(model, iteration)]
+        n = samples.shape[0]
+        tg["samples"][chain, start:start + n, :] = samples
+        tg["log_likelihood"][chain, start:start + n] = ll
+        tg["log_prior"][chain, start:start + n] = lp - ll
+
+    def read_samples(self, model: str, iteration: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+        tg = self.group("r")[self.trial_path(model, iteration)]
+        ll = np.asarray(tg["log_likelihood"][:])
+        return (np.asarray(tg["samples"][:]), np.asarray(tg["log_prior"][:]) + ll, ll,
+                [str(x) for x in tg["param"][:]])
+
+    def finish_trial(self, model: str, iteration: int, trial: dict) -> None:
+        tg = self.group()[self.trial_path(model, iteration)]
+        tg.attrs["trial"] = _json(trial)
+        tg.attrs["done"] = True
+
+    def trial_record(self, model: str, iteration: int) -> dict | None:
+        g = self.group("r")
+        path = self.trial_path(model, iteration)
+        if path not in g:
+            return None
+        tg = g[path]
+        return dict(tg.attrs["trial"]) if tg.attrs.get("done") else None
+
+    def set_model_attrs(self, model: str, **kw) -> None:
+        mg = self.group().require_group(f"models/{model}")
+        for k, v in kw.items():
+            mg.attrs[k] = _json(v)
+
+    # ---------------------------------------------------------------- checkpoints
+    @staticmethod
+    def _checkpoint_rel(model: str, iteration: int) -> str:
+        return f"checkpoints/{model}/{iteration:03d}.json"
+
+    def write_checkpoint(self, model: str, iteration: int, ck: dict) -> None:
+        self.write_text(self._checkpoint_rel(model, iteration), json.dumps(_json(ck)))
+
+    def read_checkpoint(self, model: str, iteration: int) -> dict | None:
+        text = self.read_text(self._checkpoint_rel(model, iteration))
+        return None if text is None else json.loads(text)

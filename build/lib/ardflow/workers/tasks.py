@@ -1,0 +1,165 @@
+"""The Dask side of one trial: chain-round tasks, the map that submits them under deterministic keys, and
+the posterior target that stops its task when the study is cancelled."""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import CancelledError
+
+from ardflow.ardcore.mcmc import _round_task
+
+from .coordinator import actor_variable_name, wait_connected
+from .store import StudyStore
+
+log = logging.getLogger("ardflow.workers")
+
+
+def cancel_event_name(study_id: str) -> str:
+    return f"cancel-{study_id}"
+
+
+# --------------------------------------------------------------------------- chain tasks
+
+
+class StoppableTarget:
+    """A posterior target that stops the task running it when its study is cancelled.
+
+    Cancellation is otherwise seen by the driver between rounds; a round (or a start optimisation, or the
+    Chib-Jeliazkov proposals) of a slow likelihood can take minutes, during which the worker would stay
+    busy after a cancel. Every ``check_s`` seconds of calls the study's cancel event is read (one small
+    scheduler request), and a set event raises :class:`~ardcore.mcmc.Cancelled` in the task, which frees
+    the worker at once.
+    """
+
+    check_s = 2.0
+
+    def __init__(self, target, study_id: str, max_task_s: float | None = None):
+        self.target, self.study_id, self.max_task_s = target, study_id, max_task_s
+        self._last, self._event = time.monotonic(), None
+
+    def __getstate__(self):
+        return {"target": self.target, "study_id": self.study_id, "max_task_s": self.max_task_s}
+
+    def __setstate__(self, d):
+        self.target, self.study_id, self.max_task_s = d["target"], d["study_id"], d.get("max_task_s")
+        self._last, self._event = time.monotonic(), None
+
+    def __getattr__(self, name):
+        if name in ("target", "study_id", "max_task_s"):
+            raise AttributeError(name)
+        return getattr(self.target, name)
+
+    def __call__(self, x):
+        now = time.monotonic()
+        if now - self._last > self.check_s:
+            self._last = now
+            if self._cancelled():
+                from ardflow.ardcore.mcmc import Cancelled
+
+                raise Cancelled(f"study {self.study_id} was cancelled")
+            self._check_wall_clock()
+        return self.target(x)
+
+    def _check_wall_clock(self) -> None:
+        """The backstop: a task running longer than ``max_task_s`` (as the worker timed it) fails the trial
+        with a message, instead of holding its worker indefinitely."""
+        if not self.max_task_s:
+            return
+        from distributed.worker import thread_state
+
+        start = getattr(thread_state, "start_time", None)
+        if start is not None and time.time() - start > self.max_task_s:
+            from ardflow.ardcore.mcmc import SamplerError
+
+            raise SamplerError(f"a task of study {self.study_id} ran longer than its limit of "
+                               f"{self.max_task_s:g} s (ARDFLOW_MAX_TASK_S); use fewer sub-steps or rows per "
+                               f"likelihood, or raise the limit")
+
+    def _cancelled(self) -> bool:
+        try:
+            if self._event is None:
+                from distributed import Event
+
+                self._event = Event(cancel_event_name(self.study_id))
+            return bool(self._event.is_set())
+        except Exception:  # noqa: BLE001 - no cluster reachable (a local run): nothing to stop for
+            return False
+
+
+def _burnin_round_task(args, prefix: str, chain: int, round_index: int):
+    """One burn-in round of one chain; the statistics go to the coordinator actor."""
+    res = _round_task(args)
+    try:
+        from distributed import Variable
+
+        fut = Variable(actor_variable_name(prefix)).get(timeout=5)
+        fut.result(timeout=10).report(chain, round_index, res.halves, res.best).result(timeout=30)
+    except Exception:
+        pass  # the driver re-reports; a missing actor is restored there
+    return res
+
+
+def _stationary_round_task(args, store_path: str, model: str, iteration: int, chain: int, start: int):
+    """One stationary round of one chain, streamed into its own chunk of the store."""
+    res = _round_task(args)
+    StudyStore(store_path).write_round(model, iteration, chain, start, res.samples, res.lp, res.ll)
+    return res
+
+
+class DaskMap:
+    """:data:`ardcore.mcmc.Map` on a Dask client with deterministic task keys."""
+
+    def __init__(self, client, prefix: str, store: StudyStore | None = None, model: str | None = None,
+                 iteration: int | None = None, coordinator: bool = False):
+        self.client, self.prefix = client, prefix
+        self.store, self.model, self.iteration = store, model, iteration
+        self.coordinator = coordinator  # burn-in tasks report to the trial's coordinator actor
+
+    stall_s = 20.0
+    """After this long without progress, check that the scheduler still knows every key being waited for."""
+
+    def _submit(self, func, it, ch: int, label: str, attempt: int):
+        c = self.client
+        sfx = f"-a{attempt}" if attempt else ""
+        if label.startswith("burnin-r") and self.coordinator:
+            rnd = int(label[len("burnin-r"):])
+            return c.submit(_burnin_round_task, it, self.prefix, ch, rnd,
+                            key=f"burnin-{self.prefix}-r{rnd:03d}-c{ch}{sfx}")
+        if label.startswith("stationary-d") and self.store is not None:
+            start = int(label[len("stationary-d"):])
+            return c.submit(_stationary_round_task, it, str(self.store), self.model, self.iteration,
+                            ch, start, key=f"stationary-{self.prefix}-d{start:06d}-c{ch}{sfx}")
+        name, _, rest = (label or getattr(func, "__name__", "task").strip("_")).partition("-")
+        return c.submit(func, it, key=f"{name}-{self.prefix}{'-' + rest if rest else ''}-c{ch}{sfx}")
+
+    def __call__(self, func, items, label: str = ""):
+        from distributed import wait
+
+        futs = [self._submit(func, it, ch, label, 0) for ch, it in enumerate(items)]
+        attempts = [0] * len(futs)
+        while True:
+            try:
+                wait(futs, timeout=self.stall_s, return_when="ALL_COMPLETED")
+            except (TimeoutError, CancelledError):
+                pass  # a stall or a dropped scheduler connection: both handled below
+            if all(f.status in ("finished", "error") for f in futs):
+                try:
+                    return self.client.gather(futs)
+                except CancelledError:
+                    pass  # the connection dropped between the wait and the gather: resubmit below
+            wait_connected(self.client)
+            # A worker killed at the wrong moment can leave the scheduler without a key this client
+            # still waits for, and a dropped scheduler connection cancels every future of the client;
+            # such a task is submitted again under a new key (suffix -a<attempt>).
+            pending = [f for f in futs if f.status not in ("finished", "error")]
+            known = self.client.run_on_scheduler(_known_keys, keys=[f.key for f in pending])
+            for i, f in enumerate(futs):
+                if f.status in ("lost", "cancelled") or (f.status == "pending" and not known.get(f.key, False)):
+                    attempts[i] += 1
+                    log.warning("task %s was lost (%s); submitting it again", f.key, f.status)
+                    futs[i] = self._submit(func, items[i], i, label, attempts[i])
+
+
+def _known_keys(dask_scheduler=None, keys=()):
+    return {k: k in dask_scheduler.tasks for k in keys}

@@ -1,0 +1,95 @@
+"""The study page in headless Chromium against the real service (``ardflow serve`` over HTTP):
+sign in, submit a spec and a CSV through the form, watch the live progress reach done, open the report."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+
+import httpx
+import pytest
+
+from ardflow.ardcore.study import DataSpec
+from tests.browser import FLAGS, chromium_path
+from tests.service.test_api import SPEC, TOKEN, free_port, start_service
+
+
+@pytest.fixture
+def service(tmp_path):
+    port = free_port()
+    p = start_service(tmp_path / "svc", port)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+
+
+def test_page_headers_and_session(service):
+    r = httpx.get(service + "/")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    csp = r.headers["content-security-policy"]
+    assert "script-src 'nonce-" in csp and "__NONCE__" not in r.text
+    assert "http://" not in r.text.replace(service, "") and "https://" not in r.text  # no CDN
+    with httpx.Client(base_url=service) as c:
+        assert c.get("/v1/studies").status_code == 401
+        assert c.post("/v1/session", json={"token": "wrong"}).status_code == 401
+        r = c.post("/v1/session", json={"token": TOKEN})
+        assert r.status_code == 204
+        cookie = r.headers["set-cookie"].lower()
+        assert "httponly" in cookie and "samesite=strict" in cookie
+        assert c.get("/v1/studies").status_code == 200  # the cookie authenticates
+        assert c.delete("/v1/session").status_code == 204
+        assert c.get("/v1/studies").status_code == 401
+
+
+def test_page_submit_watch_report(service, tmp_path):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    exe = chromium_path()
+    data = DataSpec.model_validate(SPEC["data"]).load()
+    csv = tmp_path / "data.csv"
+    data.to_csv(csv)
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps(dict(SPEC, name="pagetest")))
+    errors: list[str] = []
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=exe, headless=True, args=FLAGS)
+        try:
+            page = browser.new_page()
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            # nothing leaves the machine: only the service itself is reachable
+            page.route("**/*", lambda r: r.continue_() if r.request.url.startswith(service) else r.abort())
+            page.goto(service + "/")
+            page.wait_for_selector("#signin:not([hidden])")
+            page.fill("#token", "wrong")
+            page.click("#signin button")
+            page.wait_for_selector("#signin-msg:has-text('401')")
+            page.fill("#token", TOKEN)
+            page.click("#signin button")
+            page.wait_for_selector("#main:not([hidden])")
+            page.set_input_files("#spec", str(spec))
+            page.set_input_files("#csv", str(csv))
+            page.click("#submit button")
+            page.wait_for_selector("#msg:has-text('submitted')", timeout=60_000)
+            sid = page.inner_text("#msg").split("submitted: ")[1].strip()
+            row = f"tr[data-id='{sid}']"
+            # live progress: per-model lines appear while it runs, then the status reaches done
+            page.wait_for_selector(f"{row} .model", timeout=180_000)
+            page.wait_for_selector(f"{row} td.status.done", timeout=300_000)
+            assert page.locator(f"{row} .model").count() == 2
+            assert "done" in page.inner_text(f"{row} .model >> nth=0")
+            with page.expect_popup() as pop:
+                page.click(f"{row} a.report")
+            report = pop.value
+            report.wait_for_load_state("load")
+            imgs = report.eval_on_selector_all("img", "els => els.map(e => e.naturalWidth)")
+            assert imgs and all(w > 0 for w in imgs), imgs
+            assert "pagetest" in report.content() or "quad" in report.content()
+        finally:
+            browser.close()
+    assert not errors, errors
+    # the study ran on the uploaded data set, not on the spec's generator
+    with httpx.Client(base_url=service, headers={"X-API-Token": TOKEN}) as c:
+        meta = c.get(f"/v1/studies/{sid}/summary").json()
+        assert meta["spec"]["data"].get("dataset") and not meta["spec"]["data"].get("generator")
