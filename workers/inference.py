@@ -4,8 +4,8 @@
 with these groups, so ``az.summary``, ``az.plot_trace``, ``az.loo`` and ``az.compare`` work:
 
 - ``posterior``: one variable per free parameter, dims (chain, draw);
-- ``sample_stats``: ``lp`` (log posterior) and ``log_likelihood`` (total) per draw, and the
-  chain's acceptance rate; the trial's psi, evidence and diagnostics are attributes;
+- ``sample_stats``: ``lp`` (log posterior) and ``log_likelihood`` (total) per draw; the trial's psi,
+  evidence and sampler diagnostics (acceptance, burn-in rounds, evaluations, R-hat) are attributes;
 - ``observed_data``: the observed columns, dim ``time`` (the sample times as coordinate);
 - ``log_likelihood`` (on request): the EKF's one-step predictive log density of every
   observation, ln p(d_k | d_1..d_{k-1}, phi), for a thinned set of draws. These terms sum to
@@ -157,9 +157,6 @@ def inference_groups(store, model: str, *, log_likelihood: bool = False,
     rec = store.trial_record(model, it) or {}
     groups = {"posterior": {n: samples[..., i] for i, n in enumerate(names)},
               "sample_stats": {"lp": lp, "log_likelihood": ll}}
-    acc = (rec.get("diagnostics") or {}).get("acceptance")
-    if isinstance(acc, list) and len(acc) == nc:
-        groups["sample_stats"]["acceptance_rate"] = np.repeat(np.asarray(acc, float)[:, None], lp.shape[1], 1)
     data = store.load_data()
     cand = _candidate(store, model)
     cols = cand.model_spec().observed_columns
@@ -168,6 +165,14 @@ def inference_groups(store, model: str, *, log_likelihood: bool = False,
         groups["log_likelihood"], _ = pointwise_log_likelihood(store, model, samples, names)
     attrs = {"model": model, "iteration": it, "thin": step, "psi": json.dumps(rec.get("psi", row.get("psi_opt"))),
              "log_evidence": float(row.get("log_evidence", np.nan)), "source": str(store.url)}
+    # the trial's sampler diagnostics (stationary acceptance, burn-in rounds, evaluations, R-hat, warnings)
+    for k in ("acceptance", "burnin_acceptance", "burnin_rounds", "n_evaluations", "converged"):
+        if isinstance(rec.get(k), (int, float, bool)):
+            attrs[k] = rec[k]
+    if rec.get("rhat") is not None:
+        attrs["max_rhat"] = float(np.max(np.asarray(rec["rhat"], float)))
+    if rec.get("warnings"):
+        attrs["warnings"] = "; ".join(map(str, rec["warnings"]))
     return InferenceGroups(groups, {c: ["time"] for c in cols}, {"time": data.t}, attrs)
 
 

@@ -35,6 +35,7 @@ def test_groups_and_arviz_functions(store):
     np.testing.assert_array_equal(post["a1"].values, samples[..., names.index("a1")])
     np.testing.assert_array_equal(dt["sample_stats"]["lp"].values, lp)
     assert dt["observed_data"]["y"].dims == ("time",)
+    assert 0 < dt.attrs["acceptance"] < 1 and dt.attrs["burnin_rounds"] >= 1 and dt.attrs["n_evaluations"] > 0
     s = az.summary(dt)
     assert {"a0", "a1", "gamma"} <= set(s.index) and "r_hat" in s.columns
     assert float(s.loc["a1", "mean"]) == pytest.approx(5.0, abs=0.5)  # Appendix A: y = 3 + 5 x + noise
@@ -60,3 +61,28 @@ def test_pointwise_log_likelihood_is_exact_and_loo_compare_run(store):
 def test_unfinished_model_is_a_clear_error(store):
     with pytest.raises(LookupError, match="no model"):
         to_inference_data(store, "nope")
+
+
+def test_psis_loo_takes_a_constant_observation_exactly(store):
+    """An observation whose log density is the same for every draw is left out at no change: its elpd term
+    is that density (ArviZ's Pareto fit refuses such a column)."""
+    from ardflow.workers.inference import psis_loo
+
+    g = inference_groups(store, "quad", log_likelihood=True, max_draws=120)
+    pw = g.groups["log_likelihood"]["y"]
+    pw[..., 0] = -1.2345  # as the first one-step density of a model whose initial state is not a parameter
+    with pytest.raises(ValueError, match="tail values"):
+        az.loo(g.to_datatree())
+    r = psis_loo(g.to_datatree())
+    assert r["n_constant"] == 1 and r["elpd_i"][0] == -1.2345
+    rest = az.loo(g.to_datatree().isel(time=slice(1, None)))
+    assert r["elpd_loo"] == pytest.approx(float(rest.elpd) - 1.2345, rel=1e-12)
+
+
+def test_loo_command(store, capsys):
+    from ardflow.service.cli import main
+
+    assert main(["loo", str(store.path), "--draws", "60"]) == 0
+    out = capsys.readouterr().out
+    assert "elpd_loo" in out and "quad" in out and "cubic" in out
+    assert main(["loo", str(store.path.parent)]) == 2  # not a study store: one error line

@@ -1,0 +1,123 @@
+"""``ardflow`` commands of the service: serve the REST API, and its client (submit, status, fetch)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from ardflow.workers.cluster import ClusterClient
+
+from .progress import _print_table
+
+
+def _is_loopback(host: str) -> bool:
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def cmd_serve(a) -> int:
+    import os
+    import secrets
+
+    import uvicorn
+    from ardflow.ardcore.errors import SpecError
+
+    from .app import Settings, create_app
+
+    root = Path(a.root)
+    root.mkdir(parents=True, exist_ok=True)
+    token = a.token or os.environ.get("ARDFLOW_TOKEN")
+    loopback = _is_loopback(a.host)
+    if a.insecure_no_auth and not loopback:
+        raise SpecError(f"--insecure-no-auth is only allowed on a loopback address, not {a.host}")
+    if token is None and not a.insecure_no_auth:
+        # a token always, unless asked otherwise on loopback: any local process or web page could talk to us
+        tf = root / "token"
+        token = tf.read_text().strip() if tf.exists() else secrets.token_urlsafe(24)
+        tf.write_text(token)
+        os.chmod(tf, 0o600)
+        print(f"[ardflow] API token required (X-API-Token or Bearer); it is in {tf} "
+              f"(export ARDFLOW_TOKEN=$(cat {tf}))", flush=True)
+    # a page in the user's browser may not reach a loopback service under another name (DNS rebinding)
+    hosts = ["127.0.0.1", "localhost", "[::1]", "::1"] if loopback else None
+    # the API's event loop gets the GIL back every 1 ms (not 5) from the threads that parse submissions
+    sys.setswitchinterval(0.001)
+    with ClusterClient(a.scheduler, a.workers) as client:
+        tokens = json.loads(Path(a.tokens_file).read_text()) if a.tokens_file else None
+        app = create_app(Settings(root=root, token=token, tokens=tokens, max_body_mb=a.max_body_mb,
+                                  max_running=a.max_running, allowed_hosts=hosts), client)
+        print(f"[ardflow] API on http://{a.host}:{a.port}/v1 (OpenAPI: /docs), registry {root.resolve()}", flush=True)
+        try:
+            uvicorn.run(app, host=a.host, port=a.port, log_level="warning")
+        finally:
+            app.state.runner.stop()
+    return 0
+
+
+def _client(a):
+    import os
+
+    from .client import Client
+
+    token = a.token or os.environ.get("ARDFLOW_TOKEN")
+    local = Path("runs/service/token")  # what `ardflow serve` generates with its default --root
+    if token is None and local.exists():
+        token = local.read_text().strip()
+    return Client(a.url, token=token)
+
+
+def cmd_submit(a) -> int:
+    from .client import APIError
+
+    with _client(a) as c:
+        try:
+            sid = c.submit(a.spec, csv=a.csv)
+            print(sid, flush=True)
+            if a.wait:
+                c.wait(sid)
+                _print_table(c.summary(sid))
+        except APIError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    return 0
+
+
+def cmd_status(a) -> int:
+    from .client import APIError
+
+    with _client(a) as c:
+        try:
+            print(json.dumps(c.status(a.id) if a.id else c.studies(), indent=2))
+        except APIError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    return 0
+
+
+def cmd_fetch(a) -> int:
+    from .client import APIError
+
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with _client(a) as c:
+        try:
+            summary = c.summary(a.id)
+            (out / "summary.json").write_text(json.dumps(summary, indent=2))
+            for r in summary["models"]:
+                names, samples = c.posterior(a.id, r["name"])
+                np.savez(out / f"posterior_{r['name']}.npz", names=np.array(names), samples=samples)
+            for fig in ("data.png", "evidence.png"):
+                (out / fig).write_bytes(c.figure(a.id, fig))
+        except APIError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    print(f"fetched {a.id} into {out.resolve()}")
+    return 0

@@ -1,0 +1,237 @@
+"""``ardflow`` commands that run studies and the closed loop: demo, select, resume, diagnose."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from ardflow.workers.cluster import ClusterClient
+
+from .cmd_local import EXAMPLES, _kv
+from .progress import LiveProgress, _print_table
+
+
+def full_settings(spec):
+    """The paper-scale sampler settings (method.md section 6): the engine's defaults."""
+    from ardflow.ardcore.mcmc import SamplerConfig
+
+    keys = ("n_chains", "round_size", "n_stationary", "n_proposal")
+    return spec.model_copy(update={"sampler": spec.sampler.model_copy(
+        update={k: getattr(SamplerConfig, k) for k in keys})})
+
+
+def _run_on_dask(a, store) -> dict:
+    import contextlib
+
+    from ardflow.workers.graph import run_study
+
+    with ClusterClient(a.scheduler, a.workers) as client:
+        ctx = contextlib.nullcontext()
+        if a.performance_report:
+            from distributed import performance_report
+
+            ctx = performance_report(filename=a.performance_report)
+        max_trials = store.meta.get("spec", {}).get("maximiser", {}).get("max_trials", 60)
+        with ctx, LiveProgress(max_trials) as live:
+            summary = run_study(client, store, progress=live)
+    if not store.remote:
+        from .html_report import write_report
+
+        print(f"[ardflow] report: {write_report(store).resolve()}", flush=True)
+    return summary
+
+
+def cmd_demo(a) -> int:
+    """The main job: the paper's Section 3.6 study (M1, M2, M3 with ARD) on an embedded LocalCluster."""
+    from ardflow.ardcore.study import load_spec
+    from ardflow.workers.graph import prepare_store
+    from ardflow.workers.store import StudyStore
+
+    spec_path = EXAMPLES / "sec36.json"
+    spec = load_spec(spec_path)
+    if a.full:
+        spec = full_settings(spec)
+    out = Path(a.out)
+    store = StudyStore(out)
+    t0 = time.perf_counter()
+    status = store.meta.get("status") if store.exists() else None
+    same = status is not None and store.meta.get("spec") == spec.model_dump(mode="json")
+    if same and status == "done":
+        print(f"[demo] already done: {out.resolve()} (delete it to run again)", flush=True)
+    elif same:
+        print(f"[demo] continuing the study in {out.resolve()}", flush=True)
+        _run_on_dask(a, store)
+    else:
+        if status is not None:
+            import shutil
+
+            # a run of other settings (demo vs --full, an edited example) is kept, not overwritten
+            old = out.with_name(out.name + ".previous")
+            shutil.rmtree(old, ignore_errors=True)
+            out.rename(old)
+            print(f"[demo] {out} held a study with other settings; moved it to {old}", flush=True)
+        print(f"[demo] Section 3.6 study ({spec_path.name}{', paper scale' if a.full else ', demo scale'}): "
+              "M1, M2, M3 with ARD priors on a3..a6, on an embedded Dask cluster", flush=True)
+        store = prepare_store(spec, out, base=spec_path.parent)
+        _run_on_dask(a, store)
+    summary = json.loads(store.read_text("summary.json"))
+    _print_table(summary)
+    from .paper import check_label, reference_checks
+
+    print("\n[demo] checks against the paper (issue 'Main job'):")
+    for c in reference_checks(summary, spec.true_values):
+        print(f"  [{check_label(c)}] {c['check']}: {c['detail']}"
+              + (f"\n      documented difference: {c['documented']}" if c.get("documented") else ""))
+    print(f"\n[demo] store (zarr):  {out.resolve()}")
+    print(f"[demo] summary:       {(out / 'summary.json').resolve()}")
+    print(f"[demo] report:        {(out / 'report' / 'report.html').resolve()}")
+    print(f"[demo] wall time:     {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+def cmd_select(a) -> int:
+    from ardflow.ardcore.study import load_spec, select
+
+    spec = load_spec(a.spec)
+    if a.full:
+        spec = full_settings(spec)
+    out = Path(a.out)
+    t0 = time.perf_counter()
+    base = Path(a.spec).resolve().parent
+    if a.executor == "dask":
+        from ardflow.workers.graph import prepare_store
+        from ardflow.workers.store import StudyStore
+
+        existing = StudyStore(a.out)
+        if existing.exists() and existing.meta.get("status") not in (None, "created"):
+            from ardflow.ardcore.errors import SpecError
+
+            raise SpecError(f"{a.out} already holds a study (status {existing.meta.get('status')!r}); "
+                            f"continue it with 'ardflow resume {a.out}' or choose another --out")
+        store = prepare_store(spec, a.out, base=base)
+        print(f"[ardflow] study {store.meta['study_id']} -> {store}", flush=True)
+        summary = _run_on_dask(a, store)
+        _print_table(summary)
+        print(f"\nsummary: {store}/summary.json  ({time.perf_counter() - t0:.1f} s)")
+        return 0
+    elif a.executor == "serial":
+        with LiveProgress(spec.maximiser.max_trials) as live:
+            summary = select(spec, out=out, progress=live, base=base)
+    else:
+        from concurrent.futures import ProcessPoolExecutor
+
+        from ardflow.ardcore.mcmc import executor_map
+
+        with ProcessPoolExecutor(max_workers=a.workers) as ex, LiveProgress(spec.maximiser.max_trials) as live:
+            summary = select(spec, out=out, progress=live, map_fn=executor_map(ex), base=base)
+    _print_table(summary)
+    print(f"\nsummary: {(out / 'summary.json').resolve()}  ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def cmd_resume(a) -> int:
+    from ardflow.ardcore.errors import SpecError
+    from ardflow.workers.store import StudyStore
+
+    store = StudyStore(a.store)
+    if not store.exists() or "spec" not in store.meta:
+        raise SpecError(f"{a.store}: not an ardflow study store")
+    if store.meta.get("status") == "done":
+        print(f"[ardflow] study already finished: {store}/summary.json")
+        return 0
+    if (Path(a.store) / "CANCELLED").exists():
+        raise SpecError(f"{a.store}: the study was cancelled; it is not resumed")
+    t0 = time.perf_counter()
+    print(f"[ardflow] resuming study {store.meta['study_id']} in {store}", flush=True)
+    summary = _run_on_dask(a, store)
+    _print_table(summary)
+    print(f"\nsummary: {store}/summary.json  ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def cmd_diagnose(a) -> int:
+    """Close the loop on one model of a study spec or of a finished study store."""
+    from ardflow.ardcore.data import read_dataset
+    from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
+    from ardflow.ardcore.errors import SpecError
+    from ardflow.ardcore.study import StudySpec, load_spec
+
+    from .diagnose_report import write_diagnosis
+
+    src = Path(a.spec)
+    if src.is_dir():
+        from ardflow.workers.store import StudyStore
+
+        store = StudyStore(src)
+        if not store.exists():
+            raise SpecError(f"{src} is a directory but not a study store")
+        spec = StudySpec.model_validate(store.meta["spec"])
+        data = store.load_data()
+        base = None
+        default = (store.meta.get("summary") or {}).get("best_model")
+    else:
+        store = None
+        spec = load_spec(src)
+        base = src.resolve().parent
+        data = spec.data.load(base)
+        default = None
+    name = a.model or (default if len(spec.models) > 1 else None)
+    if name:
+        picked = [m for m in spec.models if m.label == name]
+        if not picked:
+            raise SpecError(f"--model {name!r}: not in the spec (models: {[m.label for m in spec.models]})")
+        spec = spec.model_copy(update={"models": picked})
+    elif len(spec.models) > 1:
+        raise SpecError(f"the spec has {len(spec.models)} models: choose one with --model")
+    test = None
+    if a.test_data:
+        d = spec.data
+        rename = _kv(a.test_rename, "--test-rename") if a.test_rename else d.rename
+        test = read_dataset(a.test_data, time=d.time, fs=d.fs, rename=rename, columns=d.columns)
+    elif a.test_start is not None or a.test_stop is not None:
+        if spec.data.path is None:
+            raise SpecError("--test-start/--test-stop need a spec whose data come from a file (data.path)")
+        # the same loader as the estimation data (slice, then the same decimation)
+        test = spec.data.model_copy(update={"start": a.test_start, "stop": a.test_stop}).load(base)
+    cfg = DiagnoseConfig(top_k=a.top_k, max_rounds=a.max_rounds)
+    t0 = time.perf_counter()
+    fit = None
+    if store is not None:
+        from ardflow.workers.graph import stored_fit
+
+        fit = stored_fit(store, spec.models[0].label)  # the study's own fit: no refit
+    rep = diagnose(spec, data, test_data=test, config=cfg, base=fit,
+                   progress=lambda s: print(f"[diagnose] {s}", flush=True))
+    path = write_diagnosis(rep, data.t, a.out, col=spec.models[0].model_spec().observed_columns[0])
+    print(f"\n{rep['verdict']}")
+    print(f"\nreport: {path} and {Path(a.out) / 'diagnosis.html'}  ({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def cmd_loo(a) -> int:
+    """PSIS-LOO of every model of a finished study beside its log evidence (needs arviz)."""
+    from ardflow.ardcore.errors import SpecError
+    from ardflow.workers.store import StudyStore
+
+    store = StudyStore(a.store)
+    if not store.exists() or store.meta.get("status") != "done":
+        raise SpecError(f"{a.store}: not a finished ardflow study store")
+    try:
+        import warnings
+
+        from ardflow.workers.inference import loo_beside_evidence
+
+        with warnings.catch_warnings():  # ArviZ warns about high Pareto k: the table counts them
+            warnings.simplefilter("ignore", UserWarning)
+            rows = loo_beside_evidence(store, max_draws=a.draws)
+    except ImportError:
+        raise SpecError("ardflow loo needs ArviZ: pip install arviz (or the 'arviz' extra)") from None
+    print(f"{'model':<12s} {'ln Z':>12s} {'P(M|d)':>9s} {'elpd_loo':>12s} {'se':>6s} {'diff':>8s} {'diff se':>8s} "
+          f"{'p_loo':>7s} {'k>0.7':>6s}")
+    for r in rows:
+        print(f"{r['model']:<12s} {r['log_evidence']:12.2f} {r['probability'] or 0:9.3g} {r['elpd_loo']:12.2f} "
+              f"{r['elpd_se']:6.1f} {r['elpd_diff']:8.2f} {r['diff_se']:8.2f} {r['p_loo']:7.2f} {r['pareto_k_high']:6d}")
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=2))
+    return 0
