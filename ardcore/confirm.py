@@ -191,6 +191,33 @@ def physical(row: dict, name: str, scale: float) -> dict:
             "q005": row["q005"][name] * scale, "q995": row["q995"][name] * scale}
 
 
+def _continued_half(half: CandidateSpec, row: dict, data: Dataset, mid: int) -> tuple[CandidateSpec, Dataset]:
+    """The second half as a continuation of the record: its filter starts from the state the full-record
+    filter (at the full fit's posterior mean) holds at sample ``mid - 1``, that sample's observations
+    removed (already used). A record rarely stops at rest in the middle; starting the second half from
+    the model's declared initial state, which is set in absolute units, biases its fit whenever the
+    signal's scale differs from those units (the halves then disagree for a reason that is not the effect).
+    The filtered standard deviations are doubled: the start must not hold the half to the full fit."""
+    from .ekf import compile_model
+
+    ms = half.model_spec()
+    phi = {k: float(row["mean"][k]) for k in ms.free_parameters if k in row["mean"]}
+    if len(phi) != len(ms.free_parameters) or mid < 2:
+        return half, data.slice(mid, None)
+    fr = compile_model(ms).filter(phi, data, half.substeps)
+    x, P = fr.filtered[mid - 1], fr.filtered_cov[mid - 1]
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+        return half, data.slice(mid, None)
+    model = half.resolved().model_copy(update={
+        "initial_mean": {s: float(x[i]) for i, s in enumerate(ms.states)},
+        "initial_std": {s: 2.0 * math.sqrt(max(float(P[i, i]), 0.0)) + 1e-12 for i, s in enumerate(ms.states)},
+    }).revalidate()
+    d2 = data.slice(mid - 1, None)
+    for o in ms.observed_columns:
+        d2.columns[o][0] = np.nan
+    return half.model_copy(update={"model": model}), d2
+
+
 def split_stability(spec: StudySpec, c: dict, config, say, mapper) -> dict:
     """Refit the augmented model on each half of the record, the new terms' ARD priors frozen at psi_opt."""
     from .priors import Flat, Normal
@@ -212,7 +239,8 @@ def split_stability(spec: StudySpec, c: dict, config, say, mapper) -> dict:
     mid = int(seen[seen.size // 2]) if seen.size >= 4 else n // 2
     parts = []
     warm = c["_mr"].sampler
-    tasks = [(half, data.slice(lo, hi), spec, warm, config.posterior) for lo, hi in ((0, mid), (mid, n))]
+    second, data2 = _continued_half(half, c["_row"], data, mid)
+    tasks = [(half, data.slice(0, mid), spec, warm, config.posterior), (second, data2, spec, warm, config.posterior)]
     for r, _ in mapper(_fit_task, tasks):
         parts.append({k: (r["mean"][k], r["sd"][k]) for k in c["kept_terms"]})
     z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])

@@ -50,6 +50,7 @@ from .model import ModelSpec
 from .freerun import _posterior_draws, free_run, free_run_of  # noqa: F401
 from .loop_config import DiagnoseConfig  # noqa: F401
 from .residual_tests import acf, dominant_frequency, harmonics, residual_tests, spectral_peaks  # noqa: F401
+from .initial import data_informed_initial
 from .confirm import joint_fit, physical, pool_mapper, split_stability, trace_and_confirm
 from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
 from .verdict import character, unexplained
@@ -200,6 +201,13 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         if missing:  # before any fit: a free run at the end must not be what finds it
             raise SpecError(f"diagnose: the {what} ({d.meta.get('source', 'given')}) has no column "
                             f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
+    notes: list[str] = []
+    if base is None:
+        cand, notes = data_informed_initial(cand, data)
+        for n in notes:
+            say(n)
+        if notes:
+            spec = spec.model_copy(update={"models": [cand]})
     say(f"fitting {cand.label} ...")
     row, bmr = base or run_candidate(cand, data, spec, 0, final_posterior=config.posterior)
     col = cand.model_spec().observed_columns[0]
@@ -289,7 +297,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
            "candidates": rounds[0]["candidates"] if rounds else [],
            "confirmed": rounds[0]["confirmed"] if rounds else [],
            "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
-           "tests_after": None, "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd",
+           "initial_state": notes, "tests_after": None, "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd",
                                                                     "q005", "q995")}}
     if added:
         a, b = out["after"], out["before"]
