@@ -13,249 +13,31 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Annotated, Callable, Literal, Optional, Union
+from typing import Callable
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from .ard import INF, EvidenceEvaluator, MaximiserConfig, MaximiserResult, maximise, posterior_summary
-from .data import Dataset, read_dataset
-from .errors import SpecError
-from .library import builtin
-from .mcmc import Map, SamplerConfig, serial_map
-from .model import NAME_PATTERN, ModelSpec
-from .priors import PriorSpec
-
-_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
-_S, _M = SamplerConfig, MaximiserConfig  # one place for the defaults
-Name = Annotated[str, Field(pattern=NAME_PATTERN)]
-
-
-class DataSpec(BaseModel):
-    """Where the data come from: a file, or a documented generator."""
-
-    model_config = _STRICT
-    path: Optional[str] = Field(None, max_length=4096, description="CSV, NPZ or MAT file")
-    dataset: Optional[str] = Field(None, pattern=r"^[a-f0-9]{16}$",
-                                   description="id of a data set uploaded to the service (REST API)")
-    generator: Optional[Literal["reference", "appendix_a"]] = Field(
-        None, description="'reference': the paper's LCO data set; 'appendix_a': y = 3 + 5x + N(0, 0.3^2)")
-    seed: int = Field(1, ge=0, le=2**32 - 1)
-    time: Name = "t"
-    fs: Optional[float] = Field(None, gt=0)
-    rename: dict[str, Name] = Field(default_factory=dict, max_length=64)
-    columns: Optional[list[Name]] = None
-    start: Optional[int] = Field(None, ge=0)
-    stop: Optional[int] = Field(None, ge=1)
-    every: Optional[int] = Field(None, ge=1, le=100_000, description="keep every n-th row (after start/stop)")
-
-    @model_validator(mode="after")
-    def _one_source(self):
-        if sum(x is not None for x in (self.path, self.generator, self.dataset)) != 1:
-            raise ValueError("data: give exactly one of 'path', 'dataset' and 'generator'")
-        if self.start is not None and self.stop is not None and self.stop <= self.start:
-            raise ValueError(f"data: stop ({self.stop}) must be greater than start ({self.start})")
-        return self
-
-    def load(self, base: Path | None = None, datasets: Path | None = None) -> Dataset:
-        if self.dataset is not None:
-            if datasets is None:
-                raise SpecError("data.dataset refers to an uploaded data set: use it through the service")
-            p = datasets / f"{self.dataset}.csv"
-            if not p.exists():
-                raise SpecError(f"data.dataset: no uploaded data set {self.dataset!r}")
-            ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
-            ds.meta["source"] = f"dataset:{self.dataset}"
-        elif self.generator == "reference":
-            from .simulate import simulate_reference
-
-            ds = simulate_reference(self.seed)
-        elif self.generator == "appendix_a":
-            ds = appendix_a_data(self.seed)
-        else:
-            p = Path(self.path)
-            if base is not None and not p.is_absolute():
-                p = base / p
-            ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
-        if self.start is not None or self.stop is not None:
-            ds = ds.slice(self.start, self.stop)
-        if self.every and self.every > 1:
-            k = self.every
-            ds = Dataset(ds.t[::k].copy(), {c: v[::k].copy() for c, v in ds.columns.items()}, dict(ds.meta))
-        return ds
-
-
-def appendix_a_data(seed: int, n: int = 100) -> Dataset:
-    """Appendix A: x evenly spaced on [0, 2], y = 3 + 5 x + N(0, 0.3^2)."""
-    rng = np.random.default_rng(seed)
-    x = np.linspace(0.0, 2.0, n)
-    y = 3.0 + 5.0 * x + 0.3 * rng.standard_normal(n)
-    return Dataset(np.arange(n, dtype=float), {"x": x, "y": y},
-                   {"source": f"appendix_a(seed={seed})", "true_params": {"a0": 3.0, "a1": 5.0, "gamma": 0.3}})
-
-
-class ArdSettings(BaseModel):
-    model_config = _STRICT
-    prune_alpha: Optional[float] = Field(None, gt=0, description="pruning threshold for this parameter")
-
-
-class CandidateSpec(BaseModel):
-    """One candidate model with its priors."""
-
-    model_config = _STRICT
-    model: Union[Name, ModelSpec] = Field(description="a built-in model name or a full declaration")
-    name: Optional[Name] = None
-    priors: dict[Name, PriorSpec] = Field(default_factory=dict, max_length=64)
-    ard: Union[list[Name], dict[Name, ArdSettings]] = Field(default_factory=list)
-    fixed: dict[Name, float] = Field(default_factory=dict)
-    constants: dict[Name, float] = Field(
-        default_factory=dict, max_length=64,
-        description="overrides of the model's known constants (e.g. the declared measurement-noise std 'gamma')")
-    substeps: Optional[int] = Field(None, ge=1, le=10000)
-
-    @model_validator(mode="after")
-    def _check(self):
-        spec = self.resolved()  # applies `constants` (unknown names rejected there; NaN by the schema)
-        params = set(spec.parameters)
-        label = self.label
-        for where, names in (("priors", self.priors), ("ard", self.ard_names), ("fixed", self.fixed)):
-            for n in names:
-                if n not in params:
-                    raise ValueError(f"model {label}: {where}: {n!r} is not a parameter of the model "
-                                     f"(parameters: {spec.parameters})")
-        both = set(self.priors) & set(self.ard_names)
-        if both:
-            raise ValueError(f"model {label}: {sorted(both)[0]!r} has both an essential prior and an ARD prior")
-        spec = spec.with_fixed(**self.fixed) if self.fixed else spec
-        missing = [p for p in spec.free_parameters if p not in self.priors and p not in self.ard_names]
-        if missing:
-            raise ValueError(f"model {label}: no prior for parameter {missing[0]!r} "
-                             "(give it an essential prior, put it under 'ard', or fix it)")
-        fixed_ard = set(self.fixed) & set(self.ard_names)
-        if fixed_ard:
-            raise ValueError(f"model {label}: {sorted(fixed_ard)[0]!r} is both fixed and ARD")
-        return self
-
-    @property
-    def ard_names(self) -> list[str]:
-        return list(self.ard) if isinstance(self.ard, list) else list(self.ard.keys())
-
-    @property
-    def label(self) -> str:
-        if self.name:
-            return self.name
-        return self.model if isinstance(self.model, str) else self.model.name
-
-    def resolved(self) -> ModelSpec:
-        if isinstance(self.model, str):
-            try:
-                s = builtin(self.model)
-            except Exception as exc:
-                raise ValueError(str(exc)) from None
-        else:
-            s = self.model
-        return s.with_constants(**self.constants) if self.constants else s
-
-    def model_spec(self) -> ModelSpec:
-        s = self.resolved()
-        if self.fixed:
-            s = s.with_fixed(**self.fixed)
-        return s
-
-    def thresholds(self) -> dict:
-        if isinstance(self.ard, list):
-            return {k: None for k in self.ard}
-        return {k: v.prune_alpha for k, v in self.ard.items()}
-
-
-class SamplerSpec(BaseModel):
-    """The study's sampler settings; defaults are :class:`~ardcore.mcmc.SamplerConfig`'s."""
-
-    model_config = _STRICT
-    n_chains: int = Field(_S.n_chains, ge=2, le=64)
-    round_size: int = Field(_S.round_size, ge=20, le=100_000)
-    min_burnin_rounds: int = Field(_S.min_burnin_rounds, ge=1, le=10_000)
-    max_burnin_rounds: int = Field(_S.max_burnin_rounds, ge=1, le=10_000)
-    rhat_threshold: float = Field(_S.rhat_threshold, gt=1.0, le=2.0)
-    n_stationary: int = Field(_S.n_stationary, ge=50, le=10_000_000)
-    n_proposal: int = Field(_S.n_proposal, ge=50, le=10_000_000)
-    dr_scale: float = Field(_S.dr_scale, ge=0.0, le=1.0)
-    start_maxfev: int = Field(_S.start_maxfev, ge=10, le=1_000_000)
-    overdispersion: float = Field(_S.overdispersion, gt=0, le=10)
-    outlier_nats: float = Field(_S.outlier_nats, ge=0, le=1e6,
-                                description="burn-in: move chains this far below the best chain to it (0: off)")
-
-    @model_validator(mode="after")
-    def _rounds(self):
-        if self.max_burnin_rounds < self.min_burnin_rounds:
-            raise ValueError("sampler: max_burnin_rounds must be >= min_burnin_rounds")
-        return self
-
-    def config(self) -> SamplerConfig:
-        return SamplerConfig(**self.model_dump())
-
-
-class MaximiserSpec(BaseModel):
-    """The study's maximiser settings; defaults are :class:`~ardcore.ard.MaximiserConfig`'s."""
-
-    model_config = _STRICT
-    alpha_start: float = Field(_M.alpha_start, gt=0)
-    step_decades: float = Field(_M.step_decades, gt=0, le=10)
-    min_step_decades: float = Field(_M.min_step_decades, gt=0, le=10)
-    noise_k: float = Field(_M.noise_k, ge=0, le=10)
-    step_noise_k: float = Field(_M.step_noise_k, ge=0, le=10)
-    min_gain: float = Field(_M.min_gain, ge=0, le=100)
-    keep_nats: float = Field(_M.keep_nats, ge=0, le=100)
-    prune_alpha: float = Field(_M.prune_alpha, gt=0)
-    prune_test: bool = _M.prune_test
-    max_trials: int = Field(_M.max_trials, ge=1, le=1000)
-    max_sweeps: int = Field(_M.max_sweeps, ge=1, le=100)
-    order: Literal["reverse", "declared"] = Field(
-        _M.order, description="visit the ARD parameters from the last declared (default) or the first")
-
-    def config(self) -> MaximiserConfig:
-        return MaximiserConfig(**self.model_dump())
-
-
-class StudySpec(BaseModel):
-    """A model-selection study (JSON on the CLI and over REST)."""
-
-    model_config = _STRICT
-    name: Name = "study"
-    description: str = Field("", max_length=4000)
-    data: DataSpec
-    models: list[CandidateSpec] = Field(min_length=1, max_length=16)
-    evidence: Literal["chib-jeliazkov", "laplace"] = "chib-jeliazkov"
-    sampler: SamplerSpec = Field(default_factory=SamplerSpec)
-    maximiser: MaximiserSpec = Field(default_factory=MaximiserSpec)
-    seed: int = Field(0, ge=0, le=2**32 - 1)
-    true_values: dict[Name, float] = Field(default_factory=dict, description="for reports only")
-
-    @model_validator(mode="after")
-    def _unique(self):
-        labels = [m.label for m in self.models]
-        if len(set(labels)) != len(labels):
-            raise ValueError("models: candidate names must be unique (set 'name')")
-        return self
-
-
-def load_spec(path: str | Path) -> StudySpec:
-    """Read and validate a study spec; errors name the field."""
-    p = Path(path)
-    if not p.exists():
-        raise SpecError(f"{p}: no such file")
-    try:
-        return StudySpec.model_validate_json(p.read_text())
-    except ValidationError as exc:
-        raise SpecError(f"{p}: invalid study spec:\n{format_validation_error(exc)}") from None
-
-
-def format_validation_error(exc: ValidationError) -> str:
-    lines = []
-    for e in exc.errors():
-        loc = ".".join(str(x) for x in e["loc"] if not str(x).startswith("function-after"))
-        lines.append(f"  {loc or '(spec)'}: {e['msg']}")
-    return "\n".join(lines)
+from .ard import (
+    INF,
+    EvidenceEvaluator,
+    MaximiserResult,
+    maximise,
+    posterior_summary,
+)
+from .data import Dataset
+from .mcmc import Map, serial_map
+from .spec import (  # noqa: F401
+    ArdSettings,
+    CandidateSpec,
+    DataSpec,
+    MaximiserSpec,
+    Name,
+    SamplerSpec,
+    StudySpec,
+    appendix_a_data,
+    format_validation_error,
+    load_spec,
+)
 
 
 # --------------------------------------------------------------------------- running

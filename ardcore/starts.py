@@ -1,0 +1,196 @@
+"""Where chains start: local posterior modes (a few Nelder-Mead starts), overdispersed points around them,
+a first proposal covariance from the finite-difference Hessian, or a warm start from a previous trial."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from .chains import ChainState, Map, SamplerError, safe_cholesky, serial_map
+
+if TYPE_CHECKING:
+    from .mcmc import SamplerConfig, SamplerResult
+
+
+# --------------------------------------------------------------------------- starts
+def _neg_lp(target, center, scale):
+    def f(z):
+        v = target(center + scale * z)[0]
+        return -v if v > -math.inf else 1e300
+    return f
+
+
+def fd_hessian(f: Callable[[np.ndarray], float], x: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Central finite-difference Hessian of ``f`` at ``x`` with steps ``h``."""
+    d = x.size
+    H = np.empty((d, d))
+    f0 = f(x)
+    E = np.diag(h)
+    fp = [f(x + E[i]) for i in range(d)]
+    fm = [f(x - E[i]) for i in range(d)]
+    for i in range(d):
+        H[i, i] = (fp[i] - 2 * f0 + fm[i]) / h[i] ** 2
+        for j in range(i + 1, d):
+            v = (f(x + E[i] + E[j]) - f(x + E[i] - E[j]) - f(x - E[i] + E[j]) + f(x - E[i] - E[j])) / (4 * h[i] * h[j])
+            H[i, j] = H[j, i] = v
+    return H
+
+
+def local_mode(target, x0: np.ndarray, scale: np.ndarray, maxfev: int) -> tuple[np.ndarray, float]:
+    """Nelder-Mead (in coordinates scaled by ``scale``) from ``x0``, restarted once."""
+    from scipy.optimize import minimize
+
+    f = _neg_lp(target, x0, scale)
+    z = np.zeros(x0.size)
+    best = f(z)
+    for _ in range(2):
+        simplex = np.vstack([z] + [z + 0.5 * e for e in np.eye(z.size)])
+        r = minimize(f, z, method="Nelder-Mead",
+                     options={"initial_simplex": simplex, "maxfev": maxfev // 2, "xatol": 1e-6, "fatol": 1e-8})
+        if r.fun <= best:
+            z, best = r.x, r.fun
+    return x0 + scale * z, -best
+
+
+def posterior_cov_estimate(target, x: np.ndarray, scale: np.ndarray) -> np.ndarray | None:
+    """Inverse of the finite-difference Hessian of -log posterior (None if not positive definite)."""
+    f = lambda v: -target(v)[0]  # noqa: E731
+    h = 1e-3 * scale
+    for _ in range(2):
+        H = fd_hessian(f, x, h)
+        if not np.all(np.isfinite(H)):
+            return None
+        try:
+            C = np.linalg.inv(H)
+            np.linalg.cholesky(C)
+        except np.linalg.LinAlgError:
+            return None
+        h = 0.05 * np.sqrt(np.diag(C))  # refine the steps to the posterior's own scale
+    return 0.5 * (C + C.T)
+
+
+class _Counted:
+    """A target that counts its calls (likelihood evaluations), for the cost figures."""
+
+    def __init__(self, target):
+        self.target, self.calls = target, 0
+
+    def __call__(self, x):
+        self.calls += 1
+        return self.target(x)
+
+    def __getattr__(self, name):
+        return getattr(self.target, name)
+
+
+def _start_task(args):
+    target, x0, scale, maxfev, seed, overdispersion = args
+    target = _Counted(target)
+    rng = np.random.default_rng(seed)
+    xm, lpm = local_mode(target, x0, scale, maxfev)
+    C = posterior_cov_estimate(target, xm, scale)
+    if C is None:
+        C = np.diag((0.01 * scale) ** 2)
+    L = safe_cholesky(C)
+    for k in range(30):
+        # overdispersed start around the local mode, so R-hat is meaningful
+        x = xm + (overdispersion * 0.8**k) * (L @ rng.standard_normal(xm.size))
+        lp, ll = target(x)
+        if lp > -math.inf:
+            break
+    else:
+        x = xm
+        lp, ll = target(x)
+    return x, lp, ll, xm, lpm, C, target.calls
+
+
+
+def initial_scale(prior) -> np.ndarray:
+    """A length scale per parameter for optimisation steps and fallbacks."""
+    out = []
+    for p in prior.priors:
+        try:
+            s = (p.quantile(0.75) - p.quantile(0.25)) / 1.349
+        except ValueError:
+            s = 1.0
+        out.append(s if np.isfinite(s) and s > 0 else 1.0)
+    return np.minimum(np.array(out), 1e3)
+
+
+def initial_points(prior, n: int, rng: np.random.Generator, start_sd: dict | None = None) -> np.ndarray:
+    """Dispersed initial points: essential parameters from the central 80 % of their priors,
+    ARD parameters near 0 (their prior bulk is uninformative)."""
+    pts = np.zeros((n, len(prior.priors)))
+    for j, (name, p) in enumerate(zip(prior.names, prior.priors)):
+        if p.kind == "ard" or p.kind == "flat":
+            sd = (start_sd or {}).get(name, 0.0)
+            pts[:, j] = sd * rng.standard_normal(n)
+        else:
+            pts[:, j] = [p.quantile(q) for q in rng.uniform(0.1, 0.9, n)]
+    return pts
+
+
+
+def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
+                   warm: SamplerResult | None = None, starts: np.ndarray | None = None) -> tuple[list, np.ndarray, int]:
+    """Chain states, the first proposal covariance (cold, warm or explicit starts) and the likelihood
+    evaluations that took."""
+    names = list(target.names)
+    d = len(names)
+    nc = config.n_chains
+    child = np.random.SeedSequence(seed).spawn(nc + 1)
+    scale = initial_scale(target.prior)
+    n_eval = nc
+    if warm is not None:
+        idx = {n: i for i, n in enumerate(warm.names)}
+        states = []
+        for c in range(nc):
+            ws = warm.states[c % len(warm.states)]
+            x = np.array([ws.x[idx[n]] if n in idx else 0.0 for n in names])
+            lp, ll = target(x)
+            if not lp > -math.inf:
+                x = np.array([warm.phi_star[idx[n]] if n in idx else 0.0 for n in names])
+                lp, ll = target(x)
+            states.append(ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll))
+        sel = [idx.get(n) for n in names]
+        cov = np.diag((0.01 * scale) ** 2)
+        for i, a in enumerate(sel):
+            for j, b in enumerate(sel):
+                if a is not None and b is not None:
+                    cov[i, j] = warm.proposal_cov[a, b]
+        for i, a in enumerate(sel):
+            if a is None:  # a new parameter: a small step, not the prior's width
+                cov[i, i] = (0.01 * scale[i]) ** 2
+    elif starts is None:
+        pts = initial_points(target.prior, nc, np.random.default_rng(child[nc]))
+        tasks = [(target, pts[c], scale, config.start_maxfev, child[c].generate_state(1)[0] + c,
+                  config.overdispersion) for c in range(nc)]
+        res = map_fn(_start_task, tasks, label="start")
+        n_eval = sum(int(r[6]) for r in res)
+        cov = (2.38**2 / d) * np.mean([r[5] for r in res], axis=0)
+        states = []
+        for c, r in enumerate(res):
+            x, lp, ll, xm, lpm, *_ = r
+            # phi* comes from what the chains visit, never from the start optimiser alone (method.md 4):
+            # a spike it found and no chain returns to would make every chain's posterior ordinate ~0
+            states.append(ChainState(c, list(map(float, x)), float(lp), float(ll),
+                                     np.random.PCG64(child[c]).state, list(map(float, x)), float(lp), float(ll)))
+    else:
+        states = []
+        for c in range(nc):
+            x = np.asarray(starts[c], dtype=float)
+            lp, ll = target(x)
+            states.append(ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll))
+        cov = np.diag((0.1 * scale) ** 2)
+    if not any(s.lp > -math.inf for s in states):
+        raise SamplerError("no chain could start at a point of finite posterior density: "
+                           "check the priors against the data and model")
+    for s in states:
+        if not s.lp > -math.inf:
+            good = max(states, key=lambda q: q.lp)
+            s.x, s.lp, s.ll = list(good.x), good.lp, good.ll
+    return states, cov, n_eval
+
+
