@@ -30,6 +30,7 @@ from .evaluate import (  # noqa: F401
     build_target,
 )
 from .evidence import Evidence
+from .jsonio import encode_alpha
 from .mcmc import SamplerResult
 from .posterior import ModelPosterior
 from .reweight import resample_states, reweight, weighted_summary
@@ -143,7 +144,7 @@ class Trial:
     def to_dict(self) -> dict:
         return {
             "iteration": self.iteration,
-            "psi": {k: ("inf" if v == INF else v) for k, v in self.psi.items()},
+            "psi": {k: encode_alpha(v) for k, v in self.psi.items()},
             **self.evidence.to_dict(), "accepted": self.accepted, "action": self.action,
             "wall_s": self.wall_s, "posterior": self.posterior, "diagnostics": self.diagnostics,
             "sampled": self.sampled, "reweighted_from": self.reweighted_from, "reweight_se": self.reweight_se,

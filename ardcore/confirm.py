@@ -14,6 +14,7 @@ import numpy as np
 
 from .data import Dataset
 from .effects import Effect, augment, candidate_effects, dynamic_states, with_columns
+from .jsonio import is_pruned
 from .screen import Screened, distinct_candidates, screen_effects
 from .study import CandidateSpec, StudySpec, run_candidate
 
@@ -27,7 +28,7 @@ def essential_from_row(cand: CandidateSpec, row: dict) -> tuple[dict, dict]:
     priors = dict(cand.priors)
     fixed = dict(cand.fixed)
     for k, a in row["psi_opt"].items():
-        if a == "inf" or a == INF:
+        if is_pruned(a):
             fixed[k] = 0.0
         else:
             a = float(a)
@@ -55,12 +56,12 @@ def pool_mapper(workers: int):
     if workers <= 1:
         return (lambda fn, tasks: [fn(t) for t in tasks]), (lambda: None)
     import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
 
     # fork from a single-threaded process: a plain script without a __main__ guard keeps working (spawn
     # re-runs the script in every worker) and compiled kernels come along; with other threads alive (a host
     # application) a fork could copy a held lock, so spawn, which loads kernels from the on-disk cache
     import threading
+    from concurrent.futures import ProcessPoolExecutor
 
     method = "fork" if threading.active_count() == 1 and "fork" in mp.get_all_start_methods() else "spawn"
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context(method))
@@ -173,7 +174,7 @@ def joint_fit(spec, cand, row, best, survivors, data, config, say):
         adata = with_columns(adata, c["_effect"])
         for k in n:
             a = c["psi_opt"].get(k, 0.0)
-            if k not in c["kept_terms"] or a == "inf" or a == INF:
+            if k not in c["kept_terms"] or is_pruned(a):
                 fixed[k] = 0.0
             else:
                 a = float(a)

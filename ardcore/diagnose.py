@@ -42,16 +42,29 @@ from typing import Callable
 import numpy as np
 from scipy import optimize
 
+from .confirm import (
+    joint_fit,
+    physical,
+    pool_mapper,
+    split_stability,
+    trace_and_confirm,
+)
 from .data import Dataset
-from .ekf import compile_model
 from .effects import Effect, dynamic_states, with_columns
+from .ekf import compile_model
 from .errors import SpecError
-from .model import ModelSpec
 from .freerun import _posterior_draws, free_run, free_run_of  # noqa: F401
-from .loop_config import DiagnoseConfig  # noqa: F401
-from .residual_tests import acf, dominant_frequency, harmonics, residual_tests, spectral_peaks  # noqa: F401
 from .initial import data_informed_initial
-from .confirm import joint_fit, physical, pool_mapper, split_stability, trace_and_confirm
+from .jsonio import is_pruned
+from .loop_config import DiagnoseConfig  # noqa: F401
+from .model import ModelSpec
+from .residual_tests import (  # noqa: F401
+    acf,
+    dominant_frequency,
+    harmonics,
+    residual_tests,
+    spectral_peaks,
+)
 from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
 from .verdict import character, unexplained
 
@@ -133,7 +146,7 @@ def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig,
 def fitted_spec(cand: CandidateSpec, row: dict) -> ModelSpec:
     """The candidate's model with the terms its optimal psi pruned fixed at 0."""
     spec = cand.model_spec()
-    pruned = {k: 0.0 for k, v in row["psi_opt"].items() if v == "inf" or v == INF}
+    pruned = {k: 0.0 for k, v in row["psi_opt"].items() if is_pruned(v)}
     return spec.with_fixed(**pruned) if pruned else spec
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from .data import Dataset
-from .ekf import compile_model
 from .effects import user_inputs, with_columns
-from .model import ModelSpec
+from .ekf import compile_model
 from .initial import recentred
+from .model import ModelSpec
 from .residual_tests import dominant_frequency, harmonics
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 from dataclasses import dataclass
 from functools import cached_property
@@ -110,7 +111,7 @@ class ModelSpec(BaseModel):
     @classmethod
     def _finite(cls, v: dict[str, float]) -> dict[str, float]:
         for k, x in v.items():
-            if x != x or x in (float("inf"), float("-inf")):
+            if not math.isfinite(x):
                 raise ValueError(f"{k!r} must be a finite number")
         return v
 

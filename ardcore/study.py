@@ -18,13 +18,13 @@ from typing import Callable
 import numpy as np
 
 from .ard import (
-    INF,
     EvidenceEvaluator,
     MaximiserResult,
     maximise,
     posterior_summary,
 )
 from .data import Dataset
+from .jsonio import atomic_write_text, encode_alpha, to_jsonable  # noqa: F401
 from .mcmc import Map, serial_map
 from .spec import (  # noqa: F401
     ArdSettings,
@@ -52,24 +52,6 @@ def model_probabilities(log_z: list[float], se: list[float], prior: list[float] 
     draws = lz[None, :] + np.asarray(se)[None, :] * rng.standard_normal((n_draws, lz.size)) + lp
     pd = np.exp(draws - np.logaddexp.reduce(draws, axis=1, keepdims=True))
     return p.tolist(), pd.std(axis=0).tolist()
-
-
-def to_jsonable(x):
-    """Plain JSON values: infinities as ``"inf"``/``"-inf"`` (pruned alphas), NaN as null, numpy as Python."""
-    if isinstance(x, dict):
-        return {str(k): to_jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [to_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return to_jsonable(x.tolist())
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        if math.isinf(x):
-            return "inf" if x > 0 else "-inf"
-        return None if math.isnan(x) else x
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
 
 
 def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *, map_fn: Map = serial_map,
@@ -123,7 +105,7 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
         "goodness_of_fit": best.evidence.goodness_of_fit,
         "information_gain": best.evidence.information_gain,
         "evidence_method": best.evidence.method,
-        "psi_opt": {k: ("inf" if v == INF else v) for k, v in mr.psi_opt.items()},
+        "psi_opt": {k: encode_alpha(v) for k, v in mr.psi_opt.items()},
         "kept": mr.kept,
         "pruned": mr.pruned,
         "map": dict(zip(res.names, map(float, res.phi_star))),
@@ -180,16 +162,10 @@ def select(spec: StudySpec, *, out: str | Path | None = None, map_fn: Map = seri
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        _atomic_write(out / "summary.json", json.dumps(summary, indent=2))
-        _atomic_write(out / "history.json", json.dumps(to_jsonable(history), indent=2))
+        atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
+        atomic_write_text(out / "history.json", json.dumps(to_jsonable(history), indent=2))
         for k, mr in results.items():
             np.savez(out / f"posterior_{k}.npz", names=np.array(mr.sampler.names), samples=mr.sampler.samples,
                      lp=mr.sampler.lp, ll=mr.sampler.ll)
     summary["_history"] = to_jsonable(history)
     return summary
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)

@@ -7,6 +7,8 @@ import math
 import os
 import sys
 
+from ardflow.ardcore.jsonio import number
+
 
 def print_progress(p: dict) -> None:
     """One line per event of a running study (stdout, flushed)."""
@@ -26,12 +28,7 @@ def print_progress(p: dict) -> None:
               f"acceptance {_num(p['acceptance']):.2f}", flush=True)
 
 
-def _num(v) -> float:
-    """A number from a progress event (non-finite values arrive as the strings 'inf', '-inf', 'nan')."""
-    try:
-        return float(v)
-    except (TypeError, ValueError):
-        return math.nan
+_num = number  # a number from a progress event (non-finite values arrive as strings)
 
 
 def _print_table(summary: dict) -> None:
@@ -60,7 +57,13 @@ class LiveProgress:
     def __enter__(self):
         if self.live:
             try:
-                from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+                from rich.progress import (
+                    BarColumn,
+                    Progress,
+                    TextColumn,
+                    TimeElapsedColumn,
+                    TimeRemainingColumn,
+                )
             except ImportError:  # rich is optional: plain lines
                 self.live = False
                 return self

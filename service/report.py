@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from ardflow.ardcore.jsonio import is_pruned
 
 TAU_SECONDS = 0.156 / (2 * 8.5)
 """Seconds per non-dimensional time unit of the reference problem (c / 2U)."""
@@ -106,7 +107,7 @@ def plot_ard_bounds(history: list[dict], ard: list[str], out):
             it = h["iteration"]
             a = h["psi"].get(name)
             post = h.get("posterior", {}).get(name)
-            if a == "inf":
+            if is_pruned(a):
                 rejected = str(h.get("action", "")).startswith(f"{name}: prune test") and not h.get("accepted")
                 ax.plot([it], [0.0], "x", color="C1" if rejected else "C3")
                 continue

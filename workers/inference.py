@@ -22,7 +22,6 @@ import json
 from dataclasses import dataclass
 
 import numpy as np
-
 from ardflow.ardcore.ekf import compile_model
 from ardflow.ardcore.study import StudySpec
 

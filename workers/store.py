@@ -23,14 +23,11 @@ task rewrites the same chunk.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import zarr
-
-from ardflow.ardcore.study import to_jsonable
+from ardflow.ardcore.jsonio import atomic_write_text, to_jsonable  # noqa: F401
 
 STORE_VERSION = 1
 
@@ -39,16 +36,6 @@ zarr.config.set({"async.concurrency": 4, "threading.max_workers": 2})
 
 
 _json = to_jsonable
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 class StudyStore:

@@ -7,6 +7,7 @@ ardflow), which keeps the test offline and fast; the wheel itself is installed b
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -24,8 +25,15 @@ SMALL = ROOT / "tests" / "workers" / "small_study.json"
 @pytest.fixture(scope="module")
 def fresh(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("wheel")
+    # built from a copy of the sources: setuptools writes build/ and *.egg-info beside what it builds
+    src = tmp / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, src / name)
+    for name in ("ardcore", "workers", "service", "examples"):
+        shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
-                        "-w", str(tmp / "dist"), str(ROOT)], capture_output=True, text=True, timeout=300)
+                        "-w", str(tmp / "dist"), str(src)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     wheel = next((tmp / "dist").glob("ardflow-*.whl"))
     env_dir = tmp / "venv"
