@@ -43,6 +43,7 @@ import numpy as np
 from scipy import optimize
 
 from .confirm import (
+    _fit_task,
     joint_fit,
     physical,
     pool_mapper,
@@ -295,22 +296,27 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                              "character": character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
             rec["added"], rec["added_with"] = recs[0], recs[1:]
             rec["_effects"] = [c["_effect"] for c in chosen]
+            rec["_params"] = [list(c["scales"]) for c in chosen]
+            # what each must keep earning beside later effects: its threshold and coloured-innovation factor
+            rec["_keep"] = [(c.get("threshold", config.min_log_bf), c.get("inflation", 1.0)) for c in chosen]
             say(f"round {rnd}: added " + ", ".join(f"{r['effect']} to {r['target']} (ln BF {r['log_bayes_factor']:.1f})"
                                                     for r in recs)
                 + (f"; together ln BF {jrow['log_evidence'] - row['log_evidence']:.1f}" if len(recs) > 1 else ""))
             cand, row, bmr, cur_data = fit
             for e in rec["_effects"]:
                 cur_test = with_columns(cur_test, e)
+            cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, rounds, config, say, mapper)
     finally:
         close()
-    added = [a for r in rounds if r["added"] for a in [r["added"], *r.get("added_with", [])]]
+    added = [a for r in rounds if r["added"] for a in [r["added"], *r.get("added_with", [])] if not a.get("removed")]
+    removed = [a for r in rounds if r["added"] for a in [r["added"], *r.get("added_with", [])] if a.get("removed")]
     out = {"model": spec.models[0].label, "final_model": cand.label, "data": data.meta.get("source"),
            "n": len(data), "n_test": len(test_data), **first,
            "rounds": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
            "candidates": rounds[0]["candidates"] if rounds else [],
            "confirmed": rounds[0]["confirmed"] if rounds else [],
            "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
-           "initial_state": notes, "tests_after": None, "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd",
+           "removed": removed, "initial_state": notes, "tests_after": None, "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd",
                                                                     "q005", "q995")}}
     if added:
         a, b = out["after"], out["before"]
@@ -322,6 +328,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                           + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
                           f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
                           f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
+                          + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
+                                    f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
                           + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
     else:
         out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
@@ -332,6 +340,39 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     out["_final"] = {"spec": fspec, "phi": phi, "effects": [e for r in rounds for e in r.get("_effects", [])],
                      "substeps": cand.substeps}
     return out
+
+
+def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
+    """Effects added in earlier rounds that the later ones made redundant are dropped again.
+
+    Forward selection adds what the screen ranks first; a later effect can explain the same residual better
+    (a tank's input nonlinearity added first, its square-root outflow next: at equilibrium the level follows
+    the input). Each effect of an earlier round is refitted out (its terms fixed at 0, side by side on the
+    loop's pool); one whose ln Bayes factor (adjusted for coloured innovations as when it was added) no
+    longer reaches the threshold it passed then (``min_log_bf`` + ln N: its prior odds as one of N library
+    candidates have not changed) is dropped, the weakest first, and the rest are checked again.
+    """
+    while True:
+        earlier = [(r, i, names, r["_keep"][i]) for r in rounds[:-1] if r.get("added") and "_params" in r
+                   for i, names in enumerate(r["_params"])
+                   if not [r["added"], *r.get("added_with", [])][i].get("removed")]
+        if not earlier:
+            return cand, row, bmr
+        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, **{n: 0.0 for n in names}}}), data, spec,
+                  bmr.sampler, config.posterior) for _, _, names, _ in earlier]
+        fits = mapper(_fit_task, tasks)
+        gain = [row["log_evidence"] - f[0]["log_evidence"] for f in fits]
+        worth = [g / infl if g > 0 else g for g, (_, _, _, (_, infl)) in zip(gain, earlier)]
+        margin = [w - thr for w, (_, _, _, (thr, _)) in zip(worth, earlier)]
+        k = int(np.argmin(margin))
+        if margin[k] >= 0:
+            return cand, row, bmr
+        r, i, _, (thr, _) = earlier[k]
+        a = [r["added"], *r.get("added_with", [])][i]
+        a["removed"], a["log_bayes_factor_after"] = rounds[-1]["round"], float(worth[k])
+        say(f"  {a['effect']} (added in round {r['round']}) is worth {worth[k]:.2f} nats beside the later effects, "
+            f"below the {thr:.1f} it passed: dropped")
+        cand, (row, bmr) = tasks[k][0], fits[k]
 
 
 def _strip(tests: dict) -> dict:
