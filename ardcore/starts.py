@@ -4,14 +4,12 @@ a first proposal covariance from the finite-difference Hessian, or a warm start 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 
 from .chains import ChainState, Map, SamplerError, safe_cholesky, serial_map
-
-if TYPE_CHECKING:
-    from .mcmc import SamplerConfig, SamplerResult
+from .sampling import SamplerConfig, SamplerResult
 
 
 # --------------------------------------------------------------------------- starts
