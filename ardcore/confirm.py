@@ -128,6 +128,8 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
         names = list(acand.ard_names)
         # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam factor
         gain = arow["log_evidence"] - row["log_evidence"] - sc.shape_occam
+        if not math.isfinite(gain):
+            gain = -math.inf  # the re-selection failed (no finite evidence): it confirms nothing, and says so
         kept = [n for n in names if n in arow["kept"]]
         scale = dict(zip(names, sc.scales))
         # the EKF evidence takes coloured innovations as white: the support it gives is divided by the factor
@@ -145,6 +147,9 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
                           "survives": bool(kept) and adjusted > threshold,
                           "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff,
                           "_screened": sc})
+        if gain == -math.inf:
+            say(f"  {eff.name}: the re-selection found no finite evidence (fit failed): not confirmed")
+            continue
         say(f"  {eff.name}: ln BF = {gain:.2f}" + (f" ({adjusted:.2f} adjusted for coloured innovations, "
                                                      f"x 1/{sc.inflation:.2g})" if sc.inflation > 1.05 else "")
             + f", ARD keeps {kept or 'nothing'}")
