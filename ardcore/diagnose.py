@@ -37,7 +37,7 @@ import math
 import os
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 from scipy import optimize
@@ -296,9 +296,9 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                              "character": character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
             rec["added"], rec["added_with"] = recs[0], recs[1:]
             rec["_effects"] = [c["_effect"] for c in chosen]
-            rec["_params"] = [list(c["scales"]) for c in chosen]
             # what each must keep earning beside later effects: its threshold and coloured-innovation factor
-            rec["_keep"] = [(c.get("threshold", config.min_log_bf), c.get("inflation", 1.0)) for c in chosen]
+            rec["_added"] = [Added(a, rnd, list(c["scales"]), c.get("threshold", config.min_log_bf),
+                                   c.get("inflation", 1.0)) for a, c in zip(recs, chosen)]
             say(f"round {rnd}: added " + ", ".join(f"{r['effect']} to {r['target']} (ln BF {r['log_bayes_factor']:.1f})"
                                                     for r in recs)
                 + (f"; together ln BF {jrow['log_evidence'] - row['log_evidence']:.1f}" if len(recs) > 1 else ""))
@@ -308,8 +308,9 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, rounds, config, say, mapper)
     finally:
         close()
-    added = [a for r in rounds if r["added"] for a in [r["added"], *r.get("added_with", [])] if not a.get("removed")]
-    removed = [a for r in rounds if r["added"] for a in [r["added"], *r.get("added_with", [])] if a.get("removed")]
+    records = [x.record for r in rounds for x in r.get("_added", [])]
+    added = [a for a in records if not a.get("removed")]
+    removed = [a for a in records if a.get("removed")]
     out = {"model": spec.models[0].label, "final_model": cand.label, "data": data.meta.get("source"),
            "n": len(data), "n_test": len(test_data), **first,
            "rounds": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
@@ -342,6 +343,17 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     return out
 
 
+class Added(NamedTuple):
+    """An effect the loop added: its report record, the round, its coefficients' names, and what it must keep
+    earning (the threshold it passed and the coloured-innovation factor its ln BF was divided by)."""
+
+    record: dict
+    round: int
+    params: list
+    threshold: float
+    inflation: float
+
+
 def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
     """Effects added in earlier rounds that the later ones made redundant are dropped again.
 
@@ -353,25 +365,21 @@ def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
     candidates have not changed) is dropped, the weakest first, and the rest are checked again.
     """
     while True:
-        earlier = [(r, i, names, r["_keep"][i]) for r in rounds[:-1] if r.get("added") and "_params" in r
-                   for i, names in enumerate(r["_params"])
-                   if not [r["added"], *r.get("added_with", [])][i].get("removed")]
+        earlier = [x for r in rounds[:-1] for x in r.get("_added", []) if not x.record.get("removed")]
         if not earlier:
             return cand, row, bmr
-        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, **{n: 0.0 for n in names}}}), data, spec,
-                  bmr.sampler, config.posterior) for _, _, names, _ in earlier]
+        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, **{n: 0.0 for n in x.params}}}), data, spec,
+                  bmr.sampler, config.posterior) for x in earlier]
         fits = mapper(_fit_task, tasks)
-        gain = [row["log_evidence"] - f[0]["log_evidence"] for f in fits]
-        worth = [g / infl if g > 0 else g for g, (_, _, _, (_, infl)) in zip(gain, earlier)]
-        margin = [w - thr for w, (_, _, _, (thr, _)) in zip(worth, earlier)]
-        k = int(np.argmin(margin))
-        if margin[k] >= 0:
+        gain = [row["log_evidence"] - frow["log_evidence"] for frow, _ in fits]
+        worth = [g / x.inflation if g > 0 else g for g, x in zip(gain, earlier)]
+        k = int(np.argmin([w - x.threshold for w, x in zip(worth, earlier)]))
+        x = earlier[k]
+        if worth[k] >= x.threshold:
             return cand, row, bmr
-        r, i, _, (thr, _) = earlier[k]
-        a = [r["added"], *r.get("added_with", [])][i]
-        a["removed"], a["log_bayes_factor_after"] = rounds[-1]["round"], float(worth[k])
-        say(f"  {a['effect']} (added in round {r['round']}) is worth {worth[k]:.2f} nats beside the later effects, "
-            f"below the {thr:.1f} it passed: dropped")
+        x.record["removed"], x.record["log_bayes_factor_after"] = rounds[-1]["round"], float(worth[k])
+        say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
+            f"effects, below the {x.threshold:.1f} it passed: dropped")
         cand, (row, bmr) = tasks[k][0], fits[k]
 
 

@@ -16,18 +16,11 @@ from __future__ import annotations
 import numpy as np
 
 from .data import Dataset
+from .jsonio import number
 from .model import ModelSpec
 from .study import CandidateSpec
 
 FIRST_SAMPLES = 50
-
-
-def _number(v) -> float | None:
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        return None
-    return x if np.isfinite(x) else None
 
 
 def data_informed_initial(cand: CandidateSpec, data: Dataset, *, k: float = 3.0) -> tuple[CandidateSpec, list[str]]:
@@ -53,8 +46,9 @@ def recentred(ms: ModelSpec, data: Dataset, *, k: float = 3.0) -> tuple[ModelSpe
         if ok.sum() < 3:
             continue
         ty, yy = t[ok], y[ok]
-        m0, s0 = _number(mean.get(s, 0.0)), _number(std.get(s, 1.0))
-        if m0 is not None and s0 is not None and abs(yy[0] - m0) > k * s0:
+        # a declaration that is an expression (of parameters) is not a number: the model author's choice, kept
+        m0, s0 = number(mean.get(s, 0.0)), number(std.get(s, 1.0))
+        if np.isfinite(m0) and np.isfinite(s0) and abs(yy[0] - m0) > k * s0:
             spread = float(np.std(yy)) or abs(float(yy[0]))
             mean[s], std[s] = float(yy[0]), max(s0, spread)
             notes.append(f"initial {s}: N({m0:g}, {s0:g}^2) declared, the record starts at {yy[0]:.4g}: "
@@ -64,9 +58,9 @@ def recentred(ms: ModelSpec, data: Dataset, *, k: float = 3.0) -> tuple[ModelSpe
             slopes = np.diff(yy) / np.diff(ty)
             n5 = min(5, yy.size)
             v0 = float(np.polyfit(ty[:n5] - ty[0], yy[:n5], 1)[0])
-            m1, s1 = _number(mean.get(d, 0.0)), _number(std.get(d, 1.0))
+            m1, s1 = number(mean.get(d, 0.0)), number(std.get(d, 1.0))
             spread = float(np.sqrt(np.mean(slopes ** 2)))
-            if m1 is not None and s1 is not None and (abs(v0 - m1) > k * s1 or spread > k * s1):
+            if np.isfinite(m1) and np.isfinite(s1) and (abs(v0 - m1) > k * s1 or spread > k * s1):
                 mean[d], std[d] = v0, max(s1, spread)
                 notes.append(f"initial {d} (= d{s}/dt): N({m1:g}, {s1:g}^2) declared, the record's first slopes "
                              f"are {v0:.4g} +- {spread:.3g}: N({v0:.4g}, {std[d]:.3g}^2) used")

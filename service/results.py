@@ -35,16 +35,13 @@ def results_router(reg: Registry, auth: TokenAuth) -> APIRouter:
     def _best_trial(sid: str, model: str) -> int:
         if not ID_RE.match(model):
             raise HTTPException(404, f"no model {model!r}")
-        store = reg.store(sid)
         try:
-            g = store.group("r")
-            mg = g[f"models/{model}"]
+            it, _ = reg.store(sid).model_result(model)
         except Exception:  # noqa: BLE001 - missing group
             raise HTTPException(404, f"study {sid} has no model {model!r}") from None
-        it = mg.attrs.get("best_iteration")
         if it is None:
             raise HTTPException(409, f"model {model!r} of study {sid} is not finished")
-        return int(it)
+        return it
 
     @r.get(f"{v1}/studies/{{sid}}/posterior/{{model}}", dependencies=[Depends(auth)],
              responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}})

@@ -131,10 +131,9 @@ def stored_fit(store: StudyStore, model: str):
     from types import SimpleNamespace
 
     try:
-        mg = store.group("r")[f"models/{model}"]
+        it, row = store.model_result(model)
     except Exception:  # noqa: BLE001 - no such model
         return None
-    row, it = mg.attrs.get("result"), mg.attrs.get("best_iteration")
     rec = store.trial_record(model, it) if it is not None else None
     if not row or rec is None or "states" not in rec:
         return None

@@ -33,13 +33,12 @@ MAX_POINTWISE_DRAWS = 1000
 
 def _best(store: StudyStore, model: str) -> tuple[int, dict]:
     try:
-        mg = store.group("r")[f"models/{model}"]
+        it, row = store.model_result(model)
     except KeyError:
         raise LookupError(f"the study has no model {model!r}") from None
-    it, row = mg.attrs.get("best_iteration"), mg.attrs.get("result")
     if it is None or not row:
         raise LookupError(f"model {model!r} of the study is not finished")
-    return int(it), dict(row)
+    return it, dict(row)
 
 
 def _candidate(store: StudyStore, model: str):
@@ -50,27 +49,28 @@ def _candidate(store: StudyStore, model: str):
     return cand
 
 
-def pointwise_log_likelihood(store: StudyStore, model: str, samples: np.ndarray,
-                             names: list[str]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def pointwise_log_likelihood(cand, row: dict, data, samples: np.ndarray,
+                             names: list[str]) -> dict[str, np.ndarray]:
     """One-step predictive log density of every observation for each draw of ``samples``.
 
     Parameters
     ----------
+    cand : CandidateSpec
+        The study's candidate; ``row`` its summary row (the optimal psi fixes the pruned terms at 0).
+    data : Dataset
+        The study's data.
     samples : ndarray, shape (chain, draw, param)
-        Draws of ``model``'s free parameters, in the order of ``names``.
+        Draws of the optimal nested model's free parameters, in the order of ``names``.
 
     Returns
     -------
-    dict of column name to ndarray of shape (chain, draw, time), and the sample times.
+    dict of column name to ndarray of shape (chain, draw, time).
     """
     from ardflow.ardcore.diagnose import fitted_spec
 
-    cand = _candidate(store, model)
-    _, row = _best(store, model)
     ms = fitted_spec(cand, row)
     if list(ms.free_parameters) != list(names):
-        raise LookupError(f"the stored draws of {model!r} do not match its model's free parameters")
-    data = store.load_data()
+        raise LookupError(f"the stored draws of {cand.label!r} do not match its model's free parameters")
     lik = compile_model(ms).bind(data, cand.substeps)
     cols = ms.observed_columns
     nc, nd, _ = samples.shape
@@ -82,7 +82,7 @@ def pointwise_log_likelihood(store: StudyStore, model: str, samples: np.ndarray,
             terms = -0.5 * (np.log(fr.innovation_var) + fr.innovations ** 2 / fr.innovation_var + np.log(2 * np.pi))
             for j, col in enumerate(cols):
                 out[col][c, d] = np.nan_to_num(terms[:, j], nan=0.0)
-    return out, data.t
+    return out
 
 
 @dataclass(frozen=True)
@@ -161,7 +161,7 @@ def inference_groups(store, model: str, *, log_likelihood: bool = False,
     cols = cand.model_spec().observed_columns
     groups["observed_data"] = {c: data.columns[c] for c in cols}
     if log_likelihood:
-        groups["log_likelihood"], _ = pointwise_log_likelihood(store, model, samples, names)
+        groups["log_likelihood"] = pointwise_log_likelihood(cand, row, data, samples, names)
     attrs = {"model": model, "iteration": it, "thin": step, "psi": json.dumps(rec.get("psi", row.get("psi_opt"))),
              "log_evidence": float(row.get("log_evidence", np.nan)), "source": str(store.url)}
     # the trial's sampler diagnostics (stationary acceptance, burn-in rounds, evaluations, R-hat, warnings)

@@ -218,6 +218,12 @@ class StudyStore:
         tg = g[path]
         return dict(tg.attrs["trial"]) if tg.attrs.get("done") else None
 
+    def model_result(self, model: str) -> tuple[int | None, dict | None]:
+        """The best iteration and summary row of ``model`` (None while it runs); KeyError: no such model."""
+        mg = self.group("r")[f"models/{model}"]
+        it = mg.attrs.get("best_iteration")
+        return (None if it is None else int(it)), mg.attrs.get("result")
+
     def set_model_attrs(self, model: str, **kw) -> None:
         mg = self.group().require_group(f"models/{model}")
         for k, v in kw.items():
