@@ -68,8 +68,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
             figs.append((f"{cand.label}: prior and posterior 99 % bounds of the ARD parameters per trial (Fig. 9)", f))
 
     best = summary["best_model"]
-    mg = g[f"models/{best}"]
-    it = int(mg.attrs["best_iteration"])
+    it, _ = store.model_result(best)
     samples, _, _, names = store.read_samples(best, it)
     truth = dict(spec.true_values)
     ref_bounds = FIG15_M2OPT_BOUNDS if (reference and best == "M2") else None
