@@ -9,6 +9,7 @@ together. :func:`ardcore.diagnose.diagnose` runs the loop around them.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -261,3 +262,43 @@ def split_stability(spec: StudySpec, c: dict, config, say, mapper) -> dict:
         f"{k} = {parts[0][k][0]:.4g} +- {parts[0][k][1]:.2g} / {parts[1][k][0]:.4g} +- {parts[1][k][1]:.2g} "
         f"(z = {z[k]:.1f})" for k in z) + ("" if stable else ": NOT stable over the record"))
     return {"stable": stable, "z": z, "relative_difference": rel, "halves": parts}
+
+
+class Added(NamedTuple):
+    """An effect the loop added: its report record, the round, its coefficients' names, and what it must keep
+    earning (the threshold it passed and the coloured-innovation factor its ln BF was divided by)."""
+
+    record: dict
+    round: int
+    params: list
+    threshold: float
+    inflation: float
+
+
+def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
+    """Effects added in earlier rounds that the later ones made redundant are dropped again.
+
+    Forward selection adds what the screen ranks first; a later effect can explain the same residual better
+    (a tank's input nonlinearity added first, its square-root outflow next: at equilibrium the level follows
+    the input). Each effect of an earlier round is refitted out (its terms fixed at 0, side by side on the
+    loop's pool); one whose ln Bayes factor (adjusted for coloured innovations as when it was added) no
+    longer reaches the threshold it passed then (``min_log_bf`` + ln N: its prior odds as one of N library
+    candidates have not changed) is dropped, the weakest first, and the rest are checked again.
+    """
+    while True:
+        earlier = [x for r in rounds[:-1] for x in r.get("_added", []) if not x.record.get("removed")]
+        if not earlier:
+            return cand, row, bmr
+        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, **{n: 0.0 for n in x.params}}}), data, spec,
+                  bmr.sampler, config.posterior) for x in earlier]
+        fits = mapper(_fit_task, tasks)
+        gain = [row["log_evidence"] - frow["log_evidence"] for frow, _ in fits]
+        worth = [g / x.inflation if g > 0 else g for g, x in zip(gain, earlier)]
+        k = int(np.argmin([w - x.threshold for w, x in zip(worth, earlier)]))
+        x = earlier[k]
+        if worth[k] >= x.threshold:
+            return cand, row, bmr
+        x.record["removed"], x.record["log_bayes_factor_after"] = rounds[-1]["round"], float(worth[k])
+        say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
+            f"effects, below the {x.threshold:.1f} it passed: dropped")
+        cand, (row, bmr) = tasks[k][0], fits[k]

@@ -37,13 +37,14 @@ import math
 import os
 import time
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import numpy as np
 from scipy import optimize
 
-from .confirm import (
-    _fit_task,
+from .confirm import (  # noqa: F401
+    Added,
+    backward_check,
     joint_fit,
     physical,
     pool_mapper,
@@ -206,15 +207,9 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
 
     if len(spec.models) != 1:
         raise SpecError(f"diagnose: the spec must have exactly one model (it has {len(spec.models)})")
-    t0 = time.perf_counter()
     cand = spec.models[0]
     test_data = test_data or data
-    ms = cand.model_spec()
-    for what, d in (("data", data), ("held-out data", test_data)):
-        missing = [c for c in list(ms.observed_columns) + list(ms.inputs) if c not in d.columns]
-        if missing:  # before any fit: a free run at the end must not be what finds it
-            raise SpecError(f"diagnose: the {what} ({d.meta.get('source', 'given')}) has no column "
-                            f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
+    _check_columns(cand.model_spec(), data, test_data)
     notes: list[str] = []
     if base is None:
         cand, notes = data_informed_initial(cand, data)
@@ -249,92 +244,19 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 rounds[-1]["after"] = err
             if rnd == config.max_rounds:
                 break
-            ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
-                                                   extra_effects, say, mapper)
-            survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
-            if config.split_z is not None:
-                for c in survivors:
-                    if c["_effect"].where == "noise":
-                        continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
-                    c["stability"] = split_stability(spec, c, config, say, mapper)
-                    c["survives"] = c["stability"]["stable"]
-                    if c["survives"] and not config.joint:
-                        break  # the best stable one is added
-                survivors = [c for c in survivors if c.get("stability", {}).get("stable", True) and c["survives"]]
-            # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
-            tried = {(c["effect"], c["target"]): c for c in confirmed}
-            order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
-            ranking = [{"effect": c["effect"], "target": c["target"], "log_bayes_factor": c["log_bayes_factor"],
-                        "survives": c["survives"]} for c in order]
-            ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"],
-                         "screened_log_bayes_factor": c["log_bayes_factor"]} for c in ranked
-                        if (c["effect"], c["target"]) not in tried]
-            rec = {"round": rnd, "model": cand.label, "ranking": ranking,
-                   "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
-                   "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
-                   "added": None}
+            rec, survivors = _trace_round(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
+                                          extra_effects, say, mapper, rnd)
             rounds.append(rec)
             if not survivors:
-                rec["verdict"] = unexplained(res, ranked, confirmed, col, config)
                 break
-            best = survivors[0]
-            chosen, fit = [best], (best["_cand"], best["_row"], best["_mr"], best["_data"])
-            if config.joint and len(survivors) > 1:
-                # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
-                # others make redundant; taken when it beats the best single effect by more than min_log_bf
-                j = joint_fit(spec, cand, row, best, survivors, cur_data, config, say)
-                if j is not None and j[1]["log_evidence"] > best["log_evidence"] + config.min_log_bf:
-                    chosen, fit = j[4], j[:4]
-            jrow = fit[1]
-            recs = []
-            for c in chosen:
-                eff = c["_effect"]
-                names = list(c["scales"])
-                post = {n: physical(jrow, n, c["scales"][n]) for n in names if n in jrow["mean"]}
-                recs.append({"effect": eff.name, "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
-                             "posterior": post, "log_bayes_factor": c["log_bayes_factor"],
-                             "character": character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
-            rec["added"], rec["added_with"] = recs[0], recs[1:]
-            rec["_effects"] = [c["_effect"] for c in chosen]
-            # what each must keep earning beside later effects: its threshold and coloured-innovation factor
-            rec["_added"] = [Added(a, rnd, list(c["scales"]), c.get("threshold", config.min_log_bf),
-                                   c.get("inflation", 1.0)) for a, c in zip(recs, chosen)]
-            say(f"round {rnd}: added " + ", ".join(f"{r['effect']} to {r['target']} (ln BF {r['log_bayes_factor']:.1f})"
-                                                    for r in recs)
-                + (f"; together ln BF {jrow['log_evidence'] - row['log_evidence']:.1f}" if len(recs) > 1 else ""))
-            cand, row, bmr, cur_data = fit
+            cand, row, bmr, cur_data = _adopt(spec, cand, row, survivors, fspec, phi, cur_data, config, say, rec)
             for e in rec["_effects"]:
                 cur_test = with_columns(cur_test, e)
             cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, rounds, config, say, mapper)
     finally:
         close()
-    records = [x.record for r in rounds for x in r.get("_added", [])]
-    added = [a for a in records if not a.get("removed")]
-    removed = [a for a in records if a.get("removed")]
-    out = {"model": spec.models[0].label, "final_model": cand.label, "data": data.meta.get("source"),
-           "n": len(data), "n_test": len(test_data), **first,
-           "rounds": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
-           "candidates": rounds[0]["candidates"] if rounds else [],
-           "confirmed": rounds[0]["confirmed"] if rounds else [],
-           "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
-           "removed": removed, "initial_state": notes, "tests_after": None, "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd",
-                                                                    "q005", "q995")}}
-    if added:
-        a, b = out["after"], out["before"]
-        out["tests_after"] = _strip(arrays["after"]["tests"])
-        out["verdict"] = ("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
-                                                     f"{x['log_bayes_factor']:.1f}"
-                                                     + (f", {x['character']}" if x.get("character") else "") + ")"
-                                                     for x in added)
-                          + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
-                          f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
-                          f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
-                          + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
-                                    f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
-                          + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
-    else:
-        out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
-    out["wall_s"] = time.perf_counter() - t0
+    out = _report(spec, data, test_data, first, rounds, arrays, row, notes, cand.label)
+    out["wall_s"] = time.perf_counter() - t_start
     out["_arrays"] = arrays
     # the initial and final models, for free runs on further held-out records: free_run_of(out["_final"], record)
     out["_initial"] = initial
@@ -343,44 +265,107 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     return out
 
 
-class Added(NamedTuple):
-    """An effect the loop added: its report record, the round, its coefficients' names, and what it must keep
-    earning (the threshold it passed and the coloured-innovation factor its ln BF was divided by)."""
-
-    record: dict
-    round: int
-    params: list
-    threshold: float
-    inflation: float
+def _check_columns(ms: ModelSpec, data: Dataset, test_data: Dataset) -> None:
+    """Before any fit: a free run at the end must not be what finds a missing column."""
+    for what, d in (("data", data), ("held-out data", test_data)):
+        missing = [c for c in list(ms.observed_columns) + list(ms.inputs) if c not in d.columns]
+        if missing:
+            raise SpecError(f"diagnose: the {what} ({d.meta.get('source', 'given')}) has no column "
+                            f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
 
 
-def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
-    """Effects added in earlier rounds that the later ones made redundant are dropped again.
+def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper,
+                 rnd: int) -> tuple[dict, list]:
+    """One round's trace: screen, confirm, check the survivors' stability; the round's record and survivors
+    (best first). With none, the record carries the verdict on what remains."""
+    ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
+                                          extra_effects, say, mapper)
+    survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
+    if config.split_z is not None:
+        for c in survivors:
+            if c["_effect"].where == "noise":
+                continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
+            c["stability"] = split_stability(spec, c, config, say, mapper)
+            c["survives"] = c["stability"]["stable"]
+            if c["survives"] and not config.joint:
+                break  # the best stable one is added
+        survivors = [c for c in survivors if c.get("stability", {}).get("stable", True) and c["survives"]]
+    # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
+    tried = {(c["effect"], c["target"]) for c in confirmed}
+    order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
+    ranking = [{"effect": c["effect"], "target": c["target"], "log_bayes_factor": c["log_bayes_factor"],
+                "survives": c["survives"]} for c in order]
+    ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"],
+                 "screened_log_bayes_factor": c["log_bayes_factor"]} for c in ranked
+                if (c["effect"], c["target"]) not in tried]
+    rec = {"round": rnd, "model": cand.label, "ranking": ranking,
+           "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
+           "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
+           "added": None}
+    if not survivors:
+        rec["verdict"] = unexplained(res, ranked, confirmed, col, config)
+    return rec, survivors
 
-    Forward selection adds what the screen ranks first; a later effect can explain the same residual better
-    (a tank's input nonlinearity added first, its square-root outflow next: at equilibrium the level follows
-    the input). Each effect of an earlier round is refitted out (its terms fixed at 0, side by side on the
-    loop's pool); one whose ln Bayes factor (adjusted for coloured innovations as when it was added) no
-    longer reaches the threshold it passed then (``min_log_bf`` + ln N: its prior odds as one of N library
-    candidates have not changed) is dropped, the weakest first, and the rest are checked again.
-    """
-    while True:
-        earlier = [x for r in rounds[:-1] for x in r.get("_added", []) if not x.record.get("removed")]
-        if not earlier:
-            return cand, row, bmr
-        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, **{n: 0.0 for n in x.params}}}), data, spec,
-                  bmr.sampler, config.posterior) for x in earlier]
-        fits = mapper(_fit_task, tasks)
-        gain = [row["log_evidence"] - frow["log_evidence"] for frow, _ in fits]
-        worth = [g / x.inflation if g > 0 else g for g, x in zip(gain, earlier)]
-        k = int(np.argmin([w - x.threshold for w, x in zip(worth, earlier)]))
-        x = earlier[k]
-        if worth[k] >= x.threshold:
-            return cand, row, bmr
-        x.record["removed"], x.record["log_bayes_factor_after"] = rounds[-1]["round"], float(worth[k])
-        say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
-            f"effects, below the {x.threshold:.1f} it passed: dropped")
-        cand, (row, bmr) = tasks[k][0], fits[k]
+
+def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rec) -> tuple:
+    """Add the best survivor (or the survivors fitted together, when that is worth more); record what was
+    added in ``rec``. Returns the new candidate, its row, its maximiser result and the augmented data."""
+    best = survivors[0]
+    chosen, fit = [best], (best["_cand"], best["_row"], best["_mr"], best["_data"])
+    if config.joint and len(survivors) > 1:
+        # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
+        # others make redundant; taken when it beats the best single effect by more than min_log_bf
+        j = joint_fit(spec, cand, row, best, survivors, data, config, say)
+        if j is not None and j[1]["log_evidence"] > best["log_evidence"] + config.min_log_bf:
+            chosen, fit = j[4], j[:4]
+    jrow = fit[1]
+    recs = []
+    for c in chosen:
+        eff = c["_effect"]
+        post = {n: physical(jrow, n, c["scales"][n]) for n in c["scales"] if n in jrow["mean"]}
+        recs.append({"effect": eff.name, "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
+                     "posterior": post, "log_bayes_factor": c["log_bayes_factor"],
+                     "character": character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
+    rec["added"], rec["added_with"] = recs[0], recs[1:]
+    rec["_effects"] = [c["_effect"] for c in chosen]
+    # what each must keep earning beside later effects: its threshold and coloured-innovation factor
+    rec["_added"] = [Added(a, rec["round"], list(c["scales"]), c.get("threshold", config.min_log_bf),
+                           c.get("inflation", 1.0)) for a, c in zip(recs, chosen)]
+    say(f"round {rec['round']}: added " + ", ".join(f"{r['effect']} to {r['target']} "
+                                                   f"(ln BF {r['log_bayes_factor']:.1f})" for r in recs)
+        + (f"; together ln BF {jrow['log_evidence'] - row['log_evidence']:.1f}" if len(recs) > 1 else ""))
+    return fit
+
+
+def _report(spec, data, test_data, first, rounds, arrays, row, notes, final_model: str) -> dict:
+    """The loop's JSON report: before/after, the rounds, what was added and removed, the verdict."""
+    records = [x.record for r in rounds for x in r.get("_added", [])]
+    added = [a for a in records if not a.get("removed")]
+    removed = [a for a in records if a.get("removed")]
+    out = {"model": spec.models[0].label, "final_model": final_model,
+           "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
+           "rounds": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
+           "candidates": rounds[0]["candidates"] if rounds else [],
+           "confirmed": rounds[0]["confirmed"] if rounds else [],
+           "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
+           "removed": removed, "initial_state": notes, "tests_after": None,
+           "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995")}}
+    if not added:
+        out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
+        return out
+    a, b = out["after"], out["before"]
+    out["tests_after"] = _strip(arrays["after"]["tests"])
+    out["verdict"] = ("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
+                                                 f"{x['log_bayes_factor']:.1f}"
+                                                 + (f", {x['character']}" if x.get("character") else "") + ")"
+                                                 for x in added)
+                      + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
+                      f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
+                      f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
+                      + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
+                                f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
+                      + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
+    return out
 
 
 def _strip(tests: dict) -> dict:

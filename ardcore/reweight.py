@@ -92,7 +92,8 @@ def reweight(names: list[str], samples: np.ndarray, psi_from: dict, psi_to: dict
 
 def resample_states(res, weights: np.ndarray, seed: int):
     """``res`` (a SamplerResult) whose chain states sit at draws resampled with ``weights`` (systematic
-    resampling): the next sampled trial starts dispersed and already near its posterior."""
+    resampling) and whose proposal covariance is the weighted draws' (scaled 2.38^2 / d, as the adaptation
+    scales it): the next sampled trial starts dispersed, already near its posterior, with a step fitted to it."""
     nc, M, d = res.samples.shape
     flat = res.samples.reshape(nc * M, d)
     p = np.asarray(weights, float).ravel()
@@ -102,7 +103,17 @@ def resample_states(res, weights: np.ndarray, seed: int):
     lp, ll = res.lp.reshape(-1), res.ll.reshape(-1)
     states = [dataclasses.replace(s, x=[float(v) for v in flat[i]], lp=float(lp[i]), ll=float(ll[i]))
               for s, i in zip(res.states, pick)]
-    return dataclasses.replace(res, states=states)
+    w = p / p.sum()
+    m = w @ flat
+    C = (flat - m).T @ ((flat - m) * w[:, None])
+    cov = res.proposal_cov
+    try:
+        np.linalg.cholesky(C)
+        if np.all(np.isfinite(C)):
+            cov = (2.38**2 / d) * C
+    except np.linalg.LinAlgError:
+        pass
+    return dataclasses.replace(res, states=states, proposal_cov=cov)
 
 
 def weighted_summary(names: list[str], samples: np.ndarray, weights: np.ndarray) -> dict:

@@ -131,6 +131,56 @@ def initial_points(prior, n: int, rng: np.random.Generator, start_sd: dict | Non
 
 
 
+def warm_positions(target, warm: SamplerResult, scale: np.ndarray) -> tuple[list, list, np.ndarray]:
+    """Where a warm start puts the chains of ``target``: the previous chains' positions, fallbacks (its best
+    point moved as they are, then unmoved) and a first proposal covariance, mapped by parameter name.
+
+    A parameter of ``warm`` that ``target`` lacks is now fixed (a prune test fixes a term at 0). The new
+    posterior is then the previous one *conditioned* on that value, so each position is moved along the
+    regression line of the previous proposal covariance (a Gaussian posterior's draws so moved are exact
+    draws of its conditional) and the proposal is its Schur complement: taking the marginal instead
+    starts the chains off the new posterior with too wide a proposal, and burn-in pays for both. A new
+    parameter starts at 0 with a small step (not the prior's width).
+    """
+    names = list(target.names)
+    idx = {n: i for i, n in enumerate(warm.names)}
+    keep = [idx.get(n) for n in names]
+    known = [i for i in keep if i is not None]
+    fixed = getattr(getattr(target, "spec", None), "fixed", None) or {}
+    dropped = [i for n, i in idx.items() if n not in set(names) and n in fixed]
+    v = np.array([float(fixed.get(warm.names[i], 0.0)) for i in dropped])
+    P = np.asarray(warm.proposal_cov, float)
+    B = None
+    if dropped and known and np.all(np.isfinite(P)):
+        try:
+            B = np.linalg.solve(P[np.ix_(dropped, dropped)], P[np.ix_(dropped, known)]).T  # (known, dropped)
+        except np.linalg.LinAlgError:
+            B = None
+
+    def place(x, project: bool = True) -> np.ndarray:
+        x = np.asarray(x, float)
+        k = x[known] + (B @ (v - x[dropped]) if B is not None and project else 0.0)
+        out, j = np.zeros(len(names)), 0
+        for i, a in enumerate(keep):
+            if a is not None:
+                out[i], j = k[j], j + 1
+        return out
+
+    cov = np.diag((0.01 * scale) ** 2)
+    sub = P[np.ix_(known, known)]
+    if B is not None:
+        cond = sub - B @ P[np.ix_(dropped, known)]
+        try:
+            np.linalg.cholesky(cond)
+            sub = cond * (len(warm.names) / max(len(names), 1))  # the 2.38^2 / d scaling of the smaller space
+        except np.linalg.LinAlgError:
+            pass
+    pos = [i for i, a in enumerate(keep) if a is not None]
+    cov[np.ix_(pos, pos)] = sub
+    return ([place(s.x) for s in warm.states], [place(warm.phi_star), place(warm.phi_star, project=False)],
+            cov)
+
+
 def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
                    warm: SamplerResult | None = None, starts: np.ndarray | None = None) -> tuple[list, np.ndarray, int]:
     """Chain states, the first proposal covariance (cold, warm or explicit starts) and the likelihood
@@ -142,25 +192,16 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
     scale = initial_scale(target.prior)
     n_eval = nc
     if warm is not None:
-        idx = {n: i for i, n in enumerate(warm.names)}
+        X, fallbacks, cov = warm_positions(target, warm, scale)
         states = []
         for c in range(nc):
-            ws = warm.states[c % len(warm.states)]
-            x = np.array([ws.x[idx[n]] if n in idx else 0.0 for n in names])
+            x = X[c % len(X)]
             lp, ll = target(x)
-            if not lp > -math.inf:
-                x = np.array([warm.phi_star[idx[n]] if n in idx else 0.0 for n in names])
+            for x in ([] if lp > -math.inf else fallbacks):  # the best point, then it unmoved
                 lp, ll = target(x)
+                if lp > -math.inf:
+                    break
             states.append(ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll))
-        sel = [idx.get(n) for n in names]
-        cov = np.diag((0.01 * scale) ** 2)
-        for i, a in enumerate(sel):
-            for j, b in enumerate(sel):
-                if a is not None and b is not None:
-                    cov[i, j] = warm.proposal_cov[a, b]
-        for i, a in enumerate(sel):
-            if a is None:  # a new parameter: a small step, not the prior's width
-                cov[i, i] = (0.01 * scale[i]) ** 2
     elif starts is None:
         pts = initial_points(target.prior, nc, np.random.default_rng(child[nc]))
         tasks = [(target, pts[c], scale, config.start_maxfev, child[c].generate_state(1)[0] + c,

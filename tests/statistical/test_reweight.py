@@ -89,3 +89,36 @@ def test_maximiser_reweights_steps_and_every_reported_evidence_is_right():
             (t.action, t.evidence.log_evidence, exact(t.psi), t.evidence.log_evidence_se)
     print(f"\nsampled trials {len(sampled)} (+{len(reweighted)} reweighted) vs {len(off.history)} without reweighting")
 
+
+
+def test_prune_test_warm_start_is_the_exact_conditional():
+    """A prune test fixes a term at 0; its posterior is the previous one conditioned there. On the conjugate
+    regression both are Gaussian, so the warm start's proposal must be the nested posterior's covariance
+    (scaled 2.38^2 / d) and the moved draws must be draws of the nested posterior."""
+    from types import SimpleNamespace
+
+    from ardflow.ardcore.evaluate import build_target
+    from ardflow.ardcore.starts import initial_scale, warm_positions
+
+    spec, data, X, y, _ = setup()
+    psi = {"a2": 1e-2, "a3": 1e-2, "a4": 1e-2}
+    names = ["a0", "a1", "a2", "a3", "a4"]
+    prec = np.diag([1 / ESSENTIAL["a0"] ** 2, 1 / ESSENTIAL["a1"] ** 2] + [psi[k] for k in ARD_TERMS])
+    P = np.linalg.inv(prec + X.T @ X / GAMMA ** 2)
+    draws = posterior_draws(X, y, psi, 20000, seed=5)
+    warm = SimpleNamespace(names=names, states=[SimpleNamespace(x=list(d)) for d in draws], phi_star=draws[0],
+                           proposal_cov=(2.38 ** 2 / 5) * P)
+    essential = {k: Normal(mean=0.0, sd=v) for k, v in ESSENTIAL.items()}
+    target = build_target(spec, essential, dict(psi, a4=INF), data)
+    assert target.names == names[:4]
+    pos, _, cov = warm_positions(target, warm, initial_scale(target.prior))
+    keep = slice(0, 4)
+    nested_P = np.linalg.inv(prec[keep, keep] + X[:, keep].T @ X[:, keep] / GAMMA ** 2)
+    nested_m = nested_P @ X[:, keep].T @ y / GAMMA ** 2
+    np.testing.assert_allclose(cov, (2.38 ** 2 / 4) * nested_P, rtol=1e-8, atol=1e-14)
+    pos = np.array(pos)
+    se = np.sqrt(np.diag(nested_P) / pos.shape[0])
+    assert np.all(np.abs(pos.mean(axis=0) - nested_m) < 5 * se)
+    np.testing.assert_allclose(np.cov(pos.T), nested_P, rtol=0.1, atol=1e-12)
+    # the marginal (what the warm start took before) is measurably off the nested posterior
+    assert np.max(np.abs(draws[:, :4].mean(axis=0) - nested_m) / se) > 5
