@@ -17,9 +17,10 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
+from pydantic import BaseModel, Field
 
 from .evaluate import (  # noqa: F401
     EvidenceEvaluator,
@@ -34,13 +35,13 @@ from .jsonio import encode_alpha
 from .mcmc import SamplerResult
 from .posterior import ModelPosterior
 from .reweight import resample_states, reweight, weighted_summary
+from .sampling import SETTINGS
 
 INF = math.inf
 
 
-@dataclass
-class MaximiserConfig:
-    """Evidence-maximisation settings.
+class MaximiserConfig(BaseModel):
+    """Evidence-maximisation settings, with their bounds: the study spec's ``maximiser`` section is this model.
 
     Attributes
     ----------
@@ -98,26 +99,24 @@ class MaximiserConfig:
         :func:`maximise`); such smaller steps cost no likelihood evaluation.
     """
 
-    alpha_start: float = 1e-10
-    step_decades: float = 2.0
-    min_step_decades: float = 1.0
-    noise_k: float = 1.0
-    step_noise_k: float = 1.0
-    min_gain: float = 0.05
-    keep_nats: float = 1.0
-    prune_alpha: float = 1e12
+    model_config = SETTINGS
+    alpha_start: float = Field(1e-10, gt=0)
+    step_decades: float = Field(2.0, gt=0, le=10)
+    min_step_decades: float = Field(1.0, gt=0, le=10)
+    noise_k: float = Field(1.0, ge=0, le=10)
+    step_noise_k: float = Field(1.0, ge=0, le=10)
+    min_gain: float = Field(0.05, ge=0, le=100)
+    keep_nats: float = Field(1.0, ge=0, le=100)
+    prune_alpha: float = Field(1e12, gt=0)
     prune_test: bool = True
-    max_trials: int = 60
-    max_sweeps: int = 2
-    order: str = "reverse"
+    max_trials: int = Field(60, ge=1, le=1000)
+    max_sweeps: int = Field(2, ge=1, le=100)
+    order: Literal["reverse", "declared"] = Field(
+        "reverse", description="visit the ARD parameters from the last declared (default) or the first")
     reweight: bool = True
-    reweight_min_ess: float = 0.25
-    reweight_max_se: float = 0.2
-    reweight_min_step: float = 0.25
-
-    def __post_init__(self):
-        if self.order not in ("reverse", "declared"):
-            raise ValueError(f"maximiser order must be 'reverse' or 'declared', not {self.order!r}")
+    reweight_min_ess: float = Field(0.25, gt=0, le=1)
+    reweight_max_se: float = Field(0.2, gt=0, le=100)
+    reweight_min_step: float = Field(0.25, gt=0, le=10)
 
 
 @dataclass

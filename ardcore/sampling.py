@@ -5,24 +5,31 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+SETTINGS = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+"""Settings models: unknown fields refused, no NaN or infinity, immutable once built."""
 
 
-@dataclass
-class SamplerConfig:
-    """Sampler settings (the study spec's ``sampler`` section maps onto this).
+class SamplerConfig(BaseModel):
+    """Sampler settings, with their bounds: the study spec's ``sampler`` section is this model.
 
     Attributes
     ----------
     n_chains : int
+        Chains run side by side (one task each per round).
     round_size : int
         W, samples per chain per round.
     min_burnin_rounds, max_burnin_rounds : int
+        Burn-in lasts at least / at most this many rounds.
     rhat_threshold : float
+        Burn-in ends when the split R-hat of every parameter is below it.
     n_stationary : int
         M, stationary samples per chain.
     n_proposal : int
         J, proposal draws at phi* per chain for Chib-Jeliazkov.
     dr_scale : float
+        Delayed rejection: the second-stage proposal is this fraction of the first (0 turns it off).
     start_maxfev : int
         Budget of the local optimisation that places each chain's start.
     overdispersion : float
@@ -37,18 +44,26 @@ class SamplerConfig:
         models here; 10 nats is a chain stuck in a minor mode.
     """
 
-    n_chains: int = 4
-    round_size: int = 500
-    min_burnin_rounds: int = 4
-    max_burnin_rounds: int = 60
-    rhat_threshold: float = 1.1
-    n_stationary: int = 5000
-    n_proposal: int = 5000
-    dr_scale: float = 0.1
-    start_maxfev: int = 3000
-    overdispersion: float = 2.0
+    model_config = SETTINGS
+    n_chains: int = Field(4, ge=2, le=64)
+    round_size: int = Field(500, ge=20, le=100_000)
+    min_burnin_rounds: int = Field(4, ge=1, le=10_000)
+    max_burnin_rounds: int = Field(60, ge=1, le=10_000)
+    rhat_threshold: float = Field(1.1, gt=1.0, le=2.0)
+    n_stationary: int = Field(5000, ge=50, le=10_000_000)
+    n_proposal: int = Field(5000, ge=50, le=10_000_000)
+    dr_scale: float = Field(0.1, ge=0.0, le=1.0)
+    start_maxfev: int = Field(3000, ge=10, le=1_000_000)
+    overdispersion: float = Field(2.0, gt=0, le=10)
     inca: bool = True
-    outlier_nats: float = 10.0
+    outlier_nats: float = Field(10.0, ge=0, le=1e6,
+                                description="burn-in: move chains this far below the best chain to it (0: off)")
+
+    @model_validator(mode="after")
+    def _rounds(self):
+        if self.max_burnin_rounds < self.min_burnin_rounds:
+            raise ValueError("sampler: max_burnin_rounds must be >= min_burnin_rounds")
+        return self
 
 
 @dataclass

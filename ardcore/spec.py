@@ -20,7 +20,6 @@ from .model import NAME_PATTERN, ModelSpec
 from .priors import PriorSpec
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
-_S, _M = SamplerConfig, MaximiserConfig  # one place for the defaults
 Name = Annotated[str, Field(pattern=NAME_PATTERN)]
 
 
@@ -161,53 +160,10 @@ class CandidateSpec(BaseModel):
         return {k: v.prune_alpha for k, v in self.ard.items()}
 
 
-class SamplerSpec(BaseModel):
-    """The study's sampler settings; defaults are :class:`~ardcore.mcmc.SamplerConfig`'s."""
-
-    model_config = _STRICT
-    n_chains: int = Field(_S.n_chains, ge=2, le=64)
-    round_size: int = Field(_S.round_size, ge=20, le=100_000)
-    min_burnin_rounds: int = Field(_S.min_burnin_rounds, ge=1, le=10_000)
-    max_burnin_rounds: int = Field(_S.max_burnin_rounds, ge=1, le=10_000)
-    rhat_threshold: float = Field(_S.rhat_threshold, gt=1.0, le=2.0)
-    n_stationary: int = Field(_S.n_stationary, ge=50, le=10_000_000)
-    n_proposal: int = Field(_S.n_proposal, ge=50, le=10_000_000)
-    dr_scale: float = Field(_S.dr_scale, ge=0.0, le=1.0)
-    start_maxfev: int = Field(_S.start_maxfev, ge=10, le=1_000_000)
-    overdispersion: float = Field(_S.overdispersion, gt=0, le=10)
-    outlier_nats: float = Field(_S.outlier_nats, ge=0, le=1e6,
-                                description="burn-in: move chains this far below the best chain to it (0: off)")
-
-    @model_validator(mode="after")
-    def _rounds(self):
-        if self.max_burnin_rounds < self.min_burnin_rounds:
-            raise ValueError("sampler: max_burnin_rounds must be >= min_burnin_rounds")
-        return self
-
-    def config(self) -> SamplerConfig:
-        return SamplerConfig(**self.model_dump())
-
-
-class MaximiserSpec(BaseModel):
-    """The study's maximiser settings; defaults are :class:`~ardcore.ard.MaximiserConfig`'s."""
-
-    model_config = _STRICT
-    alpha_start: float = Field(_M.alpha_start, gt=0)
-    step_decades: float = Field(_M.step_decades, gt=0, le=10)
-    min_step_decades: float = Field(_M.min_step_decades, gt=0, le=10)
-    noise_k: float = Field(_M.noise_k, ge=0, le=10)
-    step_noise_k: float = Field(_M.step_noise_k, ge=0, le=10)
-    min_gain: float = Field(_M.min_gain, ge=0, le=100)
-    keep_nats: float = Field(_M.keep_nats, ge=0, le=100)
-    prune_alpha: float = Field(_M.prune_alpha, gt=0)
-    prune_test: bool = _M.prune_test
-    max_trials: int = Field(_M.max_trials, ge=1, le=1000)
-    max_sweeps: int = Field(_M.max_sweeps, ge=1, le=100)
-    order: Literal["reverse", "declared"] = Field(
-        _M.order, description="visit the ARD parameters from the last declared (default) or the first")
-
-    def config(self) -> MaximiserConfig:
-        return MaximiserConfig(**self.model_dump())
+SamplerSpec = SamplerConfig
+"""The study's ``sampler`` section (one declaration: :class:`~ardcore.sampling.SamplerConfig`)."""
+MaximiserSpec = MaximiserConfig
+"""The study's ``maximiser`` section (one declaration: :class:`~ardcore.ard.MaximiserConfig`)."""
 
 
 class StudySpec(BaseModel):
@@ -219,8 +175,8 @@ class StudySpec(BaseModel):
     data: DataSpec
     models: list[CandidateSpec] = Field(min_length=1, max_length=16)
     evidence: Literal["chib-jeliazkov", "laplace"] = "chib-jeliazkov"
-    sampler: SamplerSpec = Field(default_factory=SamplerSpec)
-    maximiser: MaximiserSpec = Field(default_factory=MaximiserSpec)
+    sampler: SamplerConfig = Field(default_factory=SamplerConfig)
+    maximiser: MaximiserConfig = Field(default_factory=MaximiserConfig)
     seed: int = Field(0, ge=0, le=2**32 - 1)
     true_values: dict[Name, float] = Field(default_factory=dict, description="for reports only")
 

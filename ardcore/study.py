@@ -71,7 +71,7 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
     label = cand.label
     ms = cand.model_spec()
     essential = dict(cand.priors)
-    cfg = spec.sampler.config()
+    cfg = spec.sampler
 
     def prog(p):
         if progress:
@@ -90,7 +90,7 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
             on_trial(tr)
 
     seed = spec.seed * 1_000_003 + 7919 * index
-    mr = maximise(ev, cand.thresholds(), spec.maximiser.config(), seed=seed, on_trial=trial_done, warm=warm)
+    mr = maximise(ev, cand.thresholds(), spec.maximiser, seed=seed, on_trial=trial_done, warm=warm)
     res, target = mr.sampler, mr.target
     if spec.evidence == "laplace":
         target, _, res = ev(mr.psi_opt, seed + 99991, mr.sampler, final=True)

@@ -17,10 +17,18 @@ from .cmd_local import (  # noqa: F401
     cmd_example,
     cmd_loglik,
     cmd_models,
+    cmd_settings,
     cmd_simulate,
 )
 from .cmd_remote import cmd_fetch, cmd_serve, cmd_status, cmd_submit
-from .cmd_study import cmd_demo, cmd_diagnose, cmd_loo, cmd_resume, cmd_select, full_settings  # noqa: F401
+from .cmd_study import (  # noqa: F401
+    cmd_demo,
+    cmd_diagnose,
+    cmd_loo,
+    cmd_resume,
+    cmd_select,
+    full_settings,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -139,6 +147,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("name", nargs="?")
     s.add_argument("--out", help="file to write (default: print it)")
     s.set_defaults(fn=cmd_example)
+
+    s = sub.add_parser("settings", help="the sampler's and maximiser's settings: defaults, bounds, meaning")
+    s.add_argument("section", nargs="?", choices=["sampler", "maximiser"])
+    s.set_defaults(fn=cmd_settings)
 
     s = sub.add_parser("demo", help="the main job: the Section 3.6 study on an embedded cluster, with its report")
     s.add_argument("--out", default="runs/demo")

@@ -169,3 +169,49 @@ def cmd_example(a) -> int:
     else:
         print(text)
     return 0
+
+
+SETTINGS_SECTIONS = {"sampler": "ardflow.ardcore.sampling:SamplerConfig",
+                     "maximiser": "ardflow.ardcore.ard:MaximiserConfig"}
+
+
+def settings_table(model) -> list[tuple[str, str, str, str]]:
+    """(field, default, bounds, meaning) for every field of a settings model: read from the one declaration
+    (the pydantic fields and the numpydoc ``Attributes`` of its docstring), so nothing is written twice."""
+    import inspect
+
+    meaning: dict[str, list[str]] = {}
+    cur: list[str] = []
+    for line in inspect.cleandoc(model.__doc__ or "").splitlines():
+        if " : " in line and not line.startswith(" "):
+            cur = [n.strip() for n in line.split(" : ")[0].split(",")]
+            for n in cur:
+                meaning[n] = []
+        elif line.startswith(" ") and cur:
+            for n in cur:
+                meaning[n].append(line.strip())
+    props = model.model_json_schema()["properties"]
+    rows = []
+    for name, f in model.model_fields.items():
+        p = props.get(name, {})
+        bounds = [f"{op} {p[k]:g}" for k, op in (("exclusiveMinimum", ">"), ("minimum", ">="),
+                                                   ("exclusiveMaximum", "<"), ("maximum", "<="))
+                  if k in p]
+        bounds += [" | ".join(map(repr, p["enum"]))] if "enum" in p else []
+        text = " ".join(meaning.get(name, [])) or (f.description or "")
+        default = f"{f.default:g}" if isinstance(f.default, float) else repr(f.default)
+        rows.append((name, default, ", ".join(bounds), text))
+    return rows
+
+
+def cmd_settings(a) -> int:
+    """Print a spec section's settings: field, default, bounds and meaning."""
+    from importlib import import_module
+
+    for section in [a.section] if a.section else list(SETTINGS_SECTIONS):
+        mod, cls = SETTINGS_SECTIONS[section].split(":")
+        print(f"[{section}]")
+        for name, default, bounds, text in settings_table(getattr(import_module(mod), cls)):
+            print(f"  {name:20s} {default:>10s}  {bounds:22s} {text}")
+        print()
+    return 0

@@ -117,3 +117,23 @@ def test_live_progress_bars_and_plain_lines(capsys):
             plain(ev)
     out = capsys.readouterr().out
     assert "[M1] trial   1  a3: log10 alpha -10 -> -8" in out and "[M1] done: ln Z = 11.000" in out
+
+
+def test_settings_are_listed_from_their_one_declaration():
+    """`ardflow settings` prints every field the spec accepts, with the default and bounds the spec enforces."""
+    from ardflow.ardcore.ard import MaximiserConfig
+    from ardflow.ardcore.sampling import SamplerConfig
+    from ardflow.ardcore.spec import StudySpec
+
+    r = run("settings")
+    assert r.returncode == 0, r.stderr
+    lines = {ln.split()[0]: ln for ln in r.stdout.splitlines() if ln.startswith("  ")}
+    for model in (SamplerConfig, MaximiserConfig):
+        for name in model.model_fields:
+            assert name in lines, name
+    assert "n_chains" in lines and ">= 2" in lines["n_chains"] and " 4 " in lines["n_chains"]
+    # the bound printed is the bound the study spec enforces
+    with pytest.raises(ValueError, match="n_chains"):
+        StudySpec.model_validate({"name": "x", "data": {"generator": "appendix_a"}, "models": [],
+                                  "sampler": {"n_chains": 1}})
+    assert "reweight_min_ess" in lines and "<= 1" in lines["reweight_min_ess"]
