@@ -19,6 +19,9 @@ not from its names.
 * **Any dynamic state** s (first-order, level/flow and coupled models as well as
   oscillators): s^2, s^3, s|s|, sqrt(|s|) (outflow through an orifice), saturation
   tanh(s/s0), linear coupling to every other state, and an offset.
+* **Flows between coupled levels** (``where="flow"``): where one dynamic state drives another's drift,
+  a flow law (sqrt, x|x|, saturating) that leaves the first and enters the second (the pipe between
+  two tanks), with one coefficient when the model conserves the flow in its units, else one per side.
 * **Measurement effects** (``where="observation"``, added to an observation's
   expression): a bias, a direct feedthrough of each input, and a quadratic/cubic
   sensor nonlinearity.
@@ -34,7 +37,7 @@ Extend it by passing ``extra`` effects to :func:`candidate_effects`.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import sympy as sp
@@ -72,6 +75,9 @@ class Effect:
     where: str = "drift"
     shape: tuple = ()
     """``(name, low, high)``: a shape parameter written ``{name}`` in the terms, to be fixed by :meth:`at`."""
+    between: tuple = ()
+    """For ``where="flow"``: ``(source, receiver)``; the terms leave the source's drift and enter the receiver's
+    (a conserved flow between two levels, as through the pipe joining two tanks)."""
 
     def at(self, value: float) -> "Effect":
         """This effect with its shape parameter fixed to ``value`` (a forcing effect: its frequency)."""
@@ -80,13 +86,13 @@ class Effect:
         name = self.shape[0]
         v = float(f"{value:.6g}")
         if name == "f":
-            return Effect(f"forcing(f={v:.6g})", self.kind, self.terms, f"periodic forcing at {v:.6g} cycles/unit",
-                          frequency=v, code=self.code, where=self.where)
+            return replace(self, name=f"forcing(f={v:.6g})", description=f"periodic forcing at {v:.6g} cycles/unit",
+                           frequency=v, shape=())
         terms = tuple(t.replace("{" + name + "}", repr(v)) for t in self.terms)
         base = self.name.split("(")[0]
         arg = self.name[len(base) + 1:-1]
-        return Effect(f"{base}({arg},{name}={v:.3g})", self.kind, terms,
-                      self.description.replace("{" + name + "}", f"{v:.3g}"), code=self.code, where=self.where)
+        return replace(self, name=f"{base}({arg},{name}={v:.3g})", terms=terms, shape=(),
+                       description=self.description.replace("{" + name + "}", f"{v:.3g}"))
 
     def columns_for(self, t: np.ndarray) -> dict[str, np.ndarray]:
         """Extra input columns this effect needs on the time grid ``t`` (empty for most effects)."""
@@ -197,6 +203,7 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         for u in inputs:
             out += [Effect(f"input_cross({u}*{s_})", "input", (f"{u}*{s_}",), f"input-state cross term {u} {s_}",
                            code=f"u{u}{s_}")]
+    out += flow_effects(spec, scales)
     used = set(spec.inputs)
     free_idx = (i for i in range(100) if f"forcing{i}_sin" not in used)  # columns of forcing already added stay
     for f in frequencies:
@@ -233,6 +240,40 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     return uniq
 
 
+def flow_effects(spec: ModelSpec, scales: dict[str, float]) -> list[Effect]:
+    """Flows between coupled levels (tanks, compartments, thermal masses): for each dynamic state i whose
+    value drives another one's drift j, a flow law f(x_i) that leaves i and enters j.
+
+    When one parameter of the model already appears in both drifts (``-a*h1`` in one, ``a*h1`` in the other:
+    the model conserves what flows, in its units) the flow has one coefficient; otherwise (levels of tanks
+    of different cross-sections) it has one per side. An outflow added to i alone and an inflow to j alone
+    would each be screened without the other, and neither would find the pipe between them."""
+    pair_v = {v for _, v in oscillator_pairs(spec)}
+    levels = [s_ for s_ in dynamic_states(spec) if s_ not in pair_v]
+    sm = spec.sym
+    params = set(sm.params)
+    out = []
+    for i in levels:
+        xi = sp.Symbol(i, real=True)
+        di = sm.drift[spec.states.index(i)]
+        for j in levels:
+            dj = sm.drift[spec.states.index(j)]
+            if j == i or xi not in dj.free_symbols:
+                continue
+            one = bool(di.free_symbols & dj.free_symbols & params)
+            laws = [("sqrt_flow", "fr", f"sqrt(abs({i}))*sign({i})", f"through an orifice, sqrt({i})", None),
+                    ("square_flow", "fa", f"{i}*abs({i})", f"growing as {i}|{i}|", None)]
+            sc = scales.get(i)
+            if sc and sc > 0:
+                laws.append(("saturating_flow", "fs", f"{{xs}}*tanh({i}/{{xs}})", "saturating beyond ~{xs}",
+                             ("xs", 0.2 * sc, 1.5 * sc)))
+            for name, code, term, what, shape in laws:
+                out.append(Effect(f"{name}({i}->{j})", "flow", (term,) if one else (term, term),
+                                  f"flow from {i} to {j} {what}", code=f"{code}{i}{j}", where="flow",
+                                  between=(i, j), shape=shape or ()))
+    return out
+
+
 def _short(text: str, limit: int = 32) -> str:
     text = re.sub(r"[^0-9A-Za-z_]+", "", text)
     if len(text) <= limit:
@@ -261,10 +302,19 @@ def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | 
     """
     if effect.shape and "{" in "".join(effect.terms):
         raise ValueError(f"effect {effect.name!r} has a free shape parameter {effect.shape[0]!r}: fix it with .at()")
-    names = names or [coefficient_name(effect, i, target) for i in range(len(effect.terms))]
+    if names is None:
+        taken = set(spec.parameters) | set(spec.constants) | set(spec.states) | set(spec.inputs)
+        names = []
+        for i in range(len(effect.terms)):
+            n, k = coefficient_name(effect, i, target), 2
+            while n in taken:  # the same family added again (another width, another round)
+                n, k = _short(f"{coefficient_name(effect, i, target)}_{k}"), k + 1
+            taken.add(n)
+            names.append(n)
     sc = scales or [None] * len(effect.terms)
-    add = " + ".join(f"{n}*({term})" if c is None else f"{n}*({c if isinstance(c, str) else repr(float(c))}*({term}))"
-                     for n, term, c in zip(names, effect.terms, sc))
+    parts = [f"{n}*({term})" if c is None else f"{n}*({c if isinstance(c, str) else repr(float(c))}*({term}))"
+             for n, term, c in zip(names, effect.terms, sc)]
+    add = " + ".join(parts)
     update = {"name": _short(f"{spec.name}_{effect.code}"), "parameters": list(spec.parameters) + names,
               "inputs": list(spec.inputs) + [c for c in effect.columns_for(np.zeros(1)) if c not in spec.inputs]}
     if effect.where == "noise":
@@ -278,6 +328,15 @@ def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | 
         if all(o.column != target for o in spec.observations):
             raise ValueError(f"{target!r} is not an observed column of {spec.name!r}")
         update["observations"] = obs
+    elif effect.where == "flow":
+        src, dst = effect.between
+        if target != src:
+            raise ValueError(f"the flow {effect.name!r} leaves {src!r}, not {target!r}")
+        drift = dict(spec.drift)
+        # one coefficient: the same flow on both sides; two: one per side
+        drift[src] = f"({drift[src]}) - ({parts[0]})"
+        drift[dst] = f"({drift[dst]}) + {parts[-1]}"
+        update["drift"] = drift
     else:
         drift = dict(spec.drift)
         drift[target] = f"({drift[target]}) + {add}"

@@ -9,14 +9,14 @@ profiled out, adjusted to the innovations' own spectrum (:mod:`ardcore.robust`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import sympy as sp
 
 from .data import Dataset
-from .ekf import compile_model
 from .effects import Effect, augment, feature_functions, with_columns
+from .ekf import compile_model
 from .model import ModelSpec
 from .robust import innovation_background, sandwich, spectral_score_cov
 
@@ -149,8 +149,8 @@ class Screener:
             e2 = eff
             if eff.shape and eff.shape[0] != "f":
                 pname = f"zs{j}"
-                e2 = Effect(eff.name, eff.kind, tuple(t.replace("{" + eff.shape[0] + "}", pname) for t in eff.terms),
-                            code=eff.code, where=eff.where)
+                e2 = replace(eff, terms=tuple(t.replace("{" + eff.shape[0] + "}", pname) for t in eff.terms),
+                             shape=())
                 values[pname] = float(sv)
             spec, _ = augment(spec, e2, target, cn, names=nm)
             extra = [f"zs{j}"] if f"zs{j}" in values else []

@@ -136,6 +136,7 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
     k = len(sc.theta)
     pairs = [(e, t) for e in effects if e.where == "drift" for t in targets]
     pairs += [(e, c) for e in effects if e.where in ("observation", "noise") for c in obs_targets]
+    pairs += [(e, e.between[0]) for e in effects if e.where == "flow" and e.between[0] in targets]
     out: list[Screened] = []
     plain = [(e, t) for e, t in pairs if not e.shape]
     shaped = [(e, t) for e, t in pairs if e.shape]

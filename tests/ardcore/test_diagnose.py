@@ -156,3 +156,38 @@ def test_screen_finds_the_outflow_law_of_a_level_model():
                             ["h"], ["y"])
     assert ranked[0].effect.kind in ("state", "offset") and ranked[0].log_bayes_factor > 30, _names(ranked, 5)
     assert ("sqrt_outflow(h)", "h") in _names(ranked, 3), _names(ranked, 5)
+
+
+def test_screen_finds_the_flow_between_two_tanks():
+    """Two tanks in cascade, only the lower level measured; the pipe between them follows sqrt(h1), the model
+    offered takes it as linear. The flow leaves h1 and enters h2 with one coefficient when the model's own
+    coupling is one parameter in both drifts (it conserves the flow in its units), else one per side."""
+    from ardflow.ardcore.model import ModelSpec
+
+    def tanks(law, c_name="a"):
+        return ModelSpec(name="tanks", states=["h1", "h2"], inputs=["u"],
+                         drift={"h1": f"q*u - a*{law}", "h2": f"{c_name}*{law} - c*h2"},
+                         diffusion={"h1": "s", "h2": "s"},
+                         observations=[{"column": "y", "expr": "h2", "noise_std": 0.003}],
+                         parameters=sorted({"q", "a", "c", "s", c_name}), initial_mean={"h1": 1.0, "h2": 1.0},
+                         initial_std={"h1": 0.1, "h2": 0.1})
+
+    # tanks of different cross-sections: the flow's two sides have their own coefficients
+    assert all(len(e.terms) == 2 for e in candidate_effects(tanks("h1", "a_in"), scales={"h1": 0.5})
+               if e.where == "flow")
+    rng = np.random.default_rng(4)
+    t = np.arange(3000) * 0.2
+    u = 1.0 + 0.8 * np.sign(np.sin(2 * np.pi * t / 60)) + 0.1 * rng.standard_normal(t.size)
+    truth = {"q": 0.5, "a": 0.5, "c": 0.3, "s": 0.005}
+    data = simulate_model(tanks("sqrt(abs(h1))*sign(h1)"), truth, t, 4, inputs={"u": u}, x0=[1.0, 1.0])
+    spec = tanks("h1")
+    library = candidate_effects(spec, scales={"h1": 0.5, "h2": 0.5})
+    flows = [e for e in library if e.where == "flow"]
+    assert {e.name for e in flows} == {"sqrt_flow(h1->h2)", "square_flow(h1->h2)", "saturating_flow(h1->h2)"}
+    assert all(len(e.terms) == 1 for e in flows)
+    phi = _fit(spec, data, [truth[p] for p in spec.free_parameters])
+    ranked = screen_effects(spec, phi, data, library, ["h1", "h2"], ["y"])
+    assert ("sqrt_flow(h1->h2)", "h1") in _names(ranked, 3), _names(ranked, 6)
+    # added, it leaves h1 and enters h2 with the same coefficient
+    added, names = augment(spec, next(e for e in flows if e.name == "sqrt_flow(h1->h2)"), "h1")
+    assert f"- ({names[0]}*" in added.drift["h1"] and f"+ {names[0]}*" in added.drift["h2"]
