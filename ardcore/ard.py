@@ -17,11 +17,11 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Literal
+from typing import Callable
 
 import numpy as np
-from pydantic import BaseModel, Field
 
+from .ard_config import MaximiserConfig
 from .evaluate import (  # noqa: F401
     EvidenceEvaluator,
     _laplace_state,
@@ -35,88 +35,8 @@ from .jsonio import encode_alpha
 from .mcmc import SamplerResult
 from .posterior import ModelPosterior
 from .reweight import resample_states, reweight, weighted_summary
-from .sampling import SETTINGS
 
 INF = math.inf
-
-
-class MaximiserConfig(BaseModel):
-    """Evidence-maximisation settings, with their bounds: the study spec's ``maximiser`` section is this model.
-
-    Attributes
-    ----------
-    alpha_start : float
-        Initial alpha of every ARD parameter.
-    step_decades, min_step_decades : float
-        First and smallest line-search step in log10 alpha.
-    noise_k : float
-        The prune test keeps a term only when ln Z with it beats ln Z without it by more than
-        noise_k * se of the difference (and ``min_gain``), plus ``keep_nats``; a pruned term
-        is re-tested in a later sweep on the noise margin alone, then prune-tested again.
-    step_noise_k : float
-        The same multiple for a line-search step up in alpha (default 1, as the prune test).
-        0 lets the point estimate decide, so a noisy baseline cannot stop a coordinate at its
-        starting alpha; on the Sec 3.6 demo that walked unneeded terms up to large alpha one
-        step at a time (demo 629 s instead of 394 s) without changing the pruning pattern.
-    min_gain : float
-        Smallest improvement in ln Z (nats) that counts as a line-search step.
-    keep_nats : float
-        A term survives its prune test only when ln Z with it beats ln Z without it
-        by more than ``keep_nats + noise_k * se``: the lower 1-se bound of its log Bayes factor
-        must pass 1 nat, where Kass and Raftery's "positive" evidence starts (2 ln B = 2).
-        Below that the evidence for the term is "not worth more than a bare mention"; on the
-        Sec 3.6 demo M3 kept theta^5 on a gain of 1.1 +- 0.4 nats without it.
-    prune_alpha : float
-        Default pruning threshold: past it, the term is tested for removal at once.
-    prune_test : bool
-        Test alpha = inf when a coordinate stops improving.
-    max_trials : int
-        Most evidence evaluations per model.
-    max_sweeps : int
-        Most passes over the ARD parameters.
-    order : {"reverse", "declared"}
-        Order in which the coordinates are visited. "reverse" (default) starts from the last
-        declared ARD parameter: declare terms from the simplest up (a3 .. a6) and the most
-        complex one is tested for removal first, while the simpler terms that can stand in for
-        it are still free (backward elimination under the hierarchy principle). Visiting a3
-        first on the Sec 3.6 study let theta^5 stand in for theta^3 in M1, and theta^4 theta'
-        for theta^2 theta' in M3, so the wrong member of each pair was pruned.
-    reweight : bool
-        Line-search steps are first estimated by reweighting the draws of the last sampled trial
-        (:mod:`ardcore.reweight`: the step changes only the ARD prior, so no likelihood is evaluated);
-        a real trial (MCMC + Chib-Jeliazkov) runs only when that estimate is unreliable, for every
-        prune test and re-test, and at the accepted optimum. Studies with Laplace evidence draw
-        nothing to reweight.
-    reweight_min_ess : float
-        Smallest Kish effective sample size of the weights, as a share of the draws, for a reweighted
-        step. Below about a quarter the new posterior's bulk sits where the old one has few draws and
-        the estimate rests on a handful of them (its batch-means se is then itself unreliable).
-    reweight_max_se : float
-        Largest Monte Carlo se (nats, batch means) of a reweighted step; 0.2 is below the Chib-Jeliazkov
-        se of a sampled trial in the reference studies, so a reweighted step is never the noisier one.
-    reweight_min_step : float
-        Smallest step (decades) tried by reweighting when a full step cannot be reweighted (see
-        :func:`maximise`); such smaller steps cost no likelihood evaluation.
-    """
-
-    model_config = SETTINGS
-    alpha_start: float = Field(1e-10, gt=0)
-    step_decades: float = Field(2.0, gt=0, le=10)
-    min_step_decades: float = Field(1.0, gt=0, le=10)
-    noise_k: float = Field(1.0, ge=0, le=10)
-    step_noise_k: float = Field(1.0, ge=0, le=10)
-    min_gain: float = Field(0.05, ge=0, le=100)
-    keep_nats: float = Field(1.0, ge=0, le=100)
-    prune_alpha: float = Field(1e12, gt=0)
-    prune_test: bool = True
-    max_trials: int = Field(60, ge=1, le=1000)
-    max_sweeps: int = Field(2, ge=1, le=100)
-    order: Literal["reverse", "declared"] = Field(
-        "reverse", description="visit the ARD parameters from the last declared (default) or the first")
-    reweight: bool = True
-    reweight_min_ess: float = Field(0.25, gt=0, le=1)
-    reweight_max_se: float = Field(0.2, gt=0, le=100)
-    reweight_min_step: float = Field(0.25, gt=0, le=10)
 
 
 @dataclass
@@ -177,7 +97,7 @@ def posterior_summary(names, samples: np.ndarray) -> dict:
 def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: MaximiserConfig, *,
              seed: int, on_trial: Callable[[Trial], None] | None = None,
              warm: SamplerResult | None = None) -> MaximiserResult:
-    """Maximise the evidence over the ARD hyper-parameters.
+    """Maximise the evidence over the ARD hyper-parameters: :class:`Maximiser` driven by ``evaluate``.
 
     Parameters
     ----------
@@ -191,66 +111,153 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
     warm : SamplerResult, optional
         Warm start of the first trial (e.g. the fit of a nested model; parameters it lacks start at 0).
     """
-    psi = {k: config.alpha_start for k in ard}
-    thresholds = {k: (v if v is not None else config.prune_alpha) for k, v in ard.items()}
-    visit = list(ard)[::-1] if config.order == "reverse" else list(ard)
-    history: list[Trial] = []
-    counter = [0]   # iteration ids (sampled and reweighted trials)
-    n_sampled = [0]  # sampled trials: what max_trials limits
-
-    def run(trial_psi, warm, action):
-        it = counter[0]
-        counter[0] += 1
-        n_sampled[0] += 1
+    m = Maximiser(ard, config, seed=seed, warm=warm, on_trial=on_trial)
+    while (req := m.next()) is not None:
         t0 = time.perf_counter()
-        target, ev, res = evaluate(trial_psi, seed + 1009 * it, warm, iteration=it)
-        post = {}
-        diag = {}
+        target, ev, res = evaluate(req.psi, req.seed, req.warm, iteration=req.iteration)
+        m.observe(req, target, ev, res, time.perf_counter() - t0)
+    return m.result()
+
+
+@dataclass(frozen=True)
+class TrialRequest:
+    """What the maximiser asks for next: the evidence at ``psi`` by sampling (MCMC + Chib-Jeliazkov or
+    Laplace), its chains warm-started from ``warm``."""
+
+    iteration: int
+    psi: dict
+    warm: SamplerResult | None
+    action: str
+    seed: int
+
+
+def _diff_se(a: Trial, b: Trial) -> float:
+    """se of ln Z(a) - ln Z(b): a reweighted trial shares its base's estimate, so only the reweighting's own
+    error separates them."""
+    if a.reweighted_from is not None and a.reweighted_from == b.iteration:
+        return a.reweight_se
+    if b.reweighted_from is not None and b.reweighted_from == a.iteration:
+        return b.reweight_se
+    if a.reweighted_from is not None and a.reweighted_from == b.reweighted_from:
+        return math.hypot(a.reweight_se, b.reweight_se)
+    return math.hypot(a.evidence.log_evidence_se, b.evidence.log_evidence_se)
+
+
+class Maximiser:
+    """The ARD evidence maximisation (module docstring) as a sans-IO state machine.
+
+    :meth:`next` returns the next :class:`TrialRequest` (None when done); the caller evaluates it and
+    hands the outcome to :meth:`observe`. Reweighted steps need no likelihood and are decided inside.
+    Internally the plan is a generator: each place that needs a sampled trial yields its request.
+    """
+
+    def __init__(self, ard: dict[str, float | None], config: MaximiserConfig, *, seed: int,
+                 warm: SamplerResult | None = None, on_trial: Callable[[Trial], None] | None = None):
+        self.config, self.seed, self.on_trial, self._warm = config, seed, on_trial, warm
+        self.psi = {k: config.alpha_start for k in ard}
+        self.thresholds = {k: (v if v is not None else config.prune_alpha) for k, v in ard.items()}
+        self.visit = list(ard)[::-1] if config.order == "reverse" else list(ard)
+        self.history: list[Trial] = []
+        self.n_sampled = 0  # what max_trials limits
+        self._iteration = 0  # ids of sampled and reweighted trials
+        self.best: Trial | None = None
+        self.best_target = self.best_res = None
+        self.base = None  # (trial, result): the sampled trial whose draws reweighted trials come from
+        self.settled: dict[str, dict] = {}  # psi at which a coordinate's search last ended
+        self.pruned_at: dict[str, float] = {}  # the finite alpha a term had when it was pruned
+        self._plan_gen = self._plan()
+        self._reply = None
+        self._started = False
+
+    # -- the interface
+    def next(self) -> TrialRequest | None:
+        """The next trial to sample, or None when the maximisation is over."""
+        try:
+            if not self._started:
+                self._started = True
+                return next(self._plan_gen)
+            reply, self._reply = self._reply, None
+            return self._plan_gen.send(reply)
+        except StopIteration:
+            return None
+
+    def observe(self, request: TrialRequest, target, evidence: Evidence, res: SamplerResult | None,
+                wall_s: float) -> Trial:
+        """Record the outcome of ``request``."""
+        post, diag = {}, {}
         if res is not None and res.samples.size:
             post = posterior_summary(res.names, res.samples.reshape(-1, len(res.names)))
             diag = {"rhat": dict(zip(res.names, map(float, res.rhat))), "burnin_rounds": res.burnin_rounds,
                     "converged": res.converged, "acceptance": res.acceptance,
                     "burnin_acceptance": res.burnin_acceptance,
                     # every likelihood evaluation of the trial: start, burn-in, stationary draws, CJ proposals
-                    "n_evaluations": int(res.n_evaluations) + int(ev.n_evaluations)}
+                    "n_evaluations": int(res.n_evaluations) + int(evidence.n_evaluations)}
         if res is not None:
             post.setdefault("_map", dict(zip(res.names, map(float, res.phi_star))))
-        tr = Trial(it, dict(trial_psi), ev, False, action, time.perf_counter() - t0, post, diag)
-        history.append(tr)
-        return tr, target, res
+        tr = Trial(request.iteration, dict(request.psi), evidence, False, request.action, wall_s, post, diag)
+        self.history.append(tr)
+        self._reply = (tr, target, res)
+        return tr
 
-    best, best_target, best_res = run(psi, warm, "start")
-    best.accepted = True
-    base = (best, best_res)  # the sampled trial whose draws reweighted trials come from
-    if on_trial:
-        on_trial(best)
+    def result(self) -> MaximiserResult:
+        return MaximiserResult(self.psi, self.best, self.best_res, self.best_target, self.history)
 
-    def reweighted(trial_psi, action):
-        """(trial, warm state) reweighted from the base trial's draws, or (None, weights or None) when that is
-        not reliable (or does not apply)."""
-        btr, bres = base
-        if not config.reweight or bres is None or not bres.samples.size:
-            return None, None
-        rw = reweight(bres.names, bres.samples, btr.psi, trial_psi)
-        if rw is None or not rw.reliable(config.reweight_min_ess, config.reweight_max_se):
-            return None, rw
-        it = counter[0]
-        counter[0] += 1
-        be = btr.evidence
-        lz = be.log_evidence + rw.log_ratio
-        ev = Evidence(lz, math.hypot(be.log_evidence_se, rw.se), be.goodness_of_fit, be.goodness_of_fit - lz,
-                      "reweighted", warnings=[])
-        tr = Trial(it, dict(trial_psi), ev, False, action + " (reweighted)", 0.0,
-                   weighted_summary(bres.names, bres.samples, rw.weights),
-                   {"ess": rw.ess, "n_draws": rw.n, "n_evaluations": 0}, reweighted_from=btr.iteration,
-                   reweight_se=rw.se)
-        history.append(tr)
-        return tr, resample_states(bres, rw.weights, seed + 1009 * it)
+    # -- the plan
+    def _plan(self):
+        cfg = self.config
+        tr, target, res = yield from self._sample(self.psi, self._warm, "start")
+        tr.accepted = True
+        self.best, self.best_target, self.best_res = tr, target, res
+        self.base = (tr, res)
+        self._notify(tr)
+        changed, sweeps = True, 0
+        while changed and self.n_sampled < cfg.max_trials and sweeps < cfg.max_sweeps:
+            changed = False
+            sweeps += 1
+            for k in self.visit:
+                changed = (yield from self._coordinate(k, sweeps)) or changed
+        yield from self._settle()
 
-    def label(k, a):
-        return f"{k}: log10 alpha {math.log10(psi[k]):.2f} -> {math.log10(a):.2f}"
+    def _coordinate(self, k: str, sweeps: int):
+        """One coordinate of a sweep: re-test it if pruned, else its line search and prune test."""
+        cfg, changed = self.config, False
+        if self.psi[k] == INF and sweeps > 1 and k in self.pruned_at and self.settled.get(k) != self.psi \
+                and self.n_sampled < cfg.max_trials:
+            changed = yield from self._retest(k)
+        if self.psi[k] == INF or self.settled.get(k) == self.psi:
+            self.settled[k] = dict(self.psi)
+            return changed
+        changed = (yield from self._line_search(k, sweeps)) or changed
+        if cfg.prune_test and self.n_sampled < cfg.max_trials:
+            changed = (yield from self._prune_test(k)) or changed
+        self.settled[k] = dict(self.psi)
+        return changed
 
-    def step(k, stp, direction):
+    def _line_search(self, k: str, sweeps: int):
+        """Up first (toward the simpler model); in later sweeps, when up does not pay, down: a term the other
+        terms' changes made more useful may have been shrunk too far. True when alpha moved."""
+        cfg, moved = self.config, False
+        for direction in ((1,) if sweeps == 1 else (1, -1)):
+            stp = cfg.step_decades
+            while stp >= cfg.min_step_decades - 1e-12 and self.n_sampled < cfg.max_trials:
+                a = self.psi[k] * 10.0 ** (direction * stp)
+                if a >= self.thresholds[k] or a < cfg.alpha_start * (1 - 1e-9):
+                    break
+                out = yield from self._step(k, stp, direction)
+                if out is None:
+                    break  # a reweighted smaller step was worse: so is this one
+                tr, target, res = out
+                if self._better(tr, self.best, cfg.step_noise_k):
+                    self._accept(tr, target, res)
+                    moved = True
+                else:
+                    stp /= 2.0
+                self._notify(tr)
+            if moved:
+                break
+        return moved
+
+    def _step(self, k: str, stp: float, direction: int):
         """One line-search step of ``stp`` decades: (trial, target, state), or None when the step is known to
         be worse without sampling it.
 
@@ -260,116 +267,108 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
         taken instead. Only when no smaller step can be reweighted is the step sampled, its chains
         starting at draws resampled with the weights.
         """
-        a = psi[k] * 10.0 ** (direction * stp)
-        tr, state = reweighted(dict(psi, **{k: a}), label(k, a))
+        cfg = self.config
+        a = self.psi[k] * 10.0 ** (direction * stp)
+        tr, state = self._reweighted(dict(self.psi, **{k: a}), self._label(k, a))
         if tr is not None:
             return tr, None, state
         rw = state
         sub = stp / 2.0
-        while sub >= config.reweight_min_step - 1e-12:
-            b = psi[k] * 10.0 ** (direction * sub)
-            t2, st2 = reweighted(dict(psi, **{k: b}), label(k, b))
+        while sub >= cfg.reweight_min_step - 1e-12:
+            b = self.psi[k] * 10.0 ** (direction * sub)
+            t2, st2 = self._reweighted(dict(self.psi, **{k: b}), self._label(k, b))
             if t2 is not None:
-                if better(t2, best, config.step_noise_k):
+                if self._better(t2, self.best, cfg.step_noise_k):
                     return t2, None, st2
-                if on_trial:
-                    on_trial(t2)
+                self._notify(t2)
                 return None
             sub /= 2.0
-        bres = base[1]
+        bres = self.base[1]
         # resampled starts need distinct draws to resample: with a few heavy weights the chains would all
         # start at one point, so then they continue from where the best trial's chains are
         spread = rw is not None and rw.ess >= 10 * len(bres.states)
-        warm = resample_states(bres, rw.weights, seed + 1009 * counter[0]) if spread else best_res
-        return run(dict(psi, **{k: a}), warm, label(k, a))
+        warm = resample_states(bres, rw.weights, self.seed + 1009 * self._iteration) if spread else self.best_res
+        return (yield from self._sample(dict(self.psi, **{k: a}), warm, self._label(k, a)))
 
-    def diff_se(a: Trial, b: Trial) -> float:
-        """se of ln Z(a) - ln Z(b): a reweighted trial shares its base's estimate, so only the reweighting's
-        own error separates them."""
-        if a.reweighted_from is not None and a.reweighted_from == b.iteration:
-            return a.reweight_se
-        if b.reweighted_from is not None and b.reweighted_from == a.iteration:
-            return b.reweight_se
-        if a.reweighted_from is not None and a.reweighted_from == b.reweighted_from:
-            return math.hypot(a.reweight_se, b.reweight_se)
-        return math.hypot(a.evidence.log_evidence_se, b.evidence.log_evidence_se)
+    def _prune_test(self, k: str):
+        """Occam: the nested model (alpha = inf) wins unless the term is worth more than the noise."""
+        tr, target, res = yield from self._sample(dict(self.psi, **{k: INF}), self.best_res,
+                                                  f"{k}: prune test (alpha = inf)")
+        pruned = not self._better(self.best, tr, margin=self.config.keep_nats)
+        if pruned:
+            self.pruned_at[k] = self.psi[k]
+            self._accept(tr, target, res)
+        self._notify(tr)
+        return pruned
 
-    def better(tr: Trial, ref: Trial, k: float | None = None, margin: float = 0.0) -> bool:
-        k = config.noise_k if k is None else k
-        return tr.evidence.log_evidence - ref.evidence.log_evidence > max(k * diff_se(tr, ref), config.min_gain) + margin
+    def _retest(self, k: str):
+        """The other terms have moved since k was pruned: does k come back? (The prune test that follows
+        applies keep_nats.)"""
+        a = self.pruned_at[k]
+        tr, target, res = yield from self._sample(dict(self.psi, **{k: a}), self.best_res,
+                                                  f"{k}: re-test (alpha = {a:.3g})")
+        back = self._better(tr, self.best)
+        if back:
+            self._accept(tr, target, res)
+            del self.pruned_at[k]
+        self._notify(tr)
+        return back
 
-    def accept(tr, target, res):
-        nonlocal best, best_target, best_res, psi, base
-        tr.accepted = True
-        best, best_target, best_res, psi = tr, target, res, dict(tr.psi)
-        if tr.sampled:
-            base = (tr, res)
-
-    def settle():
+    def _settle(self):
         """The accepted optimum is sampled (never left as a reweighted estimate). A prune test in between
         compares its sampled alpha = inf trial with the reweighted estimate, whose se carries both the base
         trial's and the reweighting's error."""
-        if best.sampled:
+        if self.best.sampled:
             return
-        tr, target, res = run(dict(psi), best_res, "optimum: sampled at the line-search optimum")
-        accept(tr, target, res)
-        if on_trial:
-            on_trial(tr)
+        tr, target, res = yield from self._sample(dict(self.psi), self.best_res,
+                                                  "optimum: sampled at the line-search optimum")
+        self._accept(tr, target, res)
+        self._notify(tr)
 
-    settled: dict[str, dict] = {}  # psi at which a coordinate's search last ended
-    pruned_at: dict[str, float] = {}  # the finite alpha a term had when it was pruned
-    changed = True
-    sweeps = 0
-    while changed and n_sampled[0] < config.max_trials and sweeps < config.max_sweeps:
-        changed = False
-        sweeps += 1
-        for k in visit:
-            if psi[k] == INF and sweeps > 1 and k in pruned_at and settled.get(k) != psi \
-                    and n_sampled[0] < config.max_trials:
-                # the other terms have moved since k was pruned: does k come back?
-                a = pruned_at[k]
-                tr, target, res = run(dict(psi, **{k: a}), best_res, f"{k}: re-test (alpha = {a:.3g})")
-                if better(tr, best):  # the prune test that follows applies keep_nats
-                    accept(tr, target, res)
-                    changed = True
-                    del pruned_at[k]
-                if on_trial:
-                    on_trial(tr)
-            if psi[k] == INF or settled.get(k) == psi:
-                settled[k] = dict(psi)
-                continue
-            moved = False
-            # up first (toward the simpler model); in later sweeps, when up does not pay, down: a term the
-            # other terms' changes made more useful may have been shrunk too far
-            for direction in ((1,) if sweeps == 1 else (1, -1)):
-                stp = config.step_decades
-                while stp >= config.min_step_decades - 1e-12 and n_sampled[0] < config.max_trials:
-                    a = psi[k] * 10.0 ** (direction * stp)
-                    if a >= thresholds[k] or a < config.alpha_start * (1 - 1e-9):
-                        break
-                    out = step(k, stp, direction)
-                    if out is None:
-                        break  # a reweighted smaller step was worse: so is this one
-                    tr, target, res = out
-                    if better(tr, best, config.step_noise_k):
-                        accept(tr, target, res)
-                        changed = moved = True
-                    else:
-                        stp /= 2.0
-                    if on_trial:
-                        on_trial(tr)
-                if moved:
-                    break
-            if config.prune_test and n_sampled[0] < config.max_trials:
-                trial = dict(psi, **{k: INF})
-                tr, target, res = run(trial, best_res, f"{k}: prune test (alpha = inf)")
-                # Occam: the nested model wins unless the term is worth more than the noise
-                if not better(best, tr, margin=config.keep_nats):
-                    pruned_at[k] = psi[k]
-                    accept(tr, target, res)
-                    changed = True
-                if on_trial:
-                    on_trial(tr)
-            settled[k] = dict(psi)
-    settle()
-    return MaximiserResult(psi, best, best_res, best_target, history)
+    # -- helpers
+    def _sample(self, psi: dict, warm, action: str):
+        it = self._iteration
+        self._iteration += 1
+        self.n_sampled += 1
+        return (yield TrialRequest(it, dict(psi), warm, action, self.seed + 1009 * it))
+
+    def _reweighted(self, trial_psi: dict, action: str):
+        """(trial, warm state) reweighted from the base trial's draws, or (None, weights or None) when that is
+        not reliable (or does not apply)."""
+        cfg = self.config
+        btr, bres = self.base
+        if not cfg.reweight or bres is None or not bres.samples.size:
+            return None, None
+        rw = reweight(bres.names, bres.samples, btr.psi, trial_psi)
+        if rw is None or not rw.reliable(cfg.reweight_min_ess, cfg.reweight_max_se):
+            return None, rw
+        it = self._iteration
+        self._iteration += 1
+        be = btr.evidence
+        lz = be.log_evidence + rw.log_ratio
+        ev = Evidence(lz, math.hypot(be.log_evidence_se, rw.se), be.goodness_of_fit, be.goodness_of_fit - lz,
+                      "reweighted", warnings=[])
+        tr = Trial(it, dict(trial_psi), ev, False, action + " (reweighted)", 0.0,
+                   weighted_summary(bres.names, bres.samples, rw.weights),
+                   {"ess": rw.ess, "n_draws": rw.n, "n_evaluations": 0}, reweighted_from=btr.iteration,
+                   reweight_se=rw.se)
+        self.history.append(tr)
+        return tr, resample_states(bres, rw.weights, self.seed + 1009 * it)
+
+    def _label(self, k: str, a: float) -> str:
+        return f"{k}: log10 alpha {math.log10(self.psi[k]):.2f} -> {math.log10(a):.2f}"
+
+    def _better(self, tr: Trial, ref: Trial, k: float | None = None, margin: float = 0.0) -> bool:
+        k = self.config.noise_k if k is None else k
+        return (tr.evidence.log_evidence - ref.evidence.log_evidence
+                > max(k * _diff_se(tr, ref), self.config.min_gain) + margin)
+
+    def _accept(self, tr: Trial, target, res) -> None:
+        tr.accepted = True
+        self.best, self.best_target, self.best_res, self.psi = tr, target, res, dict(tr.psi)
+        if tr.sampled:
+            self.base = (tr, res)
+
+    def _notify(self, tr: Trial) -> None:
+        if self.on_trial:
+            self.on_trial(tr)

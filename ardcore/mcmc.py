@@ -91,6 +91,61 @@ def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig
 
 
 
+def run_stationary(target, states: list, cov: np.ndarray, config: SamplerConfig, map_fn: Map = serial_map, *,
+                   n_eval: int = 0, resume: dict | None = None, progress=None, cancel=None, checkpoint=None):
+    """The stationary stage: M draws per chain by random-walk Metropolis with the fixed covariance ``cov``.
+
+    Returns samples (n_chains, M, d), their log posteriors and log likelihoods, the chain states, the
+    accepted count and the running count of likelihood evaluations. ``resume`` (a checkpoint of this stage
+    with the draws so far) continues it; ``checkpoint(state, n_eval)`` gets the stage's state after every
+    round.
+    """
+    nc, d, M = len(states), len(target.names), config.n_stationary
+    samples = np.full((nc, M, d), np.nan)
+    lps = np.full((nc, M), np.nan)
+    lls = np.full((nc, M), np.nan)
+    done, s_acc = 0, 0
+    if resume is not None and resume["stage"] == "stationary":
+        done, s_acc = int(resume["done"]), int(resume["s_acc"])
+        samples[:, :done], lps[:, :done], lls[:, :done] = (resume["samples"][:, :done], resume["lp"][:, :done],
+                                                           resume["ll"][:, :done])
+    while done < M:
+        if cancel is not None and cancel():
+            raise Cancelled("cancelled during stationary sampling")
+        n = min(config.round_size, M - done)
+        results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states], label=f"stationary-d{done}")
+        states = [q.state for q in results]
+        n_eval += nc * n
+        for c, q in enumerate(results):
+            samples[c, done:done + n], lps[c, done:done + n], lls[c, done:done + n] = q.samples, q.lp, q.ll
+        s_acc += sum(q.accepted for q in results)
+        done += n
+        if progress:
+            progress({"stage": "stationary", "round": done // config.round_size, "done": done, "of": M,
+                      "acceptance": sum(q.accepted for q in results) / (nc * n)})
+        if checkpoint:
+            checkpoint({"stage": "stationary", "states": [q.to_dict() for q in states], "done": done,
+                        "s_acc": s_acc}, n_eval)
+    return samples, lps, lls, states, s_acc, n_eval
+
+
+def _begin(target, config: SamplerConfig, seed: int, map_fn: Map, warm, starts, factory, checkpoint, resume):
+    """Chain states, the INCA coordinator, the stage and the counters to start (or resume) from."""
+    if resume is not None:
+        return ([ChainState.from_dict(q) for q in resume["states"]], factory(resume["pool"]), resume["stage"],
+                list(resume.get("counters", [0, 0, 0])))
+    states, cov, n_start = initial_states(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts)
+    pool0 = AdaptationPool(config.n_chains, len(target.names), cov, inca=config.inca,
+                           rhat_threshold=config.rhat_threshold, min_rounds=config.min_burnin_rounds,
+                           outlier_nats=config.outlier_nats)
+    pool = factory(pool0.to_dict())
+    counters = [0, 0, n_start]
+    if checkpoint:
+        checkpoint({"stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
+                    "counters": counters})
+    return states, pool, "burnin", counters
+
+
 def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
            warm: SamplerResult | None = None, starts: np.ndarray | None = None,
            progress: Callable[[dict], None] | None = None,
@@ -132,23 +187,10 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
         hold ``samples``, ``lp`` and ``ll`` arrays of the draws done so far.
     """
     names = list(target.names)
-    d = len(names)
     nc = config.n_chains
     warnings: list[str] = []
-    factory = pool_factory or AdaptationPool.from_dict
-    if resume is None:
-        states, cov, n_start = initial_states(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts)
-        pool0 = AdaptationPool(nc, d, cov, inca=config.inca, rhat_threshold=config.rhat_threshold,
-                               min_rounds=config.min_burnin_rounds, outlier_nats=config.outlier_nats)
-        pool = factory(pool0.to_dict())
-        stage, counters = "burnin", [0, 0, n_start]
-        if checkpoint:
-            checkpoint({"stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
-                        "counters": counters})
-    else:
-        states = [ChainState.from_dict(q) for q in resume["states"]]
-        pool = factory(resume["pool"])
-        stage, counters = resume["stage"], list(resume.get("counters", [0, 0, 0]))
+    states, pool, stage, counters = _begin(target, config, seed, map_fn, warm, starts,
+                                           pool_factory or AdaptationPool.from_dict, checkpoint, resume)
 
     # ---- burn-in: DRAM rounds, the pool is the INCA coordinator
     if stage == "burnin":
@@ -162,32 +204,12 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
                         f"(max R-hat {np.max(r):.3g} for {names[int(np.argmax(r))]}); results may be unreliable")
 
     # ---- stationary stage: fixed proposal, plain RWM
-    M = config.n_stationary
-    samples = np.full((nc, M, d), np.nan)
-    lps = np.full((nc, M), np.nan)
-    lls = np.full((nc, M), np.nan)
-    done, s_acc = 0, 0
-    if resume is not None and resume["stage"] == "stationary":
-        done, s_acc = int(resume["done"]), int(resume["s_acc"])
-        samples[:, :done], lps[:, :done], lls[:, :done] = (resume["samples"][:, :done], resume["lp"][:, :done],
-                                                           resume["ll"][:, :done])
-    while done < M:
-        if cancel is not None and cancel():
-            raise Cancelled("cancelled during stationary sampling")
-        n = min(config.round_size, M - done)
-        results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states], label=f"stationary-d{done}")
-        states = [q.state for q in results]
-        n_eval += nc * n
-        for c, q in enumerate(results):
-            samples[c, done:done + n], lps[c, done:done + n], lls[c, done:done + n] = q.samples, q.lp, q.ll
-        s_acc += sum(q.accepted for q in results)
-        done += n
-        if progress:
-            progress({"stage": "stationary", "round": done // config.round_size, "done": done, "of": M,
-                      "acceptance": sum(q.accepted for q in results) / (nc * n)})
-        if checkpoint:
-            checkpoint({"stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
-                        "counters": [b_acc, b_n, n_eval], "done": done, "s_acc": s_acc})
+    def stationary_checkpoint(d: dict, n: int) -> None:
+        checkpoint({**d, "pool": pool.to_dict(), "counters": [b_acc, b_n, n]})
+
+    samples, lps, lls, states, s_acc, n_eval = run_stationary(
+        target, states, cov, config, map_fn, n_eval=n_eval, resume=resume, progress=progress, cancel=cancel,
+        checkpoint=stationary_checkpoint if checkpoint else None)
     best = max(states, key=lambda q: q.best_lp)
     r_final = rhat(list(samples))
     if np.any(r_final > config.rhat_threshold):
@@ -198,7 +220,7 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
         phi_star=np.array(best.best_x), lp_star=best.best_lp, ll_star=best.best_ll,
         proposal_cov=cov, states=states, rhat=r_final, rhat_history=list(pool.rhat_history),
         burnin_rounds=rounds, converged=converged,
-        acceptance=s_acc / max(1, nc * M), burnin_acceptance=b_acc / max(1, b_n),
+        acceptance=s_acc / max(1, nc * config.n_stationary), burnin_acceptance=b_acc / max(1, b_n),
         n_evaluations=n_eval, warnings=warnings)
 
 
