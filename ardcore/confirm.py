@@ -124,36 +124,7 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
         say(f"  an effect must gain {threshold:.1f} nats: {config.min_log_bf:g} + ln {len(screened)} "
             f"(the prior odds of one of the {len(screened)} candidates tried)")
     for c, (acand, adata, *_), (arow, amr) in zip(chosen, tasks, results):
-        sc = c["_screened"]
-        eff: Effect = sc.effect
-        names = list(acand.ard_names)
-        # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam factor
-        gain = arow["log_evidence"] - row["log_evidence"] - sc.shape_occam
-        if not math.isfinite(gain):
-            gain = -math.inf  # the re-selection failed (no finite evidence): it confirms nothing, and says so
-        kept = [n for n in names if n in arow["kept"]]
-        scale = dict(zip(names, sc.scales))
-        # the EKF evidence takes coloured innovations as white: the support it gives is divided by the factor
-        # the screen found the score's variance understated by (1 for white innovations)
-        adjusted = gain / sc.inflation if gain > 0 else gain
-        confirmed.append({"effect": eff.name, "target": c["target"], "score": c["log_bayes_factor"],
-                          "screened_log_bayes_factor": c["log_bayes_factor"],
-                          "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],
-                          "log_bayes_factor": gain, "adjusted_log_bayes_factor": adjusted,
-                          "inflation": sc.inflation, "threshold": threshold, "kept_terms": kept,
-                          "psi_opt": arow["psi_opt"],
-                          # coefficients in the term's own units (the fit uses the normalised ones)
-                          "posterior": {n: physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
-                          "scales": scale,
-                          "survives": bool(kept) and adjusted > threshold,
-                          "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff,
-                          "_screened": sc})
-        if gain == -math.inf:
-            say(f"  {eff.name}: the re-selection found no finite evidence (fit failed): not confirmed")
-            continue
-        say(f"  {eff.name}: ln BF = {gain:.2f}" + (f" ({adjusted:.2f} adjusted for coloured innovations, "
-                                                     f"x 1/{sc.inflation:.2g})" if sc.inflation > 1.05 else "")
-            + f", ARD keeps {kept or 'nothing'}")
+        confirmed.append(_confirmation(c, acand, adata, arow, amr, row, threshold, say))
     # of two twins only the one with the higher evidence goes on
     by_screen = {id(c["_screened"]): c for c in confirmed}
     for rid, pid in rivals.items():
@@ -164,6 +135,42 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
             lo["rival_of"] = hi["effect"]
             say(f"  {lo['effect']} and {hi['effect']} explain the same; {hi['effect']} has the higher evidence")
     return ranked, confirmed
+
+
+def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: dict, amr, row: dict, threshold: float,
+                  say) -> dict:
+    """The record of one confirmation: the candidate ``c`` re-selected with its terms under ARD (``arow``)
+    against the base model's ``row``."""
+    sc = c["_screened"]
+    eff: Effect = sc.effect
+    names = list(acand.ard_names)
+    # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam factor
+    gain = arow["log_evidence"] - row["log_evidence"] - sc.shape_occam
+    if not math.isfinite(gain):
+        gain = -math.inf  # the re-selection failed (no finite evidence): it confirms nothing, and says so
+    kept = [n for n in names if n in arow["kept"]]
+    scale = dict(zip(names, sc.scales))
+    # the EKF evidence takes coloured innovations as white: the support it gives is divided by the factor
+    # the screen found the score's variance understated by (1 for white innovations)
+    adjusted = gain / sc.inflation if gain > 0 else gain
+    if gain == -math.inf:
+        say(f"  {eff.name}: the re-selection found no finite evidence (fit failed): not confirmed")
+    else:
+        say(f"  {eff.name}: ln BF = {gain:.2f}" + (f" ({adjusted:.2f} adjusted for coloured innovations, "
+                                                     f"x 1/{sc.inflation:.2g})" if sc.inflation > 1.05 else "")
+            + f", ARD keeps {kept or 'nothing'}")
+    return {"effect": eff.name, "target": c["target"], "score": c["log_bayes_factor"],
+            "screened_log_bayes_factor": c["log_bayes_factor"],
+            "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],
+            "log_bayes_factor": gain, "adjusted_log_bayes_factor": adjusted,
+            "inflation": sc.inflation, "threshold": threshold, "kept_terms": kept,
+            "psi_opt": arow["psi_opt"],
+            # coefficients in the term's own units (the fit uses the normalised ones)
+            "posterior": {n: physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
+            "scales": scale,
+            "survives": bool(kept) and adjusted > threshold,
+            "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff,
+            "_screened": sc}
 
 
 def joint_fit(spec, cand, row, best, survivors, data, config, say):

@@ -28,7 +28,7 @@ Rooms: the residual tests live in :mod:`ardcore.residual_tests`, the free run an
 prediction band in :mod:`ardcore.freerun`, the evidence screen in :mod:`ardcore.screen` (its EKF score machinery in :mod:`ardcore.score`),
 the library in :mod:`ardcore.effects`, the confirmations (re-selection, halves check, joint
 fit, process pool) in :mod:`ardcore.confirm`, the verdict's words in :mod:`ardcore.verdict`;
-this module holds the residuals and the loop.
+the residuals themselves in :mod:`ardcore.residuals`; this module holds the loop.
 """
 
 from __future__ import annotations
@@ -36,11 +36,9 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy import optimize
 
 from .confirm import (  # noqa: F401
     Added,
@@ -52,8 +50,7 @@ from .confirm import (  # noqa: F401
     trace_and_confirm,
 )
 from .data import Dataset
-from .effects import Effect, dynamic_states, with_columns
-from .ekf import compile_model
+from .effects import Effect, with_columns
 from .errors import SpecError
 from .freerun import _posterior_draws, free_run, free_run_of  # noqa: F401
 from .initial import data_informed_initial
@@ -67,79 +64,11 @@ from .residual_tests import (  # noqa: F401
     residual_tests,
     spectral_peaks,
 )
+from .residuals import Residuals, residuals  # noqa: F401
 from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
 from .verdict import character, unexplained
 
 INF = math.inf
-
-
-# --------------------------------------------------------------------------- residuals
-
-
-@dataclass
-class Residuals:
-    """The residuals of a fitted model on one data set (see module docstring)."""
-
-    innovations: np.ndarray          # standardised, (n, m)
-    raw_innovations: np.ndarray      # (n, m)
-    smoothed: np.ndarray             # (n, n_x)
-    process_noise_rate: dict         # state -> (n-1,) injected drift w_k / dt
-    noise_std: dict                  # state -> fitted diagnostic noise std (or the model's own)
-    tests: dict                      # per observation channel
-    loglik: float
-    states: tuple = ()               # names of the smoothed columns
-    dt: float = 1.0                  # median sample interval
-
-
-def _diagnostic_spec(spec: ModelSpec, states: list[str]) -> tuple[ModelSpec, list[str]]:
-    """``spec`` with a noise parameter on every listed state that has none."""
-    add = [s for s in states if not spec.diffusion.get(s)]
-    names = [f"q_diag_{s}" for s in add]
-    if not add:
-        return spec, []
-    diff = dict(spec.diffusion)
-    diff.update({s: n for s, n in zip(add, names)})
-    new = spec.model_copy(update={"name": f"{spec.name}_diag", "diffusion": diff,
-                                  "parameters": list(spec.parameters) + names})
-    return new.revalidate(), names
-
-
-def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig, *,
-              substeps: int | None = None) -> Residuals:
-    """Residuals of ``spec`` at parameter values ``phi`` (dict over its free parameters)."""
-    cm = compile_model(spec)
-    fr = cm.filter(phi, data, substeps)
-    fs = 1.0 / float(np.median(np.diff(data.t)))
-    e = fr.standardized
-    fund = dominant_frequency(data.columns[spec.observed_columns[0]], fs)
-    tests = {c: residual_tests(e[:, j], fs, config, fundamental=fund) for j, c in enumerate(spec.observed_columns)}
-    dyn = dynamic_states(spec)
-    dspec, qnames = _diagnostic_spec(spec, dyn)
-    dcm = compile_model(dspec)
-    scale = np.nanstd(fr.filtered, axis=0)
-    q0 = {}
-    if qnames:
-        lik = dcm.bind(data, substeps)
-        idx = [spec.states.index(n[len("q_diag_"):]) for n in qnames]
-        # the injected noise is at most of the order of the state's rate of change
-        hi = np.log10(np.maximum(scale[idx] * fs, 1e-12))
-        lo = hi - 8
-
-        def nll(z):
-            z = np.clip(z, lo, hi)
-            v = lik({**phi, **{n: 10.0 ** zi for n, zi in zip(qnames, z)}})
-            return -v if np.isfinite(v) else 1e300
-
-        best = min((optimize.minimize(nll, np.full(len(qnames), s), method="Nelder-Mead",
-                                      options={"xatol": 0.05, "fatol": 0.05, "maxfev": 400})
-                    for s in (lo + 2, hi - 3)), key=lambda r: r.fun)
-        q0 = {n: float(10.0 ** np.clip(best.x, lo, hi)[i]) for i, n in enumerate(qnames)}
-    _, sm = dcm.smooth({**phi, **q0}, data, substeps)
-    dt = np.diff(data.t)
-    rates = {s: sm.process_noise[1:, spec.states.index(s)] / dt for s in dyn}
-    noise_std = {s: q0.get(f"q_diag_{s}") for s in dyn}
-    return Residuals(e, fr.innovations, sm.smoothed, rates, noise_std, tests, fr.loglik, tuple(spec.states),
-                     float(np.median(dt)))
 
 
 # --------------------------------------------------------------------------- fit, free run, loop
@@ -157,6 +86,15 @@ def _fitted(cand: CandidateSpec, row: dict) -> tuple[ModelSpec, dict]:
     spec = fitted_spec(cand, row)
     phi = {k: float(row["mean"][k]) for k in spec.free_parameters}
     return spec, phi
+
+
+def _measure(fspec, phi, cand, row, bmr, data, test, col, config, rnd) -> tuple[Residuals, dict, dict]:
+    """The fitted model's residuals on the estimation data, its free run (with a band) on the test record
+    and the errors reported for both."""
+    res = residuals(fspec, phi, data, config, substeps=cand.substeps)
+    fr = free_run(fspec, phi, test, init_samples=config.init_samples, substeps=cand.substeps,
+                  draws=_posterior_draws(bmr, fspec, config.band_draws, seed=rnd))
+    return res, fr, _errors(res, fr, row, col)
 
 
 def _errors(res: Residuals, fr: dict, row: dict, col: str) -> dict:
@@ -207,16 +145,10 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
 
     if len(spec.models) != 1:
         raise SpecError(f"diagnose: the spec must have exactly one model (it has {len(spec.models)})")
-    cand = spec.models[0]
     test_data = test_data or data
-    _check_columns(cand.model_spec(), data, test_data)
-    notes: list[str] = []
-    if base is None:
-        cand, notes = data_informed_initial(cand, data)
-        for n in notes:
-            say(n)
-        if notes:
-            spec = spec.model_copy(update={"models": [cand]})
+    _check_columns(spec.models[0].model_spec(), data, test_data)
+    spec, notes = _informed_start(spec, data, base, say)
+    cand = spec.models[0]
     say(f"fitting {cand.label} ...")
     row, bmr = base or run_candidate(cand, data, spec, 0, final_posterior=config.posterior)
     col = cand.model_spec().observed_columns[0]
@@ -229,15 +161,11 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         for rnd in range(config.max_rounds + 1):
             fspec, phi = _fitted(cand, row)
             say(f"round {rnd}: {cand.label} ln Z = {row['log_evidence']:.3f}; computing residuals")
-            res = residuals(fspec, phi, cur_data, config, substeps=cand.substeps)
-            fr = free_run(fspec, phi, cur_test, init_samples=config.init_samples, substeps=cand.substeps,
-                          draws=_posterior_draws(bmr, fspec, config.band_draws, seed=rnd))
-            err = _errors(res, fr, row, col)
+            res, fr, err = _measure(fspec, phi, cand, row, bmr, cur_data, cur_test, col, config, rnd)
             if first is None:
                 initial = {"spec": fspec, "phi": phi, "effects": [], "substeps": cand.substeps}
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
-                         "base_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned",
-                                                           "mean", "sd")}}
+                         "base_fit": {k: row[k] for k in _BASE_FIT}}
                 arrays["before"] = _arrays(res, fr)
             else:
                 arrays["after"] = _arrays(res, fr)
@@ -263,6 +191,20 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     out["_final"] = {"spec": fspec, "phi": phi, "effects": [e for r in rounds for e in r.get("_effects", [])],
                      "substeps": cand.substeps}
     return out
+
+
+_BASE_FIT = ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean", "sd")
+
+
+def _informed_start(spec: StudySpec, data: Dataset, base, say) -> tuple[StudySpec, list[str]]:
+    """The spec with its candidate's initial-state prior re-centred on the record where the declared one is
+    far off (not when an existing fit is given), and the notes saying so."""
+    if base is not None:
+        return spec, []
+    cand, notes = data_informed_initial(spec.models[0], data)
+    for n in notes:
+        say(n)
+    return (spec.model_copy(update={"models": [cand]}) if notes else spec), notes
 
 
 def _check_columns(ms: ModelSpec, data: Dataset, test_data: Dataset) -> None:

@@ -145,43 +145,7 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     # the user's inputs (columns of a periodic forcing the loop added are not inputs to build effects from)
     inputs = user_inputs(spec)
     for x, v in oscillator_pairs(spec):
-        out += [
-            Effect(f"quadratic_stiffness({x})", "stiffness", (f"{x}**2",), f"even-order (asymmetric) stiffness {x}^2", code=f"s2{x}"),
-            Effect(f"asymmetric_stiffness({x})", "stiffness", (f"{x}*abs({x})",), f"stiffness {x}|{x}|", code=f"sa{x}"),
-            Effect(f"cubic_stiffness({x})", "stiffness", (f"{x}**3",), f"cubic stiffness {x}^3", code=f"s3{x}"),
-            Effect(f"quintic_stiffness({x})", "stiffness", (f"{x}**5",), f"fifth-order stiffness {x}^5", code=f"s5{x}"),
-            Effect(f"cubic_damping({v})", "damping", (f"{v}**3",), f"cubic damping {v}^3", code=f"d3{v}"),
-            Effect(f"quadratic_damping({v})", "damping", (f"{v}*abs({v})",), f"quadratic damping {v}|{v}|", code=f"dq{v}"),
-            Effect(f"coulomb_friction({v})", "friction", (f"sign({v})",), f"Coulomb friction sign({v})", code=f"fc{v}"),
-            Effect(f"cross({x}^2*{v})", "cross", (f"{x}**2*{v}",), f"cross term {x}^2 {v}", code=f"c21{x}"),
-            Effect(f"cross({x}*{v}^2)", "cross", (f"{x}*{v}**2",), f"cross term {x} {v}^2", code=f"c12{x}"),
-            Effect("offset", "offset", ("1",), "constant offset", code="off"),
-        ]
-        out += [
-            Effect(f"quartic_stiffness({x})", "stiffness", (f"{x}**4",), f"fourth-order stiffness {x}^4", code=f"s4{x}"),
-        ]
-        s = scales.get(x)
-        if s and s > 0:
-            # the width as a shape parameter, from 2 % to 150 % of the displacement's std
-            out.append(Effect(f"free_play({x})", "free-play",
-                              (f"0.5*({x} - {{delta}}*sign({x}))*(1 + sign(abs({x}) - {{delta}}))",),
-                              f"dead zone of half-width {{delta}} in {x}", code=f"fpw{x}",
-                              shape=("delta", 0.02 * s, 1.5 * s)))
-            out.append(Effect(f"saturation({x})", "stiffness", (f"{x} - {{xs}}*tanh({x}/{{xs}})",),
-                              f"stiffness that saturates beyond |{x}| ~ {{xs}}", code=f"st{x}",
-                              shape=("xs", 0.2 * s, 1.5 * s)))
-        sv = scales.get(v)
-        if sv and sv > 0:
-            # dry friction with a smooth sign (the EKF sees its slope) and Stribeck's decaying static peak
-            out.append(Effect(f"dry_friction({v})", "friction", (f"tanh({v}/{{vs}})",),
-                              "dry (Coulomb) friction, smooth sign over {vs}", code=f"fd{v}",
-                              shape=("vs", 0.005 * sv, 0.3 * sv)))
-            out.append(Effect(f"stribeck({v})", "friction", (f"tanh({v}/{0.01 * sv:.3g})*exp(-({v}/{{vs}})**2)",),
-                              "Stribeck friction peak decaying over {vs}", code=f"fs{v}",
-                              shape=("vs", 0.02 * sv, 1.0 * sv)))
-        for u in inputs:
-            out += [Effect(f"input_cross({u}*{x})", "input", (f"{u}*{x}",), f"input-state cross term {u} {x}", code=f"u{u}{x}"),
-                    Effect(f"input_cross({u}*{v})", "input", (f"{u}*{v}",), f"input-velocity cross term {u} {v}", code=f"u{u}{v}")]
+        out += _oscillator_effects(x, v, scales, inputs)
     for u in inputs:
         out += [Effect(f"input({u})", "input", (u,), f"linear input {u}", code=f"u1{u}"),
                 Effect(f"input_quadratic({u})", "input", (f"{u}**2",), f"quadratic input {u}^2", code=f"u2{u}"),
@@ -190,19 +154,7 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     for s_ in dynamic_states(spec):
         if s_ in pair_v:
             continue  # a velocity: the oscillator families above cover it
-        sc = scales.get(s_)
-        out += [Effect(f"square({s_})", "state", (f"{s_}**2",), f"{s_}^2", code=f"q2{s_}"),
-                Effect(f"cube({s_})", "state", (f"{s_}**3",), f"{s_}^3", code=f"q3{s_}"),
-                Effect(f"signed_square({s_})", "state", (f"{s_}*abs({s_})",), f"{s_}|{s_}|", code=f"qa{s_}"),
-                Effect(f"sqrt_outflow({s_})", "state", (f"sqrt(abs({s_}))*sign({s_})",),
-                       f"outflow through an orifice, sqrt({s_})", code=f"qr{s_}"),
-                Effect("offset", "offset", ("1",), "constant offset", code="off")]
-        if sc and sc > 0:
-            out.append(Effect(f"saturation({s_})", "state", (f"{s_} - {{xs}}*tanh({s_}/{{xs}})",),
-                              f"{s_} saturating beyond ~{{xs}}", code=f"qs{s_}", shape=("xs", 0.2 * sc, 1.5 * sc)))
-        for u in inputs:
-            out += [Effect(f"input_cross({u}*{s_})", "input", (f"{u}*{s_}",), f"input-state cross term {u} {s_}",
-                           code=f"u{u}{s_}")]
+        out += _level_effects(s_, scales, inputs)
     out += flow_effects(spec, scales)
     used = set(spec.inputs)
     free_idx = (i for i in range(100) if f"forcing{i}_sin" not in used)  # columns of forcing already added stay
@@ -212,6 +164,83 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
                           f"periodic forcing at {f:.4g} cycles/unit", frequency=float(f),
                           code=f"fo{i}", shape=("f", 0.97 * f, 1.03 * f)))
     # measurement effects: added to an observation's expression
+    out += _measurement_effects(spec, inputs)
+    out += list(extra)
+    # one offset per model is enough
+    seen, uniq = set(), []
+    for e in out:
+        if e.name not in seen:
+            seen.add(e.name)
+            uniq.append(e)
+    return uniq
+
+
+def _oscillator_effects(x: str, v: str, scales: dict[str, float], inputs: list[str]) -> list[Effect]:
+    """Stiffness, damping, friction, cross, free-play, saturation and input terms of a pair dx/dt = v."""
+    out: list[Effect] = []
+    out += [
+        Effect(f"quadratic_stiffness({x})", "stiffness", (f"{x}**2",), f"even-order (asymmetric) stiffness {x}^2", code=f"s2{x}"),
+        Effect(f"asymmetric_stiffness({x})", "stiffness", (f"{x}*abs({x})",), f"stiffness {x}|{x}|", code=f"sa{x}"),
+        Effect(f"cubic_stiffness({x})", "stiffness", (f"{x}**3",), f"cubic stiffness {x}^3", code=f"s3{x}"),
+        Effect(f"quintic_stiffness({x})", "stiffness", (f"{x}**5",), f"fifth-order stiffness {x}^5", code=f"s5{x}"),
+        Effect(f"cubic_damping({v})", "damping", (f"{v}**3",), f"cubic damping {v}^3", code=f"d3{v}"),
+        Effect(f"quadratic_damping({v})", "damping", (f"{v}*abs({v})",), f"quadratic damping {v}|{v}|", code=f"dq{v}"),
+        Effect(f"coulomb_friction({v})", "friction", (f"sign({v})",), f"Coulomb friction sign({v})", code=f"fc{v}"),
+        Effect(f"cross({x}^2*{v})", "cross", (f"{x}**2*{v}",), f"cross term {x}^2 {v}", code=f"c21{x}"),
+        Effect(f"cross({x}*{v}^2)", "cross", (f"{x}*{v}**2",), f"cross term {x} {v}^2", code=f"c12{x}"),
+        Effect("offset", "offset", ("1",), "constant offset", code="off"),
+    ]
+    out += [
+        Effect(f"quartic_stiffness({x})", "stiffness", (f"{x}**4",), f"fourth-order stiffness {x}^4", code=f"s4{x}"),
+    ]
+    s = scales.get(x)
+    if s and s > 0:
+        # the width as a shape parameter, from 2 % to 150 % of the displacement's std
+        out.append(Effect(f"free_play({x})", "free-play",
+                          (f"0.5*({x} - {{delta}}*sign({x}))*(1 + sign(abs({x}) - {{delta}}))",),
+                          f"dead zone of half-width {{delta}} in {x}", code=f"fpw{x}",
+                          shape=("delta", 0.02 * s, 1.5 * s)))
+        out.append(Effect(f"saturation({x})", "stiffness", (f"{x} - {{xs}}*tanh({x}/{{xs}})",),
+                          f"stiffness that saturates beyond |{x}| ~ {{xs}}", code=f"st{x}",
+                          shape=("xs", 0.2 * s, 1.5 * s)))
+    sv = scales.get(v)
+    if sv and sv > 0:
+        # dry friction with a smooth sign (the EKF sees its slope) and Stribeck's decaying static peak
+        out.append(Effect(f"dry_friction({v})", "friction", (f"tanh({v}/{{vs}})",),
+                          "dry (Coulomb) friction, smooth sign over {vs}", code=f"fd{v}",
+                          shape=("vs", 0.005 * sv, 0.3 * sv)))
+        out.append(Effect(f"stribeck({v})", "friction", (f"tanh({v}/{0.01 * sv:.3g})*exp(-({v}/{{vs}})**2)",),
+                          "Stribeck friction peak decaying over {vs}", code=f"fs{v}",
+                          shape=("vs", 0.02 * sv, 1.0 * sv)))
+    for u in inputs:
+        out += [Effect(f"input_cross({u}*{x})", "input", (f"{u}*{x}",), f"input-state cross term {u} {x}", code=f"u{u}{x}"),
+                Effect(f"input_cross({u}*{v})", "input", (f"{u}*{v}",), f"input-velocity cross term {u} {v}", code=f"u{u}{v}")]
+    return out
+
+
+def _level_effects(s_: str, scales: dict[str, float], inputs: list[str]) -> list[Effect]:
+    """Terms of any dynamic state that is not a velocity: powers, an orifice outflow, saturation, offset and
+    input cross terms (first-order, level/flow and coupled models)."""
+    out: list[Effect] = []
+    sc = scales.get(s_)
+    out += [Effect(f"square({s_})", "state", (f"{s_}**2",), f"{s_}^2", code=f"q2{s_}"),
+            Effect(f"cube({s_})", "state", (f"{s_}**3",), f"{s_}^3", code=f"q3{s_}"),
+            Effect(f"signed_square({s_})", "state", (f"{s_}*abs({s_})",), f"{s_}|{s_}|", code=f"qa{s_}"),
+            Effect(f"sqrt_outflow({s_})", "state", (f"sqrt(abs({s_}))*sign({s_})",),
+                   f"outflow through an orifice, sqrt({s_})", code=f"qr{s_}"),
+            Effect("offset", "offset", ("1",), "constant offset", code="off")]
+    if sc and sc > 0:
+        out.append(Effect(f"saturation({s_})", "state", (f"{s_} - {{xs}}*tanh({s_}/{{xs}})",),
+                          f"{s_} saturating beyond ~{{xs}}", code=f"qs{s_}", shape=("xs", 0.2 * sc, 1.5 * sc)))
+    for u in inputs:
+        out += [Effect(f"input_cross({u}*{s_})", "input", (f"{u}*{s_}",), f"input-state cross term {u} {s_}",
+                       code=f"u{u}{s_}")]
+    return out
+
+
+def _measurement_effects(spec: ModelSpec, inputs: list[str]) -> list[Effect]:
+    """Effects on what is measured: a bias, input feedthrough, the noise level, sensor nonlinearities."""
+    out: list[Effect] = []
     out.append(Effect("sensor_bias", "measurement", ("1",), "measurement bias", code="mb", where="observation"))
     for u in inputs:
         out.append(Effect(f"feedthrough({u})", "measurement", (u,), f"direct feedthrough of {u} to the measurement",
@@ -230,14 +259,7 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
                        "quadratic sensor nonlinearity", code=f"m2{o.column}", where="observation"),
                 Effect(f"sensor_cubic({o.column})", "measurement", (f"({e})**3",),
                        "cubic sensor nonlinearity", code=f"m3{o.column}", where="observation")]
-    out += list(extra)
-    # one offset per model is enough
-    seen, uniq = set(), []
-    for e in out:
-        if e.name not in seen:
-            seen.add(e.name)
-            uniq.append(e)
-    return uniq
+    return out
 
 
 def flow_effects(spec: ModelSpec, scales: dict[str, float]) -> list[Effect]:

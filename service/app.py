@@ -20,7 +20,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
@@ -40,25 +40,66 @@ log = logging.getLogger("ardflow.service")
 COLUMN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
 
 # ------------------------------------------------------------------ the app
+class _Service:
+    """What the routes share: the registry, the runner, the settings, the token check, one thread for
+    heavy work, the Dask client, and a short-lived cache of study status."""
+
+    STATUS_TTL = 0.2  # s: clients polling faster than this share one read of the registry and the logs
+
+    def __init__(self, settings: Settings, client):
+        self.settings, self.client = settings, client
+        self.reg = Registry(settings.root)
+        self.runner = Runner(self.reg, client, max_running=settings.max_running,
+                             cancel_grace_s=settings.cancel_grace_s, max_task_s=settings.max_task_s)
+        self.progress_cache = ProgressCache(self.reg)
+        self.max_body = int(settings.max_body_mb * 1024 * 1024)
+        # parsing, data loading and store creation hold the GIL for long stretches: one thread for them, so a
+        # burst of submissions cannot starve the event loop that answers status requests
+        self._heavy_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="submit")
+        tokens = dict(settings.tokens or {})
+        if settings.token is not None:
+            tokens.setdefault("default", settings.token)
+        self.auth = TokenAuth(tokens)
+        self._recent: dict[str, tuple[float, StudyStatus]] = {}
+
+    async def heavy(self, fn, *args, **kw):
+        return await asyncio.get_running_loop().run_in_executor(self._heavy_pool, functools.partial(fn, *args, **kw))
+
+    def status(self, sid: str, progress: bool = True) -> StudyStatus:
+        now = time.monotonic()
+        hit = self._recent.get(sid) if progress else None
+        if hit is not None and now - hit[0] < self.STATUS_TTL:
+            return hit[1]
+        m = self.reg.meta(sid)
+        st = StudyStatus(id=sid, name=m.get("name", sid), status=m.get("status", "unknown"),
+                         created=m.get("created", 0.0), error=m.get("error"),
+                         models=self.progress_cache.get(sid) if progress else {})
+        if progress:
+            self._recent[sid] = (now, st)
+        return st
+
+    def forget(self, sid: str) -> None:
+        self._recent.pop(sid, None)
+
+
 def create_app(settings: Settings, client) -> FastAPI:
     """The FastAPI app over a Dask ``client`` (which it never exposes)."""
-    reg = Registry(settings.root)
-    runner = Runner(reg, client, max_running=settings.max_running, cancel_grace_s=settings.cancel_grace_s,
-                    max_task_s=settings.max_task_s)
-    progress_cache = ProgressCache(reg)
+    c = _Service(settings, client)
     app = FastAPI(title="ardflow", version="0.1.0",
                   description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")
-    app.state.registry, app.state.runner, app.state.settings = reg, runner, settings
-    max_body = int(settings.max_body_mb * 1024 * 1024)
-    # parsing, data loading and store creation hold the GIL for long stretches: one thread for them, so a
-    # burst of submissions cannot starve the event loop that answers status requests
-    heavy_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="submit")
-
-    async def heavy(fn, *args, **kw):
-        return await asyncio.get_running_loop().run_in_executor(heavy_pool, functools.partial(fn, *args, **kw))
-
-    app.add_middleware(RequestGuard, max_body=max_body, allowed_hosts=settings.allowed_hosts,
+    app.state.registry, app.state.runner, app.state.settings = c.reg, c.runner, settings
+    app.add_middleware(RequestGuard, max_body=c.max_body, allowed_hosts=settings.allowed_hosts,
                        csv_paths=(f"/{API_VERSION}/datasets",))
+    _error_handlers(app)
+    for router in (_service_router(c), _submit_router(c), _studies_router(c), _diagnoses_router(c),
+                   results_router(c.reg, c.auth), page_router(c.auth)):
+        app.include_router(router)
+    _reattach(c.reg, c.runner)
+    return app
+
+
+def _error_handlers(app: FastAPI) -> None:
+    """Domain errors are 422s, malformed requests 422s with their fields, anything else a 500 with no traceback."""
 
     @app.exception_handler(Exception)
     async def unexpected(request: Request, exc: Exception):
@@ -77,33 +118,31 @@ def create_app(settings: Settings, client) -> FastAPI:
     async def user_error(request: Request, exc: ArdflowError):
         return JSONResponse({"detail": str(exc)}, 422)
 
-    tokens = dict(settings.tokens or {})
-    if settings.token is not None:
-        tokens.setdefault("default", settings.token)
 
-    auth = TokenAuth(tokens)
-
+def _service_router(c: _Service) -> APIRouter:
+    """Health, the dashboard link and data-set upload."""
+    r = APIRouter()
     v1 = f"/{API_VERSION}"
 
-    @app.get(f"{v1}/health", response_model=Health)
+    @r.get(f"{v1}/health", response_model=Health)
     def health() -> Health:
         try:
-            n = len(client.scheduler_info(n_workers=-1)["workers"])
+            n = len(c.client.scheduler_info(n_workers=-1)["workers"])
         except Exception:  # noqa: BLE001 - health reports what it can
             n = 0
         return Health(status="ok" if n else "degraded", version="0.1.0", workers=n)
 
-    @app.get(f"{v1}/dashboard", response_model=DashboardLink, dependencies=[Depends(auth)])
+    @r.get(f"{v1}/dashboard", response_model=DashboardLink, dependencies=[Depends(c.auth)])
     def dashboard() -> DashboardLink:
-        return DashboardLink(url=getattr(client, "dashboard_link", None))
+        return DashboardLink(url=getattr(c.client, "dashboard_link", None))
 
-    @app.post(f"{v1}/datasets", response_model=DatasetInfo, status_code=201, dependencies=[Depends(auth)],
+    @r.post(f"{v1}/datasets", response_model=DatasetInfo, status_code=201, dependencies=[Depends(c.auth)],
               openapi_extra={"requestBody": {"content": {"text/csv": {"schema": {"type": "string"}}},
                                              "required": True}})
     async def upload_dataset(request: Request) -> DatasetInfo:
         body = await request.body()
-        if len(body) > max_body:
-            raise HTTPException(413, f"data set larger than {settings.max_body_mb:g} MB")
+        if len(body) > c.max_body:
+            raise HTTPException(413, f"data set larger than {c.settings.c.max_body_mb:g} MB")
         if not body.strip():
             raise HTTPException(422, "empty data set")
         try:
@@ -111,58 +150,66 @@ def create_app(settings: Settings, client) -> FastAPI:
         except UnicodeDecodeError:
             raise HTTPException(422, "data set must be UTF-8 CSV text") from None
         rows = max(text.count("\n"), text.count("\r"))
-        if rows > settings.max_upload_rows:
-            raise HTTPException(413, f"data set has more than {settings.max_upload_rows} rows")
+        if rows > c.settings.max_upload_rows:
+            raise HTTPException(413, f"data set has more than {c.settings.max_upload_rows} rows")
         header = text.lstrip("\ufeff").splitlines()[0] if text.strip() else ""
         for name in (h.strip().strip('"') for h in header.split(",")):
             if not COLUMN_RE.match(name):
                 raise HTTPException(422, f"column name {name[:40]!r} is not allowed: letters, digits and "
                                          "underscores, starting with a letter (at most 64)")
         did = secrets.token_hex(8)
-        tmp = reg.root / "datasets" / f".{did}.csv"
+        tmp = c.reg.root / "datasets" / f".{did}.csv"
         try:
             tmp.write_text(text)
             from ardflow.ardcore.data import read_dataset
 
-            ds = await heavy(read_dataset, tmp)
+            ds = await c.heavy(read_dataset, tmp)
         except Exception as exc:  # noqa: BLE001 - csv.Error (a field over its size limit) and friends: a 422
             tmp.unlink(missing_ok=True)  # never a temporary file left behind
             msg = (str(exc).replace(str(tmp), "data set") if isinstance(exc, ArdflowError)
                    else f"cannot read the data set: {str(exc)[:200] or type(exc).__name__}")
             raise HTTPException(422, msg) from None
-        if len(ds) > settings.max_upload_rows:
+        if len(ds) > c.settings.max_upload_rows:
             tmp.unlink(missing_ok=True)
-            raise HTTPException(413, f"data set has more than {settings.max_upload_rows} rows")
-        tmp.replace(reg.root / "datasets" / f"{did}.csv")
+            raise HTTPException(413, f"data set has more than {c.settings.max_upload_rows} rows")
+        tmp.replace(c.reg.root / "datasets" / f"{did}.csv")
         return DatasetInfo(id=did, rows=len(ds), columns=["t", *ds.columns])
 
-    @app.post(f"{v1}/studies", response_model=StudyCreated, status_code=202)
-    async def submit(spec: StudySpec, owner: str = Depends(auth)) -> StudyCreated:
+    return r
+
+
+def _submit_router(c: _Service) -> APIRouter:
+    """Study submission: checked (limits, models compiled in a sandbox, cost), stored, then queued."""
+    r = APIRouter()
+    v1 = f"/{API_VERSION}"
+
+    @r.post(f"{v1}/studies", response_model=StudyCreated, status_code=202)
+    async def submit(spec: StudySpec, owner: str = Depends(c.auth)) -> StudyCreated:
         if spec.data.path is not None:
             raise HTTPException(422, "data.path is not accepted over the API: upload the data set "
                                      "(POST /v1/datasets) and give data.dataset")
-        if len(runner.queue) >= settings.max_queued:
-            raise HTTPException(429, f"{len(runner.queue)} studies are waiting already; try again later",
+        if len(c.runner.queue) >= c.settings.max_queued:
+            raise HTTPException(429, f"{len(c.runner.queue)} studies are waiting already; try again later",
                                 headers={"Retry-After": "60"})
-        active = sum(1 for m in reg.metas() if m.get("owner") == owner and m.get("status") in ("queued", "running"))
-        if active >= settings.max_active_per_token:
+        active = sum(1 for m in c.reg.metas() if m.get("owner") == owner and m.get("status") in ("queued", "running"))
+        if active >= c.settings.max_active_per_token:
             raise HTTPException(429, f"{active} of your studies are queued or running (at most "
-                                     f"{settings.max_active_per_token} per token); try again later",
+                                     f"{c.settings.max_active_per_token} per token); try again later",
                                 headers={"Retry-After": "60"})
         try:
             # compiled in a child process with limits: a poison model is a 422 now, never a busy worker later
-            await heavy(check_models, spec, timeout_s=settings.check_timeout_s, memory_mb=settings.check_memory_mb)
+            await c.heavy(check_models, spec, timeout_s=c.settings.check_timeout_s, memory_mb=c.settings.check_memory_mb)
         except Rejected as exc:
             raise HTTPException(exc.status, str(exc)) from None
         sid = f"{spec.name}-{secrets.token_hex(4)}"
-        d = reg.study_dir(sid)
+        d = c.reg.study_dir(sid)
         d.mkdir(parents=True)
         from ardflow.workers.graph import prepare_store
 
         try:
-            store = await heavy(prepare_store, spec, d / "store", datasets=reg.root / "datasets", study_id=sid)
-            estimate = check_budget(spec, int(store.meta.get("data", {}).get("n") or 0), settings.max_study_cost)
-            reg.write_meta(sid, {"id": sid, "name": spec.name, "status": "queued", "created": time.time(),
+            store = await c.heavy(prepare_store, spec, d / "store", datasets=c.reg.root / "datasets", study_id=sid)
+            estimate = check_budget(spec, int(store.meta.get("data", {}).get("n") or 0), c.settings.max_study_cost)
+            c.reg.write_meta(sid, {"id": sid, "name": spec.name, "status": "queued", "created": time.time(),
                                  "estimate": estimate, "owner": owner})
         except Rejected as exc:
             shutil.rmtree(d, ignore_errors=True)
@@ -173,51 +220,43 @@ def create_app(settings: Settings, client) -> FastAPI:
         except BaseException:
             shutil.rmtree(d, ignore_errors=True)  # never a half-made study directory
             raise
-        runner.start(sid)
+        c.runner.start(sid)
         return StudyCreated(id=sid, status="queued")
 
-    @app.get(f"{v1}/studies", response_model=list[StudyStatus], dependencies=[Depends(auth)])
+    return r
+
+
+def _studies_router(c: _Service) -> APIRouter:
+    """The studies: list, status, live progress events, cancel, delete."""
+    r = APIRouter()
+    v1 = f"/{API_VERSION}"
+
+    @r.get(f"{v1}/studies", response_model=list[StudyStatus], dependencies=[Depends(c.auth)])
     def list_studies() -> list[StudyStatus]:
-        return [_status(sid, progress=False) for sid in reg.ids()]
+        return [c.status(sid, progress=False) for sid in c.reg.ids()]
 
-    recent: dict[str, tuple[float, StudyStatus]] = {}
-    STATUS_TTL = 0.2  # s: clients polling faster than this share one read of the registry and the logs
-
-    def _status(sid: str, progress: bool = True) -> StudyStatus:
-        now = time.monotonic()
-        hit = recent.get(sid) if progress else None
-        if hit is not None and now - hit[0] < STATUS_TTL:
-            return hit[1]
-        m = reg.meta(sid)
-        st = StudyStatus(id=sid, name=m.get("name", sid), status=m.get("status", "unknown"),
-                         created=m.get("created", 0.0), error=m.get("error"),
-                         models=progress_cache.get(sid) if progress else {})
-        if progress:
-            recent[sid] = (now, st)
-        return st
-
-    @app.get(f"{v1}/studies/{{sid}}", response_model=StudyStatus, dependencies=[Depends(auth)])
+    @r.get(f"{v1}/studies/{{sid}}", response_model=StudyStatus, dependencies=[Depends(c.auth)])
     async def status(sid: str) -> StudyStatus:
         # small local reads, folded incrementally: cheaper on the event loop than a thread hop
-        return _status(sid)
+        return c.status(sid)
 
-    @app.get(f"{v1}/studies/{{sid}}/events", dependencies=[Depends(auth)],
+    @r.get(f"{v1}/studies/{{sid}}/events", dependencies=[Depends(c.auth)],
              responses={200: {"content": {"text/event-stream": {}}}})
     async def events(sid: str, request: Request):
-        reg.meta(sid)
+        c.reg.meta(sid)
 
         async def gen():
             from ardflow.workers.graph import read_progress
 
             offsets: dict[str, int] = {}
-            store = reg.store(sid)
+            store = c.reg.store(sid)
             while True:
                 if await request.is_disconnected():
                     return
                 evs = await asyncio.to_thread(read_progress, store, offsets) if store.exists() else []
                 for ev in evs:
                     yield f"event: progress\ndata: {json.dumps(_finite(ev))}\n\n"
-                st = reg.meta(sid).get("status")
+                st = c.reg.meta(sid).get("status")
                 if st in FINAL:
                     yield f"event: end\ndata: {json.dumps({'status': st})}\n\n"
                     return
@@ -225,51 +264,59 @@ def create_app(settings: Settings, client) -> FastAPI:
 
         return StreamingResponse(gen(), media_type="text/event-stream")
 
-    @app.post(f"{v1}/studies/{{sid}}/cancel", response_model=StudyStatus, dependencies=[Depends(auth)])
+    @r.post(f"{v1}/studies/{{sid}}/cancel", response_model=StudyStatus, dependencies=[Depends(c.auth)])
     def cancel(sid: str) -> StudyStatus:
-        m = reg.meta(sid)
+        m = c.reg.meta(sid)
         if m.get("status") in FINAL:
             raise HTTPException(409, f"study {sid} is already {m['status']}")
-        runner.cancel(sid)  # recorded durably before this answer
-        recent.pop(sid, None)
-        return _status(sid)
+        c.runner.cancel(sid)  # recorded durably before this answer
+        c.forget(sid)
+        return c.status(sid)
 
-    @app.delete(f"{v1}/studies/{{sid}}", status_code=204, dependencies=[Depends(auth)])
+    @r.delete(f"{v1}/studies/{{sid}}", status_code=204, dependencies=[Depends(c.auth)])
     def delete(sid: str) -> Response:
-        m = reg.meta(sid)
-        if m.get("status") not in FINAL or sid in runner.running():
+        m = c.reg.meta(sid)
+        if m.get("status") not in FINAL or sid in c.runner.running():
             raise HTTPException(409, f"study {sid} is {m.get('status')}: cancel it first")
-        shutil.rmtree(reg.study_dir(sid), ignore_errors=True)
-        progress_cache.forget(sid)
-        recent.pop(sid, None)
+        shutil.rmtree(c.reg.study_dir(sid), ignore_errors=True)
+        c.progress_cache.forget(sid)
+        c.forget(sid)
         return Response(status_code=204)
+
+    return r
+
+
+def _diagnoses_router(c: _Service) -> APIRouter:
+    """The closed loop on a finished study's model: start it, read its report and figures."""
+    r = APIRouter()
+    v1 = f"/{API_VERSION}"
 
     def _diag_dir(sid: str, model: str) -> Path:
         if not re.match(r"^[A-Za-z][A-Za-z0-9_]{0,31}$", model):
             raise HTTPException(404, f"no model {model!r}")
-        reg.meta(sid)
-        return reg.study_dir(sid) / "diagnoses" / model
+        c.reg.meta(sid)
+        return c.reg.study_dir(sid) / "diagnoses" / model
 
-    @app.post(f"{v1}/studies/{{sid}}/diagnoses", response_model=DiagnosisStatus, status_code=202,
-              dependencies=[Depends(auth)])
+    @r.post(f"{v1}/studies/{{sid}}/diagnoses", response_model=DiagnosisStatus, status_code=202,
+              dependencies=[Depends(c.auth)])
     def diagnose(sid: str, req: DiagnoseRequest) -> DiagnosisStatus:
-        meta = reg.meta(sid)
+        meta = c.reg.meta(sid)
         if meta.get("status") != "done":
             raise HTTPException(409, f"study {sid} is {meta.get('status')}: diagnose a finished study")
-        summary = reg.store(sid).meta.get("summary") or {}
+        summary = c.reg.store(sid).meta.get("summary") or {}
         models = [r["name"] for r in summary.get("models", [])]
         model = req.model or summary.get("best_model")
         if model not in models:
             raise HTTPException(404, f"study {sid} has no model {model!r} (models: {models})")
-        if req.test_dataset and not (reg.root / "datasets" / f"{req.test_dataset}.csv").exists():
+        if req.test_dataset and not (c.reg.root / "datasets" / f"{req.test_dataset}.csv").exists():
             raise HTTPException(404, f"no uploaded data set {req.test_dataset!r}")
         d = _diag_dir(sid, model)
         if (d / "status.json").exists() and json.loads((d / "status.json").read_text())["status"] == "running":
             raise HTTPException(409, f"a diagnosis of {model} is already running")
-        runner.diagnose(sid, model, req)
+        c.runner.diagnose(sid, model, req)
         return DiagnosisStatus(model=model, status="running")
 
-    @app.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}", dependencies=[Depends(auth)])
+    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}", dependencies=[Depends(c.auth)])
     def diagnosis(sid: str, model: str) -> JSONResponse:
         d = _diag_dir(sid, model)
         if not (d / "status.json").exists():
@@ -281,7 +328,7 @@ def create_app(settings: Settings, client) -> FastAPI:
             body["figures"] = sorted(p.name for p in d.glob("*.png"))
         return JSONResponse(body)
 
-    @app.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/figures/{{name}}", dependencies=[Depends(auth)],
+    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/figures/{{name}}", dependencies=[Depends(c.auth)],
              responses={200: {"content": {"image/png": {}}}})
     def diagnosis_figure(sid: str, model: str, name: str):
         d = _diag_dir(sid, model)
@@ -289,10 +336,11 @@ def create_app(settings: Settings, client) -> FastAPI:
             raise HTTPException(404, f"no figure {name!r}")
         return Response((d / name).read_bytes(), media_type="image/png")
 
-    app.include_router(results_router(reg, auth))
-    app.include_router(page_router(auth))
+    return r
 
-    # reattach: studies that were queued or running when the service stopped continue
+
+def _reattach(reg: Registry, runner: Runner) -> None:
+    """Studies that were queued or running when the service stopped continue."""
     waiting = []
     for sid in reg.ids():
         try:
@@ -303,4 +351,3 @@ def create_app(settings: Settings, client) -> FastAPI:
             waiting.append((m.get("created", 0.0), sid))
     for _, sid in sorted(waiting):
         runner.start(sid)
-    return app

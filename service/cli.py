@@ -34,7 +34,14 @@ from .cmd_study import (  # noqa: F401
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ardflow", description="Bayesian model selection for stochastic dynamical systems")
     sub = p.add_subparsers(dest="cmd", required=True)
+    _local_commands(sub)
+    _study_commands(sub)
+    _service_commands(sub)
+    return p
 
+
+def _local_commands(sub) -> None:
+    """Commands on models, data, examples and settings on this machine."""
     s = sub.add_parser("simulate", help="simulate the reference data set or any model to CSV (+ JSON sidecar)")
     s.add_argument("model", help="'reference' (the paper's pipeline), a built-in model name, or a model JSON file")
     s.add_argument("--seed", type=int, default=0)
@@ -63,6 +70,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default=None, help="CSV to write (convert)")
     s.set_defaults(fn=cmd_data)
 
+    s = sub.add_parser("models", help="list the built-in models, or print one as JSON")
+    s.add_argument("name", nargs="?")
+    s.set_defaults(fn=cmd_models)
+
+    s = sub.add_parser("example", help="list the example study specs, or write one out")
+    s.add_argument("name", nargs="?")
+    s.add_argument("--out", help="file to write (default: print it)")
+    s.set_defaults(fn=cmd_example)
+
+    s = sub.add_parser("settings", help="the sampler's and maximiser's settings: defaults, bounds, meaning")
+    s.add_argument("section", nargs="?", choices=["sampler", "maximiser"])
+    s.set_defaults(fn=cmd_settings)
+
+
+def _study_commands(sub) -> None:
+    """Studies, the closed loop and the demo (embedded cluster, a process pool or an existing scheduler)."""
     s = sub.add_parser("select", help="run a model-selection study (JSON spec); the zarr store and "
                                       "summary.json go to --out")
     s.add_argument("spec")
@@ -82,6 +105,41 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--performance-report", default=None, metavar="FILE.html")
     s.set_defaults(fn=cmd_resume)
 
+    s = sub.add_parser("diagnose", help="close the loop: find the residual of a fitted model, trace it to a "
+                                        "missing effect, add it under ARD and report the error before and after")
+    s.add_argument("spec", help="study spec (JSON) or a finished study store; one model (--model, default the "
+                                "spec's only model or the study's best) is diagnosed")
+    s.add_argument("--out", required=True, help="directory for diagnosis.json, diagnosis.html and figures")
+    s.add_argument("--model", help="which candidate of the spec to diagnose")
+    s.add_argument("--test-start", type=int, help="first row of the held-out record for the free run "
+                                                  "(rows of the same file; default: the estimation data)")
+    s.add_argument("--test-stop", type=int, help="end row of the held-out record")
+    s.add_argument("--test-data", help="held-out record in its own file (same columns as the data)")
+    s.add_argument("--test-rename", action="append", metavar="OLD=NEW",
+                   help="renaming of the held-out file's columns (default: the spec's data.rename); e.g. "
+                        "--test-rename uVal=u --test-rename yVal=y for a file that holds both records")
+    s.add_argument("--top-k", type=int, default=3, help="candidates confirmed by evidence per round (default 3)")
+    s.add_argument("--max-rounds", type=int, default=3, help="effects added one after another at most (default 3)")
+    s.set_defaults(fn=cmd_diagnose)
+
+    s = sub.add_parser("loo", help="PSIS-LOO of every model of a finished study beside its evidence (ArviZ)")
+    s.add_argument("store", help="a finished study's store")
+    s.add_argument("--draws", type=int, default=1000, help="posterior draws for the pointwise log-likelihood "
+                                                           "(one EKF pass each; default 1000)")
+    s.add_argument("--json", metavar="FILE", help="also write the table as JSON")
+    s.set_defaults(fn=cmd_loo)
+
+    s = sub.add_parser("demo", help="the main job: the Section 3.6 study on an embedded cluster, with its report")
+    s.add_argument("--out", default="runs/demo")
+    s.add_argument("--full", action="store_true", help="paper-scale sampler settings")
+    s.add_argument("--workers", type=int, default=None)
+    s.add_argument("--scheduler", default=None)
+    s.add_argument("--performance-report", default=None, metavar="FILE.html")
+    s.set_defaults(fn=cmd_demo)
+
+
+def _service_commands(sub) -> None:
+    """The REST service and its remote client commands."""
     s = sub.add_parser("serve", help="run the REST API (embedded LocalCluster or --scheduler)")
     s.add_argument("--host", default="127.0.0.1")
     s.add_argument("--port", type=int, default=8000)
@@ -114,52 +172,6 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--url", default="http://127.0.0.1:8000")
         s.add_argument("--token", default=None)
         s.set_defaults(fn=fn)
-
-    s = sub.add_parser("diagnose", help="close the loop: find the residual of a fitted model, trace it to a "
-                                        "missing effect, add it under ARD and report the error before and after")
-    s.add_argument("spec", help="study spec (JSON) or a finished study store; one model (--model, default the "
-                                "spec's only model or the study's best) is diagnosed")
-    s.add_argument("--out", required=True, help="directory for diagnosis.json, diagnosis.html and figures")
-    s.add_argument("--model", help="which candidate of the spec to diagnose")
-    s.add_argument("--test-start", type=int, help="first row of the held-out record for the free run "
-                                                  "(rows of the same file; default: the estimation data)")
-    s.add_argument("--test-stop", type=int, help="end row of the held-out record")
-    s.add_argument("--test-data", help="held-out record in its own file (same columns as the data)")
-    s.add_argument("--test-rename", action="append", metavar="OLD=NEW",
-                   help="renaming of the held-out file's columns (default: the spec's data.rename); e.g. "
-                        "--test-rename uVal=u --test-rename yVal=y for a file that holds both records")
-    s.add_argument("--top-k", type=int, default=3, help="candidates confirmed by evidence per round (default 3)")
-    s.add_argument("--max-rounds", type=int, default=3, help="effects added one after another at most (default 3)")
-    s.set_defaults(fn=cmd_diagnose)
-
-    s = sub.add_parser("models", help="list the built-in models, or print one as JSON")
-    s.add_argument("name", nargs="?")
-    s.set_defaults(fn=cmd_models)
-
-    s = sub.add_parser("loo", help="PSIS-LOO of every model of a finished study beside its evidence (ArviZ)")
-    s.add_argument("store", help="a finished study's store")
-    s.add_argument("--draws", type=int, default=1000, help="posterior draws for the pointwise log-likelihood "
-                                                           "(one EKF pass each; default 1000)")
-    s.add_argument("--json", metavar="FILE", help="also write the table as JSON")
-    s.set_defaults(fn=cmd_loo)
-
-    s = sub.add_parser("example", help="list the example study specs, or write one out")
-    s.add_argument("name", nargs="?")
-    s.add_argument("--out", help="file to write (default: print it)")
-    s.set_defaults(fn=cmd_example)
-
-    s = sub.add_parser("settings", help="the sampler's and maximiser's settings: defaults, bounds, meaning")
-    s.add_argument("section", nargs="?", choices=["sampler", "maximiser"])
-    s.set_defaults(fn=cmd_settings)
-
-    s = sub.add_parser("demo", help="the main job: the Section 3.6 study on an embedded cluster, with its report")
-    s.add_argument("--out", default="runs/demo")
-    s.add_argument("--full", action="store_true", help="paper-scale sampler settings")
-    s.add_argument("--workers", type=int, default=None)
-    s.add_argument("--scheduler", default=None)
-    s.add_argument("--performance-report", default=None, metavar="FILE.html")
-    s.set_defaults(fn=cmd_demo)
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,7 +20,28 @@ MAX_POINTWISE_DRAWS = 4000  # EKF passes one request may ask for
 
 
 def results_router(reg: Registry, auth: TokenAuth) -> APIRouter:
-    """Routes that read a study's store (read only)."""
+    """Routes that read a study's store (read only): its results, then its figures and report."""
+    r = APIRouter()
+    r.include_router(_results(reg, auth))
+    r.include_router(_figures(reg, auth))
+    return r
+
+
+def _best_trial(reg: Registry, sid: str, model: str) -> int:
+    """The iteration of a model's best trial (404 for an unknown model, 409 while it runs)."""
+    if not ID_RE.match(model):
+        raise HTTPException(404, f"no model {model!r}")
+    try:
+        it, _ = reg.store(sid).model_result(model)
+    except Exception:  # noqa: BLE001 - missing group
+        raise HTTPException(404, f"study {sid} has no model {model!r}") from None
+    if it is None:
+        raise HTTPException(409, f"model {model!r} of study {sid} is not finished")
+    return it
+
+
+def _results(reg: Registry, auth: TokenAuth) -> APIRouter:
+    """The summary, a model's posterior draws and its ArviZ groups."""
     r = APIRouter()
     v1 = f"/{API_VERSION}"
 
@@ -32,17 +53,6 @@ def results_router(reg: Registry, auth: TokenAuth) -> APIRouter:
             raise HTTPException(409, f"study {sid} has no summary yet (status {reg.meta(sid).get('status')})")
         return JSONResponse(json.loads(text))
 
-    def _best_trial(sid: str, model: str) -> int:
-        if not ID_RE.match(model):
-            raise HTTPException(404, f"no model {model!r}")
-        try:
-            it, _ = reg.store(sid).model_result(model)
-        except Exception:  # noqa: BLE001 - missing group
-            raise HTTPException(404, f"study {sid} has no model {model!r}") from None
-        if it is None:
-            raise HTTPException(409, f"model {model!r} of study {sid} is not finished")
-        return it
-
     @r.get(f"{v1}/studies/{{sid}}/posterior/{{model}}", dependencies=[Depends(auth)],
              responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}})
     def posterior(sid: str, model: str, format: str = "json", max_draws: int = 2000):
@@ -51,7 +61,7 @@ def results_router(reg: Registry, auth: TokenAuth) -> APIRouter:
             raise HTTPException(422, "format must be 'json' or 'npz'")
         if not 1 <= max_draws <= 1_000_000:
             raise HTTPException(422, "max_draws must be between 1 and 1000000")
-        it = _best_trial(sid, model)
+        it = _best_trial(reg, sid, model)
         try:
             samples, lp, ll, names = reg.store(sid).read_samples(model, it)
         except (KeyError, FileNotFoundError):
@@ -72,7 +82,7 @@ def results_router(reg: Registry, auth: TokenAuth) -> APIRouter:
         """ArviZ's groups (posterior, sample_stats, observed_data, optionally the pointwise log_likelihood) as
         NPZ; ``Client.posterior(..., as_inference_data=True)`` turns them into an ``xarray.DataTree``."""
         reg.meta(sid)
-        _best_trial(sid, model)
+        _best_trial(reg, sid, model)
         if max_draws is not None and not 1 <= max_draws <= 1_000_000:
             raise HTTPException(422, "max_draws must be between 1 and 1000000")
         if log_likelihood and max_draws is not None and max_draws > MAX_POINTWISE_DRAWS:
@@ -86,6 +96,14 @@ def results_router(reg: Registry, auth: TokenAuth) -> APIRouter:
             raise HTTPException(409, str(exc)) from None
         return Response(ig.to_npz(), media_type="application/octet-stream",
                         headers={"Content-Disposition": f'attachment; filename="{sid}_{model}_arviz.npz"'})
+
+    return r
+
+
+def _figures(reg: Registry, auth: TokenAuth) -> APIRouter:
+    """The figures, rendered from the store, and the report written when the study finished."""
+    r = APIRouter()
+    v1 = f"/{API_VERSION}"
 
     @r.get(f"{v1}/studies/{{sid}}/figures/{{name}}", dependencies=[Depends(auth)],
              responses={200: {"content": {"image/png": {}}}})
