@@ -16,11 +16,7 @@ def _data(store) -> bytes:
 
 
 def _evidence(store) -> bytes:
-    g = store.group("r")
-    if "models" not in g:
-        raise LookupError("no trial has finished yet")
-    hist = {name: list(mg.attrs.get("history", [])) for name, mg in g["models"].groups()}
-    hist = {k: v for k, v in hist.items() if v}
+    hist = {k: v for k, v in store.histories().items() if v}
     if not hist:
         raise LookupError("no trial has finished yet")
     buf = io.BytesIO()

@@ -46,96 +46,16 @@ def write_report(store, out: str | Path | None = None) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     spec = StudySpec.model_validate(store.meta["spec"])
     reference = spec.data.generator == "reference"
-    data = store.load_data()
-    g = store.group("r")
-    figs: list[tuple[str, str]] = []
-
-    col = "y" if "y" in data.columns else next(iter(data.columns))
-    plot_data_and_psd(data.t, data.columns[col], out / "data_psd.png",
-                      cutoff=0.2295 if reference else None, tau_seconds=TAU_SECONDS if reference else None,
-                      title=f"{spec.name}: data ({col})", time_label="tau" if reference else "time")
-    figs.append(("Data and its power spectral density (Figs. 2-3)", "data_psd.png"))
-
-    histories = {r["name"]: list(g[f"models/{r['name']}"].attrs.get("history", [])) for r in summary["models"]}
-    plot_evidence_history(histories, out / "evidence.png")
-    figs.append(("ln evidence, goodness of fit and information gain per maximisation trial (Figs. 8, 11-14)",
-                 "evidence.png"))
-    for cand in spec.models:
-        ard = cand.ard_names
-        if ard and histories.get(cand.label):
-            f = f"ard_{cand.label}.png"
-            plot_ard_bounds(histories[cand.label], ard, out / f)
-            figs.append((f"{cand.label}: prior and posterior 99 % bounds of the ARD parameters per trial (Fig. 9)", f))
-
     best = summary["best_model"]
     it, _ = store.model_result(best)
     samples, _, _, names = store.read_samples(best, it)
     truth = dict(spec.true_values)
     ref_bounds = FIG15_M2OPT_BOUNDS if (reference and best == "M2") else None
-    plot_marginals(names, samples, out / "marginals.png", truth, ref_bounds)
-    figs.append((f"{best} (optimal nested model): marginal posteriors, 99 % bounds, true values (Fig. 15)",
-                 "marginals.png"))
-    plot_joint(names, samples, out / "joint.png", truth)
-    figs.append((f"{best}: joint posteriors (Fig. 16)", "joint.png"))
-
-    rows = []
-    for r in summary["models"]:
-        rows.append("<tr>" + "".join([
-            f"<td class=l>{html.escape(r['name'])}</td>",
-            f"<td>{_fmt(r['goodness_of_fit'])}</td>", f"<td>{_fmt(r['information_gain'])}</td>",
-            f"<td>{_fmt(r['log_evidence'])} &plusmn; {_fmt(r['log_evidence_se'])}</td>",
-            f"<td>{_fmt(r['probability'], 4)}</td>",
-            f"<td class=l>{', '.join(r['kept']) or '-'}</td>", f"<td class=l>{', '.join(r['pruned']) or '-'}</td>",
-            f"<td class=l>{html.escape(json.dumps(r['psi_opt']))}</td>"]) + "</tr>")
-    table10 = ("<table><tr><th class=l>model</th><th>GoF</th><th>EIG</th><th>ln evidence</th><th>P(M|d)</th>"
-               "<th class=l>kept</th><th class=l>pruned</th><th class=l>psi_opt</th></tr>" + "".join(rows) + "</table>")
-
-    post_rows = []
-    for i, n in enumerate(names):
-        x = samples[..., i].ravel()
-        lo, hi = np.quantile(x, [0.005, 0.995])
-        tv = truth.get(n)
-        inside = "" if tv is None else ("yes" if lo <= tv <= hi else "<b class=warn>no</b>")
-        pb = ref_bounds.get(n) if ref_bounds else None
-        post_rows.append(f"<tr><td class=l>{n}</td><td>{_fmt(float(x.mean()), 4)}</td><td>{_fmt(float(x.std()), 4)}"
-                         f"</td><td>[{_fmt(float(lo), 4)}, {_fmt(float(hi), 4)}]</td><td>{_fmt(tv, 4)}</td>"
-                         f"<td>{inside}</td><td>{'-' if pb is None else f'[{pb[0]:g}, {pb[1]:g}]'}</td></tr>")
-    post_table = ("<table><tr><th class=l>parameter</th><th>mean</th><th>sd</th><th>99 % bounds</th><th>true</th>"
-                  "<th>true inside</th><th>paper 99 %</th></tr>" + "".join(post_rows) + "</table>")
-
-    paper = ""
-    if reference and {r["name"] for r in summary["models"]} <= set(TABLE10):
-        prow = []
-        best_here = max(r["log_evidence"] for r in summary["models"])
-        best_paper = max(TABLE10[r["name"]]["log_evidence"] for r in summary["models"])
-        for r in summary["models"]:
-            p = TABLE10[r["name"]]
-            prow.append(
-                f"<tr><td class=l>{r['name']}</td><td>{_fmt(p['log_evidence'] + TABLE10_OFFSET, 2)}</td>"
-                f"<td>{_fmt(r['log_evidence'], 2)}</td><td>{_fmt(p['log_evidence'] - best_paper, 2)}</td>"
-                f"<td>{_fmt(r['log_evidence'] - best_here, 2)}</td>"
-                f"<td>{_fmt(p['goodness_of_fit'] + TABLE10_OFFSET, 2)}</td>"
-                f"<td>{_fmt(r['goodness_of_fit'], 2)}</td><td>{_fmt(p['information_gain'], 2)}</td>"
-                f"<td>{_fmt(r['information_gain'], 2)}</td><td>{_fmt(p['probability'], 3)}</td>"
-                f"<td>{_fmt(r['probability'], 3)}</td><td class=l>{', '.join(p['pruned'])}</td>"
-                f"<td class=l>{', '.join(r['pruned']) or '-'}</td></tr>")
-        paper = ("<h2>This run against the paper (Table 10)</h2><p>Absolute values depend on the noise realisation "
-                 "and the filter; compare the ranking, the pruning pattern, the decomposition trends and the "
-                 "parameter recovery (&Delta; ln Z: against the best model of the same run).</p><table><tr>"
-                 "<th class=l>model</th><th>ln Z paper</th><th>ln Z here</th>"
-                 "<th>&Delta; ln Z paper</th><th>&Delta; ln Z here</th>"
-                 "<th>GoF paper</th><th>GoF here</th><th>EIG paper</th><th>EIG here</th><th>P paper</th>"
-                 "<th>P here</th><th class=l>pruned paper</th><th class=l>pruned here</th></tr>" + "".join(prow)
-                 + "</table>")
-        from .paper import check_label, reference_checks
-
-        checks = reference_checks(summary, spec.true_values)
-        paper += ("<h3>Checks</h3><table><tr><th class=l>check</th><th>result</th><th class=l>detail</th></tr>"
-                  + "".join(f"<tr><td class=l>{html.escape(c['check'])}</td><td>{check_label(c)}"
-                            f"</td><td class=l>{html.escape(c['detail'])}"
-                            + (f"<br><i>documented difference: {html.escape(c['documented'])}</i>"
-                               if c.get("documented") else "") + "</td></tr>" for c in checks) + "</table>")
-
+    figs = _report_figures(store, spec, summary, names, samples, truth, ref_bounds, out)
+    table10 = _comparison_table(summary)
+    post_table = _posterior_table(names, samples, truth, ref_bounds)
+    paper = _paper_section(summary, spec) if reference and {r["name"] for r in summary["models"]} <= set(TABLE10) \
+        else ""
     warns = [f"<li>{html.escape(r['name'])}: {html.escape(w)}</li>" for r in summary["models"] for w in r["warnings"]]
     body = [f"<h1>ardflow study {html.escape(spec.name)}</h1>",
             f"<p>{html.escape(spec.description)}</p>",
@@ -153,3 +73,100 @@ def write_report(store, out: str | Path | None = None) -> Path:
     path = out / "report.html"
     path.write_text(page)
     return path
+
+
+def _report_figures(store, spec, summary, names, samples, truth, ref_bounds, out: Path) -> list[tuple[str, str]]:
+    """The report's figures, written to ``out``: (caption, file) each."""
+    reference = spec.data.generator == "reference"
+    best = summary["best_model"]
+    data = store.load_data()
+    figs: list[tuple[str, str]] = []
+    col = "y" if "y" in data.columns else next(iter(data.columns))
+    plot_data_and_psd(data.t, data.columns[col], out / "data_psd.png",
+                      cutoff=0.2295 if reference else None, tau_seconds=TAU_SECONDS if reference else None,
+                      title=f"{spec.name}: data ({col})", time_label="tau" if reference else "time")
+    figs.append(("Data and its power spectral density (Figs. 2-3)", "data_psd.png"))
+
+    histories = store.histories([r["name"] for r in summary["models"]])
+    plot_evidence_history(histories, out / "evidence.png")
+    figs.append(("ln evidence, goodness of fit and information gain per maximisation trial (Figs. 8, 11-14)",
+                 "evidence.png"))
+    for cand in spec.models:
+        ard = cand.ard_names
+        if ard and histories.get(cand.label):
+            f = f"ard_{cand.label}.png"
+            plot_ard_bounds(histories[cand.label], ard, out / f)
+            figs.append((f"{cand.label}: prior and posterior 99 % bounds of the ARD parameters per trial (Fig. 9)", f))
+
+    plot_marginals(names, samples, out / "marginals.png", truth, ref_bounds)
+    figs.append((f"{best} (optimal nested model): marginal posteriors, 99 % bounds, true values (Fig. 15)",
+                 "marginals.png"))
+    plot_joint(names, samples, out / "joint.png", truth)
+    figs.append((f"{best}: joint posteriors (Fig. 16)", "joint.png"))
+    return figs
+
+
+def _comparison_table(summary: dict) -> str:
+    """The model comparison (the paper's Table 10 analogue)."""
+    rows = []
+    for r in summary["models"]:
+        rows.append("<tr>" + "".join([
+            f"<td class=l>{html.escape(r['name'])}</td>",
+            f"<td>{_fmt(r['goodness_of_fit'])}</td>", f"<td>{_fmt(r['information_gain'])}</td>",
+            f"<td>{_fmt(r['log_evidence'])} &plusmn; {_fmt(r['log_evidence_se'])}</td>",
+            f"<td>{_fmt(r['probability'], 4)}</td>",
+            f"<td class=l>{', '.join(r['kept']) or '-'}</td>", f"<td class=l>{', '.join(r['pruned']) or '-'}</td>",
+            f"<td class=l>{html.escape(json.dumps(r['psi_opt']))}</td>"]) + "</tr>")
+    return ("<table><tr><th class=l>model</th><th>GoF</th><th>EIG</th><th>ln evidence</th><th>P(M|d)</th>"
+               "<th class=l>kept</th><th class=l>pruned</th><th class=l>psi_opt</th></tr>" + "".join(rows) + "</table>")
+
+
+def _posterior_table(names, samples, truth: dict, ref_bounds) -> str:
+    """The best model's posterior: mean, sd, 99 % bounds, the true value and whether it is inside."""
+    post_rows = []
+    for i, n in enumerate(names):
+        x = samples[..., i].ravel()
+        lo, hi = np.quantile(x, [0.005, 0.995])
+        tv = truth.get(n)
+        inside = "" if tv is None else ("yes" if lo <= tv <= hi else "<b class=warn>no</b>")
+        pb = ref_bounds.get(n) if ref_bounds else None
+        post_rows.append(f"<tr><td class=l>{n}</td><td>{_fmt(float(x.mean()), 4)}</td><td>{_fmt(float(x.std()), 4)}"
+                         f"</td><td>[{_fmt(float(lo), 4)}, {_fmt(float(hi), 4)}]</td><td>{_fmt(tv, 4)}</td>"
+                         f"<td>{inside}</td><td>{'-' if pb is None else f'[{pb[0]:g}, {pb[1]:g}]'}</td></tr>")
+    return ("<table><tr><th class=l>parameter</th><th>mean</th><th>sd</th><th>99 % bounds</th><th>true</th>"
+                  "<th>true inside</th><th>paper 99 %</th></tr>" + "".join(post_rows) + "</table>")
+
+
+def _paper_section(summary: dict, spec) -> str:
+    """This run against the paper's Table 10, and the reference checks."""
+    prow = []
+    best_here = max(r["log_evidence"] for r in summary["models"])
+    best_paper = max(TABLE10[r["name"]]["log_evidence"] for r in summary["models"])
+    for r in summary["models"]:
+        p = TABLE10[r["name"]]
+        prow.append(
+            f"<tr><td class=l>{r['name']}</td><td>{_fmt(p['log_evidence'] + TABLE10_OFFSET, 2)}</td>"
+            f"<td>{_fmt(r['log_evidence'], 2)}</td><td>{_fmt(p['log_evidence'] - best_paper, 2)}</td>"
+            f"<td>{_fmt(r['log_evidence'] - best_here, 2)}</td>"
+            f"<td>{_fmt(p['goodness_of_fit'] + TABLE10_OFFSET, 2)}</td>"
+            f"<td>{_fmt(r['goodness_of_fit'], 2)}</td><td>{_fmt(p['information_gain'], 2)}</td>"
+            f"<td>{_fmt(r['information_gain'], 2)}</td><td>{_fmt(p['probability'], 3)}</td>"
+            f"<td>{_fmt(r['probability'], 3)}</td><td class=l>{', '.join(p['pruned'])}</td>"
+            f"<td class=l>{', '.join(r['pruned']) or '-'}</td></tr>")
+    paper = ("<h2>This run against the paper (Table 10)</h2><p>Absolute values depend on the noise realisation "
+             "and the filter; compare the ranking, the pruning pattern, the decomposition trends and the "
+             "parameter recovery (&Delta; ln Z: against the best model of the same run).</p><table><tr>"
+             "<th class=l>model</th><th>ln Z paper</th><th>ln Z here</th>"
+             "<th>&Delta; ln Z paper</th><th>&Delta; ln Z here</th>"
+             "<th>GoF paper</th><th>GoF here</th><th>EIG paper</th><th>EIG here</th><th>P paper</th>"
+             "<th>P here</th><th class=l>pruned paper</th><th class=l>pruned here</th></tr>" + "".join(prow)
+             + "</table>")
+    from .paper import check_label, reference_checks
+
+    checks = reference_checks(summary, spec.true_values)
+    paper += ("<h3>Checks</h3><table><tr><th class=l>check</th><th>result</th><th class=l>detail</th></tr>"
+              + "".join(f"<tr><td class=l>{html.escape(c['check'])}</td><td>{check_label(c)}"
+                        f"</td><td class=l>{html.escape(c['detail'])}"
+                        + (f"<br><i>documented difference: {html.escape(c['documented'])}</i>"
+                           if c.get("documented") else "") + "</td></tr>" for c in checks) + "</table>")
+    return paper

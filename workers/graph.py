@@ -203,8 +203,7 @@ def compare_task(store_path: str, wall_start: float, *rows: dict) -> dict:
     meta = store.meta
     summary = compare(list(rows), spec, meta.get("data", {}), time.time() - wall_start)
     summary["study_id"] = meta.get("study_id")
-    g = store.group("r")
-    history = {r["name"]: list(g[f"models/{r['name']}"].attrs.get("history", [])) for r in rows}
+    history = store.histories([r["name"] for r in rows])
     store.write_text("history.json", json.dumps(_json(history), indent=2))
     store.write_summary(summary)
     return summary

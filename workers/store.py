@@ -224,6 +224,15 @@ class StudyStore:
         it = mg.attrs.get("best_iteration")
         return (None if it is None else int(it)), mg.attrs.get("result")
 
+    def histories(self, models: list[str] | None = None) -> dict[str, list]:
+        """Every maximisation trial so far, per model (``models``: these, in this order; default: all)."""
+        g = self.group("r")
+        if "models" not in g:
+            return {m: [] for m in models or []}
+        groups = dict(g["models"].groups())
+        names = list(models) if models is not None else list(groups)
+        return {m: list(groups[m].attrs.get("history", [])) if m in groups else [] for m in names}
+
     def set_model_attrs(self, model: str, **kw) -> None:
         mg = self.group().require_group(f"models/{model}")
         for k, v in kw.items():
