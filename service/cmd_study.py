@@ -91,43 +91,52 @@ def cmd_demo(a) -> int:
 
 
 def cmd_select(a) -> int:
-    from ardflow.ardcore.study import load_spec, select
+    """Run a study: chains on Dask (default) or on this machine; either way a zarr store with its report."""
+    from ardflow.ardcore.study import load_spec
+    from ardflow.workers.graph import prepare_store
+    from ardflow.workers.store import StudyStore
 
     spec = load_spec(a.spec)
     if a.full:
         spec = full_settings(spec)
-    out = Path(a.out)
     t0 = time.perf_counter()
     base = Path(a.spec).resolve().parent
+
+    existing = StudyStore(a.out)
+    if existing.exists() and existing.meta.get("status") not in (None, "created"):
+        from ardflow.ardcore.errors import SpecError
+
+        raise SpecError(f"{a.out} already holds a study (status {existing.meta.get('status')!r}); "
+                        + (f"continue it with 'ardflow resume {a.out}' or " if a.executor == "dask" else "")
+                        + "choose another --out")
+    store = prepare_store(spec, a.out, base=base)
+    print(f"[ardflow] study {store.meta['study_id']} -> {store}", flush=True)
     if a.executor == "dask":
-        from ardflow.workers.graph import prepare_store
-        from ardflow.workers.store import StudyStore
-
-        existing = StudyStore(a.out)
-        if existing.exists() and existing.meta.get("status") not in (None, "created"):
-            from ardflow.ardcore.errors import SpecError
-
-            raise SpecError(f"{a.out} already holds a study (status {existing.meta.get('status')!r}); "
-                            f"continue it with 'ardflow resume {a.out}' or choose another --out")
-        store = prepare_store(spec, a.out, base=base)
-        print(f"[ardflow] study {store.meta['study_id']} -> {store}", flush=True)
         summary = _run_on_dask(a, store)
-        _print_table(summary)
-        print(f"\nsummary: {store}/summary.json  ({time.perf_counter() - t0:.1f} s)")
-        return 0
-    elif a.executor == "serial":
-        with LiveProgress(spec.maximiser.max_trials) as live:
-            summary = select(spec, out=out, progress=live, base=base)
     else:
-        from concurrent.futures import ProcessPoolExecutor
-
-        from ardflow.ardcore.mcmc import executor_map
-
-        with ProcessPoolExecutor(max_workers=a.workers) as ex, LiveProgress(spec.maximiser.max_trials) as live:
-            summary = select(spec, out=out, progress=live, map_fn=executor_map(ex), base=base)
+        summary = _run_locally(a, store, spec)
     _print_table(summary)
-    print(f"\nsummary: {(out / 'summary.json').resolve()}  ({time.perf_counter() - t0:.1f} s)")
+    print(f"\nsummary: {store}/summary.json  ({time.perf_counter() - t0:.1f} s)")
     return 0
+
+
+def _run_locally(a, store, spec) -> dict:
+    """The study serially or on a local process pool, into the same store layout and report as on Dask."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from ardflow.ardcore.mcmc import executor_map, serial_map
+    from ardflow.workers.local import run_study_local
+
+    with LiveProgress(spec.maximiser.max_trials) as live:
+        if a.executor == "serial":
+            summary = run_study_local(store, serial_map, progress=live)
+        else:
+            with ProcessPoolExecutor(max_workers=a.workers) as ex:
+                summary = run_study_local(store, executor_map(ex), progress=live)
+    from .html_report import write_report
+
+    print(f"[ardflow] report: {write_report(store).resolve()}", flush=True)
+    return summary
 
 
 def cmd_resume(a) -> int:

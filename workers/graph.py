@@ -144,7 +144,8 @@ def stored_fit(store: StudyStore, model: str):
 # --------------------------------------------------------------------------- study tasks
 
 
-def _progress_writer(store: StudyStore, model: str) -> Callable[[dict], None]:
+def progress_writer(store: StudyStore, model: str) -> Callable[[dict], None]:
+    """Progress events of ``model`` appended to the store (what ``read_progress`` and the service stream)."""
     rel = f"progress/{model}.jsonl"
 
     def write(p: dict) -> None:
@@ -159,9 +160,8 @@ def run_model(client, store_path: str, study_id: str, index: int) -> dict:
     store = StudyStore(store_path)
     spec = StudySpec.model_validate(store.meta["spec"])
     data = store.load_data()
-    cand = spec.models[index]
-    model = cand.label
-    progress = _progress_writer(store, model)
+    model = spec.models[index].label
+    progress = progress_writer(store, model)
     ev = Event(cancel_event_name(study_id), client=client)
 
     def cancel() -> bool:
@@ -169,17 +169,27 @@ def run_model(client, store_path: str, study_id: str, index: int) -> dict:
             return ev.is_set()
         except Exception:  # a dropped scheduler connection is not a cancellation
             return False
+
+    def factory(*a, **kw):
+        return StoredEvaluator(*a, client=client, store=store, study_id=study_id, model=model, **kw)
+
+    return fit_model(store, spec, data, index, factory, progress=progress, cancel=cancel)
+
+
+def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_factory, *,
+              progress: Callable[[dict], None], cancel=None) -> dict:
+    """One candidate's ARD evidence maximisation with its trials recorded in ``store`` (the history as each
+    trial finishes, the result and best iteration at the end): the same layout whatever runs the chains."""
+    cand = spec.models[index]
+    model = cand.label
     history: list[dict] = []
 
     def on_trial(tr):
         history.append(tr.to_dict())
         store.set_model_attrs(model, history=history)
 
-    def factory(*a, **kw):
-        return StoredEvaluator(*a, client=client, store=store, study_id=study_id, model=model, **kw)
-
-    row, mr = run_candidate(cand, data, spec, index, progress=progress, cancel=cancel, evaluator_factory=factory,
-                            on_trial=on_trial)
+    row, mr = run_candidate(cand, data, spec, index, progress=progress, cancel=cancel,
+                            evaluator_factory=evaluator_factory, on_trial=on_trial)
     best_iteration = mr.best.iteration
     if spec.evidence == "laplace":
         # Laplace trials sample nothing; the posterior drawn at psi_opt gets a trial group of its own

@@ -137,3 +137,26 @@ def test_settings_are_listed_from_their_one_declaration():
         StudySpec.model_validate({"name": "x", "data": {"generator": "appendix_a"}, "models": [],
                                   "sampler": {"n_chains": 1}})
     assert "reweight_min_ess" in lines and "<= 1" in lines["reweight_min_ess"]
+
+
+def test_serial_and_dask_executors_write_the_same_store_and_report(tmp_path):
+    """`select --executor serial` and `--executor dask` (embedded cluster): one store layout, one report, and
+    (same seeds) the same numbers."""
+    from pathlib import Path
+
+    spec = Path(__file__).resolve().parents[1] / "workers" / "small_study.json"
+    trees, reports, summaries = [], [], []
+    for ex in ("serial", "dask"):
+        out = tmp_path / ex
+        r = run("select", str(spec), "--out", str(out), "--executor", ex, "--workers", "2")
+        assert r.returncode == 0, r.stderr
+        trees.append(sorted(str(p.relative_to(out)) for p in out.rglob("*")
+                            if p.is_file() and "checkpoints" not in p.parts))  # checkpoints: Dask's resume only
+        reports.append("\n".join(ln for ln in (out / "report" / "report.html").read_text().split("><")
+                                 if "Wall time" not in ln))
+        s = json.loads((out / "summary.json").read_text())
+        summaries.append([(m["name"], m["log_evidence"], m["kept"], m["pruned"]) for m in s["models"]])
+    assert trees[0] == trees[1]
+    assert any(t.startswith("models/quad/trials/") for t in trees[0]), trees[0][:10]
+    assert reports[0] == reports[1]
+    assert summaries[0] == summaries[1]

@@ -1,0 +1,67 @@
+"""A study on this machine (serially or on a process pool) written to the same zarr store as on Dask.
+
+``ardflow select --executor serial|processes`` runs here: the chains go to a local map instead of Dask
+tasks, and every trial, history, result and the summary land in the store exactly as
+:mod:`workers.graph` writes them, so the report, the figures, ``ardflow loo`` and the service's routes read
+either the same way.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+from ardflow.ardcore.ard import EvidenceEvaluator
+from ardflow.ardcore.mcmc import Map
+from ardflow.ardcore.study import StudySpec
+
+from .graph import _record, compare_task, fit_model, progress_writer
+from .store import StudyStore
+
+
+class LocalStoredEvaluator(EvidenceEvaluator):
+    """Evidence at psi on a local map; each sampled trial's draws and record go to the store."""
+
+    def __init__(self, spec, essential, data, sampler, *, store: StudyStore, model: str, **kw):
+        super().__init__(spec, essential, data, sampler, **kw)
+        self.store, self.model = store, model
+
+    def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None):
+        target, ev, res = super().__call__(psi, seed, warm, final=final, iteration=iteration)
+        if self.method == "laplace" or iteration is None or res is None or not res.samples.size:
+            return target, ev, res
+        nc, M, _ = res.samples.shape
+        self.store.create_trial(self.model, iteration, list(res.names), nc, M, self.sampler.round_size, psi)
+        for c in range(nc):
+            self.store.write_round(self.model, iteration, c, 0, res.samples[c], res.lp[c], res.ll[c])
+        self.store.finish_trial(self.model, iteration, _record(psi, ev, res))
+        return target, ev, res
+
+
+def run_study_local(store: StudyStore, map_fn: Map, *, progress: Callable[[dict], None] | None = None) -> dict:
+    """Run the study in ``store`` model after model, chains on ``map_fn``; returns the summary."""
+    spec = StudySpec.model_validate(store.meta["spec"])
+    data = store.load_data()
+    start = time.time()
+    store.update_meta(status="running", started=start)
+    rows = []
+    try:
+        for i, cand in enumerate(spec.models):
+            model = cand.label
+            write = progress_writer(store, model)
+
+            def prog(p: dict, write=write) -> None:  # p carries its model's name (run_candidate adds it)
+                write(p)
+                if progress:
+                    progress(p)
+
+            def factory(*a, model=model, **kw):
+                return LocalStoredEvaluator(*a, store=store, model=model, **{**kw, "map_fn": map_fn})
+
+            rows.append(fit_model(store, spec, data, i, factory, progress=prog))
+    except BaseException as exc:
+        from ardflow.ardcore.mcmc import Cancelled
+
+        store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
+        raise
+    return compare_task(str(store), start, *rows)
