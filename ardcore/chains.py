@@ -15,21 +15,32 @@ import numpy as np
 
 from .errors import ArdflowError
 
+@dataclass(frozen=True)
+class Step:
+    """Which step of a trial a batch of per-chain tasks is: ``kind`` is ``"start"`` (start optimisation),
+    ``"burnin"`` (``index``: the 1-based round), ``"stationary"`` (``index``: the first draw of the round)
+    or ``"cj"`` (Chib-Jeliazkov ordinates). Orchestrators route on it (burn-in tasks report to the trial's
+    coordinator, stationary tasks write their draws) and name their tasks after it; plain maps ignore it."""
+
+    kind: str
+    index: int | None = None
+
+    def __str__(self) -> str:
+        return self.kind if self.index is None else f"{self.kind}-{self.index}"
+
+
 Map = Callable[..., list]
-"""``map_fn(func, items, label=...) -> list``: how independent per-chain tasks are run.
-
-``label`` names the step (``"start"``, ``"burnin-r3"``, ``"stationary-d1000"``,
-``"cj"``); item ``c`` belongs to chain ``c``. Orchestrators use it for task
-keys and for streaming; plain maps ignore it."""
+"""``map_fn(func, items, step=Step(...)) -> list``: how independent per-chain tasks are run; item ``c``
+belongs to chain ``c`` (see :class:`Step`)."""
 
 
-def serial_map(func, items, label: str = ""):
+def serial_map(func, items, step: Step | None = None):
     return [func(it) for it in items]
 
 
 def executor_map(executor) -> Map:
     """Adapt a ``concurrent.futures`` executor to :data:`Map`."""
-    return lambda func, items, label="": list(executor.map(func, items))
+    return lambda func, items, step=None: list(executor.map(func, items))
 
 
 class SamplerError(ArdflowError):

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from .evidence import chib_jeliazkov, laplace
-from .mcmc import Map, SamplerConfig, SamplerResult, initial_scale, sample, serial_map
+from .mcmc import Map, SamplerConfig, SamplerResult, Step, initial_scale, sample, serial_map
 from .posterior import ModelPosterior
 from .priors import ARD
 
@@ -73,7 +73,7 @@ class EvidenceEvaluator:
         pts = [_warm_point(target, None)]
         pts += list(initial_points(target.prior, max(self.sampler.n_chains - 1, 0), np.random.default_rng(seed)))
         tasks = [(target, np.asarray(p, dtype=float), scale, self.sampler.start_maxfev) for p in pts]
-        found = self.map_fn(_local_mode_task, tasks, label="start")
+        found = self.map_fn(_local_mode_task, tasks, step=Step("start"))
         return max(found, key=lambda r: r[1])[0]
 
 

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.special import logsumexp
 from scipy.stats import chi2
 
-from .mcmc import Map, SamplerError, SamplerResult, fd_hessian, local_mode, safe_cholesky, serial_map
+from .mcmc import Map, SamplerError, SamplerResult, Step, fd_hessian, local_mode, safe_cholesky, serial_map
 
 
 @dataclass
@@ -125,7 +125,7 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
         n_eval += nc * n_proposal
         tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
                   int(seeds[c])) for c in range(nc)]
-        out = map_fn(_cj_chain, tasks, label="cj")
+        out = map_fn(_cj_chain, tasks, step=Step("cj"))
         per = [ChainEvidence(lp_star - o, se, o) for o, se in out]
         valid = [p for p in per if math.isfinite(p.log_evidence) and p.log_evidence <= bound]
         if valid or attempt == 1 or not np.isfinite(res.lp).any():

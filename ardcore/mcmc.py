@@ -29,6 +29,7 @@ from .chains import (  # noqa: F401
     RoundResult,
     RoundStats,
     SamplerError,
+    Step,
     _round_task,
     executor_map,
     pool_stats,
@@ -63,7 +64,7 @@ def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig
             raise Cancelled("cancelled during burn-in")
         rnd = pool.rounds + 1
         results = map_fn(_round_task, [(target, s, pool.proposal(c), config.round_size, True, config.dr_scale)
-                                       for c, s in enumerate(states)], label=f"burnin-r{rnd}")
+                                       for c, s in enumerate(states)], step=Step("burnin", rnd))
         states = [q.state for q in results]
         for c, q in enumerate(results):
             pool.report(c, rnd, q.halves, q.best)
@@ -113,7 +114,7 @@ def run_stationary(target, states: list, cov: np.ndarray, config: SamplerConfig,
         if cancel is not None and cancel():
             raise Cancelled("cancelled during stationary sampling")
         n = min(config.round_size, M - done)
-        results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states], label=f"stationary-d{done}")
+        results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states], step=Step("stationary", done))
         states = [q.state for q in results]
         n_eval += nc * n
         for c, q in enumerate(results):

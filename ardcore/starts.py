@@ -8,7 +8,7 @@ from typing import Callable
 
 import numpy as np
 
-from .chains import ChainState, Map, SamplerError, safe_cholesky, serial_map
+from .chains import ChainState, Map, SamplerError, Step, safe_cholesky, serial_map
 from .sampling import SamplerConfig, SamplerResult
 
 
@@ -206,7 +206,7 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
         pts = initial_points(target.prior, nc, np.random.default_rng(child[nc]))
         tasks = [(target, pts[c], scale, config.start_maxfev, child[c].generate_state(1)[0] + c,
                   config.overdispersion) for c in range(nc)]
-        res = map_fn(_start_task, tasks, label="start")
+        res = map_fn(_start_task, tasks, step=Step("start"))
         n_eval = sum(int(r[6]) for r in res)
         cov = (2.38**2 / d) * np.mean([r[5] for r in res], axis=0)
         states = []

@@ -7,7 +7,7 @@ import logging
 import time
 from concurrent.futures import CancelledError
 
-from ardflow.ardcore.mcmc import _round_task
+from ardflow.ardcore.mcmc import Step, _round_task
 
 from .coordinator import actor_variable_name, wait_connected
 from .store import StudyStore
@@ -119,24 +119,23 @@ class DaskMap:
     stall_s = 20.0
     """After this long without progress, check that the scheduler still knows every key being waited for."""
 
-    def _submit(self, func, it, ch: int, label: str, attempt: int):
+    def _submit(self, func, it, ch: int, step: Step | None, attempt: int):
         c = self.client
         sfx = f"-a{attempt}" if attempt else ""
-        if label.startswith("burnin-r") and self.coordinator:
-            rnd = int(label[len("burnin-r"):])
-            return c.submit(_burnin_round_task, it, self.prefix, ch, rnd,
-                            key=f"burnin-{self.prefix}-r{rnd:03d}-c{ch}{sfx}")
-        if label.startswith("stationary-d") and self.store is not None:
-            start = int(label[len("stationary-d"):])
+        if step is not None and step.kind == "burnin" and self.coordinator:
+            return c.submit(_burnin_round_task, it, self.prefix, ch, step.index,
+                            key=f"burnin-{self.prefix}-r{step.index:03d}-c{ch}{sfx}")
+        if step is not None and step.kind == "stationary" and self.store is not None:
             return c.submit(_stationary_round_task, it, str(self.store), self.model, self.iteration,
-                            ch, start, key=f"stationary-{self.prefix}-d{start:06d}-c{ch}{sfx}")
-        name, _, rest = (label or getattr(func, "__name__", "task").strip("_")).partition("-")
-        return c.submit(func, it, key=f"{name}-{self.prefix}{'-' + rest if rest else ''}-c{ch}{sfx}")
+                            ch, step.index, key=f"stationary-{self.prefix}-d{step.index:06d}-c{ch}{sfx}")
+        name = step.kind if step is not None else getattr(func, "__name__", "task").strip("_")
+        rest = f"-{step.index}" if step is not None and step.index is not None else ""
+        return c.submit(func, it, key=f"{name}-{self.prefix}{rest}-c{ch}{sfx}")
 
-    def __call__(self, func, items, label: str = ""):
+    def __call__(self, func, items, step: Step | None = None):
         from distributed import wait
 
-        futs = [self._submit(func, it, ch, label, 0) for ch, it in enumerate(items)]
+        futs = [self._submit(func, it, ch, step, 0) for ch, it in enumerate(items)]
         attempts = [0] * len(futs)
         while True:
             try:
@@ -158,7 +157,7 @@ class DaskMap:
                 if f.status in ("lost", "cancelled") or (f.status == "pending" and not known.get(f.key, False)):
                     attempts[i] += 1
                     log.warning("task %s was lost (%s); submitting it again", f.key, f.status)
-                    futs[i] = self._submit(func, items[i], i, label, attempts[i])
+                    futs[i] = self._submit(func, items[i], i, step, attempts[i])
 
 
 def _known_keys(dask_scheduler=None, keys=()):
