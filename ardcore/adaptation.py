@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .chains import RoundStats, pool_stats
+from .chains import ChainReport, RoundStats, pool_stats
 
 
 # --------------------------------------------------------------------------- coordinator
@@ -49,6 +49,7 @@ class AdaptationPool:
         """Record round ``round_index`` (1-based) of ``chain``; True when that round is committed."""
         if round_index <= self.rounds:
             return True  # already committed: a re-run task reporting again
+        best = ChainReport(*best) if best is not None else None  # over the wire it may arrive as a plain tuple
         self.pending.setdefault(round_index, {}).setdefault(chain, (tuple(halves), best))  # first report wins
         if round_index == self.rounds + 1 and len(self.pending[round_index]) == self.n_chains:
             self._commit(self.pending.pop(round_index))
@@ -59,8 +60,8 @@ class AdaptationPool:
         for c in range(self.n_chains):
             halves, best = reports[c]
             self.halves[c].extend(halves)
-            if best is not None and (self.best is None or best[1] > self.best[1]):
-                self.best = (list(best[0]), float(best[1]), float(best[2]))
+            if best is not None and best.lp > self.best_lp:
+                self.best = (list(best.x), float(best.lp), float(best.ll))
         self.rounds += 1
         self._reset_outliers(reports)
         fallback = self.cov
@@ -80,8 +81,7 @@ class AdaptationPool:
         """
         if not self.outlier_nats > 0:
             return
-        levels = [reports[c][1][3] if reports[c][1] is not None and len(reports[c][1]) > 3 else math.nan
-                  for c in range(self.n_chains)]
+        levels = [reports[c][1].level if reports[c][1] is not None else math.nan for c in range(self.n_chains)]
         if not all(math.isfinite(v) for v in levels):
             return
         src = int(np.argmax(levels))
@@ -111,6 +111,11 @@ class AdaptationPool:
         return (2.38**2 / d) * C + np.diag((1e-8 * scale) ** 2)
 
     # -- driver side
+    @property
+    def best_lp(self) -> float:
+        """The highest ln posterior any chain has reported (-inf before the first round)."""
+        return float(self.best[1]) if self.best else -math.inf
+
     def rhat(self) -> np.ndarray:
         """Split R-hat per parameter over the latter half of the committed rounds."""
         if self.rounds == 0 or not all(self.halves):

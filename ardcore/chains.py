@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -111,6 +111,15 @@ def pool_stats(stats: Sequence[RoundStats]) -> tuple[int, np.ndarray, np.ndarray
     return n, mean, sc / (n - 1)
 
 
+class ChainReport(NamedTuple):
+    """What a chain reports to the coordinator with each burn-in round."""
+
+    x: list        # the best point the chain has visited
+    lp: float      # its ln posterior
+    ll: float      # its ln likelihood
+    level: float   # the mean ln posterior of the round's latter half (compared across chains)
+
+
 @dataclass
 class RoundResult:
     state: ChainState
@@ -122,12 +131,11 @@ class RoundResult:
     halves: tuple  # RoundStats of the first and second half of the round (split R-hat)
 
     @property
-    def best(self) -> tuple:
-        """What a chain reports with its round: best point, its ln posterior and ln L, and the mean
-        ln posterior of the round's latter half (the level the coordinator compares across chains)."""
+    def best(self) -> ChainReport:
+        """What a chain reports with its round (:class:`ChainReport`)."""
         h = self.lp.size // 2
         level = float(np.mean(self.lp[h:])) if self.lp.size else -math.inf
-        return (self.state.best_x, self.state.best_lp, self.state.best_ll, level)
+        return ChainReport(self.state.best_x, self.state.best_lp, self.state.best_ll, level)
 
     @property
     def stats(self) -> RoundStats:

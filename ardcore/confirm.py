@@ -22,6 +22,16 @@ from .study import CandidateSpec, StudySpec, run_candidate
 INF = math.inf
 
 
+class Fit(NamedTuple):
+    """A candidate re-selected on its data: the candidate, its summary row, its maximiser result, the data
+    (with any columns its effects need)."""
+
+    cand: CandidateSpec
+    row: dict
+    mr: object
+    data: Dataset
+
+
 def essential_from_row(cand: CandidateSpec, row: dict) -> tuple[dict, dict]:
     """Priors of the fitted model with kept ARD terms frozen at their optimal alpha; pruned terms fixed."""
     from .priors import Flat, Normal
@@ -177,7 +187,7 @@ def joint_fit(spec, cand, row, best, survivors, data, config, say):
     """The current model with every surviving effect added, each new term at the ARD precision its own
     re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
 
-    Returns (candidate, row, maximiser result, data, survivors) or None."""
+    Returns the :class:`Fit` of the model with all of them."""
     from .priors import Flat, Normal
 
     priors, fixed = essential_from_row(cand, row)
@@ -197,7 +207,7 @@ def joint_fit(spec, cand, row, best, survivors, data, config, say):
     say("fitting the distinct survivors together: " + ", ".join(c["effect"] for c in survivors))
     arow, amr = run_candidate(acand, adata, spec, 0, warm=best["_mr"].sampler, final_posterior=config.posterior)
     say(f"  together: ln BF = {arow['log_evidence'] - row['log_evidence']:.2f}")
-    return acand, arow, amr, adata, survivors
+    return Fit(acand, arow, amr, adata)
 
 
 def physical(row: dict, name: str, scale: float) -> dict:

@@ -41,6 +41,7 @@ from typing import Callable
 import numpy as np
 
 from .confirm import (  # noqa: F401
+    Fit,
     Added,
     backward_check,
     joint_fit,
@@ -253,14 +254,14 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rec) -> tu
     """Add the best survivor (or the survivors fitted together, when that is worth more); record what was
     added in ``rec``. Returns the new candidate, its row, its maximiser result and the augmented data."""
     best = survivors[0]
-    chosen, fit = [best], (best["_cand"], best["_row"], best["_mr"], best["_data"])
+    chosen, fit = [best], Fit(best["_cand"], best["_row"], best["_mr"], best["_data"])
     if config.joint and len(survivors) > 1:
         # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
         # others make redundant; taken when it beats the best single effect by more than min_log_bf
         j = joint_fit(spec, cand, row, best, survivors, data, config, say)
-        if j is not None and j[1]["log_evidence"] > best["log_evidence"] + config.min_log_bf:
-            chosen, fit = j[4], j[:4]
-    jrow = fit[1]
+        if j.row["log_evidence"] > best["log_evidence"] + config.min_log_bf:
+            chosen, fit = survivors, j
+    jrow = fit.row
     recs = []
     for c in chosen:
         eff = c["_effect"]

@@ -146,13 +146,9 @@ def duffing() -> ModelSpec:
 
 def pendulum() -> ModelSpec:
     """Pendulum theta'' = -w2 sin(theta) - c theta' (+ noise)."""
-    return ModelSpec(
-        name="pendulum", description="theta'' = -w2 sin(theta) - c theta' + sigma xi",
-        states=["y", "v"], drift={"y": "v", "v": "-w2*sin(y) - c*v"}, diffusion={"v": "sigma"},
-        observations=[{"column": "y", "expr": "y", "noise_std": "gamma"}],
-        parameters=["w2", "c", "sigma"], constants={"gamma": 1e-4},
-        initial_std={"y": 1.0, "v": 1.0},
-    )
+    return linear_oscillator().model_copy(update={
+        "name": "pendulum", "description": "theta'' = -w2 sin(theta) - c theta' + sigma xi",
+        "drift": {"y": "v", "v": "-w2*sin(y) - c*v"}, "parameters": ["w2", "c", "sigma"]}).revalidate()
 
 
 BUILTINS = {

@@ -17,7 +17,6 @@ and the driver (:func:`sample`), and re-exports the pieces.
 
 from __future__ import annotations
 
-import math
 from typing import Callable
 
 import numpy as np
@@ -81,7 +80,7 @@ def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig
         b_acc, b_n = b_acc + acc, b_n + n
         if progress:
             progress({"stage": "burnin", "round": pool.rounds, "rhat": pool.rhat().tolist(),
-                      "best_lp": pool.best[1] if pool.best else -math.inf, "acceptance": acc / max(1, n)})
+                      "best_lp": pool.best_lp, "acceptance": acc / max(1, n)})
         if checkpoint:
             checkpoint({"stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
                         "counters": [b_acc, b_n, n_eval]})

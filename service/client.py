@@ -19,6 +19,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from .schemas import FINAL
+
 
 class APIError(Exception):
     """An error answer of the service: ``status`` and the server's message."""
@@ -100,28 +102,17 @@ class Client:
 
     def wait(self, sid: str, *, poll_s: float = 2.0, timeout: float | None = None, progress: bool = True) -> dict:
         """Block until the study ends; shows one progress line per model on stderr. Returns the final status."""
-        t0 = time.time()
-        while True:
+        def poll() -> dict | None:
             st = self.status(sid)
             if progress:
-                parts = []
-                for m, p in st["models"].items():
-                    be = p.get("best_log_evidence")
-                    eta = p.get("eta_s")
-                    parts.append(f"{m}: {p.get('trials_done', 0)} trials"
-                                 + (f", best ln Z {be:.2f}" if be is not None else "")
-                                 + (f", eta <= {eta:.0f}s" if eta else ""))
-                sys.stderr.write(f"\r[{st['status']}] " + " | ".join(parts) + " " * 8)
+                sys.stderr.write(f"\r[{st['status']}] " + _progress_line(st) + " " * 8
+                                 + ("\n" if st["status"] in FINAL else ""))
                 sys.stderr.flush()
-            if st["status"] in ("done", "failed", "cancelled"):
-                if progress:
-                    sys.stderr.write("\n")
-                if st["status"] == "failed":
-                    raise APIError(500, f"study {sid} failed: {st.get('error')}")
-                return st
-            if timeout is not None and time.time() - t0 > timeout:
-                raise TimeoutError(f"study {sid} still {st['status']} after {timeout} s")
-            time.sleep(poll_s)
+            if st["status"] == "failed":
+                raise APIError(500, f"study {sid} failed: {st.get('error')}")
+            return st if st["status"] in FINAL else None
+
+        return _until(poll, poll_s, timeout, lambda: f"study {sid} still running after {timeout} s")
 
     def diagnose(self, sid: str, model: str | None = None, *, top_k: int = 3, max_rounds: int = 3,
                  test_csv: str | Path | None = None, wait: bool = True, poll_s: float = 2.0,
@@ -139,16 +130,13 @@ class Client:
         st = self._check(self.http.post(f"/studies/{sid}/diagnoses", json=body)).json()
         if not wait:
             return st
-        t0 = time.monotonic()
-        while True:
+        def poll() -> dict | None:
             d = self.diagnosis(sid, st["model"])
-            if d["status"] != "running":
-                if d["status"] == "failed":
-                    raise APIError(500, f"diagnosis failed: {d.get('error')}")
-                return d
-            if timeout is not None and time.monotonic() - t0 > timeout:
-                raise TimeoutError(f"diagnosis of {st['model']} still running after {timeout} s")
-            time.sleep(poll_s)
+            if d["status"] == "failed":
+                raise APIError(500, f"diagnosis failed: {d.get('error')}")
+            return d if d["status"] != "running" else None
+
+        return _until(poll, poll_s, timeout, lambda: f"diagnosis of {st['model']} still running after {timeout} s")
 
     def diagnosis(self, sid: str, model: str) -> dict:
         """State (``running``/``done``/``failed``) and, when done, the ``report`` of a diagnosis."""
@@ -203,3 +191,26 @@ class Client:
             {"samples": (("chain", "draw", "param"), samples), "log_posterior": (("chain", "draw"), lp),
              "log_likelihood": (("chain", "draw"), ll)},
             coords={"param": names, "chain": np.arange(samples.shape[0]), "draw": np.arange(samples.shape[1])})
+
+
+def _progress_line(st: dict) -> str:
+    """One line for a study's status: per model its trials, best ln Z and ETA."""
+    parts = []
+    for m, p in st["models"].items():
+        be, eta = p.get("best_log_evidence"), p.get("eta_s")
+        parts.append(f"{m}: {p.get('trials_done', 0)} trials" + (f", best ln Z {be:.2f}" if be is not None else "")
+                     + (f", eta <= {eta:.0f}s" if eta else ""))
+    return " | ".join(parts)
+
+
+def _until(poll, poll_s: float, timeout: float | None, what) -> dict:
+    """Call ``poll`` every ``poll_s`` seconds until it returns a result; TimeoutError (``what()``) after
+    ``timeout`` seconds."""
+    t0 = time.monotonic()
+    while True:
+        out = poll()
+        if out is not None:
+            return out
+        if timeout is not None and time.monotonic() - t0 > timeout:
+            raise TimeoutError(what())
+        time.sleep(poll_s)

@@ -95,36 +95,14 @@ class ActorPool:
             self.pending = {k: v for k, v in self.pending.items() if k[1] > self.mirror.rounds}
         return done
 
-    def proposal(self, chain: int):
-        return self.mirror.proposal(chain)
+    _READ = frozenset({"proposal", "rounds", "cov", "best", "best_lp", "rhat_history", "rhat", "moved", "converged",
+                       "to_dict"})
 
-    @property
-    def rounds(self) -> int:
-        return self.mirror.rounds
-
-    @property
-    def cov(self):
-        return self.mirror.cov
-
-    @property
-    def best(self):
-        return self.mirror.best
-
-    @property
-    def rhat_history(self):
-        return self.mirror.rhat_history
-
-    def rhat(self):
-        return self.mirror.rhat()
-
-    def moved(self, round_index: int) -> dict:
-        return self.mirror.moved(round_index)
-
-    def converged(self) -> bool:
-        return self.mirror.converged()
-
-    def to_dict(self) -> dict:
-        return self.mirror.to_dict()
+    def __getattr__(self, name: str):
+        # what the driver reads is read from the mirror, which every committed round refreshes
+        if name in ActorPool._READ:
+            return getattr(self.mirror, name)
+        raise AttributeError(name)
 
     def close(self) -> None:
         try:
