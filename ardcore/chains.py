@@ -117,7 +117,7 @@ class ChainReport(NamedTuple):
     x: list        # the best point the chain has visited
     lp: float      # its ln posterior
     ll: float      # its ln likelihood
-    level: float   # the mean ln posterior of the round's latter half (compared across chains)
+    level: float = math.nan  # the mean ln posterior of the round's latter half (compared across chains)
 
 
 @dataclass
