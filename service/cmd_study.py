@@ -18,7 +18,7 @@ def full_settings(spec):
 
     keys = ("n_chains", "round_size", "n_stationary", "n_proposal")
     return spec.model_copy(update={"sampler": spec.sampler.model_copy(
-        update={k: getattr(SamplerConfig, k) for k in keys})})
+        update={k: SamplerConfig.model_fields[k].default for k in keys})})
 
 
 def _run_on_dask(a, store) -> dict:

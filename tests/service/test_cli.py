@@ -160,3 +160,18 @@ def test_serial_and_dask_executors_write_the_same_store_and_report(tmp_path):
     assert any(t.startswith("models/quad/trials/") for t in trees[0]), trees[0][:10]
     assert reports[0] == reports[1]
     assert summaries[0] == summaries[1]
+
+
+def test_full_settings_are_the_engines_defaults():
+    """`--full` (select, demo) sets the paper-scale sampler sizes: the defaults of the one declaration."""
+    from ardflow.ardcore.sampling import SamplerConfig
+    from ardflow.ardcore.study import load_spec
+    from ardflow.service.cmd_study import full_settings
+    from ardflow.service.cmd_local import EXAMPLES
+
+    demo = load_spec(EXAMPLES / "sec36.json")
+    full = full_settings(demo)
+    assert (full.sampler.n_chains, full.sampler.round_size, full.sampler.n_stationary, full.sampler.n_proposal) \
+        == (4, 500, 5000, 5000) == tuple(SamplerConfig.model_fields[k].default
+                                         for k in ("n_chains", "round_size", "n_stationary", "n_proposal"))
+    assert full.sampler.min_burnin_rounds == demo.sampler.min_burnin_rounds  # the rest as the spec says
