@@ -93,7 +93,6 @@ def parse_expression(source: str, names: Iterable[str], *, where: str = "express
         raise ModelError(f"{where}: expression longer than {MAX_EXPRESSION_LENGTH} characters")
     if not source.strip():
         raise ModelError(f"{where}: empty expression")
-    allowed = set(names)
     try:
         tree = ast.parse(source.strip(), mode="eval")
     except SyntaxError as exc:
@@ -103,55 +102,73 @@ def parse_expression(source: str, names: Iterable[str], *, where: str = "express
     text = source.strip()
     _check_size(tree, where)
 
-    def visit(node: ast.AST) -> sp.Expr:
+    return _Whitelist(set(names), text, where).visit(tree)
+
+
+class _Whitelist:
+    """The walk of :func:`parse_expression`: each allowed node becomes sympy, anything else a ModelError."""
+
+    def __init__(self, allowed: set, text: str, where: str):
+        self.allowed, self.text, self.where = allowed, text, where
+
+    def visit(self, node: ast.AST) -> sp.Expr:
         if isinstance(node, ast.Expression):
-            return visit(node.body)
-        if isinstance(node, ast.Constant):
-            v = node.value
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ModelError(f"{where}: token {_token(node, text)!r} is not allowed (only numbers)")
-            if not math.isfinite(v):
-                raise ModelError(f"{where}: non-finite number {_token(node, text)!r}")
-            return sp.Integer(v) if isinstance(v, int) else sp.Float(v)
-        if isinstance(node, ast.Name):
-            if node.id in allowed:
-                return sp.Symbol(node.id, real=True)
-            if node.id in CONSTANTS:
-                return CONSTANTS[node.id]
-            if node.id in FUNCTIONS:
-                raise ModelError(f"{where}: function {node.id!r} must be called, e.g. {node.id}(x)")
-            raise ModelError(f"{where}: unknown name {node.id!r} in {text!r}")
-        if isinstance(node, ast.BinOp):
-            op = _BINOPS.get(type(node.op))
-            if op is None:
-                tok = _OP_TOKENS.get(type(node.op), type(node.op).__name__)
-                raise ModelError(f"{where}: operator {tok!r} is not allowed in {text!r}")
-            a, b = visit(node.left), visit(node.right)
-            # a numeric power of a symbolic base is bounded (a symbolic exponent is not a blow-up)
-            if isinstance(node.op, ast.Pow) and b.is_number and a.free_symbols:
-                if not (b.is_real and abs(float(b)) <= MAX_EXPONENT):
-                    raise ModelError(f"{where}: exponent {_token(node.right, text)!r} is too large "
-                                     f"(at most {MAX_EXPONENT}) in {text!r}")
-            if a.is_number and b.is_number:
-                return _fold(type(node.op), a, b, node, text, where)
-            return _finite_result(op(a, b), node, text, where)
-        if isinstance(node, ast.UnaryOp):
-            if isinstance(node.op, ast.USub):
-                return -visit(node.operand)
-            if isinstance(node.op, ast.UAdd):
-                return visit(node.operand)
+            return self.visit(node.body)
+        for kind, method in ((ast.Constant, self._constant), (ast.Name, self._name), (ast.BinOp, self._binop),
+                             (ast.UnaryOp, self._unary), (ast.Call, self._call)):
+            if isinstance(node, kind):
+                return method(node)
+        raise ModelError(f"{self.where}: token {_token(node, self.text)!r} is not allowed in {self.text!r}")
+
+    def _constant(self, node: ast.Constant) -> sp.Expr:
+        v, where, text = node.value, self.where, self.text
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ModelError(f"{where}: token {_token(node, text)!r} is not allowed (only numbers)")
+        if not math.isfinite(v):
+            raise ModelError(f"{where}: non-finite number {_token(node, text)!r}")
+        return sp.Integer(v) if isinstance(v, int) else sp.Float(v)
+
+    def _name(self, node: ast.Name) -> sp.Expr:
+        if node.id in self.allowed:
+            return sp.Symbol(node.id, real=True)
+        if node.id in CONSTANTS:
+            return CONSTANTS[node.id]
+        if node.id in FUNCTIONS:
+            raise ModelError(f"{self.where}: function {node.id!r} must be called, e.g. {node.id}(x)")
+        raise ModelError(f"{self.where}: unknown name {node.id!r} in {self.text!r}")
+
+    def _binop(self, node: ast.BinOp) -> sp.Expr:
+        where, text = self.where, self.text
+        op = _BINOPS.get(type(node.op))
+        if op is None:
             tok = _OP_TOKENS.get(type(node.op), type(node.op).__name__)
             raise ModelError(f"{where}: operator {tok!r} is not allowed in {text!r}")
-        if isinstance(node, ast.Call):
-            if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
-                raise ModelError(f"{where}: function {_token(node.func, text)!r} is not allowed "
-                                 f"(allowed: {', '.join(sorted(FUNCTIONS))})")
-            if node.keywords or len(node.args) != 1:
-                raise ModelError(f"{where}: {node.func.id}() takes exactly one argument")
-            return _finite_result(FUNCTIONS[node.func.id](visit(node.args[0])), node, text, where)
-        raise ModelError(f"{where}: token {_token(node, text)!r} is not allowed in {text!r}")
+        a, b = self.visit(node.left), self.visit(node.right)
+        # a numeric power of a symbolic base is bounded (a symbolic exponent is not a blow-up)
+        if isinstance(node.op, ast.Pow) and b.is_number and a.free_symbols:
+            if not (b.is_real and abs(float(b)) <= MAX_EXPONENT):
+                raise ModelError(f"{where}: exponent {_token(node.right, text)!r} is too large "
+                                 f"(at most {MAX_EXPONENT}) in {text!r}")
+        if a.is_number and b.is_number:
+            return _fold(type(node.op), a, b, node, text, where)
+        return _finite_result(op(a, b), node, text, where)
 
-    return visit(tree)
+    def _unary(self, node: ast.UnaryOp) -> sp.Expr:
+        if isinstance(node.op, ast.USub):
+            return -self.visit(node.operand)
+        if isinstance(node.op, ast.UAdd):
+            return self.visit(node.operand)
+        tok = _OP_TOKENS.get(type(node.op), type(node.op).__name__)
+        raise ModelError(f"{self.where}: operator {tok!r} is not allowed in {self.text!r}")
+
+    def _call(self, node: ast.Call) -> sp.Expr:
+        where, text = self.where, self.text
+        if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
+            raise ModelError(f"{where}: function {_token(node.func, text)!r} is not allowed "
+                             f"(allowed: {', '.join(sorted(FUNCTIONS))})")
+        if node.keywords or len(node.args) != 1:
+            raise ModelError(f"{where}: {node.func.id}() takes exactly one argument")
+        return _finite_result(FUNCTIONS[node.func.id](self.visit(node.args[0])), node, text, where)
 
 
 def _check_size(tree: ast.AST, where: str) -> None:
