@@ -17,7 +17,8 @@ and the driver (:func:`sample`), and re-exports the pieces.
 
 from __future__ import annotations
 
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Generator
 
 import numpy as np
 
@@ -50,17 +51,28 @@ from .starts import (  # noqa: F401
 )
 
 
-def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig, map_fn: Map = serial_map, *,
-               progress=None, cancel=None, checkpoint=None) -> tuple[list, int, int, int]:
-    """Burn-in rounds until R-hat is below the threshold or the round budget is spent.
+@dataclass(frozen=True)
+class RoundEvent:
+    """One round of the sampler, as :func:`iter_sample` yields it: the stage (``"burnin"`` or
+    ``"stationary"``), the round, what it reports (the dicts progress callbacks get: a burn-in round's R-hat,
+    best ln posterior and acceptance, a note when chains were moved) and the JSON-able state to resume from
+    (chain states, the coordinator, counters; a stationary round's draws are in the caller's store)."""
 
-    Returns the chain states, accepted and proposed counts, and likelihood evaluations.
+    stage: str
+    round: int
+    reports: tuple
+    checkpoint: dict
+
+
+def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerConfig, map_fn: Map = serial_map,
+                  counters: tuple = (0, 0, 0)) -> Generator[RoundEvent, None, tuple[list, int, int, int]]:
+    """Burn-in rounds until R-hat is below the threshold or the round budget is spent, one event each.
+
+    Returns the chain states, accepted and proposed counts, and likelihood evaluations (``counters``: those
+    of the stages before, for the checkpoints).
     """
     b_acc = b_n = n_eval = 0
-    nc = len(states)
     while pool.rounds < config.max_burnin_rounds:
-        if cancel is not None and cancel():
-            raise Cancelled("cancelled during burn-in")
         rnd = pool.rounds + 1
         results = map_fn(_round_task, [(target, s, pool.proposal(c), config.round_size, True, config.dr_scale)
                                        for c, s in enumerate(states)], step=Step("burnin", rnd))
@@ -71,47 +83,41 @@ def run_burnin(target, states: list, pool: AdaptationPool, config: SamplerConfig
         for c, src in moved.items():
             s, o = states[c], states[src]
             s.x, s.lp, s.ll = list(o.x), o.lp, o.ll
-        if moved and progress:
-            progress({"stage": "note", "message": f"burn-in round {rnd}: chains {sorted(moved)} sat over "
-                      f"{config.outlier_nats:g} nats below chain {max(moved.values())}; moved to it"})
+        reports = [{"stage": "note", "message": f"burn-in round {rnd}: chains {sorted(moved)} sat over "
+                    f"{config.outlier_nats:g} nats below chain {max(moved.values())}; moved to it"}] if moved else []
         n_eval += sum(q.samples.shape[0] + (q.samples.shape[0] - q.accepted) for q in results)
         acc = sum(q.accepted + q.dr_accepted for q in results)
         n = sum(q.samples.shape[0] for q in results)
         b_acc, b_n = b_acc + acc, b_n + n
-        if progress:
-            progress({"stage": "burnin", "round": pool.rounds, "rhat": pool.rhat().tolist(),
-                      "best_lp": pool.best_lp, "acceptance": acc / max(1, n)})
-        if checkpoint:
-            checkpoint({"stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
-                        "counters": [b_acc, b_n, n_eval]})
+        reports.append({"stage": "burnin", "round": pool.rounds, "rhat": pool.rhat().tolist(),
+                        "best_lp": pool.best_lp, "acceptance": acc / max(1, n)})
+        yield RoundEvent("burnin", pool.rounds, tuple(reports), {
+            "stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
+            "counters": [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_eval]})
         if pool.converged():
             break
-    assert len(states) == nc
     return states, b_acc, b_n, n_eval
 
 
-
-def run_stationary(target, states: list, cov: np.ndarray, config: SamplerConfig, map_fn: Map = serial_map, *,
-                   n_eval: int = 0, resume: dict | None = None, progress=None, cancel=None, checkpoint=None):
-    """The stationary stage: M draws per chain by random-walk Metropolis with the fixed covariance ``cov``.
+def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConfig, map_fn: Map = serial_map, *,
+                      pool: AdaptationPool, counters: list, resume: dict | None = None) -> Generator:
+    """The stationary stage: M draws per chain by random-walk Metropolis with the fixed covariance ``cov``,
+    one event per round.
 
     Returns samples (n_chains, M, d), their log posteriors and log likelihoods, the chain states, the
-    accepted count and the running count of likelihood evaluations. ``resume`` (a checkpoint of this stage
-    with the draws so far) continues it; ``checkpoint(state, n_eval)`` gets the stage's state after every
-    round.
+    accepted count and the running count of likelihood evaluations (``counters``: accepted, proposed and
+    evaluated so far). ``resume`` (a checkpoint of this stage with the draws so far) continues it.
     """
     nc, d, M = len(states), len(target.names), config.n_stationary
     samples = np.full((nc, M, d), np.nan)
     lps = np.full((nc, M), np.nan)
     lls = np.full((nc, M), np.nan)
-    done, s_acc = 0, 0
+    done, s_acc, n_eval = 0, 0, counters[2]
     if resume is not None and resume["stage"] == "stationary":
         done, s_acc = int(resume["done"]), int(resume["s_acc"])
         samples[:, :done], lps[:, :done], lls[:, :done] = (resume["samples"][:, :done], resume["lp"][:, :done],
                                                            resume["ll"][:, :done])
     while done < M:
-        if cancel is not None and cancel():
-            raise Cancelled("cancelled during stationary sampling")
         n = min(config.round_size, M - done)
         results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states], step=Step("stationary", done))
         states = [q.state for q in results]
@@ -120,16 +126,15 @@ def run_stationary(target, states: list, cov: np.ndarray, config: SamplerConfig,
             samples[c, done:done + n], lps[c, done:done + n], lls[c, done:done + n] = q.samples, q.lp, q.ll
         s_acc += sum(q.accepted for q in results)
         done += n
-        if progress:
-            progress({"stage": "stationary", "round": done // config.round_size, "done": done, "of": M,
-                      "acceptance": sum(q.accepted for q in results) / (nc * n)})
-        if checkpoint:
-            checkpoint({"stage": "stationary", "states": [q.to_dict() for q in states], "done": done,
-                        "s_acc": s_acc}, n_eval)
+        yield RoundEvent("stationary", done // config.round_size, (
+            {"stage": "stationary", "round": done // config.round_size, "done": done, "of": M,
+             "acceptance": sum(q.accepted for q in results) / (nc * n)},), {
+            "stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
+            "counters": [counters[0], counters[1], n_eval], "done": done, "s_acc": s_acc})
     return samples, lps, lls, states, s_acc, n_eval
 
 
-def _begin(target, config: SamplerConfig, seed: int, map_fn: Map, warm, starts, factory, checkpoint, resume):
+def _begin(target, config: SamplerConfig, seed: int, map_fn: Map, warm, starts, factory, resume):
     """Chain states, the INCA coordinator, the stage and the counters to start (or resume) from."""
     if resume is not None:
         return ([ChainState.from_dict(q) for q in resume["states"]], factory(resume["pool"]), resume["stage"],
@@ -138,12 +143,47 @@ def _begin(target, config: SamplerConfig, seed: int, map_fn: Map, warm, starts, 
     pool0 = AdaptationPool(config.n_chains, len(target.names), cov, inca=config.inca,
                            rhat_threshold=config.rhat_threshold, min_rounds=config.min_burnin_rounds,
                            outlier_nats=config.outlier_nats)
-    pool = factory(pool0.to_dict())
-    counters = [0, 0, n_start]
-    if checkpoint:
-        checkpoint({"stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
-                    "counters": counters})
-    return states, pool, "burnin", counters
+    return states, factory(pool0.to_dict()), "burnin", [0, 0, n_start]
+
+
+def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
+                warm: SamplerResult | None = None, starts: np.ndarray | None = None,
+                pool_factory: Callable[..., AdaptationPool] | None = None,
+                resume: dict | None = None) -> Generator[RoundEvent, None, SamplerResult]:
+    """Parallel DRAM with INCA, then the fixed-proposal stationary stage, as a generator: one
+    :class:`RoundEvent` per round (a fresh start first yields the state it starts from); its return value
+    (``StopIteration.value``) is the :class:`SamplerResult`. Arguments as :func:`sample`."""
+    names = list(target.names)
+    warnings: list[str] = []
+    states, pool, stage, counters = _begin(target, config, seed, map_fn, warm, starts,
+                                           pool_factory or AdaptationPool.from_dict, resume)
+    if resume is None:
+        yield RoundEvent("burnin", 0, (), {"stage": "burnin", "states": [q.to_dict() for q in states],
+                                           "pool": pool.to_dict(), "counters": list(counters)})
+    # ---- burn-in: DRAM rounds, the pool is the INCA coordinator
+    if stage == "burnin":
+        states, b_acc, b_n, n_b = yield from burnin_rounds(target, states, pool, config, map_fn, tuple(counters))
+        counters = [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_b]
+    b_acc, b_n, _ = counters
+    rounds, converged, r, cov = pool.rounds, pool.converged(), pool.rhat(), pool.cov
+    if not converged:
+        warnings.append(f"burn-in did not reach R-hat < {config.rhat_threshold} in {rounds} rounds "
+                        f"(max R-hat {np.max(r):.3g} for {names[int(np.argmax(r))]}); results may be unreliable")
+    # ---- stationary stage: fixed proposal, plain RWM
+    samples, lps, lls, states, s_acc, n_eval = yield from stationary_rounds(
+        target, states, cov, config, map_fn, pool=pool, counters=counters, resume=resume)
+    best = max(states, key=lambda q: q.best_lp)
+    r_final = rhat(list(samples))
+    if np.any(r_final > config.rhat_threshold):
+        warnings.append(f"stationary samples: max R-hat {np.max(r_final):.3g} ({names[int(np.argmax(r_final))]}) "
+                        f"exceeds {config.rhat_threshold}")
+    return SamplerResult(
+        names=names, samples=samples, lp=lps, ll=lls,
+        phi_star=np.array(best.best_x), lp_star=best.best_lp, ll_star=best.best_ll,
+        proposal_cov=cov, states=states, rhat=r_final, rhat_history=list(pool.rhat_history),
+        burnin_rounds=rounds, converged=converged,
+        acceptance=s_acc / max(1, config.n_chains * config.n_stationary), burnin_acceptance=b_acc / max(1, b_n),
+        n_evaluations=n_eval, warnings=warnings)
 
 
 def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
@@ -153,7 +193,8 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
            pool_factory: Callable[..., AdaptationPool] | None = None,
            checkpoint: Callable[[dict], None] | None = None,
            resume: dict | None = None) -> SamplerResult:
-    """Run parallel DRAM with INCA, then the fixed-proposal stationary stage.
+    """Run parallel DRAM with INCA, then the fixed-proposal stationary stage: :func:`iter_sample` driven
+    with callbacks.
 
     Parameters
     ----------
@@ -165,64 +206,40 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
     map_fn : callable
         Runs the per-chain tasks of a step (serial by default); see :data:`Map`.
     warm : SamplerResult, optional
-        Warm start: chains continue from these states (positions mapped by
-        parameter name; parameters absent from ``warm`` start at 0) with its
-        proposal covariance.
+        Warm start: chains continue from these states (positions mapped by parameter name; a parameter
+        now fixed conditions them, see :func:`~ardcore.starts.warm_positions`) with its proposal covariance.
     starts : ndarray, optional
         Explicit initial points (n_chains, d), skipping the start optimisation.
     progress : callable, optional
-        Called after every round with a dict (stage, round, rhat, best log posterior, acceptance).
+        Called with each of a round's reports (stage, round, rhat, best log posterior, acceptance).
     cancel : callable, optional
         Checked between rounds; when it returns True, :class:`Cancelled` is raised.
     pool_factory : callable, optional
-        ``pool_factory(state_dict) -> pool`` for the INCA coordinator (default: an
-        in-process :class:`AdaptationPool` rebuilt from the dict); orchestrators
-        return a proxy to a remote actor.
+        ``pool_factory(state_dict) -> pool`` for the INCA coordinator (default: an in-process
+        :class:`AdaptationPool` rebuilt from the dict); orchestrators return a proxy to a remote actor.
     checkpoint : callable, optional
-        Called with a JSON-able dict after every round (stage, chain states,
-        coordinator state, counters); together with the stationary samples
-        written so far it is enough to resume.
+        Called with each round's JSON-able state (stage, chain states, coordinator state, counters);
+        together with the stationary samples written so far it is enough to resume.
     resume : dict, optional
-        A checkpoint dict to continue from; for the stationary stage it must also
-        hold ``samples``, ``lp`` and ``ll`` arrays of the draws done so far.
+        A checkpoint dict to continue from; for the stationary stage it must also hold ``samples``, ``lp``
+        and ``ll`` arrays of the draws done so far.
     """
-    names = list(target.names)
-    nc = config.n_chains
-    warnings: list[str] = []
-    states, pool, stage, counters = _begin(target, config, seed, map_fn, warm, starts,
-                                           pool_factory or AdaptationPool.from_dict, checkpoint, resume)
-
-    # ---- burn-in: DRAM rounds, the pool is the INCA coordinator
-    if stage == "burnin":
-        states, b_acc, b_n, n_b = run_burnin(target, states, pool, config, map_fn, progress=progress, cancel=cancel,
-                                             checkpoint=checkpoint)
-        counters = [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_b]
-    b_acc, b_n, n_eval = counters
-    rounds, converged, r, cov = pool.rounds, pool.converged(), pool.rhat(), pool.cov
-    if not converged:
-        warnings.append(f"burn-in did not reach R-hat < {config.rhat_threshold} in {rounds} rounds "
-                        f"(max R-hat {np.max(r):.3g} for {names[int(np.argmax(r))]}); results may be unreliable")
-
-    # ---- stationary stage: fixed proposal, plain RWM
-    def stationary_checkpoint(d: dict, n: int) -> None:
-        checkpoint({**d, "pool": pool.to_dict(), "counters": [b_acc, b_n, n]})
-
-    samples, lps, lls, states, s_acc, n_eval = run_stationary(
-        target, states, cov, config, map_fn, n_eval=n_eval, resume=resume, progress=progress, cancel=cancel,
-        checkpoint=stationary_checkpoint if checkpoint else None)
-    best = max(states, key=lambda q: q.best_lp)
-    r_final = rhat(list(samples))
-    if np.any(r_final > config.rhat_threshold):
-        warnings.append(f"stationary samples: max R-hat {np.max(r_final):.3g} ({names[int(np.argmax(r_final))]}) "
-                        f"exceeds {config.rhat_threshold}")
-    return SamplerResult(
-        names=names, samples=samples, lp=lps, ll=lls,
-        phi_star=np.array(best.best_x), lp_star=best.best_lp, ll_star=best.best_ll,
-        proposal_cov=cov, states=states, rhat=r_final, rhat_history=list(pool.rhat_history),
-        burnin_rounds=rounds, converged=converged,
-        acceptance=s_acc / max(1, nc * config.n_stationary), burnin_acceptance=b_acc / max(1, b_n),
-        n_evaluations=n_eval, warnings=warnings)
-
+    rounds = iter_sample(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts,
+                         pool_factory=pool_factory, resume=resume)
+    stage = resume["stage"] if resume is not None else "burnin"
+    while True:
+        if cancel is not None and cancel():
+            rounds.close()
+            raise Cancelled("cancelled during " + ("burn-in" if stage == "burnin" else "stationary sampling"))
+        try:
+            ev = next(rounds)
+        except StopIteration as done:
+            return done.value
+        stage = ev.stage
+        for rep in ev.reports if progress else ():
+            progress(rep)
+        if checkpoint:
+            checkpoint(ev.checkpoint)
 
 
 class Cancelled(ArdflowError):

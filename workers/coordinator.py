@@ -40,7 +40,7 @@ def actor_variable_name(prefix: str) -> str:
 
 
 class ActorPool:
-    """Pool interface of :func:`ardcore.mcmc.run_burnin`, backed by a :class:`CoordinatorActor`.
+    """Pool interface of :func:`ardcore.mcmc.burnin_rounds`, backed by a :class:`CoordinatorActor`.
 
     Reads come from a local mirror synchronised after every committed round,
     so a lost actor never loses more than the round in flight.
