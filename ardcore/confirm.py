@@ -14,7 +14,8 @@ from typing import NamedTuple
 import numpy as np
 
 from .data import Dataset
-from .effects import Effect, augment, candidate_effects, dynamic_states, with_columns
+from .effects import (Effect, augment, candidate_effects, dynamic_states, shape_parameter_name, shape_prior,
+                      with_columns)
 from .jsonio import is_pruned
 from .screen import Screened, distinct_candidates, screen_effects
 from .study import CandidateSpec, StudySpec, run_candidate
@@ -106,7 +107,8 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     # a free-play; a smooth sign of two widths) is confirmed too: the full evidence decides between the twins
     rivals = {}
     for c in redundant:
-        near = [p for p in picked if p.effect.name in c.conditional_on and id(p) not in rivals.values()
+        near = [p for p in picked if p.effect.name in c.conditional_on
+                and list(rivals.values()).count(id(p)) < config.rivals
                 and abs(p.log_bayes_factor - c.log_bayes_factor) <= config.rival_nats]
         if near:
             rivals[id(c)] = id(near[0])
@@ -119,12 +121,16 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     tasks = []
     for c in chosen:
         sc: Screened = c["_screened"]
-        aspec, names = augment(cand.model_spec(), sc.effect, c["target"], sc.scales)
-        acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed,
+        eff, shape = fitted_effect(cand.model_spec(), sc, c["target"])
+        aspec, names = augment(cand.model_spec(), eff, c["target"], sc.scales)
+        acand = CandidateSpec(model=aspec, name=aspec.name, priors={**priors, **shape}, fixed=fixed,
                               ard=names, substeps=cand.substeps)
-        # new terms start at the screen's estimate (a Laplace search from 0 would walk there by Nelder-Mead)
-        warm = warm_with(bmr.sampler, names, sc.coefficients) if spec.evidence == "laplace" else bmr.sampler
-        tasks.append((acand, with_columns(data, sc.effect), cspec, warm, config.posterior))
+        # new terms start at the screen's estimate (a Laplace search from 0 would walk there by Nelder-Mead),
+        # a fitted shape at the profile's maximum
+        warm = warm_with(bmr.sampler, names + list(shape), sc.coefficients + [sc.shape_value] * len(shape)) \
+            if spec.evidence == "laplace" or shape else bmr.sampler
+        c["_effect"], c["_shape_prior"] = eff, shape
+        tasks.append((acand, with_columns(data, eff), cspec, warm, config.posterior))
     if chosen:
         say("confirming by evidence: " + ", ".join(f"{c['effect']} -> {c['target']}" for c in chosen))
     results = mapper(_fit_task, tasks)
@@ -135,16 +141,32 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
             f"(the prior odds of one of the {len(screened)} candidates tried)")
     for c, (acand, adata, *_), (arow, amr) in zip(chosen, tasks, results):
         confirmed.append(_confirmation(c, acand, adata, arow, amr, row, threshold, say))
-    # of two twins only the one with the higher evidence goes on
+    # of twins only the one with the higher evidence goes on
     by_screen = {id(c["_screened"]): c for c in confirmed}
-    for rid, pid in rivals.items():
-        a, b = by_screen.get(rid), by_screen.get(pid)
-        if a and b and a["survives"] and b["survives"]:
-            lo, hi = sorted((a, b), key=lambda c: c["log_evidence"])
-            lo["survives"] = False
-            lo["rival_of"] = hi["effect"]
-            say(f"  {lo['effect']} and {hi['effect']} explain the same; {hi['effect']} has the higher evidence")
+    for pid in dict.fromkeys(rivals.values()):
+        twins = [by_screen.get(i) for i in [pid] + [r for r, p in rivals.items() if p == pid]]
+        twins = [c for c in twins if c and c["survives"]]
+        if len(twins) < 2:
+            continue
+        hi = max(twins, key=lambda c: c["log_bayes_factor"])  # one base: the evidence, less a profile's Occam
+        for lo in twins:
+            if lo is not hi:
+                lo["survives"], lo["rival_of"] = False, hi["effect"]
+        say(f"  {', '.join(c['effect'] for c in twins if c is not hi)} and {hi['effect']} explain the same; "
+            f"{hi['effect']} has the higher evidence")
     return ranked, confirmed
+
+
+def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
+    """The effect a confirmation fits and the prior of its shape parameter ({} for none): a width, a friction
+    velocity or a stiffness period is fitted with the coefficients (the screen's profile maximum is only
+    where it starts), so its posterior is reported and its evidence integrates over it; a forcing
+    frequency stays at the screen's refined value (its sine and cosine are input columns)."""
+    src = sc.source
+    if src is None or not src.shape or src.shape[0] == "f" or sc.shape_value is None:
+        return sc.effect, {}
+    pname = shape_parameter_name(ms, src, target)
+    return src.with_shape_parameter(pname), {pname: shape_prior(src)}
 
 
 def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: dict, amr, row: dict, threshold: float,
@@ -152,10 +174,12 @@ def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: dict, amr
     """The record of one confirmation: the candidate ``c`` re-selected with its terms under ARD (``arow``)
     against the base model's ``row``."""
     sc = c["_screened"]
-    eff: Effect = sc.effect
+    eff: Effect = c["_effect"]
+    shape = c["_shape_prior"]
     names = list(acand.ard_names)
-    # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam factor
-    gain = arow["log_evidence"] - row["log_evidence"] - sc.shape_occam
+    # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam
+    # factor; a fitted shape has paid it through its prior
+    gain = arow["log_evidence"] - row["log_evidence"] - (0.0 if shape else sc.shape_occam)
     if not math.isfinite(gain):
         gain = -math.inf  # the re-selection failed (no finite evidence): it confirms nothing, and says so
     kept = [n for n in names if n in arow["kept"]]
@@ -164,12 +188,14 @@ def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: dict, amr
     # the screen found the score's variance understated by (1 for white innovations)
     adjusted = gain / sc.inflation if gain > 0 else gain
     if gain == -math.inf:
-        say(f"  {eff.name}: the re-selection found no finite evidence (fit failed): not confirmed")
+        say(f"  {sc.effect.name}: the re-selection found no finite evidence (fit failed): not confirmed")
     else:
         say(f"  {eff.name}: ln BF = {gain:.2f}" + (f" ({adjusted:.2f} adjusted for coloured innovations, "
                                                      f"x 1/{sc.inflation:.2g})" if sc.inflation > 1.05 else "")
             + f", ARD keeps {kept or 'nothing'}")
-    return {"effect": eff.name, "target": c["target"], "score": c["log_bayes_factor"],
+    # a fitted shape is shown at its posterior mean, e.g. sine_stiffness(y,L=1.07)
+    shown = next((sc.source.at(arow["mean"][n]).name for n in shape if n in arow["mean"]), eff.name)
+    return {"effect": shown, "target": c["target"], "score": c["log_bayes_factor"],
             "screened_log_bayes_factor": c["log_bayes_factor"],
             "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],
             "log_bayes_factor": gain, "adjusted_log_bayes_factor": adjusted,
@@ -177,9 +203,10 @@ def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: dict, amr
             "psi_opt": arow["psi_opt"],
             # coefficients in the term's own units (the fit uses the normalised ones)
             "posterior": {n: physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
+            "shape": {n: physical(arow, n, 1.0) for n in shape if n in arow["mean"]},
             "scales": scale,
             "survives": bool(kept) and adjusted > threshold,
-            "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff,
+            "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff, "_shape_prior": shape,
             "_screened": sc}
 
 
@@ -196,6 +223,7 @@ def joint_fit(spec, cand, row, best, survivors, data, config, say):
         n = list(c["scales"])
         aspec, n = augment(aspec, c["_effect"], c["target"], [c["scales"][k] for k in n], names=n)
         adata = with_columns(adata, c["_effect"])
+        priors.update(c["_shape_prior"])
         for k in n:
             a = c["psi_opt"].get(k, 0.0)
             if k not in c["kept_terms"] or is_pruned(a):

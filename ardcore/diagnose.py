@@ -224,6 +224,16 @@ def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra
     ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
                                           extra_effects, say, mapper)
     survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
+    noise = [c for c in survivors if c["_effect"].where == "noise"
+             and any(abs(c["_row"]["mean"].get(n, 0.0)) > math.log(2) for n in c["scales"])]
+    deferred = [c for c in survivors if c not in noise] if noise else []
+    if deferred:
+        # a noise level off by more than 2x changed what every dynamic candidate was screened and confirmed
+        # against (a filter that takes the misfit for process noise): the noise goes in alone, the others
+        # are screened again under it next round (a cubic and a sine stiffness tie until then)
+        say("the measurement noise changes by more than 2x: " + ", ".join(c["effect"] for c in deferred)
+            + " screened again under it next round")
+        survivors = noise
     if config.split_z is not None:
         for c in survivors:
             if c["_effect"].where == "noise":
@@ -234,14 +244,14 @@ def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra
                 break  # the best stable one is added
         survivors = [c for c in survivors if c.get("stability", {}).get("stable", True) and c["survives"]]
     # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
-    tried = {(c["effect"], c["target"]) for c in confirmed}
+    tried = {(c["_screened"].effect.name, c["target"]) for c in confirmed}
     order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
     ranking = [{"effect": c["effect"], "target": c["target"], "log_bayes_factor": c["log_bayes_factor"],
                 "survives": c["survives"]} for c in order]
     ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"],
                  "screened_log_bayes_factor": c["log_bayes_factor"]} for c in ranked
                 if (c["effect"], c["target"]) not in tried]
-    rec = {"round": rnd, "model": cand.label, "ranking": ranking,
+    rec = {"round": rnd, "model": cand.label, "ranking": ranking, "deferred": [c["effect"] for c in deferred],
            "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
            "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
            "added": None}
@@ -266,8 +276,9 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rec) -> tu
     for c in chosen:
         eff = c["_effect"]
         post = {n: physical(jrow, n, c["scales"][n]) for n in c["scales"] if n in jrow["mean"]}
-        recs.append({"effect": eff.name, "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
-                     "posterior": post, "log_bayes_factor": c["log_bayes_factor"],
+        shape = {n: physical(jrow, n, 1.0) for n in c["_shape_prior"] if n in jrow["mean"]}
+        recs.append({"effect": c["effect"], "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
+                     "posterior": post, "shape": shape, "log_bayes_factor": c["log_bayes_factor"],
                      "character": character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
     rec["added"], rec["added_with"] = recs[0], recs[1:]
     rec["_effects"] = [c["_effect"] for c in chosen]

@@ -11,7 +11,8 @@ not from its names.
   friction, and smooth dry friction and Stribeck friction with their velocity
   scale), cross terms (x^2 v, x v^2), a free-play / dead zone of half-width
   delta (x reduced by delta towards 0 outside |x| < delta; delta a shape
-  parameter), a saturating stiffness, and a constant offset.
+  parameter), a saturating stiffness, a sine (pendulum) stiffness L sin(x/L)
+  with its period L a shape parameter, and a constant offset.
 * **Inputs** u: u, u^2, u^3, u x, u v.
 * **Periodic forcing** at a frequency found in the residual spectrum: a sine
   and a cosine (supplied as extra input columns, since expressions have no
@@ -36,6 +37,7 @@ Extend it by passing ``extra`` effects to :func:`candidate_effects`.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, replace
 
@@ -78,6 +80,9 @@ class Effect:
     between: tuple = ()
     """For ``where="flow"``: ``(source, receiver)``; the terms leave the source's drift and enter the receiver's
     (a conserved flow between two levels, as through the pipe joining two tanks)."""
+    shape_parameter: str = ""
+    """The model parameter the shape is written as (:meth:`with_shape_parameter`: fitted with the coefficients
+    under its prior, :func:`shape_prior`, instead of fixed at the screen's profile maximum)."""
 
     def at(self, value: float) -> "Effect":
         """This effect with its shape parameter fixed to ``value`` (a forcing effect: its frequency)."""
@@ -94,12 +99,42 @@ class Effect:
         return replace(self, name=f"{base}({arg},{name}={v:.3g})", terms=terms, shape=(),
                        description=self.description.replace("{" + name + "}", f"{v:.3g}"))
 
+    def with_shape_parameter(self, pname: str) -> "Effect":
+        """This effect with its shape written as the model parameter ``pname`` (a forcing frequency stays a
+        shape: its sine and cosine are input columns made before the fit)."""
+        if not self.shape or self.shape[0] == "f":
+            return self
+        name = self.shape[0]
+        return replace(self, terms=tuple(t.replace("{" + name + "}", pname) for t in self.terms), shape=(),
+                       shape_parameter=pname, description=self.description.replace("{" + name + "}", pname))
+
     def columns_for(self, t: np.ndarray) -> dict[str, np.ndarray]:
         """Extra input columns this effect needs on the time grid ``t`` (empty for most effects)."""
         if self.frequency is None:
             return {}
         w = 2 * np.pi * self.frequency
         return {self.terms[0]: np.sin(w * t), self.terms[1]: np.cos(w * t)}
+
+
+def shape_prior(effect: Effect):
+    """Prior of a shape parameter fitted with the effect (:meth:`Effect.with_shape_parameter`): lognormal
+    with its median at the geometric middle of the library's range and that range within +-2 sd of ln(shape),
+    so that the evidence pays for the shape as the screen's Occam factor does for its profile."""
+    from .priors import LogNormal
+
+    _, lo, hi = effect.shape
+    s = math.log(hi / lo) / 4.0
+    return LogNormal(median=math.sqrt(lo * hi), cov=100.0 * math.sqrt(math.expm1(s * s)))
+
+
+def shape_parameter_name(spec: ModelSpec, effect: Effect, target: str) -> str:
+    """A name for ``effect``'s shape parameter on ``target`` not yet used in ``spec`` (e.g. ``L_sny_v``)."""
+    taken = set(spec.parameters) | set(spec.constants) | set(spec.states) | set(spec.inputs)
+    base = _short(f"{effect.shape[0]}_{effect.code}_{target}")
+    n, k = base, 2
+    while n in taken:
+        n, k = _short(f"{base}_{k}"), k + 1
+    return n
 
 
 def with_columns(data: Dataset, eff: Effect) -> Dataset:
@@ -203,6 +238,11 @@ def _oscillator_effects(x: str, v: str, scales: dict[str, float], inputs: list[s
         out.append(Effect(f"saturation({x})", "stiffness", (f"{x} - {{xs}}*tanh({x}/{{xs}})",),
                           f"stiffness that saturates beyond |{x}| ~ {{xs}}", code=f"st{x}",
                           shape=("xs", 0.2 * s, 1.5 * s)))
+        # a restoring force periodic in x (a pendulum's gravity, a rotor in a periodic field): -k x becomes
+        # -k L sin(x/L); its quintic and higher orders are tied to the cubic, so it extrapolates in amplitude
+        out.append(Effect(f"sine_stiffness({x})", "stiffness", (f"{x} - {{L}}*sin({x}/{{L}})",),
+                          f"restoring force periodic in {x}, L sin({x}/L) with L = {{L}}", code=f"sn{x}",
+                          shape=("L", 0.3 * s, 3.0 * s)))
     sv = scales.get(v)
     if sv and sv > 0:
         # dry friction with a smooth sign (the EKF sees its slope) and Stribeck's decaying static peak
@@ -337,7 +377,8 @@ def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | 
     parts = [f"{n}*({term})" if c is None else f"{n}*({c if isinstance(c, str) else repr(float(c))}*({term}))"
              for n, term, c in zip(names, effect.terms, sc)]
     add = " + ".join(parts)
-    update = {"name": _short(f"{spec.name}_{effect.code}"), "parameters": list(spec.parameters) + names,
+    shape = [effect.shape_parameter] if effect.shape_parameter and effect.shape_parameter not in spec.parameters else []
+    update = {"name": _short(f"{spec.name}_{effect.code}"), "parameters": list(spec.parameters) + names + shape,
               "inputs": list(spec.inputs) + [c for c in effect.columns_for(np.zeros(1)) if c not in spec.inputs]}
     if effect.where == "noise":
         if all(o.column != target for o in spec.observations):

@@ -9,6 +9,7 @@ import numpy as np
 
 from .evidence import chib_jeliazkov, laplace
 from .mcmc import Map, SamplerConfig, SamplerResult, Step, initial_scale, sample, serial_map
+from .starts import new_parameter_start
 from .posterior import ModelPosterior
 from .priors import ARD
 
@@ -88,7 +89,8 @@ def _warm_point(target, warm) -> np.ndarray:
     if warm is None:
         return np.array([p.quantile(0.5) if p.kind != "ard" else 0.0 for p in target.prior.priors])
     idx = {n: i for i, n in enumerate(warm.names)}
-    return np.array([warm.phi_star[idx[n]] if n in idx else 0.0 for n in target.names])
+    return np.array([warm.phi_star[idx[n]] if n in idx else new_parameter_start(p)
+                     for n, p in zip(target.names, target.prior.priors)])
 
 
 def _starts_around(x, C, n, seed):

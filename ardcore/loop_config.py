@@ -67,7 +67,10 @@ class DiagnoseConfig:
     rival_nats : float
         A candidate the screen found redundant with a better one is still confirmed when their screened
         ln Bayes factors are within this many nats (the screen cannot tell the twins apart; the full
-        evidence does). Of two surviving twins the one with the higher evidence goes on.
+        evidence does). Of surviving twins the one with the higher evidence goes on.
+    rivals : int
+        At most this many twins per picked candidate (the closest first): a cubic, a sine and an
+        asymmetric stiffness can all explain the same softening until the evidence sees their higher orders.
     """
 
     max_lag: int = 40
@@ -87,3 +90,4 @@ class DiagnoseConfig:
     workers: int = 0
     band_draws: int = 40
     rival_nats: float = 5.0
+    rivals: int = 2

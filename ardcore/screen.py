@@ -88,6 +88,10 @@ class Screened:
     the shape fixed, takes them off its ln BF too)."""
     conditional_log_bayes_factor: float | None = None
     """ln BF given the candidates picked before it (:func:`distinct_candidates`; None if not scored so)."""
+    source: Effect | None = field(default=None, repr=False)
+    """The library's effect with its shape free (None for an effect without a shape)."""
+    shape_value: float | None = None
+    """The profile's maximum (the value ``effect`` fixes the shape at)."""
     rows: tuple | None = field(default=None, repr=False)
     basis: Basis | None = field(default=None, repr=False)
 
@@ -237,7 +241,8 @@ def _screen_shape(sc: Screener, e: Effect, t: str, data: Dataset, k: int, n_grid
             a, c, fc = c, d, fd
             d = a + gr * (b - a)
             fd = f(d)
-    best = max((r for r in cache.values() if r is not None), key=lambda r: r.log_bayes_factor)
+    best_v, best = max(((v, r) for v, r in cache.items() if r is not None), key=lambda vr: vr[1].log_bayes_factor)
+    best.source, best.shape_value = e, float(best_v)
     best.shape_occam = _shape_occam(e, cache, data)
     best.log_bayes_factor -= best.shape_occam
     best.shape_profile = sorted((float(v), float(r.log_bayes_factor)) for v, r in cache.items() if r is not None)

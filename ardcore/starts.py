@@ -105,6 +105,12 @@ def _start_task(args):
 
 
 
+def new_parameter_start(p) -> float:
+    """Where a parameter that a warm start does not know starts: 0 (a new term's coefficient) unless its
+    prior excludes 0 (a new shape parameter, lognormal), then the prior's median."""
+    return 0.0 if np.isfinite(p.logpdf(0.0)) else float(p.quantile(0.5))
+
+
 def initial_scale(prior) -> np.ndarray:
     """A length scale per parameter for optimisation steps and fallbacks."""
     out = []
@@ -140,7 +146,8 @@ def warm_positions(target, warm: SamplerResult, scale: np.ndarray) -> tuple[list
     regression line of the previous proposal covariance (a Gaussian posterior's draws so moved are exact
     draws of its conditional) and the proposal is its Schur complement: taking the marginal instead
     starts the chains off the new posterior with too wide a proposal, and burn-in pays for both. A new
-    parameter starts at 0 with a small step (not the prior's width).
+    parameter starts at 0 (at its prior's median if the prior excludes 0) with a small step (not the
+    prior's width).
     """
     names = list(target.names)
     idx = {n: i for i, n in enumerate(warm.names)}
@@ -157,10 +164,12 @@ def warm_positions(target, warm: SamplerResult, scale: np.ndarray) -> tuple[list
         except np.linalg.LinAlgError:
             B = None
 
+    new = np.array([0.0 if a is not None else new_parameter_start(p) for a, p in zip(keep, target.prior.priors)])
+
     def place(x, project: bool = True) -> np.ndarray:
         x = np.asarray(x, float)
         k = x[known] + (B @ (v - x[dropped]) if B is not None and project else 0.0)
-        out, j = np.zeros(len(names)), 0
+        out, j = new.copy(), 0
         for i, a in enumerate(keep):
             if a is not None:
                 out[i], j = k[j], j + 1

@@ -10,7 +10,7 @@ from .effects import Effect, oscillator_pairs
 from .model import ModelSpec
 
 
-_ODD = ("cubic_stiffness", "quintic_stiffness", "saturation")
+_ODD = ("cubic_stiffness", "quintic_stiffness", "saturation", "sine_stiffness")
 
 
 def character(spec: ModelSpec, phi: dict, eff: Effect, best: dict) -> str | None:
