@@ -55,8 +55,9 @@ class MaximiserConfig(BaseModel):
         Line-search steps are first estimated by reweighting the draws of the last sampled trial
         (:mod:`ardcore.reweight`: the step changes only the ARD prior, so no likelihood is evaluated);
         a real trial (MCMC + Chib-Jeliazkov) runs only when that estimate is unreliable, for every
-        prune test and re-test, and at the accepted optimum. Studies with Laplace evidence draw
-        nothing to reweight.
+        prune test and re-test, and at the accepted optimum. With Laplace evidence the draws are those
+        of the Laplace posterior N(MAP, H^-1) (the Gaussian the evidence assumes), and a real trial is a
+        Newton fit.
     reweight_min_ess : float
         Smallest Kish effective sample size of the weights, as a share of the draws, for a reweighted
         step. Below about a quarter the new posterior's bulk sits where the old one has few draws and

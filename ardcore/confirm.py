@@ -14,10 +14,11 @@ from typing import NamedTuple
 import numpy as np
 
 from .data import Dataset
-from .effects import (Effect, augment, candidate_effects, dynamic_states, shape_parameter_name, shape_prior,
-                      with_columns)
+from .effects import Effect, augment, dynamic_states, shape_parameter_name, shape_prior, with_columns
+from .families import candidate_effects
 from .jsonio import is_pruned
 from .screen import Screened, distinct_candidates, screen_effects
+from .fit import ModelFit
 from .study import CandidateSpec, StudySpec, run_candidate
 
 INF = math.inf
@@ -33,13 +34,13 @@ class Fit(NamedTuple):
     data: Dataset
 
 
-def essential_from_row(cand: CandidateSpec, row: dict) -> tuple[dict, dict]:
+def essential_from_row(cand: CandidateSpec, row: ModelFit) -> tuple[dict, dict]:
     """Priors of the fitted model with kept ARD terms frozen at their optimal alpha; pruned terms fixed."""
     from .priors import Flat, Normal
 
     priors = dict(cand.priors)
     fixed = dict(cand.fixed)
-    for k, a in row["psi_opt"].items():
+    for k, a in row.psi_opt.items():
         if is_pruned(a):
             fixed[k] = 0.0
         else:
@@ -169,7 +170,7 @@ def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
     return src.with_shape_parameter(pname), {pname: shape_prior(src)}
 
 
-def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: dict, amr, row: dict, threshold: float,
+def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: ModelFit, amr, row: ModelFit, threshold: float,
                   say) -> dict:
     """The record of one confirmation: the candidate ``c`` re-selected with its terms under ARD (``arow``)
     against the base model's ``row``."""
@@ -179,10 +180,10 @@ def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: dict, amr
     names = list(acand.ard_names)
     # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam
     # factor; a fitted shape has paid it through its prior
-    gain = arow["log_evidence"] - row["log_evidence"] - (0.0 if shape else sc.shape_occam)
+    gain = arow.log_evidence - row.log_evidence - (0.0 if shape else sc.shape_occam)
     if not math.isfinite(gain):
         gain = -math.inf  # the re-selection failed (no finite evidence): it confirms nothing, and says so
-    kept = [n for n in names if n in arow["kept"]]
+    kept = [n for n in names if n in arow.kept]
     scale = dict(zip(names, sc.scales))
     # the EKF evidence takes coloured innovations as white: the support it gives is divided by the factor
     # the screen found the score's variance understated by (1 for white innovations)
@@ -194,16 +195,16 @@ def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: dict, amr
                                                      f"x 1/{sc.inflation:.2g})" if sc.inflation > 1.05 else "")
             + f", ARD keeps {kept or 'nothing'}")
     # a fitted shape is shown at its posterior mean, e.g. sine_stiffness(y,L=1.07)
-    shown = next((sc.source.at(arow["mean"][n]).name for n in shape if n in arow["mean"]), eff.name)
+    shown = next((sc.source.at(arow.mean[n]).name for n in shape if n in arow.mean), eff.name)
     return {"effect": shown, "target": c["target"], "score": c["log_bayes_factor"],
             "screened_log_bayes_factor": c["log_bayes_factor"],
-            "log_evidence": arow["log_evidence"], "log_evidence_se": arow["log_evidence_se"],
+            "log_evidence": arow.log_evidence, "log_evidence_se": arow.log_evidence_se,
             "log_bayes_factor": gain, "adjusted_log_bayes_factor": adjusted,
             "inflation": sc.inflation, "threshold": threshold, "kept_terms": kept,
-            "psi_opt": arow["psi_opt"],
+            "psi_opt": arow.psi_opt,
             # coefficients in the term's own units (the fit uses the normalised ones)
-            "posterior": {n: physical(arow, n, scale[n]) for n in names if n in arow["mean"]},
-            "shape": {n: physical(arow, n, 1.0) for n in shape if n in arow["mean"]},
+            "posterior": {n: arow.physical(n, scale[n]) for n in names if n in arow.mean},
+            "shape": {n: arow.physical(n, 1.0) for n in shape if n in arow.mean},
             "scales": scale,
             "survives": bool(kept) and adjusted > threshold,
             "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff, "_shape_prior": shape,
@@ -234,17 +235,11 @@ def joint_fit(spec, cand, row, best, survivors, data, config, say):
     acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed, ard=[], substeps=cand.substeps)
     say("fitting the distinct survivors together: " + ", ".join(c["effect"] for c in survivors))
     arow, amr = run_candidate(acand, adata, spec, 0, warm=best["_mr"].sampler, final_posterior=config.posterior)
-    say(f"  together: ln BF = {arow['log_evidence'] - row['log_evidence']:.2f}")
+    say(f"  together: ln BF = {arow.log_evidence - row.log_evidence:.2f}")
     return Fit(acand, arow, amr, adata)
 
 
-def physical(row: dict, name: str, scale: float) -> dict:
-    """Posterior summary of a normalised coefficient in physical units (scale > 0)."""
-    return {"mean": row["mean"][name] * scale, "sd": row["sd"][name] * scale,
-            "q005": row["q005"][name] * scale, "q995": row["q995"][name] * scale}
-
-
-def _continued_half(half: CandidateSpec, row: dict, data: Dataset, mid: int) -> tuple[CandidateSpec, Dataset]:
+def _continued_half(half: CandidateSpec, row: ModelFit, data: Dataset, mid: int) -> tuple[CandidateSpec, Dataset]:
     """The second half as a continuation of the record: its filter starts from the state the full-record
     filter (at the full fit's posterior mean) holds at sample ``mid - 1``, that sample's observations
     removed (already used). A record rarely stops at rest in the middle; starting the second half from
@@ -254,7 +249,7 @@ def _continued_half(half: CandidateSpec, row: dict, data: Dataset, mid: int) -> 
     from .ekf import compile_model
 
     ms = half.model_spec()
-    phi = {k: float(row["mean"][k]) for k in ms.free_parameters if k in row["mean"]}
+    phi = {k: float(row.mean[k]) for k in ms.free_parameters if k in row.mean}
     if len(phi) != len(ms.free_parameters) or mid < 2:
         return half, data.slice(mid, None)
     fr = compile_model(ms).filter(phi, data, half.substeps)
@@ -295,7 +290,7 @@ def split_stability(spec: StudySpec, c: dict, config, say, mapper) -> dict:
     second, data2 = _continued_half(half, c["_row"], data, mid)
     tasks = [(half, data.slice(0, mid), spec, warm, config.posterior), (second, data2, spec, warm, config.posterior)]
     for r, _ in mapper(_fit_task, tasks):
-        parts.append({k: (r["mean"][k], r["sd"][k]) for k in c["kept_terms"]})
+        parts.append({k: (r.mean[k], r.sd[k]) for k in c["kept_terms"]})
     z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])
          for k in c["kept_terms"]}
     rel = {k: abs(parts[0][k][0] - parts[1][k][0]) / max(abs(parts[0][k][0]), abs(parts[1][k][0]), 1e-300)
@@ -320,6 +315,39 @@ class Added(NamedTuple):
     inflation: float
 
 
+SD_MARGIN = 20.0
+"""Nats by which a Savage-Dickey estimate must clear a threshold for the backward check to trust it."""
+
+
+def savage_dickey(cand: CandidateSpec, row: ModelFit, mr, names: list[str]) -> float | None:
+    """ln Bayes factor of the fitted model against it with ``names`` fixed at 0, by the Savage-Dickey density
+    ratio ln p(0) - ln p(0 | d) with the posterior of those terms taken Gaussian (their draws' mean and
+    covariance; an ARD term's prior is N(0, 1/alpha) at its optimal alpha); None where it does not apply
+    (a term without a normal prior, no draws)."""
+    from scipy.stats import multivariate_normal
+
+    from .priors import Normal
+
+    def prior(n):
+        a = row.psi_opt.get(n)
+        if n in cand.ard_names and a is not None and 0 < a < math.inf:
+            return Normal(mean=0.0, sd=1.0 / math.sqrt(a))
+        return cand.priors.get(n)
+
+    res = getattr(mr, "sampler", None)
+    pri = [prior(n) for n in names]
+    if res is None or res.samples.size == 0 or not names or not all(isinstance(p, Normal) for p in pri) \
+            or any(n not in res.names for n in names):
+        return None
+    X = res.samples.reshape(-1, len(res.names))[:, [list(res.names).index(n) for n in names]]
+    m, C = X.mean(axis=0), np.atleast_2d(np.cov(X.T))
+    try:
+        ln_post0 = float(multivariate_normal(m, C).logpdf(np.zeros(len(names))))
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    return float(sum(p.logpdf(0.0) for p in pri)) - ln_post0
+
+
 def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
     """Effects added in earlier rounds that the later ones made redundant are dropped again.
 
@@ -328,16 +356,24 @@ def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
     the input). Each effect of an earlier round is refitted out (its terms fixed at 0, side by side on the
     loop's pool); one whose ln Bayes factor (adjusted for coloured innovations as when it was added) no
     longer reaches the threshold it passed then (``min_log_bf`` + ln N: its prior odds as one of N library
-    candidates have not changed) is dropped, the weakest first, and the rest are checked again.
+    candidates have not changed) is dropped, the weakest first, and the rest are checked again. An effect
+    whose Savage-Dickey ln Bayes factor (:func:`savage_dickey`) clears its threshold by ``SD_MARGIN`` nats
+    is kept without a refit (an offset worth 60,000 nats does not need one to say so).
     """
     while True:
         earlier = [x for r in rounds[:-1] for x in r.get("_added", []) if not x.record.get("removed")]
+        sd = [savage_dickey(cand, row, bmr, x.params) for x in earlier]
+        clear = [x.record["effect"] for x, b in zip(earlier, sd)
+                 if b is not None and b / x.inflation >= x.threshold + SD_MARGIN]
+        if clear:
+            say(f"  kept without a refit (Savage-Dickey ln BF clears the threshold by {SD_MARGIN:g} nats): " + ", ".join(clear))
+        earlier = [x for x, b in zip(earlier, sd) if b is None or b / x.inflation < x.threshold + SD_MARGIN]
         if not earlier:
             return cand, row, bmr
         tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, **{n: 0.0 for n in x.params}}}), data, spec,
                   bmr.sampler, config.posterior) for x in earlier]
         fits = mapper(_fit_task, tasks)
-        gain = [row["log_evidence"] - frow["log_evidence"] for frow, _ in fits]
+        gain = [row.log_evidence - frow.log_evidence for frow, _ in fits]
         worth = [g / x.inflation if g > 0 else g for g, x in zip(gain, earlier)]
         k = int(np.argmin([w - x.threshold for w, x in zip(worth, earlier)]))
         x = earlier[k]

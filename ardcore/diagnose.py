@@ -45,7 +45,6 @@ from .confirm import (  # noqa: F401
     Added,
     backward_check,
     joint_fit,
-    physical,
     pool_mapper,
     split_stability,
     trace_and_confirm,
@@ -66,6 +65,7 @@ from .residual_tests import (  # noqa: F401
     spectral_peaks,
 )
 from .residuals import Residuals, residuals  # noqa: F401
+from .fit import ModelFit
 from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
 from .verdict import character, unexplained
 
@@ -75,18 +75,17 @@ INF = math.inf
 # --------------------------------------------------------------------------- fit, free run, loop
 
 
-def fitted_spec(cand: CandidateSpec, row: dict) -> ModelSpec:
+def fitted_spec(cand: CandidateSpec, row: ModelFit) -> ModelSpec:
     """The candidate's model with the terms its optimal psi pruned fixed at 0."""
     spec = cand.model_spec()
-    pruned = {k: 0.0 for k, v in row["psi_opt"].items() if is_pruned(v)}
+    pruned = {k: 0.0 for k, v in row.psi_opt.items() if is_pruned(v)}
     return spec.with_fixed(**pruned) if pruned else spec
 
 
-def _fitted(cand: CandidateSpec, row: dict) -> tuple[ModelSpec, dict]:
+def _fitted(cand: CandidateSpec, row: ModelFit) -> tuple[ModelSpec, dict]:
     """The candidate's model with pruned terms fixed at 0, and its posterior mean."""
     spec = fitted_spec(cand, row)
-    phi = {k: float(row["mean"][k]) for k in spec.free_parameters}
-    return spec, phi
+    return spec, row.point(spec.free_parameters)
 
 
 def _measure(fspec, phi, cand, row, bmr, data, test, col, config, rnd) -> tuple[Residuals, dict, dict]:
@@ -98,7 +97,7 @@ def _measure(fspec, phi, cand, row, bmr, data, test, col, config, rnd) -> tuple[
     return res, fr, _errors(res, fr, row, col)
 
 
-def _errors(res: Residuals, fr: dict, row: dict, col: str) -> dict:
+def _errors(res: Residuals, fr: dict, row: ModelFit, col: str) -> dict:
     t = res.tests[col]
     keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error",
             "band_coverage", "band_halfwidth_rms", "draws_rms_error", "n_draws")
@@ -109,12 +108,12 @@ def _errors(res: Residuals, fr: dict, row: dict, col: str) -> dict:
             "injected_noise_rms": {s: float(np.sqrt(np.nanmean(r ** 2))) for s, r in res.process_noise_rate.items()},
             "standardized_rms": t["rms"], "ljung_box": t["ljung_box"], "ljung_box_p": t["ljung_box_p"],
             "free_run": {k: fr[k] for k in keep if k in fr},
-            "log_evidence": row["log_evidence"], "log_evidence_se": row["log_evidence_se"]}
+            "log_evidence": row.log_evidence, "log_evidence_se": row.log_evidence_se}
 
 
 def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None,
              config: DiagnoseConfig | None = None, progress: Callable[[str], None] | None = None,
-             extra_effects: list[Effect] = (), base: tuple[dict, object] | None = None) -> dict:
+             extra_effects: list[Effect] = (), base: tuple[ModelFit, object] | None = None) -> dict:
     """Run the closed loop on the single candidate of ``spec`` (see module docstring).
 
     Parameters
@@ -127,7 +126,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         Held-out record for the free-run error (default: ``data``).
     extra_effects : list of Effect
         Added to the built-in library.
-    base : (row, MaximiserResult), optional
+    base : (ModelFit, MaximiserResult), optional
         An existing fit of the candidate (skips step 1).
 
     Returns
@@ -161,12 +160,12 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     try:
         for rnd in range(config.max_rounds + 1):
             fspec, phi = _fitted(cand, row)
-            say(f"round {rnd}: {cand.label} ln Z = {row['log_evidence']:.3f}; computing residuals")
+            say(f"round {rnd}: {cand.label} ln Z = {row.log_evidence:.3f}; computing residuals")
             res, fr, err = _measure(fspec, phi, cand, row, bmr, cur_data, cur_test, col, config, rnd)
             if first is None:
                 initial = {"spec": fspec, "phi": phi, "effects": [], "substeps": cand.substeps}
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
-                         "base_fit": {k: row[k] for k in _BASE_FIT}}
+                         "base_fit": row.summary(_BASE_FIT)}
                 arrays["before"] = _arrays(res, fr)
             else:
                 arrays["after"] = _arrays(res, fr)
@@ -225,7 +224,7 @@ def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra
                                           extra_effects, say, mapper)
     survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
     noise = [c for c in survivors if c["_effect"].where == "noise"
-             and any(abs(c["_row"]["mean"].get(n, 0.0)) > math.log(2) for n in c["scales"])]
+             and any(abs(c["_row"].mean.get(n, 0.0)) > math.log(2) for n in c["scales"])]
     deferred = [c for c in survivors if c not in noise] if noise else []
     if deferred:
         # a noise level off by more than 2x changed what every dynamic candidate was screened and confirmed
@@ -269,14 +268,14 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rec) -> tu
         # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
         # others make redundant; taken when it beats the best single effect by more than min_log_bf
         j = joint_fit(spec, cand, row, best, survivors, data, config, say)
-        if j.row["log_evidence"] > best["log_evidence"] + config.min_log_bf:
+        if j.row.log_evidence > best["log_evidence"] + config.min_log_bf:
             chosen, fit = survivors, j
     jrow = fit.row
     recs = []
     for c in chosen:
         eff = c["_effect"]
-        post = {n: physical(jrow, n, c["scales"][n]) for n in c["scales"] if n in jrow["mean"]}
-        shape = {n: physical(jrow, n, 1.0) for n in c["_shape_prior"] if n in jrow["mean"]}
+        post = {n: jrow.physical(n, c["scales"][n]) for n in c["scales"] if n in jrow.mean}
+        shape = {n: jrow.physical(n, 1.0) for n in c["_shape_prior"] if n in jrow.mean}
         recs.append({"effect": c["effect"], "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
                      "posterior": post, "shape": shape, "log_bayes_factor": c["log_bayes_factor"],
                      "character": character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
@@ -287,7 +286,7 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rec) -> tu
                            c.get("inflation", 1.0)) for a, c in zip(recs, chosen)]
     say(f"round {rec['round']}: added " + ", ".join(f"{r['effect']} to {r['target']} "
                                                    f"(ln BF {r['log_bayes_factor']:.1f})" for r in recs)
-        + (f"; together ln BF {jrow['log_evidence'] - row['log_evidence']:.1f}" if len(recs) > 1 else ""))
+        + (f"; together ln BF {jrow.log_evidence - row.log_evidence:.1f}" if len(recs) > 1 else ""))
     return fit
 
 
@@ -303,7 +302,7 @@ def _report(spec, data, test_data, first, rounds, arrays, row, notes, final_mode
            "confirmed": rounds[0]["confirmed"] if rounds else [],
            "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
            "removed": removed, "initial_state": notes, "tests_after": None,
-           "final_fit": {k: row[k] for k in ("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995")}}
+           "final_fit": row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
     if not added:
         out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
         return out

@@ -53,7 +53,9 @@ class EvidenceEvaluator:
                              starts=_starts_around(xmap, C, self.sampler.n_chains, seed), progress=self.progress,
                              cancel=self.cancel)
             else:
-                res = _laplace_state(target, xmap, C, ev)
+                # draws of N(MAP, H^-1), which the Laplace evidence assumes: the maximiser reweights them for
+                # its line-search steps (only the ARD prior changes) instead of another Newton fit
+                res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
             return target, ev, res
         res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn, warm=warm,
                      progress=self.progress, cancel=self.cancel)
@@ -99,6 +101,10 @@ def _starts_around(x, C, n, seed):
     rng = np.random.default_rng(seed)
     L = safe_cholesky(C if np.all(np.isfinite(C)) else np.diag(np.maximum(np.abs(x) * 1e-2, 1e-6) ** 2))
     return np.array([x + 2.0 * L @ rng.standard_normal(x.size) for _ in range(n)])
+
+
+LAPLACE_DRAWS = 4000
+"""Draws of the Laplace posterior a Laplace trial carries (no likelihood evaluations: Gaussian draws)."""
 
 
 def _laplace_state(target, xmap, C, ev, *, draws: int = 0, seed: int = 0) -> SamplerResult:

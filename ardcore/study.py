@@ -24,7 +24,8 @@ from .ard import (
     posterior_summary,
 )
 from .data import Dataset
-from .jsonio import atomic_write_text, encode_alpha, to_jsonable  # noqa: F401
+from .fit import ModelFit
+from .jsonio import atomic_write_text, to_jsonable
 from .mcmc import Map, serial_map
 from .spec import (  # noqa: F401
     ArdSettings,
@@ -58,8 +59,9 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
                   progress: Callable[[dict], None] | None = None, cancel=None,
                   evaluator_factory: Callable[..., EvidenceEvaluator] | None = None,
                   on_trial: Callable | None = None, warm=None,
-                  final_posterior: str = "sample") -> tuple[dict, MaximiserResult]:
-    """ARD evidence maximisation for one candidate; returns its summary row and the full result.
+                  final_posterior: str = "sample") -> tuple[ModelFit, MaximiserResult]:
+    """ARD evidence maximisation for one candidate; returns its :class:`~ardcore.fit.ModelFit` and the full
+    result.
 
     ``evaluator_factory`` (same arguments as :class:`EvidenceEvaluator`) lets an
     orchestrator substitute its own evaluator (caching, checkpoints, remote chains);
@@ -98,45 +100,43 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
     flat = res.samples.reshape(-1, len(res.names))
     post = posterior_summary(res.names, flat)
     best = mr.best
-    row = {
-        "name": label,
-        "log_evidence": best.evidence.log_evidence,
-        "log_evidence_se": best.evidence.log_evidence_se,
-        "goodness_of_fit": best.evidence.goodness_of_fit,
-        "information_gain": best.evidence.information_gain,
-        "evidence_method": best.evidence.method,
-        "psi_opt": {k: encode_alpha(v) for k, v in mr.psi_opt.items()},
-        "kept": mr.kept,
-        "pruned": mr.pruned,
-        "map": dict(zip(res.names, map(float, res.phi_star))),
-        "mean": {k: v["mean"] for k, v in post.items()},
-        "sd": {k: v["sd"] for k, v in post.items()},
-        "q005": {k: v["q005"] for k, v in post.items()},
-        "q995": {k: v["q995"] for k, v in post.items()},
-        "rhat": dict(zip(res.names, map(float, res.rhat))),
-        "iterations": len(mr.history),
-        "sampled_trials": sum(1 for t in mr.history if t.sampled),
-        "reweighted_trials": sum(1 for t in mr.history if not t.sampled),
-        "n_evaluations": sum(int(t.diagnostics.get("n_evaluations", 0)) for t in mr.history),
-        "wall_s": time.perf_counter() - t0,
-        "warnings": list(best.evidence.warnings),
-        "per_chain_log_evidence": [c.log_evidence for c in best.evidence.per_chain],
-    }
+    row = ModelFit(
+        name=label,
+        log_evidence=best.evidence.log_evidence,
+        log_evidence_se=best.evidence.log_evidence_se,
+        goodness_of_fit=best.evidence.goodness_of_fit,
+        information_gain=best.evidence.information_gain,
+        evidence_method=best.evidence.method,
+        psi_opt=dict(mr.psi_opt),
+        kept=list(mr.kept),
+        pruned=list(mr.pruned),
+        map=dict(zip(res.names, map(float, res.phi_star))),
+        mean={k: v["mean"] for k, v in post.items()},
+        sd={k: v["sd"] for k, v in post.items()},
+        q005={k: v["q005"] for k, v in post.items()},
+        q995={k: v["q995"] for k, v in post.items()},
+        rhat=dict(zip(res.names, map(float, res.rhat))),
+        iterations=len(mr.history),
+        sampled_trials=sum(1 for t in mr.history if t.sampled),
+        reweighted_trials=sum(1 for t in mr.history if not t.sampled),
+        n_evaluations=sum(int(t.diagnostics.get("n_evaluations", 0)) for t in mr.history),
+        wall_s=time.perf_counter() - t0,
+        warnings=list(best.evidence.warnings),
+        per_chain_log_evidence=[c.log_evidence for c in best.evidence.per_chain],
+    )
     return row, mr
 
 
-def compare(rows: list[dict], spec: StudySpec, data_meta: dict, wall_s: float) -> dict:
+def compare(fits: list[ModelFit], spec: StudySpec, data_meta: dict, wall_s: float) -> dict:
     """The comparison of the optimal nested models (Eq. 7) and the study summary."""
-    probs, psd = model_probabilities([r["log_evidence"] for r in rows], [r["log_evidence_se"] for r in rows],
+    probs, psd = model_probabilities([f.log_evidence for f in fits], [f.log_evidence_se for f in fits],
                                      seed=spec.seed)
-    for r, p, s in zip(rows, probs, psd):
-        r["probability"] = p
-        r["probability_sd"] = s
+    rows = [{**f.to_json(), "probability": p, "probability_sd": s} for f, p, s in zip(fits, probs, psd)]
     return to_jsonable({
         "study": spec.name,
         "data": data_meta,
         "models": rows,
-        "best_model": max(rows, key=lambda r: r["log_evidence"])["name"],
+        "best_model": max(fits, key=lambda f: f.log_evidence).name,
         "seed": spec.seed,
         "wall_s": wall_s,
         "spec": spec.model_dump(mode="json"),

@@ -32,6 +32,7 @@ import numpy as np
 from ardflow.ardcore.ard import EvidenceEvaluator, build_target
 from ardflow.ardcore.evidence import ChainEvidence, Evidence, chib_jeliazkov
 from ardflow.ardcore.mcmc import ChainState, SamplerResult, sample
+from ardflow.ardcore.fit import ModelFit
 from ardflow.ardcore.study import StudySpec, compare, run_candidate
 
 from .coordinator import ActorPool, wait_connected
@@ -202,18 +203,18 @@ def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_fa
         store.finish_trial(model, best_iteration, {"psi": _json(mr.psi_opt), "final_laplace_posterior": True})
     store.set_model_attrs(model, result=row, history=[t.to_dict() for t in mr.history],
                           best_iteration=best_iteration)
-    progress({"stage": "model_done", "log_evidence": row["log_evidence"]})
+    progress({"stage": "model_done", "log_evidence": row.log_evidence})
     return row
 
 
-def compare_task(store_path: str, wall_start: float, *rows: dict) -> dict:
+def compare_task(store_path: str, wall_start: float, *rows: ModelFit) -> dict:
     """Comparison of the optimal nested models; writes the summary to the store."""
     store = StudyStore(store_path)
     spec = StudySpec.model_validate(store.meta["spec"])
     meta = store.meta
     summary = compare(list(rows), spec, meta.get("data", {}), time.time() - wall_start)
     summary["study_id"] = meta.get("study_id")
-    history = store.histories([r["name"] for r in rows])
+    history = store.histories([r.name for r in rows])
     store.write_text("history.json", json.dumps(_json(history), indent=2))
     store.write_summary(summary)
     return summary

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from ardflow.ardcore.ekf import compile_model
+from ardflow.ardcore.fit import ModelFit
 from ardflow.ardcore.study import StudySpec
 
 from .store import StudyStore
@@ -31,14 +32,14 @@ MAX_POINTWISE_DRAWS = 1000
 """Draws (all chains together) for which the pointwise log-likelihood is computed by default."""
 
 
-def _best(store: StudyStore, model: str) -> tuple[int, dict]:
+def _best(store: StudyStore, model: str) -> tuple[int, ModelFit]:
     try:
         it, row = store.model_result(model)
     except KeyError:
         raise LookupError(f"the study has no model {model!r}") from None
     if it is None or not row:
         raise LookupError(f"model {model!r} of the study is not finished")
-    return it, dict(row)
+    return it, row
 
 
 def _candidate(store: StudyStore, model: str):
@@ -49,7 +50,7 @@ def _candidate(store: StudyStore, model: str):
     return cand
 
 
-def pointwise_log_likelihood(cand, row: dict, data, samples: np.ndarray,
+def pointwise_log_likelihood(cand, row: ModelFit, data, samples: np.ndarray,
                              names: list[str]) -> dict[str, np.ndarray]:
     """One-step predictive log density of every observation for each draw of ``samples``.
 
@@ -162,8 +163,9 @@ def inference_groups(store, model: str, *, log_likelihood: bool = False,
     groups["observed_data"] = {c: data.columns[c] for c in cols}
     if log_likelihood:
         groups["log_likelihood"] = pointwise_log_likelihood(cand, row, data, samples, names)
-    attrs = {"model": model, "iteration": it, "thin": step, "psi": json.dumps(rec.get("psi", row.get("psi_opt"))),
-             "log_evidence": float(row.get("log_evidence", np.nan)), "source": str(store.url)}
+    attrs = {"model": model, "iteration": it, "thin": step,
+             "psi": json.dumps(rec.get("psi", row.to_json()["psi_opt"])),
+             "log_evidence": float(row.log_evidence), "source": str(store.url)}
     # the trial's sampler diagnostics (stationary acceptance, burn-in rounds, evaluations, R-hat, warnings)
     for k in ("acceptance", "burnin_acceptance", "burnin_rounds", "n_evaluations", "converged"):
         if isinstance(rec.get(k), (int, float, bool)):

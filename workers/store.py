@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import zarr
+from ardflow.ardcore.fit import ModelFit
 from ardflow.ardcore.jsonio import atomic_write_text, to_jsonable  # noqa: F401
 
 STORE_VERSION = 1
@@ -218,11 +219,13 @@ class StudyStore:
         tg = g[path]
         return dict(tg.attrs["trial"]) if tg.attrs.get("done") else None
 
-    def model_result(self, model: str) -> tuple[int | None, dict | None]:
-        """The best iteration and summary row of ``model`` (None while it runs); KeyError: no such model."""
+    def model_result(self, model: str) -> tuple[int | None, ModelFit | None]:
+        """The best iteration and the :class:`~ardcore.fit.ModelFit` of ``model`` (None while it runs);
+        KeyError: no such model."""
         mg = self.group("r")[f"models/{model}"]
         it = mg.attrs.get("best_iteration")
-        return (None if it is None else int(it)), mg.attrs.get("result")
+        row = mg.attrs.get("result")
+        return (None if it is None else int(it)), (ModelFit.from_json(row) if row else None)
 
     def histories(self, models: list[str] | None = None) -> dict[str, list]:
         """Every maximisation trial so far, per model (``models``: these, in this order; default: all)."""
@@ -234,9 +237,10 @@ class StudyStore:
         return {m: list(groups[m].attrs.get("history", [])) if m in groups else [] for m in names}
 
     def set_model_attrs(self, model: str, **kw) -> None:
+        """Attributes of ``model``'s group (``result``: its :class:`~ardcore.fit.ModelFit`, stored as JSON)."""
         mg = self.group().require_group(f"models/{model}")
         for k, v in kw.items():
-            mg.attrs[k] = _json(v)
+            mg.attrs[k] = v.to_json() if isinstance(v, ModelFit) else _json(v)
 
     # ---------------------------------------------------------------- checkpoints
     @staticmethod

@@ -7,7 +7,8 @@ from scipy import optimize
 from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose, residual_tests
 from ardflow.ardcore.screen import screen_effects
 from ardflow.ardcore.ekf import compile_model
-from ardflow.ardcore.effects import augment, candidate_effects, dynamic_states, feature_functions, oscillator_pairs
+from ardflow.ardcore.effects import augment, dynamic_states, feature_functions, oscillator_pairs
+from ardflow.ardcore.families import candidate_effects
 from ardflow.ardcore.library import builtin
 from ardflow.ardcore.simulate import simulate_model
 from ardflow.ardcore.study import StudySpec

@@ -5,7 +5,8 @@ import pytest
 from scipy import linalg, optimize, signal
 
 from ardflow.ardcore.ekf import compile_model
-from ardflow.ardcore.effects import Effect, candidate_effects
+from ardflow.ardcore.effects import Effect
+from ardflow.ardcore.families import candidate_effects
 from ardflow.ardcore.library import builtin
 from ardflow.ardcore.robust import innovation_background, spectral_score_cov
 from ardflow.ardcore.screen import screen_effects

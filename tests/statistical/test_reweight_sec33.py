@@ -23,7 +23,7 @@ def test_reweighted_evidence_matches_a_sampled_trial_at_the_same_psi():
     row, mr = run_candidate(cand, data, spec, 0)
     reweighted = [t for t in mr.history if not t.sampled]
     assert reweighted, [t.action for t in mr.history]
-    assert mr.best.sampled and row["log_evidence"] == mr.best.evidence.log_evidence
+    assert mr.best.sampled and row.log_evidence == mr.best.evidence.log_evidence
     ev = EvidenceEvaluator(cand.model_spec(), dict(cand.priors), data, spec.sampler,
                            substeps=cand.substeps)
     # the reweighted steps nearest the optimum (where the weights are least even) and the first one
@@ -35,5 +35,5 @@ def test_reweighted_evidence_matches_a_sampled_trial_at_the_same_psi():
               f"(ESS {t.diagnostics['ess']:.0f}), sampled {full.log_evidence:.3f} +- {full.log_evidence_se:.3f}")
         assert abs(t.evidence.log_evidence - full.log_evidence) < 2 * se + 0.05
     n_sampled = sum(t.sampled for t in mr.history)
-    print(f"sampled {n_sampled} of {len(mr.history)} trials; {row['n_evaluations']} likelihood evaluations")
-    assert np.isfinite(row["n_evaluations"]) and row["n_evaluations"] > 0
+    print(f"sampled {n_sampled} of {len(mr.history)} trials; {row.n_evaluations} likelihood evaluations")
+    assert np.isfinite(row.n_evaluations) and row.n_evaluations > 0
