@@ -149,7 +149,11 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
         twins = [c for c in twins if c and c["survives"]]
         if len(twins) < 2:
             continue
-        hi = max(twins, key=lambda c: c["log_bayes_factor"])  # one base: the evidence, less a profile's Occam
+        # one base: the evidence (less a profile's Occam) decides; within twin_nats, the twin with fewer
+        # parameters (a cubic and a sine stiffness whose period the data do not reach tie; take the cubic)
+        top = max(c["log_bayes_factor"] for c in twins)
+        hi = min((c for c in twins if c["log_bayes_factor"] >= top - config.twin_nats),
+                 key=lambda c: (len(c["_cand"].model_spec().parameters), -c["log_bayes_factor"]))
         for lo in twins:
             if lo is not hi:
                 lo["survives"], lo["rival_of"] = False, hi["effect"]

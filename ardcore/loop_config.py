@@ -68,6 +68,9 @@ class DiagnoseConfig:
         A candidate the screen found redundant with a better one is still confirmed when their screened
         ln Bayes factors are within this many nats (the screen cannot tell the twins apart; the full
         evidence does). Of surviving twins the one with the higher evidence goes on.
+    twin_nats : float
+        Twins whose ln Bayes factors are within this many nats are a tie, and the one with fewer parameters
+        goes on (a cubic stiffness beside a sine stiffness whose period the data never reach).
     rivals : int
         At most this many twins per picked candidate (the closest first): a cubic, a sine and an
         asymmetric stiffness can all explain the same softening until the evidence sees their higher orders.
@@ -91,3 +94,4 @@ class DiagnoseConfig:
     band_draws: int = 40
     rival_nats: float = 5.0
     rivals: int = 2
+    twin_nats: float = 1.0
