@@ -9,6 +9,7 @@ together. :func:`ardcore.diagnose.diagnose` runs the loop around them.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -16,10 +17,10 @@ import numpy as np
 from .data import Dataset
 from .effects import Effect, augment, dynamic_states, shape_parameter_name, shape_prior, with_columns
 from .families import candidate_effects
-from .jsonio import is_pruned
+from .jsonio import is_pruned, to_jsonable
 from .screen import Screened, distinct_candidates, screen_effects
 from .fit import ModelFit
-from .study import CandidateSpec, StudySpec, run_candidate
+from .study import CandidateSpec, run_candidate
 
 INF = math.inf
 
@@ -32,6 +33,75 @@ class Fit(NamedTuple):
     row: dict
     mr: object
     data: Dataset
+
+
+@dataclass
+class Confirmation:
+    """One screened candidate re-selected with its terms under ARD against the current model.
+
+    Attributes
+    ----------
+    effect : str
+        The effect's name as reported (a fitted shape at its posterior mean, e.g. ``sine_stiffness(y,L=1.04)``).
+    target : str
+    screened : Screened
+        What the screen found (its ln BF is ``score``).
+    log_bayes_factor : float
+        ln Z gained over the current model (less a profiled shape's Occam factor); ``adjusted_log_bayes_factor``
+        divides a positive gain by the screen's coloured-innovation factor ``inflation``.
+    threshold : float
+        What the adjusted gain must exceed (``min_log_bf`` + ln N candidates).
+    kept_terms, psi_opt, posterior, shape, scales
+        The ARD result: terms kept, their optimal alphas, coefficients in physical units, a fitted shape's
+        posterior, each term's normalisation.
+    survives : bool
+        Kept terms and an adjusted gain over the threshold (then possibly lost to a twin or the halves check).
+    fit : Fit
+        The re-selected candidate, its ModelFit, maximiser result and data.
+    fitted_effect : Effect
+        What was added (its shape written as a parameter when fitted); ``shape_prior`` that parameter's prior.
+    """
+
+    effect: str
+    target: str
+    screened: Screened
+    log_evidence: float
+    log_evidence_se: float
+    log_bayes_factor: float
+    adjusted_log_bayes_factor: float
+    threshold: float
+    kept_terms: list
+    psi_opt: dict
+    posterior: dict
+    shape: dict
+    scales: dict
+    survives: bool
+    fit: Fit
+    fitted_effect: Effect
+    shape_prior: dict
+    rival_of: str | None = None
+    stability: dict | None = None
+
+    @property
+    def score(self) -> float:
+        return self.screened.log_bayes_factor
+
+    @property
+    def inflation(self) -> float:
+        return self.screened.inflation
+
+    def to_json(self) -> dict:
+        out = {"effect": self.effect, "target": self.target, "score": self.score,
+               "screened_log_bayes_factor": self.score, "log_evidence": self.log_evidence,
+               "log_evidence_se": self.log_evidence_se, "log_bayes_factor": self.log_bayes_factor,
+               "adjusted_log_bayes_factor": self.adjusted_log_bayes_factor, "inflation": self.inflation,
+               "threshold": self.threshold, "kept_terms": self.kept_terms, "psi_opt": self.psi_opt,
+               "posterior": self.posterior, "shape": self.shape, "scales": self.scales, "survives": self.survives}
+        if self.rival_of is not None:
+            out["rival_of"] = self.rival_of
+        if self.stability is not None:
+            out["stability"] = self.stability
+        return to_jsonable(out)
 
 
 def essential_from_row(cand: CandidateSpec, row: ModelFit) -> tuple[dict, dict]:
@@ -95,9 +165,8 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
                                 extra=list(extra_effects))
     screened = screen_effects(fspec, phi, data, effects, dynamic_states(fspec), list(fspec.observed_columns),
                               substeps=cand.substeps, progress=say)
-    ranked = [{**c.to_json(), "_screened": c} for c in screened]
-    say("screen: " + ", ".join(f"{c['effect']} -> {c['target']} (ln BF ~ {c['log_bayes_factor']:.1f})"
-                               for c in ranked[:5]))
+    say("screen: " + ", ".join(f"{c.effect.name} -> {c.target} (ln BF ~ {c.log_bayes_factor:.1f})"
+                               for c in screened[:5]))
     priors, fixed = essential_from_row(cand, row)
     cspec = spec.model_copy(update={"maximiser": spec.maximiser.model_copy(
         update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
@@ -117,49 +186,48 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     if redundant:
         say("not confirmed (explained by a better candidate): " + ", ".join(
             f"{c.effect.name} -> {c.target}" for c in redundant))
-    by_id = {id(c["_screened"]): c for c in ranked}
-    chosen = [by_id[id(p)] for p in picked] + [by_id[i] for i in rivals]
-    tasks = []
-    for c in chosen:
-        sc: Screened = c["_screened"]
-        eff, shape = fitted_effect(cand.model_spec(), sc, c["target"])
-        aspec, names = augment(cand.model_spec(), eff, c["target"], sc.scales)
+    by_id = {id(c): c for c in screened}
+    chosen = list(picked) + [by_id[i] for i in rivals]
+    tasks, fitted = [], []
+    for sc in chosen:
+        eff, shape = fitted_effect(cand.model_spec(), sc, sc.target)
+        aspec, names = augment(cand.model_spec(), eff, sc.target, sc.scales)
         acand = CandidateSpec(model=aspec, name=aspec.name, priors={**priors, **shape}, fixed=fixed,
                               ard=names, substeps=cand.substeps)
         # new terms start at the screen's estimate (a Laplace search from 0 would walk there by Nelder-Mead),
         # a fitted shape at the profile's maximum
         warm = warm_with(bmr.sampler, names + list(shape), sc.coefficients + [sc.shape_value] * len(shape)) \
             if spec.evidence == "laplace" or shape else bmr.sampler
-        c["_effect"], c["_shape_prior"] = eff, shape
+        fitted.append((eff, shape))
         tasks.append((acand, with_columns(data, eff), cspec, warm, config.posterior))
     if chosen:
-        say("confirming by evidence: " + ", ".join(f"{c['effect']} -> {c['target']}" for c in chosen))
+        say("confirming by evidence: " + ", ".join(f"{c.effect.name} -> {c.target}" for c in chosen))
     results = mapper(_fit_task, tasks)
     # the prior odds of each of the N candidates tried (Scott and Berger 2010): its ln BF also pays ln N
     threshold = config.min_log_bf + (math.log(max(1, len(screened))) if config.library_prior else 0.0)
     if chosen and config.library_prior:
         say(f"  an effect must gain {threshold:.1f} nats: {config.min_log_bf:g} + ln {len(screened)} "
             f"(the prior odds of one of the {len(screened)} candidates tried)")
-    for c, (acand, adata, *_), (arow, amr) in zip(chosen, tasks, results):
-        confirmed.append(_confirmation(c, acand, adata, arow, amr, row, threshold, say))
+    for sc, (eff, shape), (acand, adata, *_), (arow, amr) in zip(chosen, fitted, tasks, results):
+        confirmed.append(_confirmation(sc, eff, shape, Fit(acand, arow, amr, adata), row, threshold, say))
     # of twins only the one with the higher evidence goes on
-    by_screen = {id(c["_screened"]): c for c in confirmed}
+    by_screen = {id(c.screened): c for c in confirmed}
     for pid in dict.fromkeys(rivals.values()):
         twins = [by_screen.get(i) for i in [pid] + [r for r, p in rivals.items() if p == pid]]
-        twins = [c for c in twins if c and c["survives"]]
+        twins = [c for c in twins if c and c.survives]
         if len(twins) < 2:
             continue
         # one base: the evidence (less a profile's Occam) decides; within twin_nats, the twin with fewer
         # parameters (a cubic and a sine stiffness whose period the data do not reach tie; take the cubic)
-        top = max(c["log_bayes_factor"] for c in twins)
-        hi = min((c for c in twins if c["log_bayes_factor"] >= top - config.twin_nats),
-                 key=lambda c: (len(c["_cand"].model_spec().parameters), -c["log_bayes_factor"]))
+        top = max(c.log_bayes_factor for c in twins)
+        hi = min((c for c in twins if c.log_bayes_factor >= top - config.twin_nats),
+                 key=lambda c: (len(c.fit.cand.model_spec().parameters), -c.log_bayes_factor))
         for lo in twins:
             if lo is not hi:
-                lo["survives"], lo["rival_of"] = False, hi["effect"]
-        say(f"  {', '.join(c['effect'] for c in twins if c is not hi)} and {hi['effect']} explain the same; "
-            f"{hi['effect']} has the higher evidence")
-    return ranked, confirmed
+                lo.survives, lo.rival_of = False, hi.effect
+        say(f"  {', '.join(c.effect for c in twins if c is not hi)} and {hi.effect} explain the same; "
+            f"{hi.effect} has the higher evidence")
+    return screened, confirmed
 
 
 def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
@@ -174,14 +242,12 @@ def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
     return src.with_shape_parameter(pname), {pname: shape_prior(src)}
 
 
-def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: ModelFit, amr, row: ModelFit, threshold: float,
-                  say) -> dict:
-    """The record of one confirmation: the candidate ``c`` re-selected with its terms under ARD (``arow``)
-    against the base model's ``row``."""
-    sc = c["_screened"]
-    eff: Effect = c["_effect"]
-    shape = c["_shape_prior"]
-    names = list(acand.ard_names)
+def _confirmation(sc: Screened, eff: Effect, shape: dict, fit: Fit, row: ModelFit, threshold: float,
+                  say) -> Confirmation:
+    """One confirmation: the screened candidate ``sc`` re-selected with its terms under ARD (``fit``) against
+    the current model's ``row``."""
+    arow = fit.row
+    names = list(fit.cand.ard_names)
     # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam
     # factor; a fitted shape has paid it through its prior
     gain = arow.log_evidence - row.log_evidence - (0.0 if shape else sc.shape_occam)
@@ -200,19 +266,14 @@ def _confirmation(c: dict, acand: CandidateSpec, adata: Dataset, arow: ModelFit,
             + f", ARD keeps {kept or 'nothing'}")
     # a fitted shape is shown at its posterior mean, e.g. sine_stiffness(y,L=1.07)
     shown = next((sc.source.at(arow.mean[n]).name for n in shape if n in arow.mean), eff.name)
-    return {"effect": shown, "target": c["target"], "score": c["log_bayes_factor"],
-            "screened_log_bayes_factor": c["log_bayes_factor"],
-            "log_evidence": arow.log_evidence, "log_evidence_se": arow.log_evidence_se,
-            "log_bayes_factor": gain, "adjusted_log_bayes_factor": adjusted,
-            "inflation": sc.inflation, "threshold": threshold, "kept_terms": kept,
-            "psi_opt": arow.psi_opt,
-            # coefficients in the term's own units (the fit uses the normalised ones)
-            "posterior": {n: arow.physical(n, scale[n]) for n in names if n in arow.mean},
-            "shape": {n: arow.physical(n, 1.0) for n in shape if n in arow.mean},
-            "scales": scale,
-            "survives": bool(kept) and adjusted > threshold,
-            "_row": arow, "_mr": amr, "_cand": acand, "_data": adata, "_effect": eff, "_shape_prior": shape,
-            "_screened": sc}
+    return Confirmation(
+        effect=shown, target=sc.target, screened=sc, log_evidence=arow.log_evidence,
+        log_evidence_se=arow.log_evidence_se, log_bayes_factor=gain, adjusted_log_bayes_factor=adjusted,
+        threshold=threshold, kept_terms=kept, psi_opt=dict(arow.psi_opt),
+        # coefficients in the term's own units (the fit uses the normalised ones)
+        posterior={n: arow.physical(n, scale[n]) for n in names if n in arow.mean},
+        shape={n: arow.physical(n, 1.0) for n in shape if n in arow.mean}, scales=scale,
+        survives=bool(kept) and adjusted > threshold, fit=fit, fitted_effect=eff, shape_prior=shape)
 
 
 def joint_fit(spec, cand, row, best, survivors, data, config, say):
@@ -225,165 +286,19 @@ def joint_fit(spec, cand, row, best, survivors, data, config, say):
     priors, fixed = essential_from_row(cand, row)
     aspec, adata = cand.model_spec(), data
     for c in survivors:
-        n = list(c["scales"])
-        aspec, n = augment(aspec, c["_effect"], c["target"], [c["scales"][k] for k in n], names=n)
-        adata = with_columns(adata, c["_effect"])
-        priors.update(c["_shape_prior"])
+        n = list(c.scales)
+        aspec, n = augment(aspec, c.fitted_effect, c.target, [c.scales[k] for k in n], names=n)
+        adata = with_columns(adata, c.fitted_effect)
+        priors.update(c.shape_prior)
         for k in n:
-            a = c["psi_opt"].get(k, 0.0)
-            if k not in c["kept_terms"] or is_pruned(a):
+            a = c.psi_opt.get(k, 0.0)
+            if k not in c.kept_terms or is_pruned(a):
                 fixed[k] = 0.0
             else:
                 a = float(a)
                 priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
     acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed, ard=[], substeps=cand.substeps)
-    say("fitting the distinct survivors together: " + ", ".join(c["effect"] for c in survivors))
-    arow, amr = run_candidate(acand, adata, spec, 0, warm=best["_mr"].sampler, final_posterior=config.posterior)
+    say("fitting the distinct survivors together: " + ", ".join(c.effect for c in survivors))
+    arow, amr = run_candidate(acand, adata, spec, 0, warm=best.fit.mr.sampler, final_posterior=config.posterior)
     say(f"  together: ln BF = {arow.log_evidence - row.log_evidence:.2f}")
     return Fit(acand, arow, amr, adata)
-
-
-def _continued_half(half: CandidateSpec, row: ModelFit, data: Dataset, mid: int) -> tuple[CandidateSpec, Dataset]:
-    """The second half as a continuation of the record: its filter starts from the state the full-record
-    filter (at the full fit's posterior mean) holds at sample ``mid - 1``, that sample's observations
-    removed (already used). A record rarely stops at rest in the middle; starting the second half from
-    the model's declared initial state, which is set in absolute units, biases its fit whenever the
-    signal's scale differs from those units (the halves then disagree for a reason that is not the effect).
-    The filtered standard deviations are doubled: the start must not hold the half to the full fit."""
-    from .ekf import compile_model
-
-    ms = half.model_spec()
-    phi = {k: float(row.mean[k]) for k in ms.free_parameters if k in row.mean}
-    if len(phi) != len(ms.free_parameters) or mid < 2:
-        return half, data.slice(mid, None)
-    fr = compile_model(ms).filter(phi, data, half.substeps)
-    x, P = fr.filtered[mid - 1], fr.filtered_cov[mid - 1]
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
-        return half, data.slice(mid, None)
-    model = half.resolved().model_copy(update={
-        "initial_mean": {s: float(x[i]) for i, s in enumerate(ms.states)},
-        "initial_std": {s: 2.0 * math.sqrt(max(float(P[i, i]), 0.0)) + 1e-12 for i, s in enumerate(ms.states)},
-    }).revalidate()
-    d2 = data.slice(mid - 1, None)
-    for o in ms.observed_columns:
-        d2.columns[o][0] = np.nan
-    return half.model_copy(update={"model": model}), d2
-
-
-def split_stability(spec: StudySpec, c: dict, config, say, mapper) -> dict:
-    """Refit the augmented model on each half of the record, the new terms' ARD priors frozen at psi_opt."""
-    from .priors import Flat, Normal
-
-    acand: CandidateSpec = c["_cand"]
-    data: Dataset = c["_data"]
-    priors = dict(acand.priors)
-    for n in c["kept_terms"]:
-        a = float(c["psi_opt"][n])
-        priors[n] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
-    fixed = dict(acand.fixed)
-    fixed.update({n: 0.0 for n in acand.ard_names if n not in c["kept_terms"]})
-    half = CandidateSpec(model=acand.model, name=acand.label, priors=priors, fixed=fixed, ard=[],
-                         substeps=acand.substeps)
-    # halves of the *observed* samples (a record may end in missing values)
-    seen = np.flatnonzero(np.any(np.column_stack([np.isfinite(data.columns[o])
-                                                  for o in acand.model_spec().observed_columns]), axis=1))
-    n = len(data)
-    mid = int(seen[seen.size // 2]) if seen.size >= 4 else n // 2
-    parts = []
-    warm = c["_mr"].sampler
-    second, data2 = _continued_half(half, c["_row"], data, mid)
-    tasks = [(half, data.slice(0, mid), spec, warm, config.posterior), (second, data2, spec, warm, config.posterior)]
-    for r, _ in mapper(_fit_task, tasks):
-        parts.append({k: (r.mean[k], r.sd[k]) for k in c["kept_terms"]})
-    z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])
-         for k in c["kept_terms"]}
-    rel = {k: abs(parts[0][k][0] - parts[1][k][0]) / max(abs(parts[0][k][0]), abs(parts[1][k][0]), 1e-300)
-           for k in c["kept_terms"]}
-    same_sign = all(parts[0][k][0] * parts[1][k][0] > 0 for k in c["kept_terms"])
-    # disagreement beyond the noise AND large against the effect's own size (long records have tiny se)
-    stable = all(z[k] <= config.split_z or (same_sign and rel[k] <= config.split_rel) for k in z)
-    say(f"  {c['effect']}: halves give " + ", ".join(
-        f"{k} = {parts[0][k][0]:.4g} +- {parts[0][k][1]:.2g} / {parts[1][k][0]:.4g} +- {parts[1][k][1]:.2g} "
-        f"(z = {z[k]:.1f})" for k in z) + ("" if stable else ": NOT stable over the record"))
-    return {"stable": stable, "z": z, "relative_difference": rel, "halves": parts}
-
-
-class Added(NamedTuple):
-    """An effect the loop added: its report record, the round, its coefficients' names, and what it must keep
-    earning (the threshold it passed and the coloured-innovation factor its ln BF was divided by)."""
-
-    record: dict
-    round: int
-    params: list
-    threshold: float
-    inflation: float
-
-
-SD_MARGIN = 20.0
-"""Nats by which a Savage-Dickey estimate must clear a threshold for the backward check to trust it."""
-
-
-def savage_dickey(cand: CandidateSpec, row: ModelFit, mr, names: list[str]) -> float | None:
-    """ln Bayes factor of the fitted model against it with ``names`` fixed at 0, by the Savage-Dickey density
-    ratio ln p(0) - ln p(0 | d) with the posterior of those terms taken Gaussian (their draws' mean and
-    covariance; an ARD term's prior is N(0, 1/alpha) at its optimal alpha); None where it does not apply
-    (a term without a normal prior, no draws)."""
-    from scipy.stats import multivariate_normal
-
-    from .priors import Normal
-
-    def prior(n):
-        a = row.psi_opt.get(n)
-        if n in cand.ard_names and a is not None and 0 < a < math.inf:
-            return Normal(mean=0.0, sd=1.0 / math.sqrt(a))
-        return cand.priors.get(n)
-
-    res = getattr(mr, "sampler", None)
-    pri = [prior(n) for n in names]
-    if res is None or res.samples.size == 0 or not names or not all(isinstance(p, Normal) for p in pri) \
-            or any(n not in res.names for n in names):
-        return None
-    X = res.samples.reshape(-1, len(res.names))[:, [list(res.names).index(n) for n in names]]
-    m, C = X.mean(axis=0), np.atleast_2d(np.cov(X.T))
-    try:
-        ln_post0 = float(multivariate_normal(m, C).logpdf(np.zeros(len(names))))
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    return float(sum(p.logpdf(0.0) for p in pri)) - ln_post0
-
-
-def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
-    """Effects added in earlier rounds that the later ones made redundant are dropped again.
-
-    Forward selection adds what the screen ranks first; a later effect can explain the same residual better
-    (a tank's input nonlinearity added first, its square-root outflow next: at equilibrium the level follows
-    the input). Each effect of an earlier round is refitted out (its terms fixed at 0, side by side on the
-    loop's pool); one whose ln Bayes factor (adjusted for coloured innovations as when it was added) no
-    longer reaches the threshold it passed then (``min_log_bf`` + ln N: its prior odds as one of N library
-    candidates have not changed) is dropped, the weakest first, and the rest are checked again. An effect
-    whose Savage-Dickey ln Bayes factor (:func:`savage_dickey`) clears its threshold by ``SD_MARGIN`` nats
-    is kept without a refit (an offset worth 60,000 nats does not need one to say so).
-    """
-    while True:
-        earlier = [x for r in rounds[:-1] for x in r.get("_added", []) if not x.record.get("removed")]
-        sd = [savage_dickey(cand, row, bmr, x.params) for x in earlier]
-        clear = [x.record["effect"] for x, b in zip(earlier, sd)
-                 if b is not None and b / x.inflation >= x.threshold + SD_MARGIN]
-        if clear:
-            say(f"  kept without a refit (Savage-Dickey ln BF clears the threshold by {SD_MARGIN:g} nats): " + ", ".join(clear))
-        earlier = [x for x, b in zip(earlier, sd) if b is None or b / x.inflation < x.threshold + SD_MARGIN]
-        if not earlier:
-            return cand, row, bmr
-        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, **{n: 0.0 for n in x.params}}}), data, spec,
-                  bmr.sampler, config.posterior) for x in earlier]
-        fits = mapper(_fit_task, tasks)
-        gain = [row.log_evidence - frow.log_evidence for frow, _ in fits]
-        worth = [g / x.inflation if g > 0 else g for g, x in zip(gain, earlier)]
-        k = int(np.argmin([w - x.threshold for w, x in zip(worth, earlier)]))
-        x = earlier[k]
-        if worth[k] >= x.threshold:
-            return cand, row, bmr
-        x.record["removed"], x.record["log_bayes_factor_after"] = rounds[-1]["round"], float(worth[k])
-        say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
-            f"effects, below the {x.threshold:.1f} it passed: dropped")
-        cand, (row, bmr) = tasks[k][0], fits[k]

@@ -40,15 +40,8 @@ from typing import Callable
 
 import numpy as np
 
-from .confirm import (  # noqa: F401
-    Fit,
-    Added,
-    backward_check,
-    joint_fit,
-    pool_mapper,
-    split_stability,
-    trace_and_confirm,
-)
+from .checks import Added, backward_check, split_stability
+from .confirm import Confirmation, joint_fit, pool_mapper, trace_and_confirm
 from .data import Dataset
 from .effects import Effect, with_columns
 from .errors import SpecError
@@ -222,68 +215,66 @@ def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra
     (best first). With none, the record carries the verdict on what remains."""
     ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
                                           extra_effects, say, mapper)
-    survivors = sorted([c for c in confirmed if c["survives"]], key=lambda c: -c["log_evidence"])
-    noise = [c for c in survivors if c["_effect"].where == "noise"
-             and any(abs(c["_row"].mean.get(n, 0.0)) > math.log(2) for n in c["scales"])]
+    survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
+    noise = [c for c in survivors if c.fitted_effect.where == "noise"
+             and any(abs(c.fit.row.mean.get(n, 0.0)) > math.log(2) for n in c.scales)]
     deferred = [c for c in survivors if c not in noise] if noise else []
     if deferred:
         # a noise level off by more than 2x changed what every dynamic candidate was screened and confirmed
         # against (a filter that takes the misfit for process noise): the noise goes in alone, the others
         # are screened again under it next round (a cubic and a sine stiffness tie until then)
-        say("the measurement noise changes by more than 2x: " + ", ".join(c["effect"] for c in deferred)
+        say("the measurement noise changes by more than 2x: " + ", ".join(c.effect for c in deferred)
             + " screened again under it next round")
         survivors = noise
     if config.split_z is not None:
         for c in survivors:
-            if c["_effect"].where == "noise":
+            if c.fitted_effect.where == "noise":
                 continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
-            c["stability"] = split_stability(spec, c, config, say, mapper)
-            c["survives"] = c["stability"]["stable"]
-            if c["survives"] and not config.joint:
+            c.stability = split_stability(spec, c, config, say, mapper)
+            c.survives = c.stability["stable"]
+            if c.survives and not config.joint:
                 break  # the best stable one is added
-        survivors = [c for c in survivors if c.get("stability", {}).get("stable", True) and c["survives"]]
+        survivors = [c for c in survivors if (c.stability or {}).get("stable", True) and c.survives]
     # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
-    tried = {(c["_screened"].effect.name, c["target"]) for c in confirmed}
-    order = sorted(confirmed, key=lambda c: (not c["survives"], -c["log_bayes_factor"]))
-    ranking = [{"effect": c["effect"], "target": c["target"], "log_bayes_factor": c["log_bayes_factor"],
-                "survives": c["survives"]} for c in order]
-    ranking += [{"effect": c["effect"], "target": c["target"], "score": c["score"],
-                 "screened_log_bayes_factor": c["log_bayes_factor"]} for c in ranked
-                if (c["effect"], c["target"]) not in tried]
-    rec = {"round": rnd, "model": cand.label, "ranking": ranking, "deferred": [c["effect"] for c in deferred],
-           "candidates": [{k: v for k, v in c.items() if not k.startswith("_")} for c in ranked],
-           "confirmed": [{k: v for k, v in c.items() if not k.startswith("_")} for c in confirmed],
-           "added": None}
+    tried = {(c.screened.effect.name, c.target) for c in confirmed}
+    order = sorted(confirmed, key=lambda c: (not c.survives, -c.log_bayes_factor))
+    ranking = [{"effect": c.effect, "target": c.target, "log_bayes_factor": c.log_bayes_factor,
+                "survives": c.survives} for c in order]
+    ranking += [{"effect": c.effect.name, "target": c.target, "score": c.log_bayes_factor,
+                 "screened_log_bayes_factor": c.log_bayes_factor} for c in ranked
+                if (c.effect.name, c.target) not in tried]
+    candidates, confirmations = [c.to_json() for c in ranked], [c.to_json() for c in confirmed]
+    rec = {"round": rnd, "model": cand.label, "ranking": ranking, "deferred": [c.effect for c in deferred],
+           "candidates": candidates, "confirmed": confirmations, "added": None}
     if not survivors:
-        rec["verdict"] = unexplained(res, ranked, confirmed, col, config)
+        rec["verdict"] = unexplained(res, candidates, confirmations, col, config)
     return rec, survivors
 
 
 def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rec) -> tuple:
     """Add the best survivor (or the survivors fitted together, when that is worth more); record what was
     added in ``rec``. Returns the new candidate, its row, its maximiser result and the augmented data."""
-    best = survivors[0]
-    chosen, fit = [best], Fit(best["_cand"], best["_row"], best["_mr"], best["_data"])
+    best: Confirmation = survivors[0]
+    chosen, fit = [best], best.fit
     if config.joint and len(survivors) > 1:
         # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
         # others make redundant; taken when it beats the best single effect by more than min_log_bf
         j = joint_fit(spec, cand, row, best, survivors, data, config, say)
-        if j.row.log_evidence > best["log_evidence"] + config.min_log_bf:
+        if j.row.log_evidence > best.log_evidence + config.min_log_bf:
             chosen, fit = survivors, j
     jrow = fit.row
     recs = []
     for c in chosen:
-        eff = c["_effect"]
-        post = {n: jrow.physical(n, c["scales"][n]) for n in c["scales"] if n in jrow.mean}
-        shape = {n: jrow.physical(n, 1.0) for n in c["_shape_prior"] if n in jrow.mean}
-        recs.append({"effect": c["effect"], "kind": eff.kind, "target": c["target"], "terms": list(eff.terms),
-                     "posterior": post, "shape": shape, "log_bayes_factor": c["log_bayes_factor"],
-                     "character": character(fspec, phi, eff, {"posterior": post, "target": c["target"]})})
+        eff = c.fitted_effect
+        post = {n: jrow.physical(n, c.scales[n]) for n in c.scales if n in jrow.mean}
+        shape = {n: jrow.physical(n, 1.0) for n in c.shape_prior if n in jrow.mean}
+        recs.append({"effect": c.effect, "kind": eff.kind, "target": c.target, "terms": list(eff.terms),
+                     "posterior": post, "shape": shape, "log_bayes_factor": c.log_bayes_factor,
+                     "character": character(fspec, phi, eff, {"posterior": post, "target": c.target})})
     rec["added"], rec["added_with"] = recs[0], recs[1:]
-    rec["_effects"] = [c["_effect"] for c in chosen]
+    rec["_effects"] = [c.fitted_effect for c in chosen]
     # what each must keep earning beside later effects: its threshold and coloured-innovation factor
-    rec["_added"] = [Added(a, rec["round"], list(c["scales"]), c.get("threshold", config.min_log_bf),
-                           c.get("inflation", 1.0)) for a, c in zip(recs, chosen)]
+    rec["_added"] = [Added(a, rec["round"], list(c.scales), c.threshold, c.inflation) for a, c in zip(recs, chosen)]
     say(f"round {rec['round']}: added " + ", ".join(f"{r['effect']} to {r['target']} "
                                                    f"(ln BF {r['log_bayes_factor']:.1f})" for r in recs)
         + (f"; together ln BF {jrow.log_evidence - row.log_evidence:.1f}" if len(recs) > 1 else ""))

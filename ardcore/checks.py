@@ -1,0 +1,162 @@
+"""The loop's checks on what it adds (method.md section 9, step 4): a survivor's stability over the two
+halves of the record (:func:`split_stability`) and, after each round, whether effects of earlier rounds are
+still worth their place beside the later ones (:func:`backward_check`, with the Savage-Dickey shortcut
+:func:`savage_dickey` for effects far above their threshold).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from .confirm import Confirmation, _fit_task
+from .data import Dataset
+from .fit import ModelFit
+from .study import CandidateSpec, StudySpec
+
+
+def _continued_half(half: CandidateSpec, row: ModelFit, data: Dataset, mid: int) -> tuple[CandidateSpec, Dataset]:
+    """The second half as a continuation of the record: its filter starts from the state the full-record
+    filter (at the full fit's posterior mean) holds at sample ``mid - 1``, that sample's observations
+    removed (already used). A record rarely stops at rest in the middle; starting the second half from
+    the model's declared initial state, which is set in absolute units, biases its fit whenever the
+    signal's scale differs from those units (the halves then disagree for a reason that is not the effect).
+    The filtered standard deviations are doubled: the start must not hold the half to the full fit."""
+    from .ekf import compile_model
+
+    ms = half.model_spec()
+    phi = {k: float(row.mean[k]) for k in ms.free_parameters if k in row.mean}
+    if len(phi) != len(ms.free_parameters) or mid < 2:
+        return half, data.slice(mid, None)
+    fr = compile_model(ms).filter(phi, data, half.substeps)
+    x, P = fr.filtered[mid - 1], fr.filtered_cov[mid - 1]
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+        return half, data.slice(mid, None)
+    model = half.resolved().model_copy(update={
+        "initial_mean": {s: float(x[i]) for i, s in enumerate(ms.states)},
+        "initial_std": {s: 2.0 * math.sqrt(max(float(P[i, i]), 0.0)) + 1e-12 for i, s in enumerate(ms.states)},
+    }).revalidate()
+    d2 = data.slice(mid - 1, None)
+    for o in ms.observed_columns:
+        d2.columns[o][0] = np.nan
+    return half.model_copy(update={"model": model}), d2
+
+
+def split_stability(spec: StudySpec, c: Confirmation, config, say, mapper) -> dict:
+    """Refit the augmented model on each half of the record, the new terms' ARD priors frozen at psi_opt."""
+    from .priors import Flat, Normal
+
+    acand, data = c.fit.cand, c.fit.data
+    priors = dict(acand.priors)
+    for n in c.kept_terms:
+        a = float(c.psi_opt[n])
+        priors[n] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+    fixed = dict(acand.fixed)
+    fixed.update({n: 0.0 for n in acand.ard_names if n not in c.kept_terms})
+    half = CandidateSpec(model=acand.model, name=acand.label, priors=priors, fixed=fixed, ard=[],
+                         substeps=acand.substeps)
+    # halves of the *observed* samples (a record may end in missing values)
+    seen = np.flatnonzero(np.any(np.column_stack([np.isfinite(data.columns[o])
+                                                  for o in acand.model_spec().observed_columns]), axis=1))
+    n = len(data)
+    mid = int(seen[seen.size // 2]) if seen.size >= 4 else n // 2
+    parts = []
+    warm = c.fit.mr.sampler
+    second, data2 = _continued_half(half, c.fit.row, data, mid)
+    tasks = [(half, data.slice(0, mid), spec, warm, config.posterior), (second, data2, spec, warm, config.posterior)]
+    for r, _ in mapper(_fit_task, tasks):
+        parts.append({k: (r.mean[k], r.sd[k]) for k in c.kept_terms})
+    z = {k: abs(parts[0][k][0] - parts[1][k][0]) / math.hypot(parts[0][k][1], parts[1][k][1])
+         for k in c.kept_terms}
+    rel = {k: abs(parts[0][k][0] - parts[1][k][0]) / max(abs(parts[0][k][0]), abs(parts[1][k][0]), 1e-300)
+           for k in c.kept_terms}
+    same_sign = all(parts[0][k][0] * parts[1][k][0] > 0 for k in c.kept_terms)
+    # disagreement beyond the noise AND large against the effect's own size (long records have tiny se)
+    stable = all(z[k] <= config.split_z or (same_sign and rel[k] <= config.split_rel) for k in z)
+    say(f"  {c.effect}: halves give " + ", ".join(
+        f"{k} = {parts[0][k][0]:.4g} +- {parts[0][k][1]:.2g} / {parts[1][k][0]:.4g} +- {parts[1][k][1]:.2g} "
+        f"(z = {z[k]:.1f})" for k in z) + ("" if stable else ": NOT stable over the record"))
+    return {"stable": stable, "z": z, "relative_difference": rel, "halves": parts}
+
+
+class Added(NamedTuple):
+    """An effect the loop added: its report record, the round, its coefficients' names, and what it must keep
+    earning (the threshold it passed and the coloured-innovation factor its ln BF was divided by)."""
+
+    record: dict
+    round: int
+    params: list
+    threshold: float
+    inflation: float
+
+
+SD_MARGIN = 20.0
+"""Nats by which a Savage-Dickey estimate must clear a threshold for the backward check to trust it."""
+
+
+def savage_dickey(cand: CandidateSpec, row: ModelFit, mr, names: list[str]) -> float | None:
+    """ln Bayes factor of the fitted model against it with ``names`` fixed at 0, by the Savage-Dickey density
+    ratio ln p(0) - ln p(0 | d) with the posterior of those terms taken Gaussian (their draws' mean and
+    covariance; an ARD term's prior is N(0, 1/alpha) at its optimal alpha); None where it does not apply
+    (a term without a normal prior, no draws)."""
+    from scipy.stats import multivariate_normal
+
+    from .priors import Normal
+
+    def prior(n):
+        a = row.psi_opt.get(n)
+        if n in cand.ard_names and a is not None and 0 < a < math.inf:
+            return Normal(mean=0.0, sd=1.0 / math.sqrt(a))
+        return cand.priors.get(n)
+
+    res = getattr(mr, "sampler", None)
+    pri = [prior(n) for n in names]
+    if res is None or res.samples.size == 0 or not names or not all(isinstance(p, Normal) for p in pri) \
+            or any(n not in res.names for n in names):
+        return None
+    X = res.samples.reshape(-1, len(res.names))[:, [list(res.names).index(n) for n in names]]
+    m, C = X.mean(axis=0), np.atleast_2d(np.cov(X.T))
+    try:
+        ln_post0 = float(multivariate_normal(m, C).logpdf(np.zeros(len(names))))
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    return float(sum(p.logpdf(0.0) for p in pri)) - ln_post0
+
+
+def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
+    """Effects added in earlier rounds that the later ones made redundant are dropped again.
+
+    Forward selection adds what the screen ranks first; a later effect can explain the same residual better
+    (a tank's input nonlinearity added first, its square-root outflow next: at equilibrium the level follows
+    the input). Each effect of an earlier round is refitted out (its terms fixed at 0, side by side on the
+    loop's pool); one whose ln Bayes factor (adjusted for coloured innovations as when it was added) no
+    longer reaches the threshold it passed then (``min_log_bf`` + ln N: its prior odds as one of N library
+    candidates have not changed) is dropped, the weakest first, and the rest are checked again. An effect
+    whose Savage-Dickey ln Bayes factor (:func:`savage_dickey`) clears its threshold by ``SD_MARGIN`` nats
+    is kept without a refit (an offset worth 60,000 nats does not need one to say so).
+    """
+    while True:
+        earlier = [x for r in rounds[:-1] for x in r.get("_added", []) if not x.record.get("removed")]
+        sd = [savage_dickey(cand, row, bmr, x.params) for x in earlier]
+        clear = [x.record["effect"] for x, b in zip(earlier, sd)
+                 if b is not None and b / x.inflation >= x.threshold + SD_MARGIN]
+        if clear:
+            say(f"  kept without a refit (Savage-Dickey ln BF clears the threshold by {SD_MARGIN:g} nats): " + ", ".join(clear))
+        earlier = [x for x, b in zip(earlier, sd) if b is None or b / x.inflation < x.threshold + SD_MARGIN]
+        if not earlier:
+            return cand, row, bmr
+        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, **{n: 0.0 for n in x.params}}}), data, spec,
+                  bmr.sampler, config.posterior) for x in earlier]
+        fits = mapper(_fit_task, tasks)
+        gain = [row.log_evidence - frow.log_evidence for frow, _ in fits]
+        worth = [g / x.inflation if g > 0 else g for g, x in zip(gain, earlier)]
+        k = int(np.argmin([w - x.threshold for w, x in zip(worth, earlier)]))
+        x = earlier[k]
+        if worth[k] >= x.threshold:
+            return cand, row, bmr
+        x.record["removed"], x.record["log_bayes_factor_after"] = rounds[-1]["round"], float(worth[k])
+        say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
+            f"effects, below the {x.threshold:.1f} it passed: dropped")
+        cand, (row, bmr) = tasks[k][0], fits[k]
