@@ -65,7 +65,7 @@ class ModelFit:
     per_chain_log_evidence: list = field(default_factory=list)
 
     def to_json(self) -> dict:
-        """The summary's row (pruned alphas as ``"inf"``)."""
+        """The summary's row (a pruned alpha spelt as :mod:`ardcore.jsonio` spells infinity)."""
         return to_jsonable(asdict(self))
 
     @classmethod

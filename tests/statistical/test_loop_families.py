@@ -63,10 +63,10 @@ FAMILIES = {
                   {"free-play", "saturation"}, 0.3),
     "saturation": (Effect("saturation(y)", "stiffness", ("y - 0.3*tanh(y/0.3)",), code="sty"), "v", 8.0,
                    {"saturation", "free-play"}, 0.3),
-    # a pendulum-like restoring force, -8 y - 12 sin(y/1.5): the data reach |y/L| ~ 2, where its higher orders
-    # tell it from a cubic
-    "sine stiffness": (Effect("sine_stiffness(y)", "stiffness", ("y - 1.5*sin(y/1.5)",), code="sny"), "v", 8.0,
-                       {"sine_stiffness"}, 1.5),
+    # a pendulum-like restoring force, -8 y - 8 sin(y): the data reach |y/L| ~ 3, where its higher orders tell
+    # it from a cubic (with L = 1.5 the cubic alone has the higher evidence)
+    "sine stiffness": (Effect("sine_stiffness(y)", "stiffness", ("y - sin(y)",), code="sny"), "v", 8.0,
+                       {"sine_stiffness"}, 1.0),
     "periodic forcing": (Effect("forcing(f=1.37)", "forcing", ("forcing0_sin", "forcing0_cos"), frequency=1.37,
                                 code="fo0"), "v", 0.5, {"forcing"}, 1.37),
     "input nonlinearity": (Effect("input_cubic(u)", "input", ("u**3",), code="u3u"), "v", 0.35,
