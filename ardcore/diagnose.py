@@ -40,7 +40,7 @@ from typing import Callable
 
 import numpy as np
 
-from .checks import Added, backward_check, split_stability
+from .loop_checks import Added, backward_check, split_stability
 from .confirm import Confirmation, joint_fit, pool_mapper, trace_and_confirm
 from .data import Dataset
 from .effects import Effect, with_columns
