@@ -299,6 +299,7 @@ def _report(spec, data, test_data, first, rounds, arrays, row, notes, final_mode
         return out
     a, b = out["after"], out["before"]
     out["tests_after"] = _strip(arrays["after"]["tests"])
+    out["parameter_shifts"] = shifts = parameter_shifts(first["base_fit"], row)
     out["verdict"] = ("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
                                                  f"{x['log_bayes_factor']:.1f}"
                                                  + (f", {x['character']}" if x.get("character") else "") + ")"
@@ -308,7 +309,27 @@ def _report(spec, data, test_data, first, rounds, arrays, row, notes, final_mode
                       f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
                       + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
                                 f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
+                      + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "
+                                f"absorbed part of what was missing" for k, v in shifts.items())
                       + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
+    return out
+
+
+SHIFT_Z = 3.0
+"""A declared parameter that moves by more than this many posterior sd once the effects are in is reported."""
+
+
+def parameter_shifts(before: dict, after: ModelFit) -> dict:
+    """The model's own parameters that moved by more than ``SHIFT_Z`` posterior sd (the larger of the two fits')
+    between the first fit and the final one: before the effects were added they stood in for them (a
+    stiffness that took up part of a free-play), which a user reading the first fit alone would not know."""
+    out = {}
+    for k, m0 in before["mean"].items():
+        if k not in after.mean:
+            continue
+        sd = max(float(before["sd"].get(k, 0.0)), float(after.sd.get(k, 0.0)))
+        if sd > 0 and abs(after.mean[k] - m0) > SHIFT_Z * sd:
+            out[k] = {"before": float(m0), "after": float(after.mean[k]), "z": abs(after.mean[k] - m0) / sd}
     return out
 
 

@@ -192,3 +192,18 @@ def test_screen_finds_the_flow_between_two_tanks():
     # added, it leaves h1 and enters h2 with the same coefficient
     added, names = augment(spec, next(e for e in flows if e.name == "sqrt_flow(h1->h2)"), "h1")
     assert f"- ({names[0]}*" in added.drift["h1"] and f"+ {names[0]}*" in added.drift["h2"]
+
+
+def test_parameter_shifts_name_what_the_first_fit_let_stand_in():
+    from ardflow.ardcore.diagnose import parameter_shifts
+    from ardflow.ardcore.fit import ModelFit
+
+    before = {"mean": {"k": 35.45, "c": 0.026, "sigma": 0.9}, "sd": {"k": 0.2, "c": 0.001, "sigma": 0.01}}
+    after = ModelFit(name="m", log_evidence=0.0, log_evidence_se=0.0,
+                     mean={"k": 40.3, "c": 0.0262, "sigma": 0.9, "k_new": 1.0},
+                     sd={"k": 0.02, "c": 0.0013, "sigma": 0.01, "k_new": 0.1})
+    out = parameter_shifts(before, after)
+    # k moved 24 sd of the wider fit; c moved 0.15 sd; a new coefficient has nothing to move from
+    assert set(out) == {"k"}
+    assert out["k"]["z"] == pytest.approx((40.3 - 35.45) / 0.2)
+    assert out["k"]["before"] == 35.45 and out["k"]["after"] == 40.3
