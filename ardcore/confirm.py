@@ -120,12 +120,26 @@ def essential_from_row(cand: CandidateSpec, row: ModelFit) -> tuple[dict, dict]:
 
 
 def warm_with(sampler, names: list[str], values: list[float]):
-    """``sampler`` (a SamplerResult) whose best point also carries ``names`` at ``values`` (for warm starts)."""
+    """``sampler`` (a SamplerResult) that also carries ``names`` at ``values`` (for warm starts): in its best
+    point, in every chain's position and in its proposal (a small independent step, 1 % of the value), so a
+    Laplace search and the MCMC chains both start the new terms there."""
     import dataclasses
 
     keep = [i for i, n in enumerate(sampler.names) if n not in names]
+    vals = [float(v) for v in values]
+    P = np.asarray(sampler.proposal_cov, float)
+    k, m = len(keep), len(vals)
+    cov = np.zeros((k + m, k + m))
+    cov[:k, :k] = P[np.ix_(keep, keep)] if P.ndim == 2 and P.shape[0] == len(sampler.names) else 0.0
+    cov[k:, k:] = np.diag([(0.01 * abs(v) if v else 1e-3) ** 2 for v in vals])
+
+    def ext(x):
+        return [float(x[i]) for i in keep] + vals
+
+    states = [dataclasses.replace(st, x=ext(st.x), best_x=ext(st.best_x)) for st in sampler.states]
     return dataclasses.replace(sampler, names=[sampler.names[i] for i in keep] + list(names),
-                               phi_star=np.concatenate([np.asarray(sampler.phi_star)[keep], np.asarray(values, float)]))
+                               phi_star=np.concatenate([np.asarray(sampler.phi_star)[keep], np.asarray(vals)]),
+                               proposal_cov=cov, states=states)
 
 
 def _fit_task(args):
@@ -172,9 +186,51 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
         update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
     confirmed = []
     picked = distinct_candidates(fspec, phi, data, screened, config.top_k, config.min_score, substeps=cand.substeps)
+    rivals = _rivals(screened, picked, config, say)
+    by_id = {id(c): c for c in screened}
+    chosen = list(picked) + [by_id[i] for i in rivals]
+
+    def task(sc: Screened, fit_shape: bool = True):
+        eff, shape = fitted_effect(cand.model_spec(), sc, sc.target) if fit_shape else (sc.effect, {})
+        aspec, names = augment(cand.model_spec(), eff, sc.target, sc.scales)
+        acand = CandidateSpec(model=aspec, name=aspec.name, priors={**priors, **shape}, fixed=fixed,
+                              ard=names, substeps=cand.substeps)
+        # new terms start at the screen's estimate (a Laplace search from 0 would walk there by Nelder-Mead),
+        # a fitted shape at the profile's maximum
+        warm = warm_with(bmr.sampler, names + list(shape), sc.coefficients + [sc.shape_value] * len(shape)) \
+            if spec.evidence == "laplace" or shape else bmr.sampler
+        return (eff, shape), (acand, with_columns(data, eff), cspec, warm, config.posterior)
+
+    fitted, tasks = map(list, zip(*[task(sc) for sc in chosen])) if chosen else ([], [])
+    if chosen:
+        say("confirming by evidence: " + ", ".join(f"{c.effect.name} -> {c.target}" for c in chosen))
+    results = mapper(_fit_task, tasks)
+    # a fitted shape that leaves the library's range has become another effect (a saturation level near 0 is
+    # an offset, which the library has on its own): that candidate is confirmed at the screen's shape instead
+    outside = [i for i, ((_, shape), (arow, _)) in enumerate(zip(fitted, results))
+               if shape and not _within(chosen[i].source, arow.mean.get(next(iter(shape)), math.nan))]
+    if outside:
+        say("  fitted shape outside the library's range, confirmed at the screen's shape instead: "
+            + ", ".join(chosen[i].effect.name for i in outside))
+        redo = [task(chosen[i], fit_shape=False) for i in outside]
+        for i, (ft, tk), r in zip(outside, redo, mapper(_fit_task, [tk for _, tk in redo])):
+            fitted[i], tasks[i], results[i] = ft, tk, r
+    # the prior odds of each of the N candidates tried (Scott and Berger 2010): its ln BF also pays ln N
+    threshold = config.min_log_bf + (math.log(max(1, len(screened))) if config.library_prior else 0.0)
+    if chosen and config.library_prior:
+        say(f"  an effect must gain {threshold:.1f} nats: {config.min_log_bf:g} + ln {len(screened)} "
+            f"(the prior odds of one of the {len(screened)} candidates tried)")
+    for sc, (eff, shape), (acand, adata, *_), (arow, amr) in zip(chosen, fitted, tasks, results):
+        confirmed.append(_confirmation(sc, eff, shape, Fit(acand, arow, amr, adata), row, threshold, say))
+    _resolve_twins(confirmed, rivals, config, say)
+    return screened, confirmed
+
+
+def _rivals(screened: list, picked: list, config, say) -> dict:
+    """{id of a redundant candidate: id of the picked one it is a twin of}. A redundant candidate the screen
+    cannot tell from the one it was dropped for (a saturating stiffness and a free-play; a smooth sign of two
+    widths) is confirmed too: the full evidence decides between the twins."""
     redundant = [c for c in screened[:12] if getattr(c, "conditional_on", None)]
-    # a redundant candidate the screen cannot tell from the one it was dropped for (a saturating stiffness and
-    # a free-play; a smooth sign of two widths) is confirmed too: the full evidence decides between the twins
     rivals = {}
     for c in redundant:
         near = [p for p in picked if p.effect.name in c.conditional_on
@@ -186,31 +242,11 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     if redundant:
         say("not confirmed (explained by a better candidate): " + ", ".join(
             f"{c.effect.name} -> {c.target}" for c in redundant))
-    by_id = {id(c): c for c in screened}
-    chosen = list(picked) + [by_id[i] for i in rivals]
-    tasks, fitted = [], []
-    for sc in chosen:
-        eff, shape = fitted_effect(cand.model_spec(), sc, sc.target)
-        aspec, names = augment(cand.model_spec(), eff, sc.target, sc.scales)
-        acand = CandidateSpec(model=aspec, name=aspec.name, priors={**priors, **shape}, fixed=fixed,
-                              ard=names, substeps=cand.substeps)
-        # new terms start at the screen's estimate (a Laplace search from 0 would walk there by Nelder-Mead),
-        # a fitted shape at the profile's maximum
-        warm = warm_with(bmr.sampler, names + list(shape), sc.coefficients + [sc.shape_value] * len(shape)) \
-            if spec.evidence == "laplace" or shape else bmr.sampler
-        fitted.append((eff, shape))
-        tasks.append((acand, with_columns(data, eff), cspec, warm, config.posterior))
-    if chosen:
-        say("confirming by evidence: " + ", ".join(f"{c.effect.name} -> {c.target}" for c in chosen))
-    results = mapper(_fit_task, tasks)
-    # the prior odds of each of the N candidates tried (Scott and Berger 2010): its ln BF also pays ln N
-    threshold = config.min_log_bf + (math.log(max(1, len(screened))) if config.library_prior else 0.0)
-    if chosen and config.library_prior:
-        say(f"  an effect must gain {threshold:.1f} nats: {config.min_log_bf:g} + ln {len(screened)} "
-            f"(the prior odds of one of the {len(screened)} candidates tried)")
-    for sc, (eff, shape), (acand, adata, *_), (arow, amr) in zip(chosen, fitted, tasks, results):
-        confirmed.append(_confirmation(sc, eff, shape, Fit(acand, arow, amr, adata), row, threshold, say))
-    # of twins only the one with the higher evidence goes on
+    return rivals
+
+
+def _resolve_twins(confirmed: list, rivals: dict, config, say) -> None:
+    """Of twins only the one with the higher evidence goes on (the others' ``survives`` is cleared)."""
     by_screen = {id(c.screened): c for c in confirmed}
     for pid in dict.fromkeys(rivals.values()):
         twins = [by_screen.get(i) for i in [pid] + [r for r, p in rivals.items() if p == pid]]
@@ -227,7 +263,12 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
                 lo.survives, lo.rival_of = False, hi.effect
         say(f"  {', '.join(c.effect for c in twins if c is not hi)} and {hi.effect} explain the same; "
             f"{hi.effect} has the higher evidence")
-    return screened, confirmed
+
+
+def _within(effect: Effect, value: float) -> bool:
+    """``value`` inside ``effect``'s shape range (the library's)."""
+    _, lo, hi = effect.shape
+    return lo <= value <= hi
 
 
 def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
