@@ -207,3 +207,31 @@ def test_parameter_shifts_name_what_the_first_fit_let_stand_in():
     assert set(out) == {"k"}
     assert out["k"]["z"] == pytest.approx((40.3 - 35.45) / 0.2)
     assert out["k"]["before"] == 35.45 and out["k"]["after"] == 40.3
+
+
+def test_warm_with_carries_new_terms_into_chains_and_proposal():
+    """A confirmation warm-starts the augmented model from the base fit: the new coefficient and a fitted
+    shape must reach every chain's position and the proposal (MCMC) as well as the best point (Laplace)."""
+    from types import SimpleNamespace
+
+    from ardflow.ardcore.confirm import warm_with
+    from ardflow.ardcore.mcmc import ChainState, SamplerResult
+    from ardflow.ardcore.priors import LogNormal, Normal
+    from ardflow.ardcore.starts import initial_scale, warm_positions
+
+    nan = np.full((0, 0), np.nan)
+    states = [ChainState(c, [1.0 + c, 2.0], 0.0, 0.0, {}, [1.0, 2.0], 0.0, 0.0) for c in range(3)]
+    base = SamplerResult(["a", "b"], np.zeros((0, 0, 2)), nan, nan, np.array([1.0, 2.0]), 0.0, 0.0,
+                         np.array([[0.04, 0.01], [0.01, 0.09]]), states, np.ones(2), [], 0, True, 0.0, 0.0, 0)
+    warm = warm_with(base, ["k", "L"], [0.5, 1.2])
+    assert warm.names == ["a", "b", "k", "L"] and warm.proposal_cov.shape == (4, 4)
+    assert all(s.x[2:] == [0.5, 1.2] for s in warm.states)
+    target = SimpleNamespace(names=["a", "b", "k", "L"], spec=None, prior=SimpleNamespace(priors=[
+        Normal(mean=0.0, sd=10.0), Normal(mean=0.0, sd=10.0), Normal(mean=0.0, sd=1.0),
+        LogNormal(median=1.0, cov=60)]))
+    pos, fallbacks, cov = warm_positions(target, warm, initial_scale(target.prior))
+    np.testing.assert_allclose([p[2:] for p in pos], [[0.5, 1.2]] * 3)
+    np.testing.assert_allclose(cov[:2, :2], base.proposal_cov)
+    # a parameter the warm start does not know starts at 0 unless its prior excludes 0 (then its median)
+    pos, _, _ = warm_positions(target, base, initial_scale(target.prior))
+    np.testing.assert_allclose([p[2:] for p in pos], [[0.0, 1.0]] * 3)
