@@ -170,8 +170,11 @@ def pool_mapper(workers: int):
     return run, (lambda: pool.shutdown(cancel_futures=True))
 
 
-def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper):
-    """Screen the whole library by evidence, then confirm the best few by the full ARD re-selection."""
+def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper,
+                      present: set = frozenset()):
+    """Screen the whole library by evidence, then confirm the best few by the full ARD re-selection.
+
+    ``present``: (library name, target) of the effects the model holds already; they are not screened again."""
     peaks = [p for p in res.tests[col]["spectrum"]["peaks"] if not p.get("harmonic")]
     scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
     # forcing frequencies: innovation peaks that are not harmonics of the oscillation (refined by the screen)
@@ -179,6 +182,7 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
                                 extra=list(extra_effects))
     screened = screen_effects(fspec, phi, data, effects, dynamic_states(fspec), list(fspec.observed_columns),
                               substeps=cand.substeps, progress=say)
+    screened = [c for c in screened if ((c.source or c.effect).name, c.target) not in present]
     say("screen: " + ", ".join(f"{c.effect.name} -> {c.target} (ln BF ~ {c.log_bayes_factor:.1f})"
                                for c in screened[:5]))
     priors, fixed = essential_from_row(cand, row)

@@ -166,7 +166,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             if rnd == config.max_rounds:
                 break
             rec, survivors = _trace_round(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
-                                          extra_effects, say, mapper, rnd)
+                                          extra_effects, say, mapper, rnd, _present(rounds))
             rounds.append(rec)
             if not survivors:
                 break
@@ -209,12 +209,18 @@ def _check_columns(ms: ModelSpec, data: Dataset, test_data: Dataset) -> None:
                             f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
 
 
+def _present(rounds: list) -> set:
+    """(library name, target) of the effects the model holds: not screened again (a second saturating flow
+    beside the first, its width already fitted, is a basis expansion, not an effect)."""
+    return {x.key for r in rounds for x in r.get("_added", []) if not x.record.get("removed")}
+
+
 def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper,
-                 rnd: int) -> tuple[dict, list]:
+                 rnd: int, present: set = frozenset()) -> tuple[dict, list]:
     """One round's trace: screen, confirm, check the survivors' stability; the round's record and survivors
     (best first). With none, the record carries the verdict on what remains."""
     ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
-                                          extra_effects, say, mapper)
+                                          extra_effects, say, mapper, present)
     survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
     noise = [c for c in survivors if c.fitted_effect.where == "noise"
              and any(abs(c.fit.row.mean.get(n, 0.0)) > math.log(2) for n in c.scales)]
@@ -274,7 +280,8 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rec) -> tu
     rec["added"], rec["added_with"] = recs[0], recs[1:]
     rec["_effects"] = [c.fitted_effect for c in chosen]
     # what each must keep earning beside later effects: its threshold and coloured-innovation factor
-    rec["_added"] = [Added(a, rec["round"], list(c.scales), c.threshold, c.inflation) for a, c in zip(recs, chosen)]
+    rec["_added"] = [Added(a, rec["round"], list(c.scales), c.threshold, c.inflation, (c.fitted_effect.name, c.target))
+                     for a, c in zip(recs, chosen)]
     say(f"round {rec['round']}: added " + ", ".join(f"{r['effect']} to {r['target']} "
                                                    f"(ln BF {r['log_bayes_factor']:.1f})" for r in recs)
         + (f"; together ln BF {jrow.log_evidence - row.log_evidence:.1f}" if len(recs) > 1 else ""))

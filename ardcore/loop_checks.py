@@ -90,6 +90,8 @@ class Added(NamedTuple):
     params: list
     threshold: float
     inflation: float
+    key: tuple = ()
+    """(the library's name of the effect, its target): what the model now holds."""
 
 
 SD_MARGIN = 20.0
