@@ -121,3 +121,37 @@ def test_nothing_is_added_to_the_forced_oscillator_without_an_effect(seed):
     rep = diagnose(study(seed), make_data(seed), config=DiagnoseConfig(max_rounds=1, band_draws=0))
     print(f"\n[forced clean seed {seed}] {rep['verdict']}")
     assert rep["added"] == [], rep["verdict"]
+
+
+def test_van_der_pol_limit_cycle_from_a_linear_model():
+    """A self-excited oscillator the library was not written for: van der Pol, y'' = mu (1 - y^2) y' - w2 y,
+    offered as a linear oscillator with free (negative) damping. The loop must add the cross term y^2 v with
+    -mu inside its 99 % interval, and the limit cycle's amplitude and frequency must come out within 5 %."""
+    import numpy as np
+
+    from ardflow.ardcore.data import Dataset
+    from ardflow.ardcore.model import ModelSpec
+    from ardflow.ardcore.simulate import simulate_model
+
+    truth = ModelSpec(name="vdp", states=["y", "v"], drift={"y": "v", "v": "mu*(1 - y**2)*v - w2*y"},
+                      diffusion={"v": "s"}, observations=[{"column": "y", "expr": "y", "noise_std": "g"}],
+                      parameters=["mu", "w2", "s"], constants={"g": 0.01}, initial_std={"y": 1.0, "v": 1.0})
+    t = np.arange(4000) * 0.02
+    y = simulate_model(truth, {"mu": 0.8, "w2": 9.0, "s": 0.2}, t, 3, x0=[0.5, 0.0]).columns["y"]
+    model = truth.model_copy(update={"name": "lin", "drift": {"y": "v", "v": "c*v - w2*y"},
+                                     "parameters": ["c", "w2", "s"]}).revalidate()
+    st = StudySpec.model_validate({
+        "name": "vdp", "data": {"generator": "appendix_a"}, "evidence": "laplace",
+        "models": [{"model": model.model_dump(mode="json"),
+                    "priors": {"c": {"kind": "normal", "mean": 0, "sd": 5},
+                               "w2": {"kind": "lognormal", "median": 8, "cov": 100},
+                               "s": {"kind": "lognormal", "median": 0.3, "cov": 200}}}],
+        "sampler": {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600}, "seed": 1})
+    est, test = Dataset(t[:2000], {"y": y[:2000]}, {}), Dataset(t[2000:] - t[2000], {"y": y[2000:]}, {})
+    rep = jsonable(diagnose(st, est, test_data=test, config=DiagnoseConfig(max_rounds=2, band_draws=0)))
+    print(f"\n[van der Pol] {rep['verdict']}")
+    assert [a["effect"] for a in rep["added"]] == ["cross(y^2*v)"], rep["verdict"]
+    post = rep["added"][0]["posterior"]["k_c21y_v"]
+    assert post["q005"] < -0.8 < post["q995"], post
+    fr = rep["after"]["free_run"]
+    assert abs(fr["amplitude_error"]) < 0.05 and abs(fr["frequency_error"]) < 0.05, fr
