@@ -109,8 +109,17 @@ def shape_prior(effect: Effect):
 
 def shape_parameter_name(spec: ModelSpec, effect: Effect, target: str) -> str:
     """A name for ``effect``'s shape parameter on ``target`` not yet used in ``spec`` (e.g. ``L_sny_v``)."""
-    taken = set(spec.parameters) | set(spec.constants) | set(spec.states) | set(spec.inputs)
-    base = _short(f"{effect.shape[0]}_{effect.code}_{target}")
+    return _unused(_short(f"{effect.shape[0]}_{effect.code}_{target}"), _taken(spec))
+
+
+def _taken(spec: ModelSpec) -> set:
+    """Every name ``spec`` uses (parameters, constants, states, inputs)."""
+    return set(spec.parameters) | set(spec.constants) | set(spec.states) | set(spec.inputs)
+
+
+def _unused(base: str, taken: set) -> str:
+    """``base``, or ``base_2``, ``base_3`` ... when taken (the same family added again: another width, another
+    round)."""
     n, k = base, 2
     while n in taken:
         n, k = _short(f"{base}_{k}"), k + 1
@@ -170,12 +179,10 @@ def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | 
     if effect.shape and "{" in "".join(effect.terms):
         raise ValueError(f"effect {effect.name!r} has a free shape parameter {effect.shape[0]!r}: fix it with .at()")
     if names is None:
-        taken = set(spec.parameters) | set(spec.constants) | set(spec.states) | set(spec.inputs)
+        taken = _taken(spec)
         names = []
         for i in range(len(effect.terms)):
-            n, k = coefficient_name(effect, i, target), 2
-            while n in taken:  # the same family added again (another width, another round)
-                n, k = _short(f"{coefficient_name(effect, i, target)}_{k}"), k + 1
+            n = _unused(coefficient_name(effect, i, target), taken)
             taken.add(n)
             names.append(n)
     sc = scales or [None] * len(effect.terms)

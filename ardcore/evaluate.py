@@ -47,7 +47,7 @@ class EvidenceEvaluator:
                                   warm=warm is not None)
             res = None
             if final and self.final_posterior == "laplace":
-                res = _laplace_state(target, xmap, C, ev, draws=4000, seed=seed)
+                res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
             elif final:
                 res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn,
                              starts=_starts_around(xmap, C, self.sampler.n_chains, seed), progress=self.progress,

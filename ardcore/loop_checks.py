@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .confirm import Confirmation, _fit_task
+from .confirm import Confirmation, _fit_task, essential_from_row
 from .data import Dataset
 from .fit import ModelFit
 from .study import CandidateSpec, StudySpec
@@ -107,14 +107,9 @@ def savage_dickey(cand: CandidateSpec, row: ModelFit, mr, names: list[str]) -> f
 
     from .priors import Normal
 
-    def prior(n):
-        a = row.psi_opt.get(n)
-        if n in cand.ard_names and a is not None and 0 < a < math.inf:
-            return Normal(mean=0.0, sd=1.0 / math.sqrt(a))
-        return cand.priors.get(n)
-
     res = getattr(mr, "sampler", None)
-    pri = [prior(n) for n in names]
+    priors, _ = essential_from_row(cand, row)
+    pri = [priors.get(n) for n in names]
     if res is None or res.samples.size == 0 or not names or not all(isinstance(p, Normal) for p in pri) \
             or any(n not in res.names for n in names):
         return None
@@ -139,13 +134,16 @@ def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
     whose Savage-Dickey ln Bayes factor (:func:`savage_dickey`) clears its threshold by ``SD_MARGIN`` nats
     is kept without a refit (an offset worth 60,000 nats does not need one to say so).
     """
+    said = set()
     while True:
         earlier = [x for r in rounds[:-1] for x in r.get("_added", []) if not x.record.get("removed")]
         sd = [savage_dickey(cand, row, bmr, x.params) for x in earlier]
         clear = [x.record["effect"] for x, b in zip(earlier, sd)
                  if b is not None and b / x.inflation >= x.threshold + SD_MARGIN]
-        if clear:
-            say(f"  kept without a refit (Savage-Dickey ln BF clears the threshold by {SD_MARGIN:g} nats): " + ", ".join(clear))
+        if set(clear) - said:  # said once, not again after each effect dropped
+            say(f"  kept without a refit (Savage-Dickey ln BF clears the threshold by {SD_MARGIN:g} nats): "
+                + ", ".join(c for c in clear if c not in said))
+            said.update(clear)
         earlier = [x for x, b in zip(earlier, sd) if b is None or b / x.inflation < x.threshold + SD_MARGIN]
         if not earlier:
             return cand, row, bmr

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from ardflow.ardcore.ekf import compile_model
 from ardflow.ardcore.fit import ModelFit
+from ardflow.ardcore.jsonio import to_jsonable
 from ardflow.ardcore.study import StudySpec
 
 from .store import StudyStore
@@ -164,7 +165,7 @@ def inference_groups(store, model: str, *, log_likelihood: bool = False,
     if log_likelihood:
         groups["log_likelihood"] = pointwise_log_likelihood(cand, row, data, samples, names)
     attrs = {"model": model, "iteration": it, "thin": step,
-             "psi": json.dumps(rec.get("psi", row.to_json()["psi_opt"])),
+             "psi": json.dumps(rec.get("psi", to_jsonable(row.psi_opt))),
              "log_evidence": float(row.log_evidence), "source": str(store.url)}
     # the trial's sampler diagnostics (stationary acceptance, burn-in rounds, evaluations, R-hat, warnings)
     for k in ("acceptance", "burnin_acceptance", "burnin_rounds", "n_evaluations", "converged"):
