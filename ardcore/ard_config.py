@@ -3,11 +3,21 @@ declared once with its bounds; :mod:`ardcore.ard` runs the maximisation they des
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field
 
 from .sampling import SETTINGS
+
+# the units of the maximiser's settings, each with the bounds any setting in it must respect
+Alpha = Annotated[float, Field(gt=0)]
+"""An ARD precision (1 / prior variance of a term)."""
+Decades = Annotated[float, Field(gt=0, le=10)]
+"""A step of log10 alpha."""
+SeMultiple = Annotated[float, Field(ge=0, le=10)]
+"""A multiple of a standard error."""
+Nats = Annotated[float, Field(ge=0, le=100)]
+"""A difference of ln Z."""
 
 
 class MaximiserConfig(BaseModel):
@@ -71,20 +81,23 @@ class MaximiserConfig(BaseModel):
     """
 
     model_config = SETTINGS
-    alpha_start: float = Field(1e-10, gt=0)
-    step_decades: float = Field(2.0, gt=0, le=10)
-    min_step_decades: float = Field(1.0, gt=0, le=10)
-    noise_k: float = Field(1.0, ge=0, le=10)
-    step_noise_k: float = Field(1.0, ge=0, le=10)
-    min_gain: float = Field(0.05, ge=0, le=100)
-    keep_nats: float = Field(1.0, ge=0, le=100)
-    prune_alpha: float = Field(1e12, gt=0)
-    prune_test: bool = True
-    max_trials: int = Field(60, ge=1, le=1000)
-    max_sweeps: int = Field(2, ge=1, le=100)
+    # the line search
+    alpha_start: Alpha = 1e-10
+    step_decades: Decades = 2.0
+    min_step_decades: Decades = 1.0
+    step_noise_k: SeMultiple = 1.0
+    min_gain: Nats = 0.05
     order: Literal["reverse", "declared"] = Field(
         "reverse", description="visit the ARD parameters from the last declared (default) or the first")
+    # the prune test
+    prune_test: bool = True
+    prune_alpha: Alpha = 1e12
+    noise_k: SeMultiple = 1.0
+    keep_nats: Nats = 1.0
+    max_trials: int = Field(60, ge=1, le=1000)
+    max_sweeps: int = Field(2, ge=1, le=100)
+    # reweighting between trials
     reweight: bool = True
     reweight_min_ess: float = Field(0.25, gt=0, le=1)
     reweight_max_se: float = Field(0.2, gt=0, le=100)
-    reweight_min_step: float = Field(0.25, gt=0, le=10)
+    reweight_min_step: Decades = 0.25

@@ -106,7 +106,7 @@ class Confirmation:
 
 def essential_from_row(cand: CandidateSpec, row: ModelFit) -> tuple[dict, dict]:
     """Priors of the fitted model with kept ARD terms frozen at their optimal alpha; pruned terms fixed."""
-    from .priors import Flat, Normal
+    from .priors import frozen_ard
 
     priors = dict(cand.priors)
     fixed = dict(cand.fixed)
@@ -114,8 +114,7 @@ def essential_from_row(cand: CandidateSpec, row: ModelFit) -> tuple[dict, dict]:
         if is_pruned(a):
             fixed[k] = 0.0
         else:
-            a = float(a)
-            priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+            priors[k] = frozen_ard(a)
     return priors, fixed
 
 
@@ -326,7 +325,7 @@ def joint_fit(spec, cand, row, best, survivors, data, config, say):
     re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
 
     Returns the :class:`Fit` of the model with all of them."""
-    from .priors import Flat, Normal
+    from .priors import frozen_ard
 
     priors, fixed = essential_from_row(cand, row)
     aspec, adata = cand.model_spec(), data
@@ -340,8 +339,7 @@ def joint_fit(spec, cand, row, best, survivors, data, config, say):
             if k not in c.kept_terms or is_pruned(a):
                 fixed[k] = 0.0
             else:
-                a = float(a)
-                priors[k] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+                priors[k] = frozen_ard(a)
     acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed, ard=[], substeps=cand.substeps)
     say("fitting the distinct survivors together: " + ", ".join(c.effect for c in survivors))
     arow, amr = run_candidate(acand, adata, spec, 0, warm=best.fit.mr.sampler, final_posterior=config.posterior)

@@ -45,7 +45,8 @@ from .confirm import Confirmation, joint_fit, pool_mapper, trace_and_confirm
 from .data import Dataset
 from .effects import Effect, with_columns
 from .errors import SpecError
-from .freerun import _posterior_draws, free_run, free_run_of  # noqa: F401
+from .diagnosis import Diagnosis, FittedModel, LoopRound
+from .freerun import _posterior_draws, free_run  # noqa: F401
 from .initial import data_informed_initial
 from .jsonio import is_pruned
 from .loop_config import DiagnoseConfig  # noqa: F401
@@ -59,7 +60,7 @@ from .residual_tests import (  # noqa: F401
 )
 from .residuals import Residuals, residuals  # noqa: F401
 from .fit import ModelFit
-from .study import CandidateSpec, StudySpec, run_candidate, to_jsonable
+from .study import CandidateSpec, StudySpec, run_candidate
 from .verdict import character, unexplained
 
 INF = math.inf
@@ -106,7 +107,7 @@ def _errors(res: Residuals, fr: dict, row: ModelFit, col: str) -> dict:
 
 def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None,
              config: DiagnoseConfig | None = None, progress: Callable[[str], None] | None = None,
-             extra_effects: list[Effect] = (), base: tuple[ModelFit, object] | None = None) -> dict:
+             extra_effects: list[Effect] = (), base: tuple[ModelFit, object] | None = None) -> Diagnosis:
     """Run the closed loop on the single candidate of ``spec`` (see module docstring).
 
     Parameters
@@ -124,10 +125,11 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
 
     Returns
     -------
-    dict
-        ``before``/``after`` residual tests and errors, ``candidates`` (ranked), ``confirmed``
-        (evidence for the top few), ``added`` (the effect kept, or None), ``verdict`` (text),
-        and arrays for the figures under ``_arrays``.
+    Diagnosis
+        Its ``report`` (``to_json``): ``before``/``after`` residual tests and errors, ``candidates``
+        (ranked), ``confirmed`` (evidence for the top few), ``added`` (the effects kept), ``verdict``
+        (text); the arrays for the figures; the initial and final models (``FittedModel``, for free runs
+        on further held-out records).
     """
     config = config or DiagnoseConfig()
     t_start = time.perf_counter()
@@ -156,13 +158,13 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             say(f"round {rnd}: {cand.label} ln Z = {row.log_evidence:.3f}; computing residuals")
             res, fr, err = _measure(fspec, phi, cand, row, bmr, cur_data, cur_test, col, config, rnd)
             if first is None:
-                initial = {"spec": fspec, "phi": phi, "effects": [], "substeps": cand.substeps}
+                initial = FittedModel(fspec, phi, (), cand.substeps)
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
                          "base_fit": row.summary(_BASE_FIT)}
                 arrays["before"] = _arrays(res, fr)
             else:
                 arrays["after"] = _arrays(res, fr)
-                rounds[-1]["after"] = err
+                rounds[-1].record["after"] = err
             if rnd == config.max_rounds:
                 break
             rec, survivors = _trace_round(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
@@ -171,19 +173,16 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             if not survivors:
                 break
             cand, row, bmr, cur_data = _adopt(spec, cand, row, survivors, fspec, phi, cur_data, config, say, rec)
-            for e in rec["_effects"]:
+            for e in rec.effects:
                 cur_test = with_columns(cur_test, e)
-            cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, rounds, config, say, mapper)
+            earlier = [x for r in rounds[:-1] for x in r.added]
+            cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, earlier, rnd, config, say, mapper)
     finally:
         close()
     out = _report(spec, data, test_data, first, rounds, arrays, row, notes, cand.label)
     out["wall_s"] = time.perf_counter() - t_start
-    out["_arrays"] = arrays
-    # the initial and final models, for free runs on further held-out records: free_run_of(out["_final"], record)
-    out["_initial"] = initial
-    out["_final"] = {"spec": fspec, "phi": phi, "effects": [e for r in rounds for e in r.get("_effects", [])],
-                     "substeps": cand.substeps}
-    return out
+    final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), cand.substeps)
+    return Diagnosis(out, arrays, initial, final)
 
 
 _BASE_FIT = ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean", "sd")
@@ -209,14 +208,14 @@ def _check_columns(ms: ModelSpec, data: Dataset, test_data: Dataset) -> None:
                             f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
 
 
-def _present(rounds: list) -> set:
+def _present(rounds: list[LoopRound]) -> set:
     """(library name, target) of the effects the model holds: not screened again (a second saturating flow
     beside the first, its width already fitted, is a basis expansion, not an effect)."""
-    return {x.key for r in rounds for x in r.get("_added", []) if not x.record.get("removed")}
+    return {x.key for r in rounds for x in r.added if not x.record.get("removed")}
 
 
 def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper,
-                 rnd: int, present: set = frozenset()) -> tuple[dict, list]:
+                 rnd: int, present: set = frozenset()) -> tuple[LoopRound, list]:
     """One round's trace: screen, confirm, check the survivors' stability; the round's record and survivors
     (best first). With none, the record carries the verdict on what remains."""
     ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
@@ -254,12 +253,12 @@ def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra
            "candidates": candidates, "confirmed": confirmations, "added": None}
     if not survivors:
         rec["verdict"] = unexplained(res, candidates, confirmations, col, config)
-    return rec, survivors
+    return LoopRound(rec), survivors
 
 
-def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rec) -> tuple:
+def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rnd: LoopRound) -> tuple:
     """Add the best survivor (or the survivors fitted together, when that is worth more); record what was
-    added in ``rec``. Returns the new candidate, its row, its maximiser result and the augmented data."""
+    added in ``rnd``. Returns the new candidate, its row, its maximiser result and the augmented data."""
     best: Confirmation = survivors[0]
     chosen, fit = [best], best.fit
     if config.joint and len(survivors) > 1:
@@ -277,25 +276,27 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rec) -> tu
         recs.append({"effect": c.effect, "kind": eff.kind, "target": c.target, "terms": list(eff.terms),
                      "posterior": post, "shape": shape, "log_bayes_factor": c.log_bayes_factor,
                      "character": character(fspec, phi, eff, {"posterior": post, "target": c.target})})
+    rec = rnd.record
     rec["added"], rec["added_with"] = recs[0], recs[1:]
-    rec["_effects"] = [c.fitted_effect for c in chosen]
+    rnd.effects = [c.fitted_effect for c in chosen]
     # what each must keep earning beside later effects: its threshold and coloured-innovation factor
-    rec["_added"] = [Added(a, rec["round"], list(c.scales), c.threshold, c.inflation, (c.fitted_effect.name, c.target))
-                     for a, c in zip(recs, chosen)]
+    rnd.added = [Added(a, rec["round"], list(c.scales), c.threshold, c.inflation, (c.fitted_effect.name, c.target))
+                 for a, c in zip(recs, chosen)]
     say(f"round {rec['round']}: added " + ", ".join(f"{r['effect']} to {r['target']} "
                                                    f"(ln BF {r['log_bayes_factor']:.1f})" for r in recs)
         + (f"; together ln BF {jrow.log_evidence - row.log_evidence:.1f}" if len(recs) > 1 else ""))
     return fit
 
 
-def _report(spec, data, test_data, first, rounds, arrays, row, notes, final_model: str) -> dict:
+def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, notes, final_model: str) -> dict:
     """The loop's JSON report: before/after, the rounds, what was added and removed, the verdict."""
-    records = [x.record for r in rounds for x in r.get("_added", [])]
+    records = [x.record for r in rounds for x in r.added]
+    rounds = [r.record for r in rounds]
     added = [a for a in records if not a.get("removed")]
     removed = [a for a in records if a.get("removed")]
     out = {"model": spec.models[0].label, "final_model": final_model,
            "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
-           "rounds": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
+           "rounds": rounds,
            "candidates": rounds[0]["candidates"] if rounds else [],
            "confirmed": rounds[0]["confirmed"] if rounds else [],
            "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
@@ -355,7 +356,3 @@ def _arrays(res: Residuals, fr: dict) -> dict:
     return {"tests": res.tests, "innovations": res.innovations, "process_noise_rate": res.process_noise_rate,
             "free_run": fr}
 
-
-def jsonable(report: dict) -> dict:
-    """The report without its arrays, ready for ``json.dump``."""
-    return to_jsonable({k: v for k, v in report.items() if not k.startswith("_")})

@@ -93,7 +93,7 @@ def _cj_chain(args):
     Z = rng.standard_normal((J, phi_star.size))
     den_terms = np.empty(J)
     for j in range(J):
-        lpj = target(phi_star + L @ Z[j])[0]
+        lpj = target(phi_star + L @ Z[j]).log_posterior
         den_terms[j] = min(0.0, lpj - lp_star) if lpj > -math.inf else -math.inf
     log_den = logsumexp(den_terms) - math.log(J)
     ordinate = log_num - log_den
@@ -175,7 +175,7 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
     d = x0.size
     if scale is None:
         scale = np.maximum(np.abs(x0) * 0.1, 1e-3)
-    f = lambda v: -target(v)[0]  # noqa: E731
+    f = lambda v: -target(v).log_posterior  # noqa: E731
 
     def newton(x, h, iters):
         """Newton steps with a finite-difference Hessian; returns x, h and whether it converged (step < 1e-3 sd)."""

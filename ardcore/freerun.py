@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .data import Dataset
-from .effects import user_inputs, with_columns
+from .effects import user_inputs
 from .ekf import compile_model
 from .initial import recentred
 from .model import ModelSpec
@@ -40,14 +40,6 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
             out["draws_rms_error"] = float(np.median([r["rms_error"] for r in sims]))
             out["n_draws"] = int(len(ys))
     return out
-
-
-def free_run_of(model: dict, record: Dataset, **kw) -> dict:
-    """:func:`free_run` of a model as :func:`~ardcore.diagnose.diagnose` returns it (``_initial`` or ``_final``:
-    spec, phi, the effects added and the sub-steps) on another held-out record."""
-    for e in model["effects"]:
-        record = with_columns(record, e)
-    return free_run(model["spec"], model["phi"], record, substeps=model["substeps"], **kw)
 
 
 def _free_run_one(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,

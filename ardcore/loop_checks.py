@@ -46,13 +46,12 @@ def _continued_half(half: CandidateSpec, row: ModelFit, data: Dataset, mid: int)
 
 def split_stability(spec: StudySpec, c: Confirmation, config, say, mapper) -> dict:
     """Refit the augmented model on each half of the record, the new terms' ARD priors frozen at psi_opt."""
-    from .priors import Flat, Normal
+    from .priors import frozen_ard
 
     acand, data = c.fit.cand, c.fit.data
     priors = dict(acand.priors)
     for n in c.kept_terms:
-        a = float(c.psi_opt[n])
-        priors[n] = Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+        priors[n] = frozen_ard(c.psi_opt[n])
     fixed = dict(acand.fixed)
     fixed.update({n: 0.0 for n in acand.ard_names if n not in c.kept_terms})
     half = CandidateSpec(model=acand.model, name=acand.label, priors=priors, fixed=fixed, ard=[],
@@ -122,7 +121,7 @@ def savage_dickey(cand: CandidateSpec, row: ModelFit, mr, names: list[str]) -> f
     return float(sum(p.logpdf(0.0) for p in pri)) - ln_post0
 
 
-def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
+def backward_check(spec, cand, row, bmr, data, earlier_added: list[Added], this_round: int, config, say, mapper):
     """Effects added in earlier rounds that the later ones made redundant are dropped again.
 
     Forward selection adds what the screen ranks first; a later effect can explain the same residual better
@@ -132,11 +131,12 @@ def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
     longer reaches the threshold it passed then (``min_log_bf`` + ln N: its prior odds as one of N library
     candidates have not changed) is dropped, the weakest first, and the rest are checked again. An effect
     whose Savage-Dickey ln Bayes factor (:func:`savage_dickey`) clears its threshold by ``SD_MARGIN`` nats
-    is kept without a refit (an offset worth 60,000 nats does not need one to say so).
+    is kept without a refit (an offset worth 60,000 nats does not need one to say so). ``earlier_added``: the
+    effects of the rounds before ``this_round``.
     """
     said = set()
     while True:
-        earlier = [x for r in rounds[:-1] for x in r.get("_added", []) if not x.record.get("removed")]
+        earlier = [x for x in earlier_added if not x.record.get("removed")]
         sd = [savage_dickey(cand, row, bmr, x.params) for x in earlier]
         clear = [x.record["effect"] for x, b in zip(earlier, sd)
                  if b is not None and b / x.inflation >= x.threshold + SD_MARGIN]
@@ -156,7 +156,7 @@ def backward_check(spec, cand, row, bmr, data, rounds, config, say, mapper):
         x = earlier[k]
         if worth[k] >= x.threshold:
             return cand, row, bmr
-        x.record["removed"], x.record["log_bayes_factor_after"] = rounds[-1]["round"], float(worth[k])
+        x.record["removed"], x.record["log_bayes_factor_after"] = this_round, float(worth[k])
         say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
             f"effects, below the {x.threshold:.1f} it passed: dropped")
         cand, (row, bmr) = tasks[k][0], fits[k]

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+from .sampling import SETTINGS
 
 
-@dataclass
-class DiagnoseConfig:
+class DiagnoseConfig(BaseModel):
     """Settings of :func:`diagnose` (documented defaults).
 
     Attributes
@@ -76,22 +79,25 @@ class DiagnoseConfig:
         asymmetric stiffness can all explain the same softening until the evidence sees their higher orders.
     """
 
-    max_lag: int = 40
-    ljung_box_lags: int = 20
-    peak_p: float = 1e-4
+    model_config = SETTINGS
+    # the residual tests
+    max_lag: int = Field(40, ge=1, le=10_000)
+    ljung_box_lags: int = Field(20, ge=1, le=10_000)
+    peak_p: float = Field(1e-4, gt=0, lt=1)
+    init_samples: int = Field(50, ge=1, le=100_000)
+    band_draws: int = Field(40, ge=0, le=10_000)
+    # the trace
     min_score: float = 3.0
-    top_k: int = 3
-    min_log_bf: float = 3.0
+    top_k: int = Field(3, ge=1, le=10, description="candidates confirmed by evidence per round")
+    min_log_bf: float = Field(3.0, ge=0)
     library_prior: bool = True
-    init_samples: int = 50
-    max_rounds: int = 3
-    split_z: float | None = 3.0
-    split_rel: float = 0.3
-    alpha_start: float = 1e-2
-    posterior: str = "laplace"
+    max_rounds: int = Field(3, ge=0, le=10, description="effects added one after another at most")
+    split_z: float | None = Field(3.0, gt=0)
+    split_rel: float = Field(0.3, gt=0)
+    alpha_start: float = Field(1e-2, gt=0)
+    posterior: Literal["laplace", "sample"] = "laplace"
     joint: bool = True
-    workers: int = 0
-    band_draws: int = 40
-    rival_nats: float = 5.0
-    rivals: int = 2
-    twin_nats: float = 1.0
+    workers: int = Field(0, ge=0, le=1024)
+    rival_nats: float = Field(5.0, ge=0)
+    rivals: int = Field(2, ge=0, le=10)
+    twin_nats: float = Field(1.0, ge=0)

@@ -1,6 +1,6 @@
 """Targets for the sampler: unnormalised log posteriors over named parameters.
 
-A target is a picklable callable ``x -> (log_posterior, log_likelihood)``
+A target is a picklable callable ``x -> Density(log_posterior, log_likelihood)``
 (log_posterior = log prior + log likelihood, unnormalised) with ``names`` and
 ``prior`` (a :class:`~ardcore.priors.JointPrior`). Compiled kernels are not
 pickled: a target rebuilds them on first use in whichever process runs it.
@@ -9,7 +9,7 @@ pickled: a target rebuilds them on first use in whichever process runs it.
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -19,7 +19,40 @@ from .model import ModelSpec
 from .priors import JointPrior, Prior
 
 
-class ModelPosterior:
+class Density(NamedTuple):
+    """A target's value at one point (unpacks as ``lp, ll``)."""
+
+    log_posterior: float
+    """ln prior + ln likelihood, unnormalised."""
+    log_likelihood: float
+
+
+_OUTSIDE = Density(-math.inf, -math.inf)
+
+
+class Target:
+    """What the sampler and the evidence need of a target: ``names``, ``prior`` and ``loglik(x)``; calling it
+    gives (ln prior + ln likelihood, ln likelihood), both -inf outside the prior's support or where the
+    likelihood is not finite (a :class:`Density`)."""
+
+    names: list[str]
+    prior: JointPrior
+
+    def loglik(self, x: np.ndarray) -> float:
+        raise NotImplementedError
+
+    def __call__(self, x) -> Density:
+        lp = self.prior.logpdf(x)
+        if lp == -math.inf:
+            return _OUTSIDE
+        ll = float(self.loglik(np.asarray(x, dtype=float)))
+        if not math.isfinite(ll):
+            return _OUTSIDE
+        return Density(lp + ll, ll)
+
+
+
+class ModelPosterior(Target):
     """p(phi | d, psi) up to its normaliser, for a declarative model and data.
 
     Parameters
@@ -51,17 +84,11 @@ class ModelPosterior:
         d["_lik"] = None
         return d
 
-    def __call__(self, x) -> tuple[float, float]:
-        lp = self.prior.logpdf(x)
-        if lp == -math.inf:
-            return -math.inf, -math.inf
-        ll = self.likelihood(np.asarray(x, dtype=float))
-        if not math.isfinite(ll):
-            return -math.inf, -math.inf
-        return lp + ll, ll
+    def loglik(self, x: np.ndarray) -> float:
+        return self.likelihood(x)
 
 
-class FunctionTarget:
+class FunctionTarget(Target):
     """A target from plain functions (tests, non-ODE models).
 
     Parameters
@@ -76,12 +103,3 @@ class FunctionTarget:
         self.names = list(names)
         self.prior = prior
         self.loglik = loglik
-
-    def __call__(self, x) -> tuple[float, float]:
-        lp = self.prior.logpdf(x)
-        if lp == -math.inf:
-            return -math.inf, -math.inf
-        ll = float(self.loglik(np.asarray(x, dtype=float)))
-        if not math.isfinite(ll):
-            return -math.inf, -math.inf
-        return lp + ll, ll

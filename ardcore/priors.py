@@ -134,6 +134,13 @@ class Flat(_PriorBase):
         raise ValueError("a flat prior has no quantiles")
 
 
+def frozen_ard(alpha: float) -> Prior:
+    """The ARD prior of a term at a fixed, finite alpha as an essential prior: N(0, 1/alpha), flat at 0 (what a
+    refit with psi held at its optimum uses: the halves check, a joint fit, Savage-Dickey)."""
+    a = float(alpha)
+    return Normal(mean=0.0, sd=1.0 / math.sqrt(a)) if a > 0 else Flat()
+
+
 class ARD(_PriorBase):
     """Automatic relevance determination prior N(0, 1/alpha), alpha in [0, inf].
 

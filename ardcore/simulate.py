@@ -23,40 +23,26 @@ from .model import ModelSpec
 
 @dataclass(frozen=True)
 class ReferencePipeline:
-    """Settings of the synthetic measurement pipeline (all documented defaults).
-
-    Attributes
-    ----------
-    dtau : float
-        Euler-Maruyama step.
-    dtau_obs : float
-        Sampling interval of theta.
-    gamma : float
-        Measurement-noise std added before filtering.
-    cutoff : float
-        Butterworth cut-off, cycles per tau (25 Hz at U = 8.5 m/s).
-    order : int
-        Butterworth order (applied forward and backward: zero phase).
-    n_d : int
-        Points kept.
-    tau_max : float
-        Simulated duration (extended automatically when the onset is late).
-    onset_fraction : float
-        The onset is the first sample whose envelope exceeds this fraction of the
-        LCO amplitude.
-    lead_periods : float
-        The record starts this many LCO periods before the onset.
-    """
+    """Settings of the synthetic measurement pipeline (all documented defaults)."""
 
     dtau: float = 1e-3
+    """Euler-Maruyama step."""
     dtau_obs: float = 0.1
+    """Sampling interval of theta."""
     gamma: float = 2e-3
+    """Measurement-noise std added before filtering."""
     cutoff: float = 0.2295
+    """Butterworth cut-off, cycles per tau (25 Hz at U = 8.5 m/s)."""
     order: int = 4
+    """Butterworth order (applied forward and backward: zero phase)."""
     n_d: int = 5000
+    """Points kept."""
     tau_max: float = 1200.0
+    """Simulated duration (extended automatically when the onset is late)."""
     onset_fraction: float = 0.1
+    """The onset is the first sample whose envelope exceeds this fraction of the LCO amplitude."""
     lead_periods: float = 2.0
+    """The record starts this many LCO periods before the onset."""
 
 
 def lowpass(y: np.ndarray, fs: float, cutoff: float, order: int = 4) -> np.ndarray:

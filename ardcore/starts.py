@@ -15,7 +15,7 @@ from .sampling import SamplerConfig, SamplerResult
 # --------------------------------------------------------------------------- starts
 def _neg_lp(target, center, scale):
     def f(z):
-        v = target(center + scale * z)[0]
+        v = target(center + scale * z).log_posterior
         return -v if v > -math.inf else 1e300
     return f
 
@@ -54,7 +54,7 @@ def local_mode(target, x0: np.ndarray, scale: np.ndarray, maxfev: int) -> tuple[
 
 def posterior_cov_estimate(target, x: np.ndarray, scale: np.ndarray) -> np.ndarray | None:
     """Inverse of the finite-difference Hessian of -log posterior (None if not positive definite)."""
-    f = lambda v: -target(v)[0]  # noqa: E731
+    f = lambda v: -target(v).log_posterior  # noqa: E731
     h = 1e-3 * scale
     for _ in range(2):
         H = fd_hessian(f, x, h)

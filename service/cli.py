@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ardflow.ardcore.loop_config import DiagnoseConfig
+
 from .cmd_local import (  # noqa: F401
     EXAMPLES,
     cmd_data,
@@ -118,8 +120,10 @@ def _study_commands(sub) -> None:
     s.add_argument("--test-rename", action="append", metavar="OLD=NEW",
                    help="renaming of the held-out file's columns (default: the spec's data.rename); e.g. "
                         "--test-rename uVal=u --test-rename yVal=y for a file that holds both records")
-    s.add_argument("--top-k", type=int, default=3, help="candidates confirmed by evidence per round (default 3)")
-    s.add_argument("--max-rounds", type=int, default=3, help="effects added one after another at most (default 3)")
+    for name in ("top_k", "max_rounds"):  # the loop's own defaults and words
+        f = DiagnoseConfig.model_fields[name]
+        s.add_argument("--" + name.replace("_", "-"), type=int, default=f.default,
+                       help=f"{f.description} (default {f.default})")
     s.set_defaults(fn=cmd_diagnose)
 
     s = sub.add_parser("loo", help="PSIS-LOO of every model of a finished study beside its evidence (ArviZ)")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ardflow.ardcore.diagnose import jsonable
+from ardflow.ardcore.diagnosis import Diagnosis
 
 from .report import _plt, _save
 
@@ -105,20 +105,19 @@ def _plot_free_run(arrays: dict, out: Path) -> Path:
     return _save(fig, out)
 
 
-def write_diagnosis(report: dict, data_t: np.ndarray, out_dir: str | Path, col: str = "y") -> Path:
+def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Path, col: str = "y") -> Path:
     """Write ``diagnosis.json``, the figures and ``diagnosis.html`` into ``out_dir``; returns the JSON path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    arrays = report["_arrays"]
+    arrays, j = diagnosis.arrays, diagnosis.to_json()
     figs = {
         "tests.png": ("whiteness and spectrum of the innovations, before and after", _plot_tests(arrays, col,
                                                                                                  out / "tests.png")),
         "process_noise.png": ("process noise the filter had to inject, per state",
                               _plot_noise(arrays, data_t, out / "process_noise.png")),
-        "candidates.png": ("candidate effects ranked", _plot_candidates(report, out / "candidates.png")),
+        "candidates.png": ("candidate effects ranked", _plot_candidates(diagnosis.report, out / "candidates.png")),
         "free_run.png": ("free run against the data", _plot_free_run(arrays, out / "free_run.png")),
     }
-    j = jsonable(report)
     path = out / "diagnosis.json"
     path.write_text(json.dumps(j, indent=2))
     rows = []

@@ -9,6 +9,8 @@ from typing import Any, Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from ardflow.ardcore.loop_config import DiagnoseConfig
+
 API_VERSION = "v1"
 ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 FINAL = {"done", "failed", "cancelled"}
@@ -82,8 +84,10 @@ class DiagnoseRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     model: Optional[str] = Field(None, pattern=r"^[A-Za-z][A-Za-z0-9_]{0,31}$",
                                  description="default: the study's best model")
-    top_k: int = Field(3, ge=1, le=10, description="candidates confirmed by evidence per round")
-    max_rounds: int = Field(3, ge=1, le=10, description="effects added one after another at most")
+    # the loop's own settings, bounds and defaults (a request runs at least one round)
+    top_k: int = DiagnoseConfig.model_fields["top_k"]
+    max_rounds: int = Field(DiagnoseConfig.model_fields["max_rounds"].default, ge=1, le=10,
+                            description=DiagnoseConfig.model_fields["max_rounds"].description)
     test_dataset: Optional[str] = Field(None, pattern=r"^[a-f0-9]{16}$",
                                         description="uploaded held-out record for the free run")
 

@@ -89,7 +89,8 @@ def _spec():
 
 def test_loop_adds_hardening_cubic_and_the_error_falls():
     data = _duffing_free_decay(-4.0, 3)
-    rep = diagnose(_spec(), data.slice(0, 1000), test_data=data.slice(1000, None), config=DiagnoseConfig(top_k=2))
+    rep = diagnose(_spec(), data.slice(0, 1000), test_data=data.slice(1000, None),
+                   config=DiagnoseConfig(top_k=2)).to_json()
     first = rep["added"][0]
     assert first["effect"] == "cubic_stiffness(y)" and first["character"] == "hardening"
     post = first["posterior"]["k_s3y_v"]
@@ -101,7 +102,7 @@ def test_loop_adds_hardening_cubic_and_the_error_falls():
 @pytest.mark.parametrize("seed", [11, 12])
 def test_loop_adds_nothing_to_a_correct_model(seed):
     data = _duffing_free_decay(0.0, seed)
-    rep = diagnose(_spec(), data, config=DiagnoseConfig(top_k=2, max_rounds=1))
+    rep = diagnose(_spec(), data, config=DiagnoseConfig(top_k=2, max_rounds=1)).to_json()
     assert rep["added"] == [], rep["verdict"]
     assert "no evidence of a missing effect" in rep["verdict"] or "NOT explained" in rep["verdict"]
 

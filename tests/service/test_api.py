@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -47,16 +48,24 @@ class Server:
         self.thread.join(10)
 
 
-@pytest.fixture(scope="module")
-def service(tmp_path_factory):
-    root = tmp_path_factory.mktemp("svc")
+@contextmanager
+def served(root: Path, **settings):
+    """The app (``Settings(root, token=TOKEN, **settings)``) on a LocalCluster of 2 worker threads, served over
+    HTTP on a free port; yields (url, app, Dask client)."""
     port = free_port()
     # threads for workers, but TCP: the service's study drivers are child processes that connect to it
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=":0") as cl, \
             DaskClient(cl) as dc:
-        app = create_app(Settings(root=root, token=TOKEN), dc)
+        app = create_app(Settings(root=root, token=TOKEN, **settings), dc)
         with Server(app, port):
-            yield f"http://127.0.0.1:{port}", root
+            yield f"http://127.0.0.1:{port}", app, dc
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    root = tmp_path_factory.mktemp("svc")
+    with served(root) as (url, _, _):
+        yield url, root
 
 
 def test_submit_watch_summary_posterior(service, tmp_path):
@@ -201,29 +210,40 @@ def start_service(root: Path, port: int):
     raise RuntimeError("service did not start")
 
 
+class ServiceProcess:
+    """``ardflow serve`` on ``root`` as its own process group, started on entering the ``with``;
+    :meth:`kill_and_restart` SIGKILLs the whole group (API, drivers and embedded cluster) and starts it again;
+    leaving the ``with`` kills it."""
+
+    def __init__(self, root: Path):
+        self.root, self.port = root, free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def __enter__(self):
+        self.p = start_service(self.root, self.port)
+        return self
+
+    def kill_and_restart(self) -> None:
+        os.killpg(self.p.pid, signal.SIGKILL)
+        self.p.wait()
+        self.p = start_service(self.root, self.port)
+
+    def __exit__(self, *exc):
+        os.killpg(self.p.pid, signal.SIGKILL)
+
+
 def test_service_restart_mid_study(tmp_path):
     """Kill the whole service (API and its embedded cluster) mid-study; a restarted service finishes it."""
-    root = tmp_path / "svc"
-    port = free_port()
-
-    def start():
-        return start_service(root, port)
-
-    p = start()
-    try:
-        with Client(f"http://127.0.0.1:{port}", token=TOKEN) as c:
+    with ServiceProcess(tmp_path / "svc") as svc:
+        with Client(svc.url, token=TOKEN) as c:
             sid = c.submit(SPEC)
             while sum(m["trials_done"] for m in c.status(sid)["models"].values()) < 3:
                 time.sleep(0.2)
-        os.killpg(p.pid, signal.SIGKILL)
-        p.wait()
-        p = start()
-        with Client(f"http://127.0.0.1:{port}", token=TOKEN) as c:
+        svc.kill_and_restart()
+        with Client(svc.url, token=TOKEN) as c:
             st = c.wait(sid, poll_s=0.5, timeout=300, progress=False)
             assert st["status"] == "done"
             assert {r["name"] for r in c.summary(sid)["models"]} == {"quad", "cubic"}
-    finally:
-        os.killpg(p.pid, signal.SIGKILL)
 
 
 def test_appendix_a_study_over_http(service):

@@ -3,8 +3,6 @@
 
 import copy
 import json
-import os
-import signal
 import subprocess
 import sys
 import time
@@ -12,12 +10,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import httpx
 import pytest
-from distributed import Client as DaskClient
-from distributed import LocalCluster
 
 from ardflow.service.app import Settings, create_app
 
-from .test_api import ROOT, SPEC, TOKEN, Server, free_port, start_service
+from .test_api import ROOT, SPEC, TOKEN, Server, ServiceProcess, free_port, served
 
 H = {"X-API-Token": TOKEN}
 POLY = {"name": "poly", "states": ["z"], "drift": {"z": 0.0},
@@ -56,14 +52,9 @@ POISON_EXPRESSIONS = [
 @pytest.fixture(scope="module")
 def hostile(tmp_path_factory):
     root = tmp_path_factory.mktemp("hostile")
-    port = free_port()
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=":0") as cl, \
-            DaskClient(cl) as dc:
-        settings = Settings(root=root, token=TOKEN, max_running=1, max_upload_rows=5000, max_body_mb=1.0,
-                            allowed_hosts=["127.0.0.1", "localhost"], max_study_cost=1e10, check_timeout_s=20)
-        app = create_app(settings, dc)
-        with Server(app, port):
-            yield f"http://127.0.0.1:{port}", root, app, dc
+    with served(root, max_running=1, max_upload_rows=5000, max_body_mb=1.0, allowed_hosts=["127.0.0.1", "localhost"],
+                max_study_cost=1e10, check_timeout_s=20) as (url, app, dc):
+        yield url, root, app, dc
 
 
 def _answers(url):
@@ -231,24 +222,17 @@ def test_queue_cancel_delete_and_concurrent_figures(hostile):
 def test_cancel_survives_sigkill_and_restart(tmp_path):
     """Cancel, SIGKILL the whole service, restart: the study stays cancelled and is never relaunched."""
     root = tmp_path / "svc"
-    port = free_port()
-
-    def start():
-        return start_service(root, port)
-
-    p = start()
-    try:
+    with ServiceProcess(root) as svc:
+        studies = f"{svc.url}/v1/studies"
         with httpx.Client(timeout=60, headers=H) as c:
-            sid = c.post(f"http://127.0.0.1:{port}/v1/studies", json=dict(SPEC, seed=21)).json()["id"]
-            while c.get(f"http://127.0.0.1:{port}/v1/studies/{sid}").json()["status"] != "running":
+            sid = c.post(studies, json=dict(SPEC, seed=21)).json()["id"]
+            while c.get(f"{studies}/{sid}").json()["status"] != "running":
                 time.sleep(0.2)
-            assert c.post(f"http://127.0.0.1:{port}/v1/studies/{sid}/cancel").json()["status"] == "cancelled"
-        os.killpg(p.pid, signal.SIGKILL)
-        p.wait()
-        p = start()
+            assert c.post(f"{studies}/{sid}/cancel").json()["status"] == "cancelled"
+        svc.kill_and_restart()
         time.sleep(3)
         with httpx.Client(timeout=60, headers=H) as c:
-            st = c.get(f"http://127.0.0.1:{port}/v1/studies/{sid}").json()
+            st = c.get(f"{studies}/{sid}").json()
         assert st["status"] == "cancelled"
         log = (root / "studies" / sid / "driver.log").read_text()
         assert log.count("resuming study") <= 1  # the driver was never launched again
@@ -256,8 +240,6 @@ def test_cancel_survives_sigkill_and_restart(tmp_path):
         r = subprocess.run([sys.executable, "-m", "ardflow.service.cli", "resume", str(root / "studies" / sid / "store")],
                            cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and "cancelled" in r.stderr
-    finally:
-        os.killpg(p.pid, signal.SIGKILL)
 
 
 def test_cancel_frees_a_worker_busy_inside_a_task(hostile, tmp_path):

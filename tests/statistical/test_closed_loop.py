@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.data import load_pendulum, load_silverbox
-from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose, jsonable
+from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
 from ardflow.ardcore.effects import Effect, augment
 from ardflow.ardcore.library import aero_true
 from ardflow.ardcore.simulate import simulate_reference
@@ -53,7 +53,7 @@ def test_undeclared_effect_is_found_added_and_the_error_falls(kind):
     spec, names = augment(aero_true(), eff, target)
     data = simulate_reference(3, true_params={names[0]: value}, spec=spec)
     rep = diagnose(m2_spec(3), data, config=DiagnoseConfig(top_k=3, max_rounds=1))
-    j = jsonable(rep)
+    j = rep.to_json()
     first = j["rounds"][0]["ranking"][0]  # evidence-confirmed first, then the regression order
     b, a = j["before"], j["after"]
     a = a or {"log_evidence": float("nan"), "innovation_rms": float("nan"),
@@ -77,7 +77,7 @@ def test_undeclared_effect_is_found_added_and_the_error_falls(kind):
 
 @pytest.mark.parametrize("seed", [1, 2, 4])
 def test_nothing_is_added_without_an_undeclared_effect(seed):
-    rep = diagnose(m2_spec(seed), simulate_reference(seed), config=DiagnoseConfig(top_k=2, max_rounds=1))
+    rep = diagnose(m2_spec(seed), simulate_reference(seed), config=DiagnoseConfig(top_k=2, max_rounds=1)).to_json()
     print(f"\n[clean seed {seed}] {rep['verdict']}")
     assert rep["added"] == []
 
@@ -97,7 +97,7 @@ def test_effect_outside_the_library_is_reported_unexplained():
         "observations": [{"column": "y", "expr": "theta + z", "noise_std": "gamma"}],
         "initial_std": {**base.initial_std, "z": 0.0, "zd": 0.0}}).revalidate()
     data = simulate_reference(3, spec=spec)
-    rep = diagnose(m2_spec(3), data, config=DiagnoseConfig(top_k=3, max_rounds=1))
+    rep = diagnose(m2_spec(3), data, config=DiagnoseConfig(top_k=3, max_rounds=1)).to_json()
     print(f"\n[outside the library] {rep['verdict']}")
     assert rep["added"] == [], rep["verdict"]
     assert "NOT explained" in rep["verdict"]
@@ -113,7 +113,7 @@ def test_pendulum_sine_stiffness_and_held_out_free_run():
     test = full.slice(40000, None)
     test = type(test)(test.t[::20].copy(), {"y": test.columns["y"][::20].copy()}, test.meta)
     rep = diagnose(spec, data, test_data=test, config=DiagnoseConfig(top_k=3, max_rounds=2))
-    j = jsonable(rep)
+    j = rep.to_json()
     print("\n[pendulum] " + j["verdict"])
     print(json.dumps({"before": j["before"]["free_run"], "after": j["after"]["free_run"],
                       "added": j["added"]}, indent=1))
@@ -135,14 +135,14 @@ def test_silverbox_hardening_cubic_on_the_test_segment():
     full = load_silverbox(DATA / "SNLS80mV.csv")
     test = full.slice(105712, 127400)
     rep = diagnose(spec, data, test_data=test, config=DiagnoseConfig(top_k=3, max_rounds=3))
-    j = jsonable(rep)
+    j = rep.to_json()
     print("\n[silverbox] " + j["verdict"])
     print(json.dumps({"before": j["before"]["free_run"], "after": j["after"]["free_run"],
                       "added": j["added"]}, indent=1))
     # the customary second test record: the arrow (rows 100-40575), free run of the final model
-    from ardflow.ardcore.freerun import free_run_of
 
-    arrow_err = {when: free_run_of(rep[when], full.slice(100, 40575))["rms_error"] for when in ("_initial", "_final")}
+    arrow = full.slice(100, 40575)
+    arrow_err = {"initial": rep.initial.free_run(arrow)["rms_error"], "final": rep.final.free_run(arrow)["rms_error"]}
     print(f"[silverbox] arrow test segment: free-run RMS error {arrow_err['_initial']:.4g} -> "
           f"{arrow_err['_final']:.4g} V")
     stiff = [x for x in j["added"] if x["kind"] == "stiffness" and x["character"]]
@@ -152,5 +152,5 @@ def test_silverbox_hardening_cubic_on_the_test_segment():
     # input delay); the measured input feeds through to the measured output
     assert any(x["effect"] == "feedthrough(u)" for x in j["added"]), j["verdict"]
     assert j["after"]["free_run"]["rms_error"] < 0.1 * j["before"]["free_run"]["rms_error"]
-    assert arrow_err["_final"] < 0.1 * arrow_err["_initial"]
-    assert j["after"]["free_run"]["rms_error"] < 1e-3 and arrow_err["_final"] < 1e-3
+    assert arrow_err["final"] < 0.1 * arrow_err["initial"]
+    assert j["after"]["free_run"]["rms_error"] < 1e-3 and arrow_err["final"] < 1e-3

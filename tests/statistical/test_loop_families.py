@@ -10,7 +10,7 @@ nothing is added.
 
 import pytest
 
-from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose, jsonable
+from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
 from ardflow.ardcore.effects import Effect, augment
 from ardflow.ardcore.study import StudySpec
 
@@ -41,46 +41,40 @@ def fp(delta):
     return f"0.5*(y - {delta}*sign(y))*(1 + sign(abs(y) - {delta}))"
 
 
-# family -> (planted effect, target, coefficient, accepted kinds or names, true shape or None)
+def planted(name, kind, expr, code, value, accepted=None, shape=None, **kw):
+    """(planted effect, target, coefficient, accepted kinds or names, true shape or None) of one family; the
+    target is the acceleration ``v`` unless the effect acts on the observation (then ``y``)."""
+    eff = Effect(name, kind, expr if isinstance(expr, tuple) else (expr,), code=code, **kw)
+    return eff, "y" if kw.get("where") == "observation" else "v", value, accepted or {name}, shape
+
+
 FAMILIES = {
-    "odd stiffness": (Effect("cubic_stiffness(y)", "stiffness", ("y**3",), code="s3y"), "v", -1.2,
-                      {"cubic_stiffness(y)"}, None),
-    "even stiffness": (Effect("quadratic_stiffness(y)", "stiffness", ("y**2",), code="s2y"), "v", -0.7,
-                       {"quadratic_stiffness(y)"}, None),
-    "asymmetric stiffness": (Effect("asymmetric_stiffness(y)", "stiffness", ("y*abs(y)",), code="say"), "v", -2.2,
-                             {"asymmetric_stiffness(y)"}, None),
-    "cubic damping": (Effect("cubic_damping(v)", "damping", ("v**3",), code="d3v"), "v", -0.12,
-                      {"cubic_damping(v)"}, None),
-    "quadratic damping": (Effect("quadratic_damping(v)", "damping", ("v*abs(v)",), code="dqv"), "v", -0.3,
-                          {"quadratic_damping(v)"}, None),
+    "odd stiffness": planted("cubic_stiffness(y)", "stiffness", "y**3", "s3y", -1.2),
+    "even stiffness": planted("quadratic_stiffness(y)", "stiffness", "y**2", "s2y", -0.7),
+    "asymmetric stiffness": planted("asymmetric_stiffness(y)", "stiffness", "y*abs(y)", "say", -2.2),
+    "cubic damping": planted("cubic_damping(v)", "damping", "v**3", "d3v", -0.12),
+    "quadratic damping": planted("quadratic_damping(v)", "damping", "v*abs(v)", "dqv", -0.3),
     # a smooth sign over 0.05: the library's dry friction and Stribeck (whose peak may decay beyond the data) are
     # both this family
-    "dry friction": (Effect("dry_friction(v)", "friction", ("tanh(v/0.05)",), code="fdv"), "v", -1.0,
-                     {"friction"}, None),
+    "dry friction": planted("dry_friction(v)", "friction", "tanh(v/0.05)", "fdv", -1.0, {"friction"}),
     # a saturating stiffness is a free-play with a rounded corner: at this size and noise the evidence of the two
     # differs by a fraction of a nat either way, and the loop confirms both and names the better (see rival_nats)
-    "free-play": (Effect("free_play(y)", "free-play", (fp(0.3),), code="fpwy"), "v", -6.0,
-                  {"free-play", "saturation"}, 0.3),
-    "saturation": (Effect("saturation(y)", "stiffness", ("y - 0.3*tanh(y/0.3)",), code="sty"), "v", 8.0,
-                   {"saturation", "free-play"}, 0.3),
+    "free-play": planted("free_play(y)", "free-play", fp(0.3), "fpwy", -6.0, {"free-play", "saturation"}, 0.3),
+    "saturation": planted("saturation(y)", "stiffness", "y - 0.3*tanh(y/0.3)", "sty", 8.0,
+                          {"saturation", "free-play"}, 0.3),
     # a pendulum-like restoring force, -8 y - 8 sin(y): the data reach |y/L| ~ 3, where its higher orders tell
     # it from a cubic (with L = 1.5 the cubic alone has the higher evidence)
-    "sine stiffness": (Effect("sine_stiffness(y)", "stiffness", ("y - sin(y)",), code="sny"), "v", 8.0,
-                       {"sine_stiffness"}, 1.0),
-    "periodic forcing": (Effect("forcing(f=1.37)", "forcing", ("forcing0_sin", "forcing0_cos"), frequency=1.37,
-                                code="fo0"), "v", 0.5, {"forcing"}, 1.37),
-    "input nonlinearity": (Effect("input_cubic(u)", "input", ("u**3",), code="u3u"), "v", 0.35,
-                           {"input_cubic(u)"}, None),
-    "input-state cross": (Effect("input_cross(u*y)", "input", ("u*y",), code="uuy"), "v", 1.5,
-                          {"input_cross(u*y)"}, None),
-    "offset": (Effect("offset", "offset", ("1",), code="off"), "v", 0.8, {"offset"}, None),
+    "sine stiffness": planted("sine_stiffness(y)", "stiffness", "y - sin(y)", "sny", 8.0, {"sine_stiffness"}, 1.0),
+    "periodic forcing": planted("forcing(f=1.37)", "forcing", ("forcing0_sin", "forcing0_cos"), "fo0", 0.5,
+                                {"forcing"}, 1.37, frequency=1.37),
+    "input nonlinearity": planted("input_cubic(u)", "input", "u**3", "u3u", 0.35),
+    "input-state cross": planted("input_cross(u*y)", "input", "u*y", "uuy", 1.5),
+    "offset": planted("offset", "offset", "1", "off", 0.8),
     # in a linear model a sensor bias and a constant force are the same data: either is the right answer
-    "sensor bias": (Effect("sensor_bias", "measurement", ("1",), code="mb", where="observation"), "y", 0.05,
-                    {"sensor_bias", "offset"}, None),
-    "feedthrough": (Effect("feedthrough(u)", "measurement", ("u",), code="mfu", where="observation"), "y", 0.002,
-                    {"feedthrough(u)"}, None),
-    "sensor nonlinearity": (Effect("sensor_cubic(y)", "measurement", ("(y)**3",), code="m3y", where="observation"),
-                            "y", 0.015, {"sensor_cubic(y)"}, None),
+    "sensor bias": planted("sensor_bias", "measurement", "1", "mb", 0.05, {"sensor_bias", "offset"},
+                           where="observation"),
+    "feedthrough": planted("feedthrough(u)", "measurement", "u", "mfu", 0.002, where="observation"),
+    "sensor nonlinearity": planted("sensor_cubic(y)", "measurement", "(y)**3", "m3y", 0.015, where="observation"),
 }
 
 
@@ -101,7 +95,7 @@ def _shape(name: str) -> float | None:
 def test_planted_family_is_found(family):
     eff, target, value, accepted, shape = FAMILIES[family]
     data = make_data(1, eff, target, value)
-    rep = jsonable(diagnose(study(), data, config=DiagnoseConfig(max_rounds=1, band_draws=0)))
+    rep = diagnose(study(), data, config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
     added = rep["added"]
     print(f"\n[{family}] {eff.name} = {value} on {target}: added "
           + "; ".join(f"{a['effect']} -> {a['target']} (ln BF {a['log_bayes_factor']:.1f}) {a['posterior']}"
@@ -118,7 +112,7 @@ def test_planted_family_is_found(family):
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_nothing_is_added_to_the_forced_oscillator_without_an_effect(seed):
-    rep = diagnose(study(seed), make_data(seed), config=DiagnoseConfig(max_rounds=1, band_draws=0))
+    rep = diagnose(study(seed), make_data(seed), config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
     print(f"\n[forced clean seed {seed}] {rep['verdict']}")
     assert rep["added"] == [], rep["verdict"]
 
@@ -148,7 +142,7 @@ def test_van_der_pol_limit_cycle_from_a_linear_model():
                                "s": {"kind": "lognormal", "median": 0.3, "cov": 200}}}],
         "sampler": {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600}, "seed": 1})
     est, test = Dataset(t[:2000], {"y": y[:2000]}, {}), Dataset(t[2000:] - t[2000], {"y": y[2000:]}, {})
-    rep = jsonable(diagnose(st, est, test_data=test, config=DiagnoseConfig(max_rounds=2, band_draws=0)))
+    rep = diagnose(st, est, test_data=test, config=DiagnoseConfig(max_rounds=2, band_draws=0)).to_json()
     print(f"\n[van der Pol] {rep['verdict']}")
     assert [a["effect"] for a in rep["added"]] == ["cross(y^2*v)"], rep["verdict"]
     post = rep["added"][0]["posterior"]["k_c21y_v"]

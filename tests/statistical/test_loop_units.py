@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose, jsonable
+from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
 from ardflow.ardcore.effects import Effect, augment
 from ardflow.ardcore.library import builtin
 from ardflow.ardcore.simulate import simulate_model
@@ -71,7 +71,7 @@ def test_same_effect_in_any_units(units, family):
     T, A = units
     eff = _effects(T, A)[family]
     _, _, study = _setup(T, A)
-    rep = jsonable(diagnose(study, _data(T, A, eff), config=DiagnoseConfig(max_rounds=1, band_draws=0)))
+    rep = diagnose(study, _data(T, A, eff), config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
     added = rep["added"]
     assert added, rep["verdict"]
     first = added[0]
@@ -87,7 +87,7 @@ def test_same_effect_in_any_units(units, family):
 def test_nothing_added_in_any_units(units):
     T, A = units
     _, _, study = _setup(T, A)
-    rep = diagnose(study, _data(T, A), config=DiagnoseConfig(max_rounds=1, band_draws=0))
+    rep = diagnose(study, _data(T, A), config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
     assert rep["added"] == [], rep["verdict"]
 
 
@@ -99,7 +99,7 @@ def test_record_starting_in_motion_in_other_units():
     eff = _effects(T, A)["quadratic damping"]
     _, _, study = _setup(T, A)
     data = _data(T, A, eff, n=5500).slice(1500, None)
-    rep = jsonable(diagnose(study, data, config=DiagnoseConfig(max_rounds=1, band_draws=0)))
+    rep = diagnose(study, data, config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
     assert rep["initial_state"] and rep["initial_state"][0].startswith("initial y")
     assert [a["effect"] for a in rep["added"]] == ["quadratic_damping(v)"], rep["verdict"]
     post = rep["added"][0]["posterior"]["k_dqv_v"]
@@ -139,7 +139,7 @@ def test_tank_outflow_law_in_any_units(A):
     adds it; the next round finds the square-root outflow, and the backward check drops the input term again
     (worth 3.5 nats beside the outflow, below the 5.8 it passed): the final model is the true law."""
     study, data = _tank(A)
-    rep = jsonable(diagnose(study, data, config=DiagnoseConfig(max_rounds=2, band_draws=0)))
+    rep = diagnose(study, data, config=DiagnoseConfig(max_rounds=2, band_draws=0)).to_json()
     assert [a["effect"] for a in rep["added"]] == ["sqrt_outflow(h)"], rep["verdict"]
     assert rep["after"]["free_run"]["rms_error"] < 0.1 * rep["before"]["free_run"]["rms_error"]
 
@@ -178,6 +178,6 @@ def test_pipe_between_two_tanks_in_any_units(A, seed):
     flow; the backward check then drops the stand-ins, so the final model is the true law, and its free run
     on the held-out half of the record is ten times better."""
     study, est, test = _cascade(A, seed)
-    rep = jsonable(diagnose(study, est, test_data=test, config=DiagnoseConfig(max_rounds=2, band_draws=0)))
+    rep = diagnose(study, est, test_data=test, config=DiagnoseConfig(max_rounds=2, band_draws=0)).to_json()
     assert [a["effect"] for a in rep["added"]] == ["sqrt_flow(h1->h2)"], rep["verdict"]
     assert rep["after"]["free_run"]["rms_error"] < 0.2 * rep["before"]["free_run"]["rms_error"]

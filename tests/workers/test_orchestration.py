@@ -96,46 +96,45 @@ def test_cancel_takes_effect(tmp_path, thread_cluster):
     Event(f"cancel-{sid}", client=thread_cluster).clear()
 
 
-def test_dropped_scheduler_connection_study_completes(tmp_path, reference_summary):
-    """The client's stream to the scheduler is cut mid-study: it reconnects and every lost task is resubmitted."""
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cl, \
+def _completes_despite(tmp_path, reference_summary, disrupt, processes: bool) -> None:
+    """Run the reference study on its own LocalCluster, calling ``disrupt(client)`` once, when a trial is past
+    its first iteration: the study completes with the undisturbed run's evidence and pruning."""
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=processes, dashboard_address=":0") as cl, \
             Client(cl) as c:
         store = prepare_store(load_spec(SPEC), tmp_path / "st")
-        dropped = []
+        done = []
 
         def progress(ev):
-            if not dropped and ev.get("stage") == "trial" and ev.get("iteration", 0) >= 1:
-                c.loop.add_callback(c.scheduler_comm.comm.abort)
-                dropped.append(time.time())
+            if not done and ev.get("stage") == "trial" and ev.get("iteration", 0) >= 1:
+                done.append(disrupt(c))
 
         s = run_study(c, store, progress=progress, poll_s=0.1)
-    assert dropped
+    assert done
     a, b = rows(s), rows(reference_summary)
     for k in a:
         assert abs(a[k]["log_evidence"] - b[k]["log_evidence"]) < 5 * max(b[k]["log_evidence_se"], 0.05)
         assert a[k]["pruned"] == b[k]["pruned"]
+
+
+def test_dropped_scheduler_connection_study_completes(tmp_path, reference_summary):
+    """The client's stream to the scheduler is cut mid-study: it reconnects and every lost task is resubmitted."""
+
+    def drop(c):
+        c.loop.add_callback(c.scheduler_comm.comm.abort)
+        return time.time()
+
+    _completes_despite(tmp_path, reference_summary, drop, processes=False)
 
 
 def test_lost_worker_process_study_completes(tmp_path, reference_summary):
     """A real process-based cluster: kill a worker process mid-study; the nanny restarts it."""
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
-            Client(cl) as c:
-        store = prepare_store(load_spec(SPEC), tmp_path / "st")
-        killed = []
 
-        def progress(ev):
-            if not killed and ev.get("stage") == "trial" and ev.get("iteration", 0) >= 1:
-                pids = c.run(os.getpid)
-                victim = sorted(pids.values())[0]
-                os.kill(victim, signal.SIGKILL)
-                killed.append(victim)
+    def kill(c):
+        victim = sorted(c.run(os.getpid).values())[0]
+        os.kill(victim, signal.SIGKILL)
+        return victim
 
-        s = run_study(c, store, progress=progress, poll_s=0.1)
-    assert killed
-    a, b = rows(s), rows(reference_summary)
-    for k in a:
-        assert abs(a[k]["log_evidence"] - b[k]["log_evidence"]) < 5 * max(b[k]["log_evidence_se"], 0.05)
-        assert a[k]["pruned"] == b[k]["pruned"]
+    _completes_despite(tmp_path, reference_summary, kill, processes=True)
 
 
 def test_killed_driver_resumes(tmp_path, reference_summary):
