@@ -38,6 +38,7 @@ from .chains import (  # noqa: F401
     serial_map,
 )
 from .errors import ArdflowError
+from .events import BurninRound, Note, ProgressEvent, StationaryRound
 from .sampling import SamplerConfig, SamplerResult  # noqa: F401
 from .starts import (  # noqa: F401
     _Counted,
@@ -54,8 +55,8 @@ from .starts import (  # noqa: F401
 @dataclass(frozen=True)
 class RoundEvent:
     """One round of the sampler, as :func:`iter_sample` yields it: the stage (``"burnin"`` or
-    ``"stationary"``), the round, what it reports (the dicts progress callbacks get: a burn-in round's R-hat,
-    best ln posterior and acceptance, a note when chains were moved) and the JSON-able state to resume from
+    ``"stationary"``), the round, what it reports (the :mod:`ardcore.events` progress callbacks get: a burn-in
+    round's R-hat, best ln posterior and acceptance, a note when chains were moved) and the JSON-able state to resume from
     (chain states, the coordinator, counters; a stationary round's draws are in the caller's store)."""
 
     stage: str
@@ -83,14 +84,13 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
         for c, src in moved.items():
             s, o = states[c], states[src]
             s.x, s.lp, s.ll = list(o.x), o.lp, o.ll
-        reports = [{"stage": "note", "message": f"burn-in round {rnd}: chains {sorted(moved)} sat over "
-                    f"{config.outlier_nats:g} nats below chain {max(moved.values())}; moved to it"}] if moved else []
+        reports = [Note(f"burn-in round {rnd}: chains {sorted(moved)} sat over {config.outlier_nats:g} nats "
+                        f"below chain {max(moved.values())}; moved to it")] if moved else []
         n_eval += sum(q.samples.shape[0] + (q.samples.shape[0] - q.accepted) for q in results)
         acc = sum(q.accepted + q.dr_accepted for q in results)
         n = sum(q.samples.shape[0] for q in results)
         b_acc, b_n = b_acc + acc, b_n + n
-        reports.append({"stage": "burnin", "round": pool.rounds, "rhat": pool.rhat().tolist(),
-                        "best_lp": pool.best_lp, "acceptance": acc / max(1, n)})
+        reports.append(BurninRound(pool.rounds, pool.rhat().tolist(), pool.best_lp, acc / max(1, n)))
         yield RoundEvent("burnin", pool.rounds, tuple(reports), {
             "stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
             "counters": [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_eval]})
@@ -127,8 +127,7 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
         s_acc += sum(q.accepted for q in results)
         done += n
         yield RoundEvent("stationary", done // config.round_size, (
-            {"stage": "stationary", "round": done // config.round_size, "done": done, "of": M,
-             "acceptance": sum(q.accepted for q in results) / (nc * n)},), {
+            StationaryRound(done // config.round_size, done, M, sum(q.accepted for q in results) / (nc * n)),), {
             "stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
             "counters": [counters[0], counters[1], n_eval], "done": done, "s_acc": s_acc})
     return samples, lps, lls, states, s_acc, n_eval
@@ -188,7 +187,7 @@ def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = seria
 
 def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
            warm: SamplerResult | None = None, starts: np.ndarray | None = None,
-           progress: Callable[[dict], None] | None = None,
+           progress: Callable[[ProgressEvent], None] | None = None,
            cancel: Callable[[], bool] | None = None,
            pool_factory: Callable[..., AdaptationPool] | None = None,
            checkpoint: Callable[[dict], None] | None = None,
@@ -211,7 +210,8 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
     starts : ndarray, optional
         Explicit initial points (n_chains, d), skipping the start optimisation.
     progress : callable, optional
-        Called with each of a round's reports (stage, round, rhat, best log posterior, acceptance).
+        Called with each of a round's reports (:mod:`ardcore.events`: a burn-in round's R-hat, best ln
+        posterior and acceptance; a stationary round's draws; a note).
     cancel : callable, optional
         Checked between rounds; when it returns True, :class:`Cancelled` is raised.
     pool_factory : callable, optional

@@ -24,6 +24,7 @@ from .ard import (
     posterior_summary,
 )
 from .data import Dataset
+from .events import ModelEvent, ProgressEvent, TrialDone
 from .fit import ModelFit
 from .jsonio import atomic_write_text, to_jsonable
 from .mcmc import Map, serial_map
@@ -56,7 +57,7 @@ def model_probabilities(log_z: list[float], se: list[float], prior: list[float] 
 
 
 def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *, map_fn: Map = serial_map,
-                  progress: Callable[[dict], None] | None = None, cancel=None,
+                  progress: Callable[[ModelEvent], None] | None = None, cancel=None,
                   evaluator_factory: Callable[..., EvidenceEvaluator] | None = None,
                   on_trial: Callable | None = None, warm=None,
                   final_posterior: str = "sample") -> tuple[ModelFit, MaximiserResult]:
@@ -75,9 +76,9 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
     essential = dict(cand.priors)
     cfg = spec.sampler
 
-    def prog(p):
+    def prog(p: ProgressEvent):
         if progress:
-            progress({"model": label, **p})
+            progress(ModelEvent(label, p))
 
     factory = evaluator_factory or EvidenceEvaluator
     kw = {"final_posterior": final_posterior} if final_posterior != "sample" else {}
@@ -85,9 +86,8 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
                  map_fn=map_fn, progress=prog, cancel=cancel, **kw)
 
     def trial_done(tr):
-        prog({"stage": "trial", "iteration": tr.iteration, "action": tr.action,
-              "psi": to_jsonable(tr.psi), "log_evidence": tr.evidence.log_evidence,
-              "log_evidence_se": tr.evidence.log_evidence_se, "accepted": tr.accepted})
+        prog(TrialDone(tr.iteration, tr.action, dict(tr.psi), tr.evidence.log_evidence, tr.evidence.log_evidence_se,
+                       tr.accepted))
         if on_trial:
             on_trial(tr)
 
@@ -144,7 +144,7 @@ def compare(fits: list[ModelFit], spec: StudySpec, data_meta: dict, wall_s: floa
 
 
 def select(spec: StudySpec, *, out: str | Path | None = None, map_fn: Map = serial_map,
-           progress: Callable[[dict], None] | None = None, base: Path | None = None, cancel=None) -> dict:
+           progress: Callable[[ModelEvent], None] | None = None, base: Path | None = None, cancel=None) -> dict:
     """Run a study in this process (or with ``map_fn`` over any executor).
 
     Returns the summary dict; with ``out``, writes ``out/summary.json``,

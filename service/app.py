@@ -255,7 +255,7 @@ def _studies_router(c: _Service) -> APIRouter:
                     return
                 evs = await asyncio.to_thread(read_progress, store, offsets) if store.exists() else []
                 for ev in evs:
-                    yield f"event: progress\ndata: {json.dumps(_finite(ev))}\n\n"
+                    yield f"event: progress\ndata: {json.dumps(ev.to_json())}\n\n"
                 st = c.reg.meta(sid).get("status")
                 if st in FINAL:
                     yield f"event: end\ndata: {json.dumps({'status': st})}\n\n"

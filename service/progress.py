@@ -7,28 +7,24 @@ import math
 import os
 import sys
 
-from ardflow.ardcore.jsonio import number
+from ardflow.ardcore.events import BurninRound, ModelDone, ModelEvent, Note, TrialDone
 
 
-def print_progress(p: dict) -> None:
+def print_progress(ev: ModelEvent) -> None:
     """One line per event of a running study (stdout, flushed)."""
-    st = p.get("stage")
-    m = p.get("model", "")
-    if st == "model_done":
-        print(f"[{m}] done: ln Z = {p['log_evidence']:.3f}", flush=True)
-    elif st == "trial":
-        mark = "accepted" if p["accepted"] else "rejected"
-        print(f"[{m}] trial {p['iteration']:>3}  {p['action']:<40s} ln Z = {p['log_evidence']:.3f} "
-              f"+- {p['log_evidence_se']:.3f}  {mark}", flush=True)
-    elif st == "note":
-        print(f"[{m}]   {p['message']}", flush=True)
-    elif st == "burnin" and (p["round"] == 1 or p["round"] % 5 == 0):
-        r = max(_num(v) for v in p["rhat"])
-        print(f"[{m}]   burn-in round {p['round']:>3}: max R-hat {r:.3f}, best ln post {_num(p['best_lp']):.2f}, "
-              f"acceptance {_num(p['acceptance']):.2f}", flush=True)
-
-
-_num = number  # a number from a progress event (non-finite values arrive as strings)
+    m, p = ev.model, ev.event
+    if isinstance(p, ModelDone):
+        print(f"[{m}] done: ln Z = {p.log_evidence:.3f}", flush=True)
+    elif isinstance(p, TrialDone):
+        mark = "accepted" if p.accepted else "rejected"
+        print(f"[{m}] trial {p.iteration:>3}  {p.action:<40s} ln Z = {p.log_evidence:.3f} "
+              f"+- {p.log_evidence_se:.3f}  {mark}", flush=True)
+    elif isinstance(p, Note):
+        print(f"[{m}]   {p.message}", flush=True)
+    elif isinstance(p, BurninRound) and (p.round == 1 or p.round % 5 == 0):
+        r = max(p.rhat, default=math.nan)
+        print(f"[{m}]   burn-in round {p.round:>3}: max R-hat {r:.3f}, best ln post {p.best_lp:.2f}, "
+              f"acceptance {p.acceptance:.2f}", flush=True)
 
 
 def _print_table(summary: dict) -> None:
@@ -79,26 +75,25 @@ class LiveProgress:
             self._progress.__exit__(*exc)
             self._progress = None
 
-    def __call__(self, p: dict) -> None:
+    def __call__(self, ev: ModelEvent) -> None:
         if self._progress is None:
-            print_progress(p)
+            print_progress(ev)
             return
-        m, st = p.get("model", ""), p.get("stage")
+        m, p = ev.model, ev.event
         if m not in self.bars:
             self.bars[m] = self._progress.add_task(m, total=self.max_trials, model=m, status="starting")
         task = self.bars[m]
-        if st == "trial":
-            le = _num(p.get("log_evidence"))
-            if p.get("accepted") and math.isfinite(le):
-                self.best[m] = max(self.best.get(m, -math.inf), le)
+        if isinstance(p, TrialDone):
+            if p.accepted and math.isfinite(p.log_evidence):
+                self.best[m] = max(self.best.get(m, -math.inf), p.log_evidence)
             best = self.best.get(m)
-            self._progress.update(task, advance=1, status=f"{p.get('action', '')[:38]:<38}"
+            self._progress.update(task, advance=1, status=f"{p.action[:38]:<38}"
                                   + (f"  best ln Z {best:.2f}" if best is not None else ""))
-        elif st == "burnin":
-            r = max((_num(v) for v in p.get("rhat", [])), default=math.nan)
-            self._progress.update(task, status=f"burn-in round {p.get('round')}: max R-hat {r:.2f}")
-        elif st == "model_done":
+        elif isinstance(p, BurninRound):
+            r = max(p.rhat, default=math.nan)
+            self._progress.update(task, status=f"burn-in round {p.round}: max R-hat {r:.2f}")
+        elif isinstance(p, ModelDone):
             self._progress.update(task, completed=self.max_trials, total=self.max_trials,
-                                  status=f"done: ln Z = {_num(p.get('log_evidence')):.3f}")
-        elif st == "note":
-            self._progress.console.print(f"[{m}]   {p.get('message', '')}")
+                                  status=f"done: ln Z = {p.log_evidence:.3f}")
+        elif isinstance(p, Note):
+            self._progress.console.print(f"[{m}]   {p.message}")

@@ -13,6 +13,9 @@ from typing import Any
 
 from fastapi import HTTPException
 
+from ardflow.ardcore.events import BurninRound, ModelDone, Note, TrialDone
+from ardflow.ardcore.jsonio import to_jsonable
+
 from .schemas import ID_RE, DiagnoseRequest, Progress, _finite  # noqa: F401
 
 log = logging.getLogger("ardflow.service")
@@ -260,21 +263,21 @@ class ProgressCache:
             started = e["started"] or time.time()
             out = e["models"]
             for ev in events:
-                m = ev.get("model")
+                m, x = ev.model, ev.event
                 p = out.setdefault(m, Progress(model=m))
-                if ev.get("stage") != "note":
-                    p.stage = ev.get("stage")
-                p.elapsed_s = max(0.0, float(ev.get("time", started)) - started)
-                if ev.get("stage") == "burnin":
-                    p.rhat = _finite(ev.get("rhat"))
-                if ev.get("stage") == "trial":
+                if not isinstance(x, Note):
+                    p.stage = x.stage
+                p.elapsed_s = max(0.0, float(ev.time if ev.time is not None else started) - started)
+                if isinstance(x, BurninRound):
+                    p.rhat = _finite(x.rhat)
+                if isinstance(x, TrialDone):
                     p.trials_done += 1
-                    p.iteration = ev.get("iteration")
-                    p.psi = _finite(ev.get("psi"))
-                    le = ev.get("log_evidence")
-                    if ev.get("accepted") and isinstance(le, (int, float)) and math.isfinite(le):
+                    p.iteration = x.iteration
+                    p.psi = to_jsonable(x.psi)  # a pruned alpha as JSON spells it
+                    if x.accepted and math.isfinite(x.log_evidence):
+                        le = x.log_evidence
                         p.best_log_evidence = le if p.best_log_evidence is None else max(p.best_log_evidence, le)
-                if ev.get("stage") == "model_done":
+                if isinstance(x, ModelDone):
                     p.eta_s = 0.0
                 elif p.trials_done:
                     # an upper bound: the maximiser stops at max_trials at the latest

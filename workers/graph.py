@@ -24,12 +24,14 @@ import os
 import time
 import uuid
 from concurrent.futures import CancelledError
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from ardflow.ardcore.ard import EvidenceEvaluator, build_target
+from ardflow.ardcore.events import ModelDone, ModelEvent
 from ardflow.ardcore.evidence import ChainEvidence, Evidence, chib_jeliazkov
 from ardflow.ardcore.mcmc import ChainState, SamplerResult, sample
 from ardflow.ardcore.fit import ModelFit
@@ -145,12 +147,13 @@ def stored_fit(store: StudyStore, model: str):
 # --------------------------------------------------------------------------- study tasks
 
 
-def progress_writer(store: StudyStore, model: str) -> Callable[[dict], None]:
-    """Progress events of ``model`` appended to the store (what ``read_progress`` and the service stream)."""
+def progress_writer(store: StudyStore, model: str) -> Callable[[ModelEvent], None]:
+    """Progress events of ``model`` appended to the store, stamped with the time (what ``read_progress`` and
+    the service stream)."""
     rel = f"progress/{model}.jsonl"
 
-    def write(p: dict) -> None:
-        store.append_line(rel, json.dumps(_json({"time": time.time(), **p})))
+    def write(ev: ModelEvent) -> None:
+        store.append_line(rel, json.dumps(replace(ev, model=model, time=time.time()).to_json()))
     return write
 
 
@@ -178,7 +181,7 @@ def run_model(client, store_path: str, study_id: str, index: int) -> dict:
 
 
 def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_factory, *,
-              progress: Callable[[dict], None], cancel=None) -> dict:
+              progress: Callable[[ModelEvent], None], cancel=None) -> dict:
     """One candidate's ARD evidence maximisation with its trials recorded in ``store`` (the history as each
     trial finishes, the result and best iteration at the end): the same layout whatever runs the chains."""
     cand = spec.models[index]
@@ -203,7 +206,7 @@ def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_fa
         store.finish_trial(model, best_iteration, {"psi": _json(mr.psi_opt), "final_laplace_posterior": True})
     store.set_model_attrs(model, result=row, history=[t.to_dict() for t in mr.history],
                           best_iteration=best_iteration)
-    progress({"stage": "model_done", "log_evidence": row.log_evidence})
+    progress(ModelEvent(cand.label, ModelDone(row.log_evidence)))
     return row
 
 
@@ -276,7 +279,7 @@ def start_study(client, store: StudyStore):
     return out
 
 
-def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[dict]:
+def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[ModelEvent]:
     """New progress events since ``offsets`` (updated in place)."""
     out = []
     for name in store.list_files("progress", ".jsonl"):
@@ -286,13 +289,15 @@ def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[dict]:
         offsets[model] = offsets.get(model, 0) + len(complete)
         for line in complete.decode(errors="ignore").splitlines():
             try:
-                out.append({"model": model, **json.loads(line)})
-            except json.JSONDecodeError:
-                continue
+                ev = ModelEvent.from_json({**json.loads(line), "model": model})
+            except (json.JSONDecodeError, TypeError, ValueError):
+                continue  # a torn or foreign line
+            if ev is not None:
+                out.append(ev)
     return out
 
 
-def run_study(client, store: StudyStore, *, progress: Callable[[dict], None] | None = None,
+def run_study(client, store: StudyStore, *, progress: Callable[[ModelEvent], None] | None = None,
               poll_s: float = 1.0) -> dict:
     """Run (or continue) the study in ``store`` on ``client``; blocks until the summary exists."""
     comp = start_study(client, store)

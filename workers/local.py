@@ -12,6 +12,7 @@ import time
 from typing import Callable
 
 from ardflow.ardcore.ard import EvidenceEvaluator
+from ardflow.ardcore.events import ModelEvent
 from ardflow.ardcore.mcmc import Map
 from ardflow.ardcore.study import StudySpec
 
@@ -38,7 +39,7 @@ class LocalStoredEvaluator(EvidenceEvaluator):
         return target, ev, res
 
 
-def run_study_local(store: StudyStore, map_fn: Map, *, progress: Callable[[dict], None] | None = None) -> dict:
+def run_study_local(store: StudyStore, map_fn: Map, *, progress: Callable[[ModelEvent], None] | None = None) -> dict:
     """Run the study in ``store`` model after model, chains on ``map_fn``; returns the summary."""
     spec = StudySpec.model_validate(store.meta["spec"])
     data = store.load_data()
@@ -50,7 +51,7 @@ def run_study_local(store: StudyStore, map_fn: Map, *, progress: Callable[[dict]
             model = cand.label
             write = progress_writer(store, model)
 
-            def prog(p: dict, write=write) -> None:  # p carries its model's name (run_candidate adds it)
+            def prog(p: ModelEvent, write=write) -> None:
                 write(p)
                 if progress:
                     progress(p)

@@ -96,9 +96,10 @@ def test_diagnose_held_out_file_with_its_own_column_names(tmp_path):
 def test_live_progress_bars_and_plain_lines(capsys):
     """On an interactive terminal each model gets a bar that advances per trial and completes at model_done;
     in logs and CI the same events are plain lines."""
+    from ardflow.ardcore.events import ModelEvent
     from ardflow.service.progress import LiveProgress
 
-    events = [{"model": "M1", "stage": "burnin", "round": 1, "rhat": [1.5, "inf"], "best_lp": 1.0, "acceptance": 0.3},
+    lines = [{"model": "M1", "stage": "burnin", "round": 1, "rhat": [1.5, "inf"], "best_lp": 1.0, "acceptance": 0.3},
               {"model": "M1", "stage": "trial", "iteration": 0, "action": "start", "log_evidence": 10.0,
                "log_evidence_se": 0.1, "accepted": True},
               {"model": "M2", "stage": "trial", "iteration": 0, "action": "start", "log_evidence": 12.0,
@@ -106,6 +107,7 @@ def test_live_progress_bars_and_plain_lines(capsys):
               {"model": "M1", "stage": "trial", "iteration": 1, "action": "a3: log10 alpha -10 -> -8",
                "log_evidence": 11.0, "log_evidence_se": 0.1, "accepted": True},
               {"model": "M1", "stage": "model_done", "log_evidence": 11.0}]
+    events = [ModelEvent.from_json(x) for x in lines]  # as read back from a store's progress log
     with LiveProgress(20, live=True) as live:
         for ev in events:
             live(ev)

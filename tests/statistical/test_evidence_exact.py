@@ -172,7 +172,7 @@ def test_chain_stuck_in_a_minor_mode_is_moved_and_evidence_is_exact():
     starts = np.array([[0.0, 0.0], [40.0, 0.0], [0.3, 0.0], [0.0, 0.3]])
     cfg = SamplerConfig(n_chains=4, round_size=500, max_burnin_rounds=12, n_stationary=4000, n_proposal=4000)
     notes = []
-    res = sample(target, cfg, seed=5, starts=starts, progress=lambda p: notes.append(p.get("message")))
+    res = sample(target, cfg, seed=5, starts=starts, progress=lambda p: notes.append(getattr(p, "message", None)))
     assert "burn-in round 1: chains [1]" in " ".join(filter(None, notes)), notes
     assert res.converged and not res.warnings, res.warnings
     assert (res.samples[:, :, 0] > 20).mean() == 0.0

@@ -81,7 +81,7 @@ def test_cancel_takes_effect(tmp_path, thread_cluster):
 
     def cancel_soon():
         offsets = {}
-        while not any(e.get("stage") == "burnin" for e in read_progress(store, offsets)):
+        while not any(e.stage == "burnin" for e in read_progress(store, offsets)):
             time.sleep(0.05)
         cancel_study(thread_cluster, sid)
 
@@ -105,7 +105,7 @@ def _completes_despite(tmp_path, reference_summary, disrupt, processes: bool) ->
         done = []
 
         def progress(ev):
-            if not done and ev.get("stage") == "trial" and ev.get("iteration", 0) >= 1:
+            if not done and ev.stage == "trial" and ev.event.iteration >= 1:
                 done.append(disrupt(c))
 
         s = run_study(c, store, progress=progress, poll_s=0.1)
@@ -150,7 +150,7 @@ def test_killed_driver_resumes(tmp_path, reference_summary):
     while time.time() < deadline and trials < 3:
         time.sleep(0.2)
         if store.exists() and store.meta.get("study_id"):
-            trials += sum(1 for e in read_progress(store, offsets) if e.get("stage") == "trial")
+            trials += sum(1 for e in read_progress(store, offsets) if e.stage == "trial")
     os.killpg(p.pid, signal.SIGKILL)  # the driver and its embedded cluster
     p.wait()
     assert trials >= 3 and not (out / "summary.json").exists()

@@ -1,0 +1,105 @@
+"""Progress events of a running study: typed where they are made, JSON lines where they are stored.
+
+The sampler reports :class:`BurninRound`, :class:`StationaryRound` and :class:`Note`; the maximiser
+:class:`TrialDone`; a finished model :class:`ModelDone`. On their way out of a model's fit they are tagged
+with the model as a :class:`ModelEvent`, which owns its JSON (one line of the store's progress log, with the
+event's ``stage``: ``"burnin"``, ``"stationary"``, ``"note"``, ``"trial"``, ``"model_done"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import ClassVar, Union
+
+from .jsonio import number, to_jsonable
+
+
+@dataclass(frozen=True)
+class Note:
+    """Something a user should read (a chain moved out of a minor mode)."""
+
+    message: str
+    stage: ClassVar[str] = "note"
+
+
+@dataclass(frozen=True)
+class BurninRound:
+    """A burn-in round committed: the split R-hat per parameter, the best ln posterior so far, acceptance."""
+
+    round: int
+    rhat: list
+    best_lp: float
+    acceptance: float
+    stage: ClassVar[str] = "burnin"
+
+
+@dataclass(frozen=True)
+class StationaryRound:
+    """A stationary round: ``done`` of ``of`` draws per chain."""
+
+    round: int
+    done: int
+    of: int
+    acceptance: float
+    stage: ClassVar[str] = "stationary"
+
+
+@dataclass(frozen=True)
+class TrialDone:
+    """An evidence trial of the maximiser: what it tried (``action``), at which psi, ln Z and its se."""
+
+    iteration: int
+    action: str
+    psi: dict
+    log_evidence: float
+    log_evidence_se: float
+    accepted: bool
+    stage: ClassVar[str] = "trial"
+
+
+@dataclass(frozen=True)
+class ModelDone:
+    """A model's evidence maximisation finished."""
+
+    log_evidence: float
+    stage: ClassVar[str] = "model_done"
+
+
+ProgressEvent = Union[Note, BurninRound, StationaryRound, TrialDone, ModelDone]
+_BY_STAGE = {c.stage: c for c in (Note, BurninRound, StationaryRound, TrialDone, ModelDone)}
+_FLOATS = {"best_lp", "acceptance", "log_evidence", "log_evidence_se"}
+
+
+@dataclass(frozen=True)
+class ModelEvent:
+    """A progress event of one model's fit, and when it happened (seconds since the epoch, once stored)."""
+
+    model: str
+    event: ProgressEvent
+    time: float | None = None
+
+    @property
+    def stage(self) -> str:
+        return self.event.stage
+
+    def to_json(self) -> dict:
+        """One progress-log line: ``model``, ``time``, ``stage`` and the event's fields (non-finite numbers as
+        in :mod:`ardcore.jsonio`)."""
+        return to_jsonable({"time": self.time, "model": self.model, "stage": self.stage, **asdict(self.event)})
+
+    @classmethod
+    def from_json(cls, d: dict) -> ModelEvent | None:
+        """The event of a progress-log line; None for a line of an unknown stage (a newer writer's)."""
+        kind = _BY_STAGE.get(d.get("stage"))
+        if kind is None:
+            return None
+        kw = {f.name: d.get(f.name) for f in fields(kind)}
+        for k in _FLOATS & kw.keys():
+            kw[k] = number(kw[k])
+        if "rhat" in kw:
+            kw["rhat"] = [number(v) for v in kw["rhat"] or []]
+        if "psi" in kw:
+            kw["psi"] = {k: number(v) for k, v in (kw["psi"] or {}).items()}
+        t = d.get("time")
+        return cls(str(d.get("model", "")), kind(**kw), float(t) if isinstance(t, (int, float)) else None)
+
