@@ -44,7 +44,7 @@ from .loop_checks import Added, backward_check, split_stability
 from .confirm import Confirmation, joint_fit, pool_mapper, trace_and_confirm
 from .data import Dataset
 from .effects import Effect, with_columns
-from .errors import SpecError
+from .errors import FitError, SpecError
 from .diagnosis import Diagnosis, FittedModel, LoopRound
 from .freerun import _posterior_draws, free_run  # noqa: F401
 from .initial import data_informed_initial
@@ -146,6 +146,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     cand = spec.models[0]
     say(f"fitting {cand.label} ...")
     row, bmr = base or run_candidate(cand, data, spec, 0, final_posterior=config.posterior)
+    _check_fitted(cand.label, row, data)
     col = cand.model_spec().observed_columns[0]
     first = None
     rounds, arrays = [], {}
@@ -206,6 +207,16 @@ def _check_columns(ms: ModelSpec, data: Dataset, test_data: Dataset) -> None:
         if missing:
             raise SpecError(f"diagnose: the {what} ({d.meta.get('source', 'given')}) has no column "
                             f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
+
+
+def _check_fitted(label: str, row: ModelFit, data: Dataset) -> None:
+    """The loop starts from a fit with a finite evidence; without one every residual and score is NaN."""
+    if math.isfinite(row.log_evidence):
+        return
+    big = max((float(np.nanmax(np.abs(v))) for v in data.columns.values() if np.any(np.isfinite(v))), default=0.0)
+    raise FitError(f"diagnose: {label} has no finite evidence on these data (ln Z = {row.log_evidence}): its "
+                   f"likelihood is not finite anywhere the fit reached. Check the data (largest |value| "
+                   f"{big:.3g}) against the model's priors, initial state and noise levels")
 
 
 def _present(rounds: list[LoopRound]) -> set:

@@ -15,3 +15,7 @@ class DataError(ArdflowError, ValueError):
 
 class SpecError(ArdflowError, ValueError):
     """A study or simulation specification is invalid."""
+
+
+class FitError(ArdflowError):
+    """A model could not be fitted to its data (no finite likelihood anywhere the search reached)."""

@@ -236,3 +236,16 @@ def test_warm_with_carries_new_terms_into_chains_and_proposal():
     # a parameter the warm start does not know starts at 0 unless its prior excludes 0 (then its median)
     pos, _, _ = warm_positions(target, base, initial_scale(target.prior))
     np.testing.assert_allclose([p[2:] for p in pos], [[0.0, 1.0]] * 3)
+
+
+def test_a_record_no_parameter_can_fit_is_refused_with_its_reason():
+    """A record that diverged (an unstable truth simulated to 1e200) gives no finite likelihood anywhere: the
+    loop says so, with the data's size, instead of screening NaNs into a linear-algebra traceback."""
+    from ardflow.ardcore.data import Dataset
+    from ardflow.ardcore.errors import FitError
+
+    d = _duffing_free_decay(0.0, 3, n=600)
+    y = d.columns["y"] * np.exp(np.linspace(0.0, 460.0, len(d)))
+    with pytest.raises(FitError, match="no finite evidence") as err:
+        diagnose(_spec(), Dataset(d.t, {"y": y}, d.meta), config=DiagnoseConfig(top_k=1, max_rounds=1))
+    assert f"largest |value| {np.max(np.abs(y)):.3g}" in str(err.value)
