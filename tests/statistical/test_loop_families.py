@@ -110,6 +110,42 @@ def test_planted_family_is_found(family):
             assert post["q005"] < value < post["q995"], (value, post)
 
 
+# Other sizes (x0.35 and x2.5 of the coefficient above), shapes and frequencies, on another noise realisation:
+# a loop that finds an effect only at the size its test used has not found it. Left out: a saturation and a
+# sine stiffness at x2.5 (-16 y + 20 (...) is an unstable truth; its record diverges and the loop refuses it,
+# see test_a_record_no_parameter_can_fit_is_refused_with_its_reason). What the data cannot tell apart at the
+# weak size is accepted: an offset force and a sensor bias (a static shift of y either way), a sine stiffness
+# and another odd stiffness (its higher orders are then below the noise).
+OTHER_SIZES = {f"{fam} x{m}": (eff, tgt, val * m, acc | ({"sensor_bias"} if fam == "offset" and m < 1 else set())
+                                | ({"stiffness"} if fam == "sine stiffness" and m < 1 else set()), shp)
+               for fam, (eff, tgt, val, acc, shp) in FAMILIES.items() for m in (0.35, 2.5)
+               if not (m > 1 and fam in ("saturation", "sine stiffness"))}
+OTHER_SIZES.update({
+    "free-play width 0.15": planted("free_play(y)", "free-play", fp(0.15), "fpwy", -6.0, {"free-play", "saturation"},
+                                    0.15),
+    "saturation level 0.6": planted("saturation(y)", "stiffness", "y - 0.6*tanh(y/0.6)", "sty", 8.0,
+                                    {"saturation", "free-play"}, 0.6),
+    "dry friction over 0.15": planted("dry_friction(v)", "friction", "tanh(v/0.15)", "fdv", -1.0, {"friction"}),
+    "periodic forcing at 2.9": planted("forcing(f=2.9)", "forcing", ("forcing0_sin", "forcing0_cos"), "fo0", 0.5,
+                                       {"forcing"}, 2.9, frequency=2.9),
+})
+
+
+@pytest.mark.parametrize("case", list(OTHER_SIZES))
+def test_family_is_found_at_other_sizes_and_shapes(case):
+    """The family is added first, to its target (seed 4; the coefficient's interval is checked above)."""
+    eff, target, value, accepted, shape = OTHER_SIZES[case]
+    data = make_data(4, eff, target, value)
+    rep = diagnose(study(), data, config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
+    added = rep["added"]
+    print(f"\n[{case}] " + "; ".join(f"{a['effect']} -> {a['target']} (ln BF {a['log_bayes_factor']:.1f})"
+                                     for a in added))
+    assert added, rep["verdict"]
+    assert _matches(added[0], accepted) and added[0]["target"] in (target, "v", "y"), (added[0]["effect"], accepted)
+    if shape is not None and _shape(added[0]["effect"]) is not None:
+        assert abs(_shape(added[0]["effect"]) - shape) < 0.25 * shape, added[0]["effect"]
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_nothing_is_added_to_the_forced_oscillator_without_an_effect(seed):
     rep = diagnose(study(seed), make_data(seed), config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
