@@ -15,7 +15,9 @@ from typing import NamedTuple
 import numpy as np
 
 from .data import Dataset
-from .effects import Effect, augment, dynamic_states, shape_parameter_name, shape_prior, with_columns
+from .effects import (Effect, augment, dynamic_states, shape_parameter_name, shape_prior, user_inputs,
+                      with_columns)
+from .model import ModelSpec
 from .families import candidate_effects
 from .jsonio import is_pruned, to_jsonable
 from .screen import Screened, distinct_candidates, screen_effects
@@ -174,11 +176,12 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     """Screen the whole library by evidence, then confirm the best few by the full ARD re-selection.
 
     ``present``: (library name, target) of the effects the model holds already; they are not screened again."""
-    peaks = [p for p in res.tests[col]["spectrum"]["peaks"] if not p.get("harmonic")]
+    spectrum = res.tests[col]["spectrum"]
+    peaks = forcing_peaks(fspec, spectrum["peaks"])
     scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
     # forcing frequencies: innovation peaks that are not harmonics of the oscillation (refined by the screen)
-    effects = candidate_effects(fspec, scales=scales, frequencies=[p["f"] for p in peaks[:2]],
-                                extra=list(extra_effects))
+    effects = candidate_effects(fspec, scales=scales, frequencies=[p["f"] for p in peaks],
+                                frequency_resolution=spectrum.get("resolution", 0.0), extra=list(extra_effects))
     screened = screen_effects(fspec, phi, data, effects, dynamic_states(fspec), list(fspec.observed_columns),
                               substeps=cand.substeps, progress=say)
     screened = [c for c in screened if ((c.source or c.effect).name, c.target) not in present]
@@ -227,6 +230,16 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
         confirmed.append(_confirmation(sc, eff, shape, Fit(acand, arow, amr, adata), row, threshold, say))
     _resolve_twins(confirmed, rivals, config, say)
     return screened, confirmed
+
+
+def forcing_peaks(spec: ModelSpec, peaks: list[dict]) -> list[dict]:
+    """The innovation peaks a periodic forcing is screened at: the two strongest that are not harmonics of the
+    record's dominant oscillation and, in a model driven by inputs, the peak at that oscillation itself (a
+    driven response peaks at its resonance, where a periodic disturbance near it shows too; in a self-excited
+    oscillation the fundamental and its harmonics are the missing nonlinearity's). The coherence test and
+    the evidence decide."""
+    own = [p for p in peaks if not p.get("harmonic")][:2]
+    return own + ([p for p in peaks if p.get("harmonic") == 1][:1] if user_inputs(spec) else [])
 
 
 def _rivals(screened: list, picked: list, config, say) -> dict:

@@ -38,7 +38,8 @@ from .model import ModelSpec
 
 
 def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None,
-                      frequencies: list[float] = (), extra: list[Effect] = ()) -> list[Effect]:
+                      frequencies: list[float] = (), frequency_resolution: float = 0.0,
+                      extra: list[Effect] = ()) -> list[Effect]:
     """The candidate effects for ``spec``.
 
     Parameters
@@ -48,6 +49,9 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         Typical magnitude (e.g. the std) of each state; sets the free-play widths.
     frequencies : list of float
         Forcing frequencies (cycles per time unit) found in the residual spectrum.
+    frequency_resolution : float
+        Width of the spectrum's bins: a peak locates its line only to about a bin, so each forcing's
+        frequency is searched over at least +-1.5 bins around it (else +-3 %).
     extra : list of Effect
         User-supplied effects appended to the library.
     """
@@ -71,9 +75,10 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     free_idx = (i for i in range(100) if f"forcing{i}_sin" not in used)  # columns of forcing already added stay
     for f in frequencies:
         i = next(free_idx)
+        w = min(max(0.03 * f, 1.5 * frequency_resolution), 0.5 * f)
         out.append(Effect(f"forcing(f={f:.4g})", "forcing", (f"forcing{i}_sin", f"forcing{i}_cos"),
                           f"periodic forcing at {f:.4g} cycles/unit", frequency=float(f),
-                          code=f"fo{i}", shape=("f", 0.97 * f, 1.03 * f)))
+                          code=f"fo{i}", shape=("f", f - w, f + w)))
     # measurement effects: added to an observation's expression
     out += _measurement_effects(spec, inputs)
     out += list(extra)

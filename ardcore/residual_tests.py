@@ -35,7 +35,8 @@ def spectral_peaks(x: np.ndarray, fs: float, p: float, *, nperseg: int | None = 
     idx = [i for i in range(1, P.size - 1) if ratio[i] > thr and P[i] >= P[i - 1] and P[i] >= P[i + 1]]
     peaks = sorted(({"f": float(f[i]), "power_ratio": float(ratio[i])} for i in idx),
                    key=lambda d: -d["power_ratio"])
-    return {"f": f, "psd": P, "background": bg, "threshold": float(thr), "peaks": peaks[:10]}
+    return {"f": f, "psd": P, "background": bg, "threshold": float(thr), "peaks": peaks[:10],
+            "resolution": float(fs / nperseg)}
 
 
 def residual_tests(e: np.ndarray, fs: float, config, *, fundamental: float | None = None) -> dict:

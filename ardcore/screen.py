@@ -215,7 +215,13 @@ def _screen_shape(sc: Screener, e: Effect, t: str, data: Dataset, k: int, n_grid
         cache[v] = r
         return r
 
-    grid = np.geomspace(lo, hi, n_grid) if lo > 0 else np.linspace(lo, hi, n_grid)
+    if e.shape[0] == "f":
+        # a line's ln BF falls off over ~1/T around its frequency (a cycle of phase over the record): the grid
+        # is spaced at half that, so the profile cannot step over the line
+        T = float(data.t[-1] - data.t[0])
+        grid = np.linspace(lo, hi, int(np.clip((hi - lo) * 2.0 * T + 1, n_grid, 61)))
+    else:
+        grid = np.geomspace(lo, hi, n_grid) if lo > 0 else np.linspace(lo, hi, n_grid)
     vals = [at(v) for v in grid]
     score = [v.log_bayes_factor if v is not None else -math.inf for v in vals]
     if not np.isfinite(max(score)):
