@@ -126,6 +126,9 @@ OTHER_SIZES.update({
     "saturation level 0.6": planted("saturation(y)", "stiffness", "y - 0.6*tanh(y/0.6)", "sty", 8.0,
                                     {"saturation", "free-play"}, 0.6),
     "dry friction over 0.15": planted("dry_friction(v)", "friction", "tanh(v/0.15)", "fdv", -1.0, {"friction"}),
+    # by the resonance (0.64): the innovations' peak there is the oscillation's own; a driven model screens it
+    "periodic forcing at 0.61": planted("forcing(f=0.61)", "forcing", ("forcing0_sin", "forcing0_cos"), "fo0", 0.5,
+                                        {"forcing"}, 0.61, frequency=0.61),
     "periodic forcing at 2.9": planted("forcing(f=2.9)", "forcing", ("forcing0_sin", "forcing0_cos"), "fo0", 0.5,
                                        {"forcing"}, 2.9, frequency=2.9),
 })
