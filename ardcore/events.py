@@ -8,44 +8,55 @@ event's ``stage``: ``"burnin"``, ``"stationary"``, ``"note"``, ``"trial"``, ``"m
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
-from typing import ClassVar, Union
+from typing import ClassVar, Union, dataclass_transform
 
 from .jsonio import number, to_jsonable
 
 
-@dataclass(frozen=True)
-class Note:
+@dataclass_transform(frozen_default=True)
+class _Event:
+    """A progress event: a frozen dataclass with its ``stage`` (the name its JSON line carries)."""
+
+    stage: ClassVar[str]
+
+    def __init_subclass__(cls, *, stage: str, **kw):
+        super().__init_subclass__(**kw)
+        cls.stage = stage
+        dataclass(frozen=True)(cls)
+
+
+class Note(_Event, stage="note"):
     """Something a user should read (a chain moved out of a minor mode)."""
 
     message: str
-    stage: ClassVar[str] = "note"
 
 
-@dataclass(frozen=True)
-class BurninRound:
+class BurninRound(_Event, stage="burnin"):
     """A burn-in round committed: the split R-hat per parameter, the best ln posterior so far, acceptance."""
 
     round: int
     rhat: list
     best_lp: float
     acceptance: float
-    stage: ClassVar[str] = "burnin"
+
+    @property
+    def max_rhat(self) -> float:
+        """The largest R-hat (NaN before there is one): burn-in ends when it falls below the threshold."""
+        return max(self.rhat, default=math.nan)
 
 
-@dataclass(frozen=True)
-class StationaryRound:
+class StationaryRound(_Event, stage="stationary"):
     """A stationary round: ``done`` of ``of`` draws per chain."""
 
     round: int
     done: int
     of: int
     acceptance: float
-    stage: ClassVar[str] = "stationary"
 
 
-@dataclass(frozen=True)
-class TrialDone:
+class TrialDone(_Event, stage="trial"):
     """An evidence trial of the maximiser: what it tried (``action``), at which psi, ln Z and its se."""
 
     iteration: int
@@ -54,15 +65,12 @@ class TrialDone:
     log_evidence: float
     log_evidence_se: float
     accepted: bool
-    stage: ClassVar[str] = "trial"
 
 
-@dataclass(frozen=True)
-class ModelDone:
+class ModelDone(_Event, stage="model_done"):
     """A model's evidence maximisation finished."""
 
     log_evidence: float
-    stage: ClassVar[str] = "model_done"
 
 
 ProgressEvent = Union[Note, BurninRound, StationaryRound, TrialDone, ModelDone]

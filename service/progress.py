@@ -22,7 +22,7 @@ def print_progress(ev: ModelEvent) -> None:
     elif isinstance(p, Note):
         print(f"[{m}]   {p.message}", flush=True)
     elif isinstance(p, BurninRound) and (p.round == 1 or p.round % 5 == 0):
-        r = max(p.rhat, default=math.nan)
+        r = p.max_rhat
         print(f"[{m}]   burn-in round {p.round:>3}: max R-hat {r:.3f}, best ln post {p.best_lp:.2f}, "
               f"acceptance {p.acceptance:.2f}", flush=True)
 
@@ -90,8 +90,7 @@ class LiveProgress:
             self._progress.update(task, advance=1, status=f"{p.action[:38]:<38}"
                                   + (f"  best ln Z {best:.2f}" if best is not None else ""))
         elif isinstance(p, BurninRound):
-            r = max(p.rhat, default=math.nan)
-            self._progress.update(task, status=f"burn-in round {p.round}: max R-hat {r:.2f}")
+            self._progress.update(task, status=f"burn-in round {p.round}: max R-hat {p.max_rhat:.2f}")
         elif isinstance(p, ModelDone):
             self._progress.update(task, completed=self.max_trials, total=self.max_trials,
                                   status=f"done: ln Z = {p.log_evidence:.3f}")

@@ -91,20 +91,28 @@ def _shape(name: str) -> float | None:
     return None
 
 
-@pytest.mark.parametrize("family", list(FAMILIES))
-def test_planted_family_is_found(family):
-    eff, target, value, accepted, shape = FAMILIES[family]
-    data = make_data(1, eff, target, value)
-    rep = diagnose(study(), data, config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
+def _found_first(case: str, planted_effect: tuple, seed: int, targets: tuple = ("v",)) -> dict:
+    """Run the loop (one round) on data with the planted effect; the first effect added must be of the
+    planted family, on its target (or one of ``targets``), with its shape within 25 %. Returns its record."""
+    eff, target, value, accepted, shape = planted_effect
+    rep = diagnose(study(), make_data(seed, eff, target, value),
+                   config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
     added = rep["added"]
-    print(f"\n[{family}] {eff.name} = {value} on {target}: added "
+    print(f"\n[{case}] {eff.name} = {value} on {target}: added "
           + "; ".join(f"{a['effect']} -> {a['target']} (ln BF {a['log_bayes_factor']:.1f}) {a['posterior']}"
                       for a in added))
     assert added, rep["verdict"]
     first = added[0]
-    assert _matches(first, accepted) and first["target"] in (target, "v"), (first["effect"], first["target"])
+    assert _matches(first, accepted) and first["target"] in (target, *targets), (first["effect"], first["target"])
     if shape is not None and _shape(first["effect"]) is not None:
         assert abs(_shape(first["effect"]) - shape) < 0.25 * shape, first["effect"]
+    return first
+
+
+@pytest.mark.parametrize("family", list(FAMILIES))
+def test_planted_family_is_found(family):
+    eff, target, value, accepted, shape = FAMILIES[family]
+    first = _found_first(family, FAMILIES[family], 1)
     if shape is None and first["effect"] == eff.name:
         for post in first["posterior"].values():
             assert post["q005"] < value < post["q995"], (value, post)
@@ -137,16 +145,7 @@ OTHER_SIZES.update({
 @pytest.mark.parametrize("case", list(OTHER_SIZES))
 def test_family_is_found_at_other_sizes_and_shapes(case):
     """The family is added first, to its target (seed 4; the coefficient's interval is checked above)."""
-    eff, target, value, accepted, shape = OTHER_SIZES[case]
-    data = make_data(4, eff, target, value)
-    rep = diagnose(study(), data, config=DiagnoseConfig(max_rounds=1, band_draws=0)).to_json()
-    added = rep["added"]
-    print(f"\n[{case}] " + "; ".join(f"{a['effect']} -> {a['target']} (ln BF {a['log_bayes_factor']:.1f})"
-                                     for a in added))
-    assert added, rep["verdict"]
-    assert _matches(added[0], accepted) and added[0]["target"] in (target, "v", "y"), (added[0]["effect"], accepted)
-    if shape is not None and _shape(added[0]["effect"]) is not None:
-        assert abs(_shape(added[0]["effect"]) - shape) < 0.25 * shape, added[0]["effect"]
+    _found_first(case, OTHER_SIZES[case], 4, targets=("v", "y"))
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
