@@ -143,8 +143,8 @@ def test_silverbox_hardening_cubic_on_the_test_segment():
 
     arrow = full.slice(100, 40575)
     arrow_err = {"initial": rep.initial.free_run(arrow)["rms_error"], "final": rep.final.free_run(arrow)["rms_error"]}
-    print(f"[silverbox] arrow test segment: free-run RMS error {arrow_err['_initial']:.4g} -> "
-          f"{arrow_err['_final']:.4g} V")
+    print(f"[silverbox] arrow test segment: free-run RMS error {arrow_err['initial']:.4g} -> "
+          f"{arrow_err['final']:.4g} V")
     stiff = [x for x in j["added"] if x["kind"] == "stiffness" and x["character"]]
     assert stiff and stiff[0]["character"] == "hardening"
     assert any(x["effect"] == "cubic_stiffness(y)" for x in j["added"]), j["verdict"]
