@@ -75,7 +75,6 @@ class ModelDone(_Event, stage="model_done"):
 
 ProgressEvent = Union[Note, BurninRound, StationaryRound, TrialDone, ModelDone]
 _BY_STAGE = {c.stage: c for c in (Note, BurninRound, StationaryRound, TrialDone, ModelDone)}
-_FLOATS = {"best_lp", "acceptance", "log_evidence", "log_evidence_se"}
 
 
 @dataclass(frozen=True)
@@ -101,9 +100,8 @@ class ModelEvent:
         kind = _BY_STAGE.get(d.get("stage"))
         if kind is None:
             return None
-        kw = {f.name: d.get(f.name) for f in fields(kind)}
-        for k in _FLOATS & kw.keys():
-            kw[k] = number(kw[k])
+        # a float field may arrive as "inf"/"nan" (jsonio's spelling); the event's own annotations say which
+        kw = {f.name: number(d.get(f.name)) if f.type == "float" else d.get(f.name) for f in fields(kind)}
         if "rhat" in kw:
             kw["rhat"] = [number(v) for v in kw["rhat"] or []]
         if "psi" in kw:

@@ -56,8 +56,8 @@ from .starts import (  # noqa: F401
 class RoundEvent:
     """One round of the sampler, as :func:`iter_sample` yields it: the stage (``"burnin"`` or
     ``"stationary"``), the round, what it reports (the :mod:`ardcore.events` progress callbacks get: a burn-in
-    round's R-hat, best ln posterior and acceptance, a note when chains were moved) and the JSON-able state to resume from
-    (chain states, the coordinator, counters; a stationary round's draws are in the caller's store)."""
+    round's R-hat, best ln posterior and acceptance, a note when chains were moved) and the JSON-able state to
+    resume from (chain states, the coordinator, counters; a stationary round's draws are in the caller's store)."""
 
     stage: str
     round: int

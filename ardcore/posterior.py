@@ -51,7 +51,6 @@ class Target:
         return Density(lp + ll, ll)
 
 
-
 class ModelPosterior(Target):
     """p(phi | d, psi) up to its normaliser, for a declarative model and data.
 
