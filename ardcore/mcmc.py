@@ -104,6 +104,11 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
     """The stationary stage: M draws per chain by random-walk Metropolis with the fixed covariance ``cov``,
     one event per round.
 
+    When the M draws' split R-hat exceeds ``config.rhat_threshold`` they are counted as more burn-in and
+    drawn again from where the chains are (at most ``config.stationary_restarts`` times); each pass writes
+    the same M slots, and its rounds are numbered on (:class:`Step` index ``pass * M + draw``, so no task of
+    a later pass shares a key with one of an earlier pass).
+
     Returns samples (n_chains, M, d), their log posteriors and log likelihoods, the chain states, the
     accepted count and the running count of likelihood evaluations (``counters``: accepted, proposed and
     evaluated so far). ``resume`` (a checkpoint of this stage with the draws so far) continues it.
@@ -112,25 +117,37 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
     samples = np.full((nc, M, d), np.nan)
     lps = np.full((nc, M), np.nan)
     lls = np.full((nc, M), np.nan)
-    done, s_acc, n_eval = 0, 0, counters[2]
+    done, s_acc, n_eval, passes = 0, 0, counters[2], 0
     if resume is not None and resume["stage"] == "stationary":
-        done, s_acc = int(resume["done"]), int(resume["s_acc"])
+        done, s_acc, passes = int(resume["done"]), int(resume["s_acc"]), int(resume.get("pass", 0))
         samples[:, :done], lps[:, :done], lls[:, :done] = (resume["samples"][:, :done], resume["lp"][:, :done],
                                                            resume["ll"][:, :done])
-    while done < M:
-        n = min(config.round_size, M - done)
-        results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states], step=Step("stationary", done))
-        states = [q.state for q in results]
-        n_eval += nc * n
-        for c, q in enumerate(results):
-            samples[c, done:done + n], lps[c, done:done + n], lls[c, done:done + n] = q.samples, q.lp, q.ll
-        s_acc += sum(q.accepted for q in results)
-        done += n
-        yield RoundEvent("stationary", done // config.round_size, (
-            StationaryRound(done // config.round_size, done, M, sum(q.accepted for q in results) / (nc * n)),), {
+    while True:
+        while done < M:
+            n = min(config.round_size, M - done)
+            results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states],
+                             step=Step("stationary", passes * M + done))
+            states = [q.state for q in results]
+            n_eval += nc * n
+            for c, q in enumerate(results):
+                samples[c, done:done + n], lps[c, done:done + n], lls[c, done:done + n] = q.samples, q.lp, q.ll
+            s_acc += sum(q.accepted for q in results)
+            done += n
+            yield RoundEvent("stationary", done // config.round_size, (
+                StationaryRound(done // config.round_size, done, M, sum(q.accepted for q in results) / (nc * n)),), {
+                "stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
+                "counters": [counters[0], counters[1], n_eval], "done": done, "s_acc": s_acc, "pass": passes})
+        r = rhat(list(samples))
+        if passes >= config.stationary_restarts or not np.any(r > config.rhat_threshold):
+            return samples, lps, lls, states, s_acc, n_eval
+        passes, done, s_acc = passes + 1, 0, 0
+        worst = int(np.argmax(r))
+        note = Note(f"stationary draws: R-hat {r[worst]:.3g} for {target.names[worst]} over {M} draws per chain; "
+                    f"counted as burn-in and drawn again (pass {passes + 1} of at most "
+                    f"{config.stationary_restarts + 1})")
+        yield RoundEvent("stationary", 0, (note,), {
             "stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
-            "counters": [counters[0], counters[1], n_eval], "done": done, "s_acc": s_acc})
-    return samples, lps, lls, states, s_acc, n_eval
+            "counters": [counters[0], counters[1], n_eval], "done": 0, "s_acc": 0, "pass": passes})
 
 
 def _begin(target, config: SamplerConfig, seed: int, map_fn: Map, warm, starts, factory, resume):
@@ -140,7 +157,7 @@ def _begin(target, config: SamplerConfig, seed: int, map_fn: Map, warm, starts, 
                 list(resume.get("counters", [0, 0, 0])))
     states, cov, n_start = initial_states(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts)
     pool0 = AdaptationPool(config.n_chains, len(target.names), cov, inca=config.inca,
-                           rhat_threshold=config.rhat_threshold, min_rounds=config.min_burnin_rounds,
+                           rhat_threshold=config.burnin_rhat, min_rounds=config.min_burnin_rounds,
                            outlier_nats=config.outlier_nats)
     return states, factory(pool0.to_dict()), "burnin", [0, 0, n_start]
 
@@ -165,15 +182,16 @@ def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = seria
         counters = [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_b]
     b_acc, b_n, _ = counters
     rounds, converged, r, cov = pool.rounds, pool.converged(), pool.rhat(), pool.cov
-    if not converged:
-        warnings.append(f"burn-in did not reach R-hat < {config.rhat_threshold} in {rounds} rounds "
-                        f"(max R-hat {np.max(r):.3g} for {names[int(np.argmax(r))]}); results may be unreliable")
     # ---- stationary stage: fixed proposal, plain RWM
     samples, lps, lls, states, s_acc, n_eval = yield from stationary_rounds(
         target, states, cov, config, map_fn, pool=pool, counters=counters, resume=resume)
     best = max(states, key=lambda q: q.best_lp)
     r_final = rhat(list(samples))
     if np.any(r_final > config.rhat_threshold):
+        # the stationary draws are what the results rest on: a short burn-in whose draws then pass is no concern
+        if not converged:
+            warnings.append(f"burn-in did not reach R-hat < {config.burnin_rhat} in {rounds} rounds "
+                            f"(max R-hat {np.max(r):.3g} for {names[int(np.argmax(r))]})")
         warnings.append(f"stationary samples: max R-hat {np.max(r_final):.3g} ({names[int(np.argmax(r_final))]}) "
                         f"exceeds {config.rhat_threshold}")
     return SamplerResult(

@@ -22,8 +22,16 @@ class SamplerConfig(BaseModel):
         W, samples per chain per round.
     min_burnin_rounds, max_burnin_rounds : int
         Burn-in lasts at least / at most this many rounds.
+    burnin_rhat : float
+        Burn-in (the adaptation) ends when the split R-hat of every parameter over the latter half of its
+        rounds is below it. Over a window of a few rounds R-hat is noisy: with an integrated
+        autocorrelation time of 50 draws, chains already in equilibrium show ~1.1 over 250-draw halves,
+        so the strict test is made on the stationary draws instead (``rhat_threshold``).
     rhat_threshold : float
-        Burn-in ends when the split R-hat of every parameter is below it.
+        The stationary draws must have split R-hat below it for every parameter; otherwise they count as
+        more burn-in and are drawn again from where the chains are (``stationary_restarts``).
+    stationary_restarts : int
+        At most this many redraws of the stationary stage; after them a warning says R-hat is too high.
     n_stationary : int
         M, stationary samples per chain.
     n_proposal : int
@@ -49,7 +57,9 @@ class SamplerConfig(BaseModel):
     round_size: int = Field(500, ge=20, le=100_000)
     min_burnin_rounds: int = Field(4, ge=1, le=10_000)
     max_burnin_rounds: int = Field(60, ge=1, le=10_000)
+    burnin_rhat: float = Field(1.2, gt=1.0, le=2.0)
     rhat_threshold: float = Field(1.1, gt=1.0, le=2.0)
+    stationary_restarts: int = Field(1, ge=0, le=100)
     n_stationary: int = Field(5000, ge=50, le=10_000_000)
     n_proposal: int = Field(5000, ge=50, le=10_000_000)
     dr_scale: float = Field(0.1, ge=0.0, le=1.0)

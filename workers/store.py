@@ -193,9 +193,11 @@ class StudyStore:
 
     def write_round(self, model: str, iteration: int, chain: int, start: int, samples: np.ndarray,
                     lp: np.ndarray, ll: np.ndarray) -> None:
-        """Write one chain's round of stationary samples into its own chunk (idempotent)."""
+        """Write one chain's round of stationary samples into its own chunk (idempotent). ``start`` counts
+        draws over the stage's passes (a redrawn stage writes its M slots again): the slot is ``start mod M``."""
         tg = self.group()[self.trial_path(model, iteration)]
         n = samples.shape[0]
+        start %= tg["samples"].shape[1]
         tg["samples"][chain, start:start + n, :] = samples
         tg["log_likelihood"][chain, start:start + n] = ll
         tg["log_prior"][chain, start:start + n] = lp - ll

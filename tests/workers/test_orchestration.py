@@ -270,3 +270,25 @@ def test_task_wall_clock_limit_is_the_backstop(thread_cluster):
     with pytest.raises(SamplerError, match="ran longer than its limit of 1 s"):
         fut.result(timeout=30)
     assert thread_cluster.submit(_calls_for, t, 0.5, pure=False).result(timeout=30) == "finished"
+
+
+def test_redrawn_stationary_passes_write_the_store_and_never_share_a_task_key(tmp_path, thread_cluster):
+    """A stationary stage drawn again (its R-hat failed) on Dask: every pass's tasks have their own keys (a
+    later pass never gets an earlier pass's cached result) and the store holds the final draws."""
+    from ardflow.ardcore.mcmc import sample
+    from ardflow.workers.tasks import DaskMap
+
+    from ..statistical.test_dram import _far_start_run
+
+    local, target, _, _, cfg, starts = _far_start_run(6)
+    store = StudyStore.create(tmp_path / "st", {})
+    store.create_trial("m", 0, list(target.names), cfg.n_chains, cfg.n_stationary, cfg.round_size, {})
+    with get_task_stream(thread_cluster) as ts:
+        res = sample(target, cfg, seed=12, starts=starts, map_fn=DaskMap(thread_cluster, "redraw", store, "m", 0))
+    np.testing.assert_array_equal(res.samples, local.samples)  # the same draws as in-process
+    samples, lp, ll, _ = store.read_samples("m", 0)
+    np.testing.assert_array_equal(samples, res.samples)
+    np.testing.assert_allclose(ll, res.ll)
+    keys = [str(t["key"]) for t in ts.data if str(t["key"]).startswith("stationary-redraw")]
+    n_rounds = cfg.n_stationary // cfg.round_size
+    assert len(keys) == len(set(keys)) > cfg.n_chains * n_rounds  # more than one pass, no key twice
