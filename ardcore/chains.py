@@ -129,6 +129,7 @@ class RoundResult:
     accepted: int
     dr_accepted: int
     halves: tuple  # RoundStats of the first and second half of the round (split R-hat)
+    evaluations: int = 0  # likelihood evaluations (a delayed-rejection second stage is one more)
 
     @property
     def best(self) -> ChainReport:
@@ -184,7 +185,7 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
     S = np.empty((n, d))
     LP = np.empty(n)
     LL = np.empty(n)
-    acc = dr = 0
+    acc = dr = n_second = 0
     for i in range(n):
         z1 = rng.standard_normal(d)
         y1 = x + L @ z1
@@ -197,6 +198,7 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
             z2 = rng.standard_normal(d)
             y2 = x + dr_scale * (L @ z2)
             lp2, ll2 = target(y2)
+            n_second += 1
             if lp2 > -math.inf:
                 # Delayed-rejection acceptance (Tierney & Mira 1999) for a symmetric second stage:
                 # a2 = pi(y2) q1(y2->y1) (1 - a1(y2,y1)) / [pi(x) q1(x->y1) (1 - a1(x,y1))]
@@ -217,7 +219,7 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
                      state.n_prop + S.shape[0], state.n_acc + acc, state.n_dr + dr)
     h = max(1, S.shape[0] // 2)
     return RoundResult(new, S, LP, LL, acc, dr, (RoundStats.of(S[:h]), RoundStats.of(S[h:]) if S.shape[0] > h
-                                                 else RoundStats.of(S[:h])))
+                                                 else RoundStats.of(S[:h])), n + n_second)
 
 
 def _round_task(args):

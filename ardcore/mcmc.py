@@ -86,7 +86,7 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
             s.x, s.lp, s.ll = list(o.x), o.lp, o.ll
         reports = [Note(f"burn-in round {rnd}: chains {sorted(moved)} sat over {config.outlier_nats:g} nats "
                         f"below chain {max(moved.values())}; moved to it")] if moved else []
-        n_eval += sum(q.samples.shape[0] + (q.samples.shape[0] - q.accepted) for q in results)
+        n_eval += sum(q.evaluations for q in results)
         acc = sum(q.accepted + q.dr_accepted for q in results)
         n = sum(q.samples.shape[0] for q in results)
         b_acc, b_n = b_acc + acc, b_n + n
@@ -128,7 +128,7 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
             results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states],
                              step=Step("stationary", passes * M + done))
             states = [q.state for q in results]
-            n_eval += nc * n
+            n_eval += sum(q.evaluations for q in results)
             for c, q in enumerate(results):
                 samples[c, done:done + n], lps[c, done:done + n], lls[c, done:done + n] = q.samples, q.lp, q.ll
             s_acc += sum(q.accepted for q in results)

@@ -168,3 +168,26 @@ def test_stationary_draws_that_fail_rhat_are_drawn_again():
     mid = [c for c in cks if c["stage"] == "stationary" and c["pass"] == len(redraws) and 0 < c["done"] < 100][0]
     resumed = sample(target, cfg, seed=12, resume=dict(mid, samples=res.samples, lp=res.lp, ll=res.ll))
     np.testing.assert_array_equal(resumed.samples, res.samples)
+
+
+class _Counting:
+    """A target that counts its calls (the sampler's own evaluation count is checked against it)."""
+
+    def __init__(self, target):
+        self.target, self.names, self.prior, self.calls = target, target.names, target.prior, 0
+
+    def __call__(self, x):
+        self.calls += 1
+        return self.target(x)
+
+
+@pytest.mark.parametrize("dr_scale", [0.1, 0.0])
+def test_evaluation_count_is_every_likelihood_call(dr_scale):
+    """n_evaluations counts what the chains really evaluate: the second stage of delayed rejection only when it
+    is on (with dr_scale = 0 a rejected proposal costs nothing more)."""
+    target, m, S = gaussian_target()
+    counted = _Counting(target)
+    cfg = SamplerConfig(n_chains=3, round_size=100, min_burnin_rounds=2, max_burnin_rounds=4, n_stationary=200,
+                        n_proposal=50, start_maxfev=200, dr_scale=dr_scale)
+    res = sample(counted, cfg, seed=3, starts=np.array([m, m + 0.1, m - 0.1]))
+    assert res.n_evaluations == counted.calls
