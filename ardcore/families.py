@@ -17,10 +17,12 @@ effect is and how one is added to a model):
   time variable); the frequency is a shape parameter refined by the screen.
 * **Any dynamic state** s (first-order, level/flow and coupled models as well as
   oscillators): s^2, s^3, s|s|, sqrt(|s|) (outflow through an orifice), saturation
-  tanh(s/s0), linear coupling to every other state, and an offset.
+  tanh(s/s0), an overflow max(s - h0, 0) that acts only above a level h0 (a tank's overflow, a
+  relief valve; h0 a shape parameter between the state's median and maximum), linear coupling to
+  every other state, and an offset.
 * **Flows between coupled levels** (``where="flow"``): where one dynamic state drives another's drift,
-  a flow law (sqrt, x|x|, saturating) that leaves the first and enters the second (the pipe between
-  two tanks), with one coefficient when the model conserves the flow in its units, else one per side.
+  a flow law (sqrt, x|x|, saturating, overflow above a level) that leaves the first and enters the
+  second (the pipe between two tanks, what spills over from the upper one), with one coefficient when the model conserves the flow in its units, else one per side.
 * **Measurement effects** (``where="observation"``, added to an observation's
   expression): a bias, a direct feedthrough of each input, and a quadratic/cubic
   sensor nonlinearity; and the measurement noise level (``where="noise"``).
@@ -38,6 +40,7 @@ from .model import ModelSpec
 
 
 def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None,
+                      levels: dict[str, tuple[float, float]] | None = None,
                       frequencies: list[float] = (), frequency_resolution: float = 0.0,
                       extra: list[Effect] = ()) -> list[Effect]:
     """The candidate effects for ``spec``.
@@ -47,6 +50,9 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     spec : ModelSpec
     scales : dict, optional
         Typical magnitude (e.g. the std) of each state; sets the free-play widths.
+    levels : dict, optional
+        (median, maximum) of each state over the record: an overflow's level is searched between them
+        (proposed only where both are positive).
     frequencies : list of float
         Forcing frequencies (cycles per time unit) found in the residual spectrum.
     frequency_resolution : float
@@ -69,8 +75,8 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     for s_ in dynamic_states(spec):
         if s_ in pair_v:
             continue  # a velocity: the oscillator families above cover it
-        out += _level_effects(s_, scales, inputs)
-    out += flow_effects(spec, scales)
+        out += _level_effects(s_, scales, inputs, (levels or {}).get(s_))
+    out += flow_effects(spec, scales, levels)
     used = set(spec.inputs)
     free_idx = (i for i in range(100) if f"forcing{i}_sin" not in used)  # columns of forcing already added stay
     for f in frequencies:
@@ -141,9 +147,23 @@ def _oscillator_effects(x: str, v: str, scales: dict[str, float], inputs: list[s
     return out
 
 
-def _level_effects(s_: str, scales: dict[str, float], inputs: list[str]) -> list[Effect]:
-    """Terms of any dynamic state that is not a velocity: powers, an orifice outflow, saturation, offset and
-    input cross terms (first-order, level/flow and coupled models)."""
+def _overflow(s_: str, level: tuple[float, float] | None) -> tuple | None:
+    """(term, shape) of a flow that starts above a level h0 of ``s_``, max(s_ - h0, 0); None without a
+    positive level range (the shape is searched on a log scale)."""
+    if not level or not (0 < level[0] < level[1]):
+        return None
+    # a hyperbola with a corner rounded over w (1 % of the searched range), not max(): the likelihood must be
+    # smooth in h0 for the Laplace Hessian (a kink makes its finite differences, and so every sd, collapse)
+    # and the EKF's Jacobian must see the slope change
+    w = 0.01 * (level[1] - level[0])
+    return (f"0.5*(({s_} - {{h0}}) + sqrt(({s_} - {{h0}})**2 + {w:.4g}**2))",
+            ("h0", float(level[0]), float(level[1])))
+
+
+def _level_effects(s_: str, scales: dict[str, float], inputs: list[str],
+                   level: tuple[float, float] | None = None) -> list[Effect]:
+    """Terms of any dynamic state that is not a velocity: powers, an orifice outflow, saturation, an overflow,
+    offset and input cross terms (first-order, level/flow and coupled models)."""
     out: list[Effect] = []
     sc = scales.get(s_)
     out += [Effect(f"square({s_})", "state", (f"{s_}**2",), f"{s_}^2", code=f"q2{s_}"),
@@ -155,6 +175,10 @@ def _level_effects(s_: str, scales: dict[str, float], inputs: list[str]) -> list
     if sc and sc > 0:
         out.append(Effect(f"saturation({s_})", "state", (f"{s_} - {{xs}}*tanh({s_}/{{xs}})",),
                           f"{s_} saturating beyond ~{{xs}}", code=f"qs{s_}", shape=("xs", 0.2 * sc, 1.5 * sc)))
+    over = _overflow(s_, level)
+    if over:
+        out.append(Effect(f"overflow({s_})", "state", (over[0],), f"acts only above {s_} = {{h0}} (an overflow)",
+                          code=f"qo{s_}", shape=over[1]))
     for u in inputs:
         out += [Effect(f"input_cross({u}*{s_})", "input", (f"{u}*{s_}",), f"input-state cross term {u} {s_}",
                        code=f"u{u}{s_}")]
@@ -185,7 +209,8 @@ def _measurement_effects(spec: ModelSpec, inputs: list[str]) -> list[Effect]:
     return out
 
 
-def flow_effects(spec: ModelSpec, scales: dict[str, float]) -> list[Effect]:
+def flow_effects(spec: ModelSpec, scales: dict[str, float],
+                 levels: dict[str, tuple[float, float]] | None = None) -> list[Effect]:
     """Flows between coupled levels (tanks, compartments, thermal masses): for each dynamic state i whose
     value drives another one's drift j, a flow law f(x_i) that leaves i and enters j.
 
@@ -194,14 +219,14 @@ def flow_effects(spec: ModelSpec, scales: dict[str, float]) -> list[Effect]:
     of different cross-sections) it has one per side. An outflow added to i alone and an inflow to j alone
     would each be screened without the other, and neither would find the pipe between them."""
     pair_v = {v for _, v in oscillator_pairs(spec)}
-    levels = [s_ for s_ in dynamic_states(spec) if s_ not in pair_v]
+    states = [s_ for s_ in dynamic_states(spec) if s_ not in pair_v]
     sm = spec.sym
     params = set(sm.params)
     out = []
-    for i in levels:
+    for i in states:
         xi = sp.Symbol(i, real=True)
         di = sm.drift[spec.states.index(i)]
-        for j in levels:
+        for j in states:
             dj = sm.drift[spec.states.index(j)]
             if j == i or xi not in dj.free_symbols:
                 continue
@@ -212,6 +237,9 @@ def flow_effects(spec: ModelSpec, scales: dict[str, float]) -> list[Effect]:
             if sc and sc > 0:
                 laws.append(("saturating_flow", "fs", f"{{xs}}*tanh({i}/{{xs}})", "saturating beyond ~{xs}",
                              ("xs", 0.2 * sc, 1.5 * sc)))
+            over = _overflow(i, (levels or {}).get(i))
+            if over:
+                laws.append(("overflow_flow", "fo", over[0], "spilling over above {h0}", over[1]))
             for name, code, term, what, shape in laws:
                 out.append(Effect(f"{name}({i}->{j})", "flow", (term,) if one else (term, term),
                                   f"flow from {i} to {j} {what}", code=f"{code}{i}{j}", where="flow",

@@ -66,16 +66,21 @@ class RoundEvent:
 
 
 def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerConfig, map_fn: Map = serial_map,
-                  counters: tuple = (0, 0, 0)) -> Generator[RoundEvent, None, tuple[list, int, int, int]]:
+                  counters: tuple = (0, 0, 0), dr_scale: float | None = None
+                  ) -> Generator[RoundEvent, None, tuple[list, int, int, int]]:
     """Burn-in rounds until R-hat is below the threshold or the round budget is spent, one event each.
 
     Returns the chain states, accepted and proposed counts, and likelihood evaluations (``counters``: those
-    of the stages before, for the checkpoints).
+    of the stages before, for the checkpoints). ``dr_scale`` (default ``config.dr_scale``; 0 for a warm
+    start, see :class:`SamplerConfig`) is the delayed-rejection second stage of the first
+    ``config.dr_rounds`` rounds.
     """
+    dr = config.dr_scale if dr_scale is None else dr_scale
     b_acc = b_n = n_eval = 0
     while pool.rounds < config.max_burnin_rounds:
         rnd = pool.rounds + 1
-        results = map_fn(_round_task, [(target, s, pool.proposal(c), config.round_size, True, config.dr_scale)
+        dr_r = dr if rnd <= config.dr_rounds else 0.0
+        results = map_fn(_round_task, [(target, s, pool.proposal(c), config.round_size, True, dr_r)
                                        for c, s in enumerate(states)], step=Step("burnin", rnd))
         states = [q.state for q in results]
         for c, q in enumerate(results):
@@ -93,7 +98,7 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
         reports.append(BurninRound(pool.rounds, pool.rhat().tolist(), pool.best_lp, acc / max(1, n)))
         yield RoundEvent("burnin", pool.rounds, tuple(reports), {
             "stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
-            "counters": [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_eval]})
+            "counters": [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_eval], "dr_scale": dr})
         if pool.converged():
             break
     return states, b_acc, b_n, n_eval
@@ -173,12 +178,15 @@ def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = seria
     warnings: list[str] = []
     states, pool, stage, counters = _begin(target, config, seed, map_fn, warm, starts,
                                            pool_factory or AdaptationPool.from_dict, resume)
+    # a warm start's first proposal is the previous posterior's covariance: no delayed rejection (SamplerConfig)
+    dr = (config.dr_scale if warm is None or config.warm_dr else 0.0) if resume is None \
+        else float(resume.get("dr_scale", config.dr_scale))
     if resume is None:
         yield RoundEvent("burnin", 0, (), {"stage": "burnin", "states": [q.to_dict() for q in states],
-                                           "pool": pool.to_dict(), "counters": list(counters)})
+                                           "pool": pool.to_dict(), "counters": list(counters), "dr_scale": dr})
     # ---- burn-in: DRAM rounds, the pool is the INCA coordinator
     if stage == "burnin":
-        states, b_acc, b_n, n_b = yield from burnin_rounds(target, states, pool, config, map_fn, tuple(counters))
+        states, b_acc, b_n, n_b = yield from burnin_rounds(target, states, pool, config, map_fn, tuple(counters), dr)
         counters = [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_b]
     b_acc, b_n, _ = counters
     rounds, converged, r, cov = pool.rounds, pool.converged(), pool.rhat(), pool.cov

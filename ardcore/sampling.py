@@ -37,7 +37,16 @@ class SamplerConfig(BaseModel):
     n_proposal : int
         J, proposal draws at phi* per chain for Chib-Jeliazkov.
     dr_scale : float
-        Delayed rejection: the second-stage proposal is this fraction of the first (0 turns it off).
+        Delayed rejection in burn-in: the second-stage proposal is this fraction of the first (0 turns it
+        off). It serves the first rounds of a start whose first proposal is a guess (cold or explicit
+        starts); once the pooled covariance is adapted, and from the start of a warm start (which proposes
+        from the previous posterior's covariance), a second stage costs an evaluation per rejection and
+        saves no rounds (Sec 3.6 demo: M3's cold start took 13 rounds with and without it; 18 % of all
+        evaluations were second stages).
+    dr_rounds : int
+        Burn-in rounds of a cold start that use delayed rejection.
+    warm_dr : bool
+        Delayed rejection in the first ``dr_rounds`` of warm starts as well.
     start_maxfev : int
         Budget of the local optimisation that places each chain's start.
     overdispersion : float
@@ -63,6 +72,8 @@ class SamplerConfig(BaseModel):
     n_stationary: int = Field(5000, ge=50, le=10_000_000)
     n_proposal: int = Field(5000, ge=50, le=10_000_000)
     dr_scale: float = Field(0.1, ge=0.0, le=1.0)
+    dr_rounds: int = Field(2, ge=0, le=10_000)
+    warm_dr: bool = False
     start_maxfev: int = Field(3000, ge=10, le=1_000_000)
     overdispersion: float = Field(2.0, gt=0, le=10)
     inca: bool = True
