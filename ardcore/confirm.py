@@ -179,8 +179,8 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     spectrum = res.tests[col]["spectrum"]
     peaks = forcing_peaks(fspec, spectrum["peaks"])
     scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
-    levels = {s: (float(np.nanmedian(res.smoothed[:, i])), float(np.nanmax(res.smoothed[:, i])))
-              for i, s in enumerate(fspec.states)}
+    levels = {s: (float(np.nanmin(res.smoothed[:, i])), float(np.nanmedian(res.smoothed[:, i])),
+                  float(np.nanmax(res.smoothed[:, i]))) for i, s in enumerate(fspec.states)}
     # forcing frequencies: the innovation peaks forcing_peaks picks (each refined by the screen)
     effects = candidate_effects(fspec, scales=scales, levels=levels, frequencies=[p["f"] for p in peaks],
                                 frequency_resolution=spectrum.get("resolution", 0.0), extra=list(extra_effects))

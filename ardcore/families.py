@@ -10,7 +10,8 @@ effect is and how one is added to a model):
   scale), cross terms (x^2 v, x v^2), a free-play / dead zone of half-width
   delta (x reduced by delta towards 0 outside |x| < delta; delta a shape
   parameter), a saturating stiffness, a sine (pendulum) stiffness L sin(x/L)
-  with its period L a shape parameter, and a constant offset.
+  with its period L a shape parameter, a one-sided contact stiffness max(x - g, 0) above or below a
+  gap g (a stop, a bumper), and a constant offset.
 * **Inputs** u: u, u^2, u^3, u x, u v.
 * **Periodic forcing** at a frequency found in the residual spectrum: a sine
   and a cosine (supplied as extra input columns, since expressions have no
@@ -40,7 +41,7 @@ from .model import ModelSpec
 
 
 def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None,
-                      levels: dict[str, tuple[float, float]] | None = None,
+                      levels: dict[str, tuple[float, float, float]] | None = None,
                       frequencies: list[float] = (), frequency_resolution: float = 0.0,
                       extra: list[Effect] = ()) -> list[Effect]:
     """The candidate effects for ``spec``.
@@ -51,8 +52,9 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     scales : dict, optional
         Typical magnitude (e.g. the std) of each state; sets the free-play widths.
     levels : dict, optional
-        (median, maximum) of each state over the record: an overflow's level is searched between them
-        (proposed only where both are positive).
+        (minimum, median, maximum) of each state over the record: an overflow's level is searched between
+        the median and the maximum (proposed only where both are positive), a contact's gap out to the
+        extreme on its side.
     frequencies : list of float
         Forcing frequencies (cycles per time unit) found in the residual spectrum.
     frequency_resolution : float
@@ -66,7 +68,7 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     # the user's inputs (columns of a periodic forcing the loop added are not inputs to build effects from)
     inputs = user_inputs(spec)
     for x, v in oscillator_pairs(spec):
-        out += _oscillator_effects(x, v, scales, inputs)
+        out += _oscillator_effects(x, v, scales, inputs, (levels or {}).get(x))
     for u in inputs:
         out += [Effect(f"input({u})", "input", (u,), f"linear input {u}", code=f"u1{u}"),
                 Effect(f"input_quadratic({u})", "input", (f"{u}**2",), f"quadratic input {u}^2", code=f"u2{u}"),
@@ -97,8 +99,10 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     return uniq
 
 
-def _oscillator_effects(x: str, v: str, scales: dict[str, float], inputs: list[str]) -> list[Effect]:
-    """Stiffness, damping, friction, cross, free-play, saturation and input terms of a pair dx/dt = v."""
+def _oscillator_effects(x: str, v: str, scales: dict[str, float], inputs: list[str],
+                        level: tuple[float, float, float] | None = None) -> list[Effect]:
+    """Stiffness, damping, friction, cross, free-play, saturation, contact and input terms of a pair
+    dx/dt = v."""
     out: list[Effect] = []
     out += [
         Effect(f"quadratic_stiffness({x})", "stiffness", (f"{x}**2",), f"even-order (asymmetric) stiffness {x}^2", code=f"s2{x}"),
@@ -132,6 +136,7 @@ def _oscillator_effects(x: str, v: str, scales: dict[str, float], inputs: list[s
         out.append(Effect(f"sine_stiffness({x})", "stiffness", (f"6*{{L}}**2*({x} - {{L}}*sin({x}/{{L}}))",),
                           f"restoring force periodic in {x}, L sin({x}/L) with L = {{L}}", code=f"sn{x}",
                           shape=("L", 0.3 * s, 3.0 * s)))
+        out += _contacts(x, s, level)
     sv = scales.get(v)
     if sv and sv > 0:
         # dry friction with a smooth sign (the EKF sees its slope) and Stribeck's decaying static peak
@@ -147,21 +152,42 @@ def _oscillator_effects(x: str, v: str, scales: dict[str, float], inputs: list[s
     return out
 
 
-def _overflow(s_: str, level: tuple[float, float] | None) -> tuple | None:
-    """(term, shape) of a flow that starts above a level h0 of ``s_``, max(s_ - h0, 0); None without a
-    positive level range (the shape is searched on a log scale)."""
-    if not level or not (0 < level[0] < level[1]):
+def _ramp(arg: str, lo: float, hi: float) -> str:
+    """max(arg, 0) as a hyperbola whose corner is rounded over 1 % of the searched range [lo, hi], not max():
+    the likelihood must be smooth in the threshold for the Laplace Hessian (a kink makes its finite
+    differences, and so every sd, collapse) and the EKF's Jacobian must see the slope change."""
+    w = 0.01 * (hi - lo)
+    return f"0.5*(({arg}) + sqrt(({arg})**2 + {w:.4g}**2))"
+
+
+def _overflow(s_: str, level: tuple[float, float, float] | None) -> tuple | None:
+    """(term, shape) of a flow that starts above a level h0 of ``s_``, max(s_ - h0, 0), h0 between the
+    state's median and maximum; None without a positive range (the shape is searched on a log scale)."""
+    if not level or not (0 < level[1] < level[2]):
         return None
-    # a hyperbola with a corner rounded over w (1 % of the searched range), not max(): the likelihood must be
-    # smooth in h0 for the Laplace Hessian (a kink makes its finite differences, and so every sd, collapse)
-    # and the EKF's Jacobian must see the slope change
-    w = 0.01 * (level[1] - level[0])
-    return (f"0.5*(({s_} - {{h0}}) + sqrt(({s_} - {{h0}})**2 + {w:.4g}**2))",
-            ("h0", float(level[0]), float(level[1])))
+    return _ramp(f"{s_} - {{h0}}", level[1], level[2]), ("h0", float(level[1]), float(level[2]))
+
+
+def _contacts(x: str, s: float, level: tuple[float, float, float] | None) -> list[Effect]:
+    """One-sided stiffness beyond a gap g on either side of the rest position (a stop, a bumper, a contact
+    that closes): max(x - g, 0) above, -max(-x - g, 0) below (a negative coefficient restores in both), g
+    from 10 % of the std to the record's extreme on that side."""
+    out = []
+    if not level or not s > 0:
+        return out
+    for side, code, sign, extreme in (("above", "ca", 1, level[2]), ("below", "cb", -1, -level[0])):
+        lo = 0.1 * s
+        if extreme > 1.2 * lo:
+            arg = f"{x} - {{g}}" if sign > 0 else f"-{x} - {{g}}"
+            term = _ramp(arg, lo, extreme) if sign > 0 else f"-{_ramp(arg, lo, extreme)}"
+            out.append(Effect(f"contact_{side}({x})", "stiffness", (term,),
+                              f"one-sided stiffness {side} a gap {{g}} in {x}", code=f"{code}{x}",
+                              shape=("g", lo, float(extreme))))
+    return out
 
 
 def _level_effects(s_: str, scales: dict[str, float], inputs: list[str],
-                   level: tuple[float, float] | None = None) -> list[Effect]:
+                   level: tuple[float, float, float] | None = None) -> list[Effect]:
     """Terms of any dynamic state that is not a velocity: powers, an orifice outflow, saturation, an overflow,
     offset and input cross terms (first-order, level/flow and coupled models)."""
     out: list[Effect] = []
@@ -210,7 +236,7 @@ def _measurement_effects(spec: ModelSpec, inputs: list[str]) -> list[Effect]:
 
 
 def flow_effects(spec: ModelSpec, scales: dict[str, float],
-                 levels: dict[str, tuple[float, float]] | None = None) -> list[Effect]:
+                 levels: dict[str, tuple[float, float, float]] | None = None) -> list[Effect]:
     """Flows between coupled levels (tanks, compartments, thermal masses): for each dynamic state i whose
     value drives another one's drift j, a flow law f(x_i) that leaves i and enters j.
 

@@ -9,7 +9,6 @@ evidence maximisation, then the comparison of the optimal nested models
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -26,7 +25,7 @@ from .ard import (
 from .data import Dataset
 from .events import ModelEvent, ProgressEvent, TrialDone
 from .fit import ModelFit
-from .jsonio import atomic_write_text, to_jsonable
+from .jsonio import to_jsonable
 from .mcmc import Map, serial_map
 from .spec import (  # noqa: F401
     ArdSettings,
@@ -143,12 +142,13 @@ def compare(fits: list[ModelFit], spec: StudySpec, data_meta: dict, wall_s: floa
     })
 
 
-def select(spec: StudySpec, *, out: str | Path | None = None, map_fn: Map = serial_map,
-           progress: Callable[[ModelEvent], None] | None = None, base: Path | None = None, cancel=None) -> dict:
-    """Run a study in this process (or with ``map_fn`` over any executor).
+def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[ModelEvent], None] | None = None,
+           base: Path | None = None, cancel=None) -> dict:
+    """Run a study in this process (or with ``map_fn`` over any executor), in memory.
 
-    Returns the summary dict; with ``out``, writes ``out/summary.json``,
-    ``out/history.json`` and ``out/posterior_<model>.npz``.
+    Returns the summary dict with every trial of every model under ``"_history"``. Nothing is written:
+    files are the study store's (``ardflow select`` with any executor writes one zarr layout, see
+    :mod:`workers.store`).
     """
     t0 = time.perf_counter()
     data = spec.data.load(base)
@@ -158,14 +158,5 @@ def select(spec: StudySpec, *, out: str | Path | None = None, map_fn: Map = seri
         rows.append(row)
         results[cand.label] = mr
     summary = compare(rows, spec, {"source": data.meta.get("source"), "n": len(data)}, time.perf_counter() - t0)
-    history = {k: [t.to_dict() for t in mr.history] for k, mr in results.items()}
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
-        atomic_write_text(out / "history.json", json.dumps(to_jsonable(history), indent=2))
-        for k, mr in results.items():
-            np.savez(out / f"posterior_{k}.npz", names=np.array(mr.sampler.names), samples=mr.sampler.samples,
-                     lp=mr.sampler.lp, ll=mr.sampler.ll)
-    summary["_history"] = to_jsonable(history)
+    summary["_history"] = to_jsonable({k: [t.to_dict() for t in mr.history] for k, mr in results.items()})
     return summary

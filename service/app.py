@@ -209,7 +209,7 @@ def _submit_router(c: _Service) -> APIRouter:
         try:
             store = await c.heavy(prepare_store, spec, d / "store", datasets=c.reg.root / "datasets", study_id=sid)
             estimate = check_budget(spec, int(store.meta.get("data", {}).get("n") or 0), c.settings.max_study_cost)
-            c.reg.write_meta(sid, {"id": sid, "name": spec.name, "status": "queued", "created": time.time(),
+            c.reg.write_meta(sid, {"id": sid, "name": spec.name, "created": time.time(),
                                  "estimate": estimate, "owner": owner})
         except Rejected as exc:
             shutil.rmtree(d, ignore_errors=True)
@@ -256,7 +256,7 @@ def _studies_router(c: _Service) -> APIRouter:
                 evs = await asyncio.to_thread(read_progress, store, offsets) if store.exists() else []
                 for ev in evs:
                     yield f"event: progress\ndata: {json.dumps(ev.to_json())}\n\n"
-                st = c.reg.meta(sid).get("status")
+                st = c.reg.status(sid)["status"]
                 if st in FINAL:
                     yield f"event: end\ndata: {json.dumps({'status': st})}\n\n"
                     return

@@ -34,12 +34,18 @@ def _run_on_dask(a, store) -> dict:
             ctx = performance_report(filename=a.performance_report)
         max_trials = store.meta.get("spec", {}).get("maximiser", {}).get("max_trials", 60)
         with ctx, LiveProgress(max_trials) as live:
-            summary = run_study(client, store, progress=live)
+            summary = run_study(client, store, progress=live, done=store.remote)
     if not store.remote:
-        from .html_report import write_report
-
-        print(f"[ardflow] report: {write_report(store).resolve()}", flush=True)
+        _report_and_finish(store)
     return summary
+
+
+def _report_and_finish(store) -> None:
+    """The report, then the study's status ``done`` (the service reports done when all of it is written)."""
+    from .html_report import write_report
+
+    print(f"[ardflow] report: {write_report(store).resolve()}", flush=True)
+    store.update_meta(status="done")
 
 
 def cmd_demo(a) -> int:
@@ -129,13 +135,11 @@ def _run_locally(a, store, spec) -> dict:
 
     with LiveProgress(spec.maximiser.max_trials) as live:
         if a.executor == "serial":
-            summary = run_study_local(store, serial_map, progress=live)
+            summary = run_study_local(store, serial_map, progress=live, done=False)
         else:
             with ProcessPoolExecutor(max_workers=a.workers) as ex:
-                summary = run_study_local(store, executor_map(ex), progress=live)
-    from .html_report import write_report
-
-    print(f"[ardflow] report: {write_report(store).resolve()}", flush=True)
+                summary = run_study_local(store, executor_map(ex), progress=live, done=False)
+    _report_and_finish(store)
     return summary
 
 

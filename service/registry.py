@@ -20,6 +20,9 @@ from .schemas import ID_RE, DiagnoseRequest, Progress, _finite  # noqa: F401
 
 log = logging.getLogger("ardflow.service")
 
+LIFECYCLE = ("status", "error")
+"""What the study's store owns, never the registry's meta.json (:meth:`Registry.status`)."""
+
 # ------------------------------------------------------------------ the study registry
 class Registry:
     """Durable registry: ``root/studies/<id>/{meta.json, store/}``, ``root/datasets/<id>.csv``."""
@@ -38,10 +41,27 @@ class Registry:
         return sorted(p.name for p in (self.root / "studies").iterdir() if (p / "meta.json").exists())
 
     def meta(self, sid: str) -> dict:
+        """The study's registry entry (id, name, owner, created, estimate) with its ``status`` and ``error``,
+        which its store owns (:meth:`status`)."""
         p = self.study_dir(sid) / "meta.json"
         if not p.exists():
             raise HTTPException(404, f"no study {sid!r}")
-        return json.loads(p.read_text())
+        m = {k: v for k, v in json.loads(p.read_text()).items() if k not in LIFECYCLE}
+        return {**m, **self.status(sid)}
+
+    def status(self, sid: str) -> dict:
+        """``{status, error}`` of a study, read from its store alone (the one owner of the study's status).
+
+        The store's ``CANCELLED`` marker (the service writes it, while a driver may be writing the store's
+        attributes) means cancelled; otherwise the store's own status: ``running``, ``done``, ``failed``
+        (with its error), ``cancelled``; ``created`` (no driver has started on it yet) is ``queued``.
+        """
+        store = self.store(sid)
+        if store.read_text("CANCELLED") is not None:
+            return {"status": "cancelled", "error": None}
+        m = store.meta if store.exists() else {}
+        st = m.get("status", "created")
+        return {"status": "queued" if st == "created" else st, "error": m.get("error") if st == "failed" else None}
 
     def metas(self) -> list[dict]:
         """Every study's meta (damaged entries skipped)."""
@@ -54,9 +74,11 @@ class Registry:
         return out
 
     def write_meta(self, sid: str, meta: dict) -> None:
+        """Write the registry entry; the status and error are the store's and are not written here."""
         from ardflow.workers.store import atomic_write_text
 
-        atomic_write_text(self.study_dir(sid) / "meta.json", json.dumps(meta))
+        atomic_write_text(self.study_dir(sid) / "meta.json",
+                          json.dumps({k: v for k, v in meta.items() if k not in LIFECYCLE}))
 
     def store(self, sid: str):
         from ardflow.workers.store import StudyStore
@@ -101,7 +123,7 @@ class Runner:
         with self.lock:
             while self.queue and not self.closing and len(self.running()) < self.max_running:
                 sid = self.queue.pop(0)
-                if self.registry.meta(sid).get("status") == "cancelled":
+                if self.registry.status(sid)["status"] == "cancelled":
                     continue
                 th = threading.Thread(target=self._run, args=(sid,), name=f"study-{sid}", daemon=True)
                 self.threads[sid] = th
@@ -121,13 +143,11 @@ class Runner:
         import sys
 
         reg = self.registry
-        with self.lock:
-            meta = reg.meta(sid)
-            if meta.get("status") == "cancelled":
-                return
-            meta["status"] = "running"
-            reg.write_meta(sid, meta)
         store = reg.store(sid)
+        with self.lock:
+            if reg.status(sid)["status"] == "cancelled":
+                return
+            store.update_meta(status="running")  # no driver writes the store yet
         log_path = reg.study_dir(sid) / "driver.log"
         with open(log_path, "a") as logf:
             # the driver yields to the API process (status requests stay quick under load)
@@ -140,19 +160,13 @@ class Runner:
         if self.closing:
             return  # the service is stopping: the study resumes on the next start
         with self.lock:
-            meta = reg.meta(sid)
-            if meta.get("status") == "cancelled":
+            st = reg.status(sid)["status"]
+            if st == "cancelled" or (rc == 0 and st == "done"):
                 return
-            st = store.meta.get("status")
-            if rc == 0 and st == "done":
-                meta["status"] = "done"
-            elif st == "cancelled":
-                meta["status"] = "cancelled"
-            else:
-                tail = log_path.read_text()[-2000:].strip().splitlines()
-                meta["status"] = "failed"
-                meta["error"] = store.meta.get("error") or (tail[-1] if tail else f"driver exit {rc}")
-            reg.write_meta(sid, meta)
+            # the driver stopped without finishing (killed, out of memory, an error): its store says why
+            tail = log_path.read_text()[-2000:].strip().splitlines()
+            store.update_meta(status="failed",
+                              error=store.meta.get("error") or (tail[-1] if tail else f"driver exit {rc}"))
 
     def cancel(self, sid: str) -> None:
         """Mark ``sid`` cancelled durably, then stop its driver (cooperatively, then by force)."""
@@ -162,7 +176,8 @@ class Runner:
         reg = self.registry
         with self.lock:
             meta = reg.meta(sid)
-            meta.update(status="cancelled", cancelled=time.time())
+            meta["cancelled"] = time.time()
+            # the marker is the status (Registry.status): a driver may be writing the store's attributes now
             atomic_write_text(reg.study_dir(sid) / "store" / "CANCELLED", str(meta["cancelled"]))
             reg.write_meta(sid, meta)
             if sid in self.queue:

@@ -210,8 +210,9 @@ def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_fa
     return row
 
 
-def compare_task(store_path: str, wall_start: float, *rows: ModelFit) -> dict:
-    """Comparison of the optimal nested models; writes the summary to the store."""
+def compare_task(store_path: str, wall_start: float, *rows: ModelFit, done: bool = True) -> dict:
+    """Comparison of the optimal nested models; writes the summary to the store (``done``: and marks the
+    study done)."""
     store = StudyStore(store_path)
     spec = StudySpec.model_validate(store.meta["spec"])
     meta = store.meta
@@ -219,7 +220,7 @@ def compare_task(store_path: str, wall_start: float, *rows: ModelFit) -> dict:
     summary["study_id"] = meta.get("study_id")
     history = store.histories([r.name for r in rows])
     store.write_text("history.json", json.dumps(_json(history), indent=2))
-    store.write_summary(summary)
+    store.write_summary(summary, done=done)
     return summary
 
 
@@ -238,8 +239,9 @@ def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None 
     return store
 
 
-def start_study(client, store: StudyStore):
-    """Start one maximiser thread per model and the comparison task that depends on them.
+def start_study(client, store: StudyStore, *, done: bool = True):
+    """Start one maximiser thread per model and the comparison task that depends on them (``done``: it
+    marks the study done; see :meth:`StudyStore.write_summary`).
 
     Returns the comparison future (as a ``concurrent.futures.Future`` resolving to the summary).
     """
@@ -259,7 +261,7 @@ def start_study(client, store: StudyStore):
             results = [f.result() for f in rows]
             for attempt in range(3):
                 wait_connected(client)
-                comp = client.submit(compare_task, str(store), start, *results,
+                comp = client.submit(compare_task, str(store), start, *results, done=done,
                                      key=f"compare-{study_id}" + (f"-a{attempt}" if attempt else ""))
                 try:
                     out.set_result(comp.result())
@@ -298,9 +300,10 @@ def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[ModelEvent
 
 
 def run_study(client, store: StudyStore, *, progress: Callable[[ModelEvent], None] | None = None,
-              poll_s: float = 1.0) -> dict:
-    """Run (or continue) the study in ``store`` on ``client``; blocks until the summary exists."""
-    comp = start_study(client, store)
+              poll_s: float = 1.0, done: bool = True) -> dict:
+    """Run (or continue) the study in ``store`` on ``client``; blocks until the summary exists. With
+    ``done`` False the caller marks the study done (after its report)."""
+    comp = start_study(client, store, done=done)
     offsets: dict[str, int] = {}
     while not comp.done():
         for ev in read_progress(store, offsets):

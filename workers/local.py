@@ -39,8 +39,10 @@ class LocalStoredEvaluator(EvidenceEvaluator):
         return target, ev, res
 
 
-def run_study_local(store: StudyStore, map_fn: Map, *, progress: Callable[[ModelEvent], None] | None = None) -> dict:
-    """Run the study in ``store`` model after model, chains on ``map_fn``; returns the summary."""
+def run_study_local(store: StudyStore, map_fn: Map, *, progress: Callable[[ModelEvent], None] | None = None,
+                    done: bool = True) -> dict:
+    """Run the study in ``store`` model after model, chains on ``map_fn``; returns the summary (``done``:
+    as :func:`workers.graph.run_study`)."""
     spec = StudySpec.model_validate(store.meta["spec"])
     data = store.load_data()
     start = time.time()
@@ -65,4 +67,4 @@ def run_study_local(store: StudyStore, map_fn: Map, *, progress: Callable[[Model
 
         store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
         raise
-    return compare_task(str(store), start, *rows)
+    return compare_task(str(store), start, *rows, done=done)

@@ -158,9 +158,12 @@ class StudyStore:
         cols = {k: np.asarray(dg[k][:]) for k in dg.array_keys() if k != "t"}
         return Dataset(np.asarray(dg["t"][:]), cols, {"source": f"{self.url}/data"})
 
-    def write_summary(self, summary: dict) -> None:
+    def write_summary(self, summary: dict, *, done: bool = True) -> None:
+        """Write the summary; with ``done`` the study's status becomes ``done`` (a driver that renders a
+        report afterwards marks it done itself once the report is written: done means all of it)."""
         self.write_text("summary.json", json.dumps(_json(summary), indent=2))
-        self.update_meta(status="done", summary=_json({k: v for k, v in summary.items() if k != "spec"}))
+        self.update_meta(**({"status": "done"} if done else {}),
+                         summary=_json({k: v for k, v in summary.items() if k != "spec"}))
 
     # ---------------------------------------------------------------- trials
     def trial_path(self, model: str, iteration: int) -> str:

@@ -65,6 +65,9 @@ FAMILIES = {
     # a pendulum-like restoring force, -8 y - 8 sin(y): the data reach |y/L| ~ 3, where its higher orders tell
     # it from a cubic (with L = 1.5 the cubic alone has the higher evidence)
     "sine stiffness": planted("sine_stiffness(y)", "stiffness", "y - sin(y)", "sny", 8.0, {"sine_stiffness"}, 1.0),
+    # a stop that the mass meets above y = 0.6 (std of y ~0.9): one-sided, so no symmetric family stands in
+    "contact": planted("contact_above(y)", "stiffness", "0.5*(y - 0.6)*(1 + sign(y - 0.6))", "cay", -8.0,
+                       {"contact_above"}, 0.6),
     "periodic forcing": planted("forcing(f=1.37)", "forcing", ("forcing0_sin", "forcing0_cos"), "fo0", 0.5,
                                 {"forcing"}, 1.37, frequency=1.37),
     "input nonlinearity": planted("input_cubic(u)", "input", "u**3", "u3u", 0.35),
@@ -133,6 +136,8 @@ OTHER_SIZES.update({
                                     0.15),
     "saturation level 0.6": planted("saturation(y)", "stiffness", "y - 0.6*tanh(y/0.6)", "sty", 8.0,
                                     {"saturation", "free-play"}, 0.6),
+    "contact below at 1.2": planted("contact_below(y)", "stiffness", "-0.5*(-y - 1.2)*(1 + sign(-y - 1.2))", "cby",
+                                    -8.0, {"contact_below"}, 1.2),
     "dry friction over 0.15": planted("dry_friction(v)", "friction", "tanh(v/0.15)", "fdv", -1.0, {"friction"}),
     # by the resonance (0.64): the innovations' peak there is the oscillation's own; a driven model screens it
     "periodic forcing at 0.61": planted("forcing(f=0.61)", "forcing", ("forcing0_sin", "forcing0_cos"), "fo0", 0.5,
