@@ -100,7 +100,7 @@ class ModelEvent:
         kind = _BY_STAGE.get(d.get("stage"))
         if kind is None:
             return None
-        # a float field may arrive as "inf"/"nan" (jsonio's spelling); the event's own annotations say which
+        # a float field may arrive as an infinity or NaN in jsonio's string spelling; the annotations say which
         kw = {f.name: number(d.get(f.name)) if f.type == "float" else d.get(f.name) for f in fields(kind)}
         if "rhat" in kw:
             kw["rhat"] = [number(v) for v in kw["rhat"] or []]

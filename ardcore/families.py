@@ -121,11 +121,13 @@ def _oscillator_effects(x: str, v: str, scales: dict[str, float], inputs: list[s
     ]
     s = scales.get(x)
     if s and s > 0:
-        # the width as a shape parameter, from 2 % to 150 % of the displacement's std
+        # the width as a shape parameter, from 2 % to 150 % of the displacement's std; x - clip(x, -delta, delta)
+        # as two ramps with rounded corners (see _ramp)
+        lo, hi = 0.02 * s, 1.5 * s
         out.append(Effect(f"free_play({x})", "free-play",
-                          (f"0.5*({x} - {{delta}}*sign({x}))*(1 + sign(abs({x}) - {{delta}}))",),
+                          (f"{_ramp(f'{x} - {{delta}}', lo, hi)} - {_ramp(f'-{x} - {{delta}}', lo, hi)}",),
                           f"dead zone of half-width {{delta}} in {x}", code=f"fpw{x}",
-                          shape=("delta", 0.02 * s, 1.5 * s)))
+                          shape=("delta", lo, hi)))
         out.append(Effect(f"saturation({x})", "stiffness", (f"{x} - {{xs}}*tanh({x}/{{xs}})",),
                           f"stiffness that saturates beyond |{x}| ~ {{xs}}", code=f"st{x}",
                           shape=("xs", 0.2 * s, 1.5 * s)))
