@@ -47,7 +47,16 @@ def unexplained(res, ranked: list, confirmed: list, col: str, config) -> str:
         parts.append("the innovations are white (Ljung-Box p = %.3g) with no spectral peak: "
                      "no evidence of a missing effect" % t["ljung_box_p"])
     else:
-        parts.append("the residual is NOT explained by any effect in the library")
+        screened_out = ranked and not any(c["log_bayes_factor"] > config.min_score for c in ranked)
+        # every confirmed candidate rejected by the full evidence (not merely unstable): the same conclusion
+        rejected = confirmed and not any(c.get("survives") or c.get("stability") for c in confirmed)
+        if screened_out or rejected:
+            # the conclusion first: a right model with coloured noise and a missed effect must not read alike
+            parts.append("no effect of the library is supported by the evidence, so the model is adequate as far "
+                         "as the library can tell; the correlation left in the innovations is NOT explained by any "
+                         "effect in the library (it lies outside the library or in the noise model)")
+        else:
+            parts.append("the residual is NOT explained by any effect in the library")
         parts.append("Ljung-Box Q = %.1f (p = %.2g)" % (t["ljung_box"], t["ljung_box_p"]))
         if t["spectrum"]["peaks"]:
             parts.append("innovation spectral peaks at " + ", ".join(
@@ -64,12 +73,6 @@ def unexplained(res, ranked: list, confirmed: list, col: str, config) -> str:
                 + ("" if max(share.values()) > 0.1 else
                    " (small: the model's dynamics carry the data; what remains is small or outside the dynamics, "
                    "e.g. coloured measurement noise)"))
-        screened_out = ranked and not any(c["log_bayes_factor"] > config.min_score for c in ranked)
-        # every confirmed candidate rejected by the full evidence (not merely unstable): the same conclusion
-        rejected = confirmed and not any(c.get("survives") or c.get("stability") for c in confirmed)
-        if screened_out or rejected:
-            parts.append("no effect of the library is supported by the evidence, so the model is adequate as far "
-                         "as the library can tell (the correlation left is outside the library or the noise model)")
     unstable = [c for c in confirmed if c.get("stability") and not c["stability"]["stable"]]
     if unstable:
         parts.append("supported by evidence but NOT stable between the two halves of the record (a term "
