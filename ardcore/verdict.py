@@ -14,11 +14,13 @@ _ODD = ("cubic_stiffness", "quintic_stiffness", "saturation", "sine_stiffness")
 
 
 def character(spec: ModelSpec, phi: dict, eff: Effect, best: dict) -> str | None:
-    """'hardening' or 'softening' for an odd stiffness term (its sign against the linear restoring slope);
-    even and asymmetric terms (x^2, x|x|, x^4) make the stiffness differ between the two sides instead."""
+    """'hardening' or 'softening' for an odd stiffness term (its sign against the linear restoring slope),
+    stiffer or softer beyond the gap for a one-sided contact; even and asymmetric terms (x^2, x|x|, x^4) make
+    the stiffness differ between the two sides instead."""
     if eff.kind != "stiffness" or len(eff.terms) != 1 or not best["posterior"]:
         return None
-    if not eff.name.startswith(_ODD):
+    contact = eff.name.startswith("contact_")
+    if not eff.name.startswith(_ODD) and not contact:
         return "asymmetric (stiffer on one side)"
     pairs = oscillator_pairs(spec)
     if not pairs:
@@ -36,7 +38,10 @@ def character(spec: ModelSpec, phi: dict, eff: Effect, best: dict) -> str | None
     coef = next(iter(best["posterior"].values()))["mean"]
     if slope == 0 or coef == 0:
         return None
-    return "hardening" if np.sign(coef) == np.sign(slope) else "softening"
+    same = np.sign(coef) == np.sign(slope)
+    if contact:  # its term rises with slope 1 beyond the gap on either side: the coefficient adds to the slope
+        return "a stop: stiffer beyond the gap" if same else "softer beyond the gap"
+    return "hardening" if same else "softening"
 
 
 def unexplained(res, ranked: list, confirmed: list, col: str, config) -> str:

@@ -251,3 +251,22 @@ def test_a_record_no_parameter_can_fit_is_refused_with_its_reason():
     with pytest.raises(FitError, match="no finite evidence") as err:
         diagnose(_spec(), Dataset(d.t, {"y": y}, d.meta), config=DiagnoseConfig(top_k=1, max_rounds=1))
     assert f"largest |value| {np.max(np.abs(y)):.3g}" in str(err.value)
+
+
+def test_character_says_hardening_and_which_side_a_contact_stiffens():
+    """The report's word for a stiffness term follows its sign against the linear restoring slope."""
+    from ardflow.ardcore.verdict import character
+
+    forced = builtin("forced_linear_oscillator")
+    effects = {e.name: e for e in candidate_effects(forced, scales={"y": 1.0, "v": 2.0},
+                                                    levels={"y": (-2.5, 0.0, 2.7), "v": (-5.0, 0.0, 5.0)})}
+    phi = {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}
+
+    def word(name, coef):
+        eff = effects[name].at(0.5) if effects[name].shape else effects[name]
+        return character(forced, phi, eff, {"posterior": {"k_new": {"mean": coef}}, "target": "v"})
+
+    assert word("cubic_stiffness(y)", -1.0) == "hardening" and word("cubic_stiffness(y)", 1.0) == "softening"
+    for side in ("contact_above(y)", "contact_below(y)"):
+        assert word(side, -8.0) == "a stop: stiffer beyond the gap" and word(side, 8.0) == "softer beyond the gap"
+    assert word("quadratic_stiffness(y)", -1.0) == "asymmetric (stiffer on one side)"
