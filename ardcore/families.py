@@ -23,7 +23,8 @@ effect is and how one is added to a model):
   every other state, and an offset.
 * **Flows between coupled levels** (``where="flow"``): where one dynamic state drives another's drift,
   a flow law (sqrt, x|x|, saturating, overflow above a level) that leaves the first and enters the
-  second (the pipe between two tanks, what spills over from the upper one), with one coefficient when the model conserves the flow in its units, else one per side.
+  second (the pipe between two tanks, what spills over from the upper one), with one coefficient when
+  the model conserves the flow in its units, else one per side.
 * **Measurement effects** (``where="observation"``, added to an observation's
   expression): a bias, a direct feedthrough of each input, and a quadratic/cubic
   sensor nonlinearity; and the measurement noise level (``where="noise"``).
@@ -177,12 +178,11 @@ def _contacts(x: str, s: float, level: tuple[float, float, float] | None) -> lis
     out = []
     if not level or not s > 0:
         return out
-    for side, code, sign, extreme in (("above", "ca", 1, level[2]), ("below", "cb", -1, -level[0])):
-        lo = 0.1 * s
+    lo = 0.1 * s
+    for side, code, sign, arg, extreme in (("above", "ca", "", f"{x} - {{g}}", level[2]),
+                                           ("below", "cb", "-", f"-{x} - {{g}}", -level[0])):
         if extreme > 1.2 * lo:
-            arg = f"{x} - {{g}}" if sign > 0 else f"-{x} - {{g}}"
-            term = _ramp(arg, lo, extreme) if sign > 0 else f"-{_ramp(arg, lo, extreme)}"
-            out.append(Effect(f"contact_{side}({x})", "stiffness", (term,),
+            out.append(Effect(f"contact_{side}({x})", "stiffness", (sign + _ramp(arg, lo, extreme),),
                               f"one-sided stiffness {side} a gap {{g}} in {x}", code=f"{code}{x}",
                               shape=("g", lo, float(extreme))))
     return out
