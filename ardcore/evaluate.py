@@ -59,7 +59,8 @@ class EvidenceEvaluator:
             return target, ev, res
         res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn, warm=warm,
                      progress=self.progress, cancel=self.cancel)
-        ev = chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7, map_fn=self.map_fn)
+        ev = chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7,
+                            proposal_se_ratio=self.sampler.proposal_se_ratio, map_fn=self.map_fn)
         ev.warnings = list(res.warnings) + ev.warnings
         return target, ev, res
 

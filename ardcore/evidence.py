@@ -80,30 +80,53 @@ def _batch_se(log_terms: np.ndarray, batches: int = 10) -> float:
     return float(np.std(rel, ddof=1) / math.sqrt(b))
 
 
+PROPOSAL_BLOCK = 250  # denominator draws between two looks at its Monte Carlo error
+
+
+def _iid_log_mean_se(log_terms: np.ndarray) -> float:
+    """Standard error of ln(mean(exp(terms))) for independent terms (delta method); inf when all are zero."""
+    w = np.exp(log_terms - np.max(log_terms)) if np.isfinite(log_terms).any() else np.zeros(1)
+    m = w.mean()
+    return float(w.std(ddof=1) / m / math.sqrt(w.size)) if m > 0 and w.size > 1 else math.inf
+
+
 def _cj_chain(args):
-    target, samples, lp, phi_star, lp_star, cov, J, seed = args
+    target, samples, lp, phi_star, lp_star, cov, J, se_ratio, seed = args
     L = safe_cholesky(cov)
     # numerator: (1/M) sum_g alpha(phi_g, phi*) q(phi* | phi_g)
     log_alpha = np.minimum(0.0, lp_star - lp)
     log_q = _log_mvn_kernel(phi_star[None, :] - samples, L)
     num_terms = log_alpha + log_q
     log_num = logsumexp(num_terms) - math.log(samples.shape[0])
-    # denominator: (1/J) sum_j alpha(phi*, phi_j), phi_j ~ q(. | phi*)
+    num_se = _batch_se(num_terms)
+    # denominator: (1/J) sum_j alpha(phi*, phi_j), phi_j ~ q(. | phi*). Its draws are independent, so a few
+    # hundred usually pin it far below the numerator's error (autocorrelated draws): stop once its error is
+    # under se_ratio of the numerator's, at most J draws
     rng = np.random.default_rng(seed)
-    Z = rng.standard_normal((J, phi_star.size))
-    den_terms = np.empty(J)
-    for j in range(J):
-        lpj = target(phi_star + L @ Z[j]).log_posterior
-        den_terms[j] = min(0.0, lpj - lp_star) if lpj > -math.inf else -math.inf
-    log_den = logsumexp(den_terms) - math.log(J)
-    ordinate = log_num - log_den
-    se = math.sqrt(_batch_se(num_terms) ** 2 + _batch_se(den_terms) ** 2)
-    return ordinate, se
+    den_terms: list = []
+    while len(den_terms) < J:
+        for z in rng.standard_normal((min(PROPOSAL_BLOCK, J - len(den_terms)), phi_star.size)):
+            lpj = target(phi_star + L @ z).log_posterior
+            den_terms.append(min(0.0, lpj - lp_star) if lpj > -math.inf else -math.inf)
+        if se_ratio > 0 and _iid_log_mean_se(np.asarray(den_terms)) <= se_ratio * num_se:
+            break
+    den = np.asarray(den_terms)
+    log_den = logsumexp(den) - math.log(den.size)
+    se = math.sqrt(num_se ** 2 + _batch_se(den) ** 2)
+    return log_num - log_den, se, den.size
 
 
 def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
-                   map_fn: Map = serial_map) -> Evidence:
+                   map_fn: Map = serial_map, proposal_se_ratio: float = 0.0) -> Evidence:
     """Chib-Jeliazkov evidence per chain at phi* (Eq. 10-12); mean and standard error over chains.
+
+    Parameters
+    ----------
+    n_proposal : int
+        J, the most proposal draws at phi* per chain (the denominator).
+    proposal_se_ratio : float
+        Stop a chain's denominator draws (in blocks of 250) once their Monte Carlo error is below this
+        fraction of the numerator's; 0 always draws ``n_proposal``.
 
     Raises
     ------
@@ -122,11 +145,11 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
     phi_star, lp_star, ll_star = res.phi_star, res.lp_star, float(res.ll_star)
     n_eval = 0
     for attempt in range(2):
-        n_eval += nc * n_proposal
         tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
-                  int(seeds[c])) for c in range(nc)]
+                  proposal_se_ratio, int(seeds[c])) for c in range(nc)]
         out = map_fn(_cj_chain, tasks, step=Step("cj"))
-        per = [ChainEvidence(lp_star - o, se, o) for o, se in out]
+        n_eval += sum(j for _, _, j in out)
+        per = [ChainEvidence(lp_star - o, se, o) for o, se, _ in out]
         valid = [p for p in per if math.isfinite(p.log_evidence) and p.log_evidence <= bound]
         if valid or attempt == 1 or not np.isfinite(res.lp).any():
             break

@@ -35,7 +35,12 @@ class SamplerConfig(BaseModel):
     n_stationary : int
         M, stationary samples per chain.
     n_proposal : int
-        J, proposal draws at phi* per chain for Chib-Jeliazkov.
+        J, the most proposal draws at phi* per chain for Chib-Jeliazkov (the denominator).
+    proposal_se_ratio : float
+        The denominator's draws are independent, the numerator's M are autocorrelated: a chain's
+        denominator stops (in blocks of 250) once its Monte Carlo error is below this fraction of the
+        numerator's, so the error of ln Z grows by at most sqrt(1 + ratio^2) (12 % at 0.5) over
+        J = infinity. 0 always draws J.
     dr_scale : float
         Delayed rejection in burn-in: the second-stage proposal is this fraction of the first (0 turns it
         off). It serves the first rounds of a start whose first proposal is a guess (cold or explicit
@@ -71,6 +76,7 @@ class SamplerConfig(BaseModel):
     stationary_restarts: int = Field(1, ge=0, le=100)
     n_stationary: int = Field(5000, ge=50, le=10_000_000)
     n_proposal: int = Field(5000, ge=50, le=10_000_000)
+    proposal_se_ratio: float = Field(0.5, ge=0.0, le=10.0)
     dr_scale: float = Field(0.1, ge=0.0, le=1.0)
     dr_rounds: int = Field(2, ge=0, le=10_000)
     warm_dr: bool = False

@@ -120,7 +120,8 @@ class StoredEvaluator(EvidenceEvaluator):
         finally:
             for p in pools:
                 p.close()
-        ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=seed + 7, map_fn=dmap)
+        ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=seed + 7,
+                            proposal_se_ratio=cfg.proposal_se_ratio, map_fn=dmap)
         ev.warnings = list(res.warnings) + ev.warnings
         if pools and pools[0].restarts:
             ev.warnings.append(f"coordinator actor restored {pools[0].restarts} time(s) after a lost worker")
