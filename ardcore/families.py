@@ -12,7 +12,8 @@ effect is and how one is added to a model):
   parameter), a saturating stiffness, a sine (pendulum) stiffness L sin(x/L)
   with its period L a shape parameter, a one-sided contact stiffness max(x - g, 0) above or below a
   gap g (a stop, a bumper), and a constant offset.
-* **Inputs** u: u, u^2, u^3, u x, u v.
+* **Inputs** u: u, u^2, u^3, u x, u v, and the input's rate du/dt (a transfer-function zero: a small
+  lead or lag of the input, e.g. a skew between the channels that sampled u and y, is u - tau du/dt).
 * **Periodic forcing** at a frequency found in the residual spectrum: a sine
   and a cosine (supplied as extra input columns, since expressions have no
   time variable); the frequency is a shape parameter refined by the screen.
@@ -37,7 +38,7 @@ from __future__ import annotations
 
 import sympy as sp
 
-from .effects import Effect, dynamic_states, oscillator_pairs, user_inputs
+from .effects import RATE_COLUMN, Effect, dynamic_states, oscillator_pairs, user_inputs
 from .model import ModelSpec
 
 
@@ -73,7 +74,11 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     for u in inputs:
         out += [Effect(f"input({u})", "input", (u,), f"linear input {u}", code=f"u1{u}"),
                 Effect(f"input_quadratic({u})", "input", (f"{u}**2",), f"quadratic input {u}^2", code=f"u2{u}"),
-                Effect(f"input_cubic({u})", "input", (f"{u}**3",), f"cubic input {u}^3", code=f"u3{u}")]
+                Effect(f"input_cubic({u})", "input", (f"{u}**3",), f"cubic input {u}^3", code=f"u3{u}"),
+                # a zero of the transfer function; for a small lag or lead tau of the input (a skew between the
+                # channels, an amplifier's bandwidth) u(t - tau) ~ u - tau du/dt
+                Effect(f"input_rate({u})", "input", (RATE_COLUMN.format(u),), f"rate of input {u}, d{u}/dt (a zero; "
+                       "a small lead or lag of the input)", code=f"ur{u}", rate_of=u)]
     pair_v = {v for _, v in oscillator_pairs(spec)}
     for s_ in dynamic_states(spec):
         if s_ in pair_v:

@@ -176,6 +176,13 @@ class ModelSpec(BaseModel):
     def revalidate(self) -> "ModelSpec":
         return type(self).model_validate(self.model_dump())
 
+    def model_copy(self, *, update=None, deep: bool = False) -> "ModelSpec":
+        """pydantic's copy without the cached symbolic model: a copy with another drift or other inputs must
+        not compile the original's (its kernel would be cached under the copy's structure hash)."""
+        new = super().model_copy(update=update, deep=deep)
+        new.__dict__.pop("sym", None)
+        return new
+
     def structure_hash(self) -> str:
         """Hash of everything that determines the compiled kernel."""
         d = self.model_dump(exclude={"name", "description", "substeps"})

@@ -15,12 +15,13 @@ def base_spec():
 
 
 def forced_data(seed, truth=None, params=None, columns=None, n=4000, dt=0.02) -> Dataset:
-    """Data of ``truth`` (default: the base model) at TRUE updated by ``params``; ``columns(t)`` gives extra
-    input columns the truth needs (a forcing's sine and cosine), which the data set does not carry."""
+    """Data of ``truth`` (default: the base model) at TRUE updated by ``params``; ``columns(t, {"u": u})`` gives extra
+    input columns the truth needs (a forcing's sine and cosine, an input's rate), which the data set does not
+    carry."""
     rng = np.random.default_rng(seed)
     t = np.arange(n) * dt
     u = np.convolve(rng.standard_normal(n + 20), np.ones(8) / np.sqrt(8), mode="same")[:n]
     truth = truth or base_spec()
-    inputs = {"u": u, **(columns(t) if columns else {})}
+    inputs = {"u": u, **(columns(t, {"u": u}) if columns else {})}
     d = simulate_model(truth, {**TRUE, **(params or {})}, t, seed, inputs=inputs, x0=[0.0] * len(truth.states))
     return Dataset(d.t, {"y": d.columns["y"], "u": u}, d.meta)

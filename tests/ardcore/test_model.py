@@ -58,3 +58,28 @@ def test_fixed_parameter_leaves_phi():
 def test_extra_fields_rejected():
     with pytest.raises(ValidationError):
         ModelSpec(**base(evil=1))
+
+
+def test_a_copy_with_another_drift_compiles_its_own_kernel():
+    """model_copy(update=...) after the symbolic model was built must not reuse it (the copy's kernel would be
+    the original's, cached under the copy's structure hash)."""
+    import numpy as np
+
+    from ardflow.ardcore.ekf import compile_model
+    from ardflow.ardcore.library import builtin
+
+    spec = builtin("forced_linear_oscillator")
+    assert spec.sym is not None  # built and cached on the original
+    d = dict(spec.drift)
+    v = [s for s in spec.states if s != d[spec.states[0]]][0]
+    d[v] = f"({d[v]}) + kx*w"
+    copy = spec.model_copy(update={"name": "copy_kx", "drift": d, "inputs": list(spec.inputs) + ["w"],
+                                   "parameters": list(spec.parameters) + ["kx"]})
+    cm = compile_model(copy)
+    assert "kx" in cm.param_names
+    t = np.arange(200) * 0.01
+    U = np.column_stack([np.zeros((200, len(spec.inputs))), np.ones(200)])
+    phi = {p: 1.0 for p in copy.free_parameters}
+    _, H0 = cm.simulate({**phi, "kx": 0.0}, t, inputs=U, nsub=1, noise=False)
+    _, H1 = cm.simulate({**phi, "kx": 5.0}, t, inputs=U, nsub=1, noise=False)
+    assert np.abs(H1 - H0).max() > 1e-3

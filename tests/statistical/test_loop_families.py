@@ -74,6 +74,8 @@ FAMILIES = {
                                 {"forcing"}, 1.37, frequency=1.37),
     "input nonlinearity": planted("input_cubic(u)", "input", "u**3", "u3u", 0.35),
     "input-state cross": planted("input_cross(u*y)", "input", "u*y", "uuy", 1.5),
+    # a small lead of the input (u(t + tau) ~ u + tau du/dt, tau = 0.01 of the 0.02 sampling interval x b = 5)
+    "input rate": planted("input_rate(u)", "input", "d_u_dt", "uru", 0.05, rate_of="u"),
     "offset": planted("offset", "offset", "1", "off", 0.8),
     # in a linear model a sensor bias and a constant force are the same data: either is the right answer
     "sensor bias": planted("sensor_bias", "measurement", "1", "mb", 0.05, {"sensor_bias", "offset"},
@@ -119,14 +121,43 @@ def _found_first(case: str, planted_effect: tuple, seed: int, targets: tuple = (
     return first
 
 
+def _true_model_interval(eff, target, value, seed) -> tuple[float, float]:
+    """Laplace posterior mean and sd of the planted coefficient in the *true* model on the same record: what
+    no method can beat on this noise realisation."""
+    import numpy as np
+
+    from ardflow.ardcore.effects import with_columns
+    from ardflow.ardcore.evidence import laplace
+    from ardflow.ardcore.posterior import ModelPosterior
+    from ardflow.ardcore.priors import LogNormal, Normal
+
+    from ..forced_oscillator import TRUE
+
+    truth, names = augment(base_spec(), eff, target)
+    priors = {"k": LogNormal(median=15.0, cov=100), "c": LogNormal(median=0.3, cov=200),
+              "b": LogNormal(median=5.0, cov=200), "sigma": LogNormal(median=0.3, cov=200),
+              names[0]: Normal(mean=0.0, sd=100.0 * abs(value))}
+    tg = ModelPosterior(truth, priors, with_columns(make_data(seed, eff, target, value), eff))
+    _, xmap, C = laplace(tg, np.array([TRUE.get(p, value) for p in tg.prior.names]))
+    i = tg.prior.names.index(names[0])
+    return float(xmap[i]), float(np.sqrt(C[i, i]))
+
+
 @pytest.mark.parametrize("family", list(FAMILIES))
 def test_planted_family_is_found(family):
     eff, target, value, accepted, shape = FAMILIES[family]
     first = _found_first(family, FAMILIES[family], 1)
     if first["effect"].split("(")[0] == eff.name.split("(")[0]:
         # the planted family itself (shaped ones too: their corners are rounded, their shapes fitted), its
-        # coefficient's 99 % interval holds the truth
+        # coefficient's 99 % interval holds the truth; or, where this record's noise puts even the true
+        # model's own 99 % interval off the truth (1 % of records: the input rate on seed 1, z = 3.0, where
+        # 24 seeds show its posterior calibrated), the loop's estimate agrees with the true model's
         for post in first["posterior"].values():
+            if not post["q005"] < value < post["q995"] and len(eff.terms) == 1 and not eff.shape:
+                m, sd = _true_model_interval(eff, target, value, 1)
+                assert abs(m - value) > 2.576 * sd and abs(post["mean"] - m) < 2 * max(sd, post["sd"]), \
+                    (value, post, m, sd)
+                continue
             assert post["q005"] < value < post["q995"], (value, post)
 
 
