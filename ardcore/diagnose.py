@@ -181,9 +181,37 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     finally:
         close()
     out = _report(spec, data, test_data, first, rounds, arrays, row, notes, cand.label)
-    out["wall_s"] = time.perf_counter() - t_start
     final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), cand.substeps)
-    return Diagnosis(out, arrays, initial, final)
+    simulation = _simulation(final, cur_data, cur_test, config, say, out)
+    out["wall_s"] = time.perf_counter() - t_start
+    return Diagnosis(out, arrays, initial, final, simulation)
+
+
+def _simulation(final: FittedModel, data: Dataset, test: Dataset, config: DiagnoseConfig, say,
+                out: dict) -> FittedModel | None:
+    """The final model's simulation fit (:mod:`ardcore.simulation`), its record and free run in ``out``."""
+    from .simulation import simulation_fit
+
+    if not config.simulation_factors:
+        return None
+    say("simulation fit: process-noise factors " + ", ".join(f"{f:g}" for f in config.simulation_factors)
+        + " on held-out data")
+    try:
+        sim = simulation_fit(final.spec, final.phi, data, substeps=final.substeps,
+                             factors=tuple(config.simulation_factors), held_out=config.simulation_held_out,
+                             init_samples=config.init_samples)
+    except (FitError, ValueError, np.linalg.LinAlgError) as e:  # the posterior's own result stands
+        out["simulation"] = {"error": f"{type(e).__name__}: {e}"}
+        return None
+    if sim is None:
+        return None
+    model = FittedModel(final.spec, sim.phi, final.effects, final.substeps)
+    fr = free_run(final.spec, sim.phi, test, init_samples=config.init_samples, substeps=final.substeps)
+    out["simulation"] = {**sim.to_json(), "free_run": {k: fr[k] for k in ("rms_error", "relative_rms_error", "n")}}
+    say(f"simulation fit: factor {sim.factor:g} (held-out free run "
+        + ", ".join(f"x{k:g} {v:.4g}" for k, v in sim.held_out_rms.items())
+        + f"); free-run RMS error {fr['rms_error']:.4g}")
+    return model
 
 
 _BASE_FIT = ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean", "sd")

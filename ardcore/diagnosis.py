@@ -57,13 +57,17 @@ class Diagnosis:
     arrays : dict
         ``before``/``after``: residual tests with spectra, innovations, injected process noise, free run.
     initial, final : FittedModel
-        The model as given (fitted) and as the loop left it.
+        The model as given (fitted) and as the loop left it (its posterior mean).
+    simulation : FittedModel or None
+        The final structure's simulation fit (:mod:`ardcore.simulation`: fitted at the process-noise level
+        that free-runs best on held-out data; None when not made).
     """
 
     report: dict
     arrays: dict
     initial: FittedModel
     final: FittedModel
+    simulation: FittedModel | None = None
 
     @property
     def verdict(self) -> str:

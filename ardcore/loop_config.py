@@ -77,6 +77,13 @@ class DiagnoseConfig(BaseModel):
     rivals : int
         At most this many twins per picked candidate (the closest first): a cubic, a sine and an
         asymmetric stiffness can all explain the same softening until the evidence sees their higher orders.
+    simulation_factors : tuple of float
+        Factors of the process noise tried for the final model's **simulation fit**
+        (:mod:`ardcore.simulation`: maximum likelihood at each, free run on the held-out last
+        ``simulation_held_out`` of the estimation record; the best, if it beats the posterior's own noise by
+        5 %, is refitted on the whole record). Empty: no simulation fit.
+    simulation_held_out : float
+        Share of the estimation record held out to choose the simulation fit's noise factor.
     """
 
     model_config = SETTINGS
@@ -101,3 +108,6 @@ class DiagnoseConfig(BaseModel):
     rival_nats: float = Field(5.0, ge=0)
     rivals: int = Field(2, ge=0, le=10)
     twin_nats: float = Field(1.0, ge=0)
+    # the simulation fit of the final model
+    simulation_factors: tuple[float, ...] = (0.3, 0.1, 0.03)
+    simulation_held_out: float = Field(0.3, gt=0, lt=1)

@@ -136,6 +136,15 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
             "<h2>Error before and after</h2><table><tr><th>measure</th><th>before</th><th>after</th></tr>"]
     body += [f"<tr><td>{html.escape(k)}</td><td>{f(b)}</td><td>{f(a)}</td></tr>" for k, b, a in rows]
     body.append("</table>")
+    sim = j.get("simulation") or {}
+    if "factor" in sim:
+        held = ", ".join(f"x{k}: {v:.4g}" for k, v in sim["held_out_rms"].items())
+        body.append(f"<h2>Simulation fit</h2><p>The final structure fitted at {f(sim['factor'])} x its posterior "
+                    f"process noise ({html.escape(', '.join(sim['noise_parameters']))}), the factor that free-ran "
+                    f"best on the held-out last {sim['held_out_samples']} samples of the estimation record "
+                    f"({html.escape(held)}): free-run RMS error {f(sim['free_run']['rms_error'])}. A predictive "
+                    "choice for simulation, not the evidence's: the posterior, its intervals and the model "
+                    "selection above are unchanged.</p>")
     if j.get("added"):
         body.append(f"<h2>Effects added</h2><pre>{html.escape(json.dumps(j['added'], indent=1))}</pre>")
     body.append("<h2>Candidates confirmed by evidence</h2><table><tr><th>effect</th><th>target</th>"
