@@ -65,9 +65,13 @@ def noise_parameters(spec: ModelSpec) -> list[str]:
     return out
 
 
-def _fit(cm, data: Dataset, phi: dict, names: list[str], substeps: int | None, maxfun: int) -> dict:
-    """Maximum likelihood of ``names`` (scaled by their magnitude) from ``phi``, the rest held."""
-    lik = cm.bind(data, substeps)
+def _fit(task) -> dict:
+    """Maximum likelihood of ``names`` (scaled by their magnitude) from ``phi``, the rest held; the noise
+    parameters at ``factor`` x their value in ``phi``. One task of a process pool: (spec, phi, noise, factor,
+    record, names, substeps, maxfun)."""
+    spec, phi, noise, factor, data, names, substeps, maxfun = task
+    phi = {**phi, **{p: phi[p] * factor for p in noise}}
+    lik = compile_model(spec).bind(data, substeps)
     scale = np.array([abs(phi[p]) if phi[p] != 0 else 1.0 for p in names])
 
     def nll(z):
@@ -86,7 +90,7 @@ def _fit(cm, data: Dataset, phi: dict, names: list[str], substeps: int | None, m
 
 def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int | None = None,
                    factors: tuple = (0.3, 0.1, 0.03), held_out: float = 0.3, min_gain: float = 0.05,
-                   init_samples: int = 50, maxfun: int = 3000) -> SimulationFit | None:
+                   init_samples: int = 50, maxfun: int = 3000, map_fn=None) -> SimulationFit | None:
     """Choose the process-noise factor for simulation on held-out data (see module docstring).
 
     Parameters
@@ -100,6 +104,8 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
         Share of the record, at its end, that the free runs are scored on.
     min_gain : float
         Relative reduction of the held-out free-run error a factor needs over factor 1.
+    map_fn : callable, optional
+        ``map_fn(fn, tasks)`` runs the factors' fits (a process pool's map; default: one after another).
 
     Returns
     -------
@@ -112,25 +118,19 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
     n_fit = int(round(n * (1 - held_out)))
     if not noise or not factors or n_fit < 4 * init_samples or n - n_fit < 4 * init_samples:
         return None
-    cm = compile_model(spec)
     fit_part, test_part = data.slice(0, n_fit), data.slice(n_fit, None)
     names = [p for p in spec.free_parameters if p not in noise]
-
-    def at(factor: float, record: Dataset, start: dict) -> dict:
-        q = dict(start)
-        q.update({p: phi[p] * factor for p in noise})
-        return _fit(cm, record, q, names, substeps, maxfun)
-
-    def scored(q: dict) -> float:
+    run = map_fn or (lambda fn, tasks: [fn(t) for t in tasks])
+    grid = (1.0, *[f for f in factors if f != 1.0])
+    fitted = dict(zip(grid, run(_fit, [(spec, phi, noise, f, fit_part, names, substeps, maxfun) for f in grid])))
+    rms = {}
+    for f, q in fitted.items():
         r = free_run(spec, q, test_part, init_samples=init_samples, substeps=substeps)["rms_error"]
-        return float(r) if np.isfinite(r) else float("inf")
-
-    fitted = {1.0: at(1.0, fit_part, phi)}
-    rms = {1.0: scored(fitted[1.0])}
-    for f in factors:
-        fitted[f] = at(f, fit_part, fitted[1.0])
-        rms[f] = scored(fitted[f])
+        rms[f] = float(r) if np.isfinite(r) else float("inf")
     best = min(rms, key=rms.get)
     if best == 1.0 or not rms[best] < (1 - min_gain) * rms[1.0]:
         return SimulationFit(1.0, dict(phi), noise, rms, n_fit, n - n_fit)
-    return SimulationFit(best, at(best, data, fitted[best]), noise, rms, n_fit, n - n_fit)
+    # the whole record at the chosen factor, from the held-out fit (its noise parameters back at 1 x phi's)
+    start = {**fitted[best], **{p: phi[p] for p in noise}}
+    return SimulationFit(best, _fit((spec, start, noise, best, data, names, substeps, maxfun)), noise, rms,
+                         n_fit, n - n_fit)
