@@ -232,3 +232,18 @@ def test_van_der_pol_limit_cycle_from_a_linear_model():
     assert post["q005"] < -0.8 < post["q995"], post
     fr = rep["after"]["free_run"]
     assert abs(fr["amplitude_error"]) < 0.05 and abs(fr["frequency_error"]) < 0.05, fr
+
+
+def test_input_rate_posterior_is_calibrated_over_seeds():
+    """The input rate's coefficient in the true model: over 16 records the spread of (estimate - truth) / sd
+    is that of a standard normal (a likelihood that mistook the rough rate column would be overconfident)."""
+    import numpy as np
+
+    eff, target, value, _, _ = FAMILIES["input rate"]
+    z = []
+    for seed in range(9, 25):
+        m, sd = _true_model_interval(eff, target, value, seed)
+        z.append((m - value) / sd)
+    z = np.array(z)
+    print(f"\n[input rate calibration] z mean {z.mean():.2f}, sd {z.std(ddof=1):.2f}")
+    assert abs(z.mean()) < 0.8 and 0.5 < z.std(ddof=1) < 1.5, np.round(z, 2)
