@@ -116,7 +116,8 @@ class Screener:
         """scale per term so that scale * term has the rms of the target's dynamics (None if a term is ~0)."""
         if effect.where == "noise":
             return [1.0]  # k is already dimensionless: the log of the noise factor
-        cols = effect.columns_for(data.t, data.columns)
+        # columns the model has already (an input's rate added in an earlier round) are in self.U
+        cols = {c: v for c, v in effect.columns_for(data.t, data.columns).items() if c not in self.spec.inputs}
         U = np.column_stack([self.U] + [cols[c] for c in cols]) if cols else self.U
         fspec = self.spec.model_copy(update={"inputs": list(self.spec.inputs) + list(cols)}) if cols else self.spec
         vals = eval_exprs(fspec, list(effect.terms), self.X, U)

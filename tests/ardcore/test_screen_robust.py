@@ -160,3 +160,18 @@ def test_forward_selection_scores_jointly_and_finds_what_the_first_leaves():
                                                                            for c in got[:8]]
     second = next(p for p in picked[1:] if p.effect.name in ("cubic_stiffness(y)", "quadratic_stiffness(y)"))
     assert second.conditional_log_bayes_factor > 3.0
+
+
+def test_a_model_that_has_the_input_rate_screens_it_again_without_error():
+    """A later round screens the library on a model that holds an input's rate already: its column is one of
+    the model's inputs (it used to be appended a second time, and building the term's function failed)."""
+    from ardflow.ardcore.effects import augment, with_columns
+
+    rate = next(e for e in candidate_effects(base_spec()) if e.name == "input_rate(u)")
+    truth, names = augment(base_spec(), rate, "v")
+    data = with_columns(forced_data(3, truth, {names[0]: 0.05}, rate.columns_for), rate)
+    phi = {**_fit(base_spec(), data, [16.0, 0.4, 8.0, 0.3]), names[0]: 0.05}
+    got = screen_effects(truth, phi, data, [rate], ["v"], ["y"])
+    assert len(got) == 1 and np.isfinite(got[0].log_bayes_factor)
+    # the rate is in the model at its true value: another one is worth nothing
+    assert got[0].log_bayes_factor < 3
