@@ -160,7 +160,8 @@ def with_columns(data: Dataset, eff: Effect) -> Dataset:
 def user_inputs(spec: ModelSpec) -> list[str]:
     """The model's inputs without the columns the loop made (a periodic forcing's sine/cosine, an input's
     rate)."""
-    return [u for u in spec.inputs if not re.fullmatch(r"forcing\d+_(sin|cos)|d_.+_dt", u)]
+    made = r"forcing\d+_(sin|cos)|" + re.escape(RATE_COLUMN).replace(re.escape("{}"), ".+")
+    return [u for u in spec.inputs if not re.fullmatch(made, u)]
 
 
 def oscillator_pairs(spec: ModelSpec) -> list[tuple[str, str]]:

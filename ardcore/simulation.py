@@ -52,16 +52,15 @@ def noise_parameters(spec: ModelSpec) -> list[str]:
     """Free parameters that scale the process noise: each diffusion expression is proportional to them
     (sigma, 2*sigma: scaling the parameter scales the noise). Empty when a diffusion term depends on a
     free parameter in another way (exp(s), s + 1), where scaling it would not scale the noise."""
-    free = set(spec.free_parameters)
+    sm = spec.sym  # parsed, with constants, fixed values and derived quantities substituted
     out: list[str] = []
-    for expr in spec.diffusion.values():
-        e = sp.sympify(str(expr))
-        ps = [str(s) for s in e.free_symbols if str(s) in free]
+    for e in sm.diffusion:
+        ps = [p for p in sm.params if p in e.free_symbols]
         if not ps:
             continue
-        if len(ps) != 1 or sp.simplify(e - sp.Symbol(ps[0]) * sp.diff(e, sp.Symbol(ps[0]))) != 0:
+        if len(ps) != 1 or sp.simplify(e - ps[0] * sp.diff(e, ps[0])) != 0:
             return []
-        out += [p for p in ps if p not in out]
+        out += [str(p) for p in ps if str(p) not in out]
     return out
 
 

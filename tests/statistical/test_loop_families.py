@@ -129,14 +129,13 @@ def _true_model_interval(eff, target, value, seed) -> tuple[float, float]:
     from ardflow.ardcore.effects import with_columns
     from ardflow.ardcore.evidence import laplace
     from ardflow.ardcore.posterior import ModelPosterior
-    from ardflow.ardcore.priors import LogNormal, Normal
+    from ardflow.ardcore.priors import Normal
 
     from ..forced_oscillator import TRUE
 
     truth, names = augment(base_spec(), eff, target)
-    priors = {"k": LogNormal(median=15.0, cov=100), "c": LogNormal(median=0.3, cov=200),
-              "b": LogNormal(median=5.0, cov=200), "sigma": LogNormal(median=0.3, cov=200),
-              names[0]: Normal(mean=0.0, sd=100.0 * abs(value))}
+    # the loop's own priors on the model's parameters, a broad one on the planted coefficient
+    priors = {**study().models[0].priors, names[0]: Normal(mean=0.0, sd=100.0 * abs(value))}
     tg = ModelPosterior(truth, priors, with_columns(make_data(seed, eff, target, value), eff))
     _, xmap, C = laplace(tg, np.array([TRUE.get(p, value) for p in tg.prior.names]))
     i = tg.prior.names.index(names[0])
