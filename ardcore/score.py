@@ -168,25 +168,19 @@ class Screener:
         e0, S0 = f0.innovations.ravel(), f0.innovation_var.ravel()
         ok = np.isfinite(e0) & np.isfinite(S0) & (S0 > 0)
         e0, S0 = e0[ok], S0[ok]
-        D_e, D_S = [], []
-        for p in allp:
-            v = base[p]
-            h = 1e-4 * abs(v) if v != 0 else 1e-5
-            r = []
-            for sgn in (1, -1):
-                fr = lik.filter({**base, p: v + sgn * h})
-                r.append((fr.innovations.ravel()[ok], fr.innovation_var.ravel()[ok]))
-            D_e.append((r[0][0] - r[1][0]) / (2 * h))
-            D_S.append((r[0][1] - r[1][1]) / (2 * h))
-        De, DS = np.array(D_e), np.array(D_S)
-        bad = ~np.all(np.isfinite(De), axis=0) | ~np.all(np.isfinite(DS), axis=0)
-        De[:, bad], DS[:, bad] = 0.0, 0.0
         k = len(self.theta)
-        own = Basis(De[:k], DS[:k], e0, S0, ok, self.eps)
         # at zero coefficients a candidate's filter is the model's own, so the model's sensitivities and
         # innovations are the same in every batch and any set of candidates can be scored jointly later --
         # unless a term is not finite somewhere (0 * inf): then that batch's rows are not stored
         same = ok.shape == self._ref_ok.shape and bool(np.array_equal(ok, self._ref_ok))
+        if same and self.basis is not None:
+            # the model's own rows are known: only the new coefficients are differentiated (a shape profile
+            # calls this for every value it tries, and the model's own 2k filter runs dominated it)
+            De, DS = self._sensitivities(lik, base, allp[k:], ok)
+            De, DS = np.vstack([self.basis.De, De]), np.vstack([self.basis.DS, DS])
+        else:
+            De, DS = self._sensitivities(lik, base, allp, ok)
+        own = Basis(De[:k], DS[:k], e0, S0, ok, self.eps)
         if same and self.basis is None:
             self.basis = Basis(De[:k].copy(), DS[:k].copy(), e0, S0, ok, self.eps)
         groups, pos = [], k
@@ -196,6 +190,25 @@ class Screener:
         self.last_rows = [(De[gr], DS[gr]) if same else None for gr in groups]
         g, Inf, psi = own.score(De, DS)
         return groups, g, Inf, psi
+
+
+    @staticmethod
+    def _sensitivities(lik, base: dict, params: list[str], ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Central differences of the innovations and their variances (where ``ok``) in each of ``params``."""
+        D_e, D_S = [], []
+        for p in params:
+            v = base[p]
+            h = 1e-4 * abs(v) if v != 0 else 1e-5
+            r = []
+            for sgn in (1, -1):
+                fr = lik.filter({**base, p: v + sgn * h})
+                r.append((fr.innovations.ravel()[ok], fr.innovation_var.ravel()[ok]))
+            D_e.append((r[0][0] - r[1][0]) / (2 * h))
+            D_S.append((r[0][1] - r[1][1]) / (2 * h))
+        De, DS = np.array(D_e).reshape(len(params), -1), np.array(D_S).reshape(len(params), -1)
+        bad = ~np.all(np.isfinite(De), axis=0) | ~np.all(np.isfinite(DS), axis=0)
+        De[:, bad], DS[:, bad] = 0.0, 0.0
+        return De, DS
 
 
 def nuisance_map(Inf: np.ndarray, k: int, grp: np.ndarray) -> np.ndarray:
