@@ -289,6 +289,19 @@ def _within(effect: Effect, value: float) -> bool:
     return lo <= value <= hi
 
 
+EDGE = 0.05
+"""A profiled shape within this distance (in log) of its range's end is at the edge (the golden-section
+refinement of :func:`ardcore.screen._screen_shape` ends within ~0.04 of an end it climbs to)."""
+
+
+def at_range_edge(effect: Effect, value: float) -> bool:
+    """``value`` at (or beyond) either end of ``effect``'s shape range."""
+    _, lo, hi = effect.shape
+    if lo <= 0:
+        return value <= lo or value >= hi
+    return value >= hi * math.exp(-EDGE) or value <= lo * math.exp(EDGE)
+
+
 def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
     """The effect a confirmation fits and the prior of its shape parameter ({} for none): a width, a friction
     velocity or a stiffness period is fitted with the coefficients (the screen's profile maximum is only
@@ -296,6 +309,11 @@ def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
     frequency stays at the screen's refined value (its sine and cosine are input columns)."""
     src = sc.source
     if src is None or not src.shape or src.shape[0] == "f" or sc.shape_value is None:
+        return sc.effect, {}
+    if at_range_edge(src, sc.shape_value):
+        # the profile rises to the edge of the library's range: the data want another family there (a
+        # smooth sign as wide as the velocities is a viscous damping, which the model has), and a fitted
+        # shape would only leave the range; the candidate is confirmed at the screen's shape
         return sc.effect, {}
     pname = shape_parameter_name(ms, src, target)
     return src.with_shape_parameter(pname), {pname: shape_prior(src)}
@@ -335,7 +353,7 @@ def _confirmation(sc: Screened, eff: Effect, shape: dict, fit: Fit, row: ModelFi
         survives=bool(kept) and adjusted > threshold, fit=fit, fitted_effect=eff, shape_prior=shape)
 
 
-def joint_fit(spec, cand, row, best, survivors, data, config, say):
+def joint_fit(spec, cand, row, survivors, data, config, say):
     """The current model with every surviving effect added, each new term at the ARD precision its own
     re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
 
@@ -357,6 +375,28 @@ def joint_fit(spec, cand, row, best, survivors, data, config, say):
                 priors[k] = frozen_ard(a)
     acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed, ard=[], substeps=cand.substeps)
     say("fitting the distinct survivors together: " + ", ".join(c.effect for c in survivors))
-    arow, amr = run_candidate(acand, adata, spec, 0, warm=best.fit.mr.sampler, final_posterior=config.posterior)
+    arow, amr = run_candidate(acand, adata, spec, 0, warm=joint_start(acand, adata, survivors, fixed),
+                              final_posterior=config.posterior)
     say(f"  together: ln BF = {arow.log_evidence - row.log_evidence:.2f}")
     return Fit(acand, arow, amr, adata)
+
+
+def joint_start(acand: CandidateSpec, adata, survivors, fixed: dict):
+    """The warm start of a joint fit: of the survivors' own posteriors, each carrying every other survivor's
+    terms (and fitted shape) at that one's posterior mean, the one where the joint posterior is highest.
+
+    The model's shared parameters (stiffness, input gain, process noise) move with each effect added, so
+    the survivors' fits disagree on them by many standard deviations; from the wrong one a Laplace search
+    walks to the joint mode by thousands of Nelder-Mead evaluations."""
+    from .evaluate import _warm_point, build_target
+
+    target = build_target(acand.model_spec(), dict(acand.priors), {}, adata, acand.substeps)
+    best, best_lp = None, -math.inf
+    for s in survivors:
+        others = {n: v for c in survivors if c is not s
+                  for n, v in c.fit.row.mean.items() if n not in s.fit.row.mean and n not in fixed}
+        warm = warm_with(s.fit.mr.sampler, list(others), list(others.values())) if others else s.fit.mr.sampler
+        lp = target(_warm_point(target, warm)).log_posterior
+        if best is None or lp > best_lp:
+            best, best_lp = warm, lp
+    return best

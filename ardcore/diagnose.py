@@ -303,7 +303,7 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rnd: LoopR
     if config.joint and len(survivors) > 1:
         # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
         # others make redundant; taken when it beats the best single effect by more than min_log_bf
-        j = joint_fit(spec, cand, row, best, survivors, data, config, say)
+        j = joint_fit(spec, cand, row, survivors, data, config, say)
         if j.row.log_evidence > best.log_evidence + config.min_log_bf:
             chosen, fit = survivors, j
     jrow = fit.row
