@@ -180,7 +180,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, earlier, rnd, config, say, mapper)
         out = _report(spec, data, test_data, first, rounds, arrays, row, notes, cand.label)
         final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), cand.substeps)
-        simulation = _simulation(final, cur_data, cur_test, config, say, out, mapper)
+        simulation = _simulation(final, cur_data, cur_test, config, say, out)
     finally:
         close()
     out["wall_s"] = time.perf_counter() - t_start
@@ -188,7 +188,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
 
 
 def _simulation(final: FittedModel, data: Dataset, test: Dataset, config: DiagnoseConfig, say,
-                out: dict, mapper=None) -> FittedModel | None:
+                out: dict) -> FittedModel | None:
     """The final model's simulation fit (:mod:`ardcore.simulation`), its record and free run in ``out``."""
     from .simulation import simulation_fit
 
@@ -199,7 +199,7 @@ def _simulation(final: FittedModel, data: Dataset, test: Dataset, config: Diagno
     try:
         sim = simulation_fit(final.spec, final.phi, data, substeps=final.substeps,
                              factors=tuple(config.simulation_factors), held_out=config.simulation_held_out,
-                             init_samples=config.init_samples, map_fn=mapper)
+                             init_samples=config.init_samples)
     except (FitError, ValueError, np.linalg.LinAlgError) as e:  # the posterior's own result stands
         out["simulation"] = {"error": f"{type(e).__name__}: {e}"}
         return None
