@@ -1,9 +1,9 @@
 """Confirmation of screened candidates by the full ARD re-selection (method.md section 9, step 4).
 
 :func:`trace_and_confirm` screens the library (:mod:`ardcore.screen`) and re-selects the model with each of
-the best distinct candidates added under ARD, side by side on a process pool; :func:`split_stability`
-refits a survivor on each half of the record; :func:`joint_fit` fits the distinct survivors of a round
-together. :func:`ardcore.diagnose.diagnose` runs the loop around them.
+the best distinct candidates added under ARD, side by side on a process pool; :func:`~ardcore.loop_checks.split_stability`
+and :func:`ardcore.loop_checks.joint_fit` check the survivors (:mod:`ardcore.loop_checks`);
+:func:`ardcore.diagnose.diagnose` runs the loop around them.
 """
 
 from __future__ import annotations
@@ -351,52 +351,3 @@ def _confirmation(sc: Screened, eff: Effect, shape: dict, fit: Fit, row: ModelFi
         posterior={n: arow.physical(n, scale[n]) for n in names if n in arow.mean},
         shape={n: arow.physical(n, 1.0) for n in shape if n in arow.mean}, scales=scale,
         survives=bool(kept) and adjusted > threshold, fit=fit, fitted_effect=eff, shape_prior=shape)
-
-
-def joint_fit(spec, cand, row, survivors, data, config, say):
-    """The current model with every surviving effect added, each new term at the ARD precision its own
-    re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
-
-    Returns the :class:`Fit` of the model with all of them."""
-    from .priors import frozen_ard
-
-    priors, fixed = essential_from_row(cand, row)
-    aspec, adata = cand.model_spec(), data
-    for c in survivors:
-        n = list(c.scales)
-        aspec, n = augment(aspec, c.fitted_effect, c.target, [c.scales[k] for k in n], names=n)
-        adata = with_columns(adata, c.fitted_effect)
-        priors.update(c.shape_prior)
-        for k in n:
-            a = c.psi_opt.get(k, 0.0)
-            if k not in c.kept_terms or is_pruned(a):
-                fixed[k] = 0.0
-            else:
-                priors[k] = frozen_ard(a)
-    acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed, ard=[], substeps=cand.substeps)
-    say("fitting the distinct survivors together: " + ", ".join(c.effect for c in survivors))
-    arow, amr = run_candidate(acand, adata, spec, 0, warm=joint_start(acand, adata, survivors, fixed),
-                              final_posterior=config.posterior)
-    say(f"  together: ln BF = {arow.log_evidence - row.log_evidence:.2f}")
-    return Fit(acand, arow, amr, adata)
-
-
-def joint_start(acand: CandidateSpec, adata, survivors, fixed: dict):
-    """The warm start of a joint fit: of the survivors' own posteriors, each carrying every other survivor's
-    terms (and fitted shape) at that one's posterior mean, the one where the joint posterior is highest.
-
-    The model's shared parameters (stiffness, input gain, process noise) move with each effect added, so
-    the survivors' fits disagree on them by many standard deviations; from the wrong one a Laplace search
-    walks to the joint mode by thousands of Nelder-Mead evaluations."""
-    from .evaluate import _warm_point, build_target
-
-    target = build_target(acand.model_spec(), dict(acand.priors), {}, adata, acand.substeps)
-    best, best_lp = None, -math.inf
-    for s in survivors:
-        others = {n: v for c in survivors if c is not s
-                  for n, v in c.fit.row.mean.items() if n not in s.fit.row.mean and n not in fixed}
-        warm = warm_with(s.fit.mr.sampler, list(others), list(others.values())) if others else s.fit.mr.sampler
-        lp = target(_warm_point(target, warm)).log_posterior
-        if best is None or lp > best_lp:
-            best, best_lp = warm, lp
-    return best

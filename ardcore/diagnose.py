@@ -40,8 +40,8 @@ from typing import Callable
 
 import numpy as np
 
-from .loop_checks import Added, backward_check, split_stability
-from .confirm import Confirmation, joint_fit, pool_mapper, trace_and_confirm
+from .loop_checks import Added, backward_check, joint_fit, split_stability
+from .confirm import Confirmation, pool_mapper, trace_and_confirm
 from .data import Dataset
 from .effects import Effect, with_columns
 from .errors import FitError, SpecError

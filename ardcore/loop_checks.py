@@ -1,5 +1,6 @@
 """The loop's checks on what it adds (method.md section 9, step 4): a survivor's stability over the two
-halves of the record (:func:`split_stability`) and, after each round, whether effects of earlier rounds are
+halves of the record (:func:`split_stability`), the round's survivors fitted together (:func:`joint_fit`)
+and, after each round, whether effects of earlier rounds are
 still worth their place beside the later ones (:func:`backward_check`, with the Savage-Dickey shortcut
 :func:`savage_dickey` for effects far above their threshold).
 """
@@ -11,10 +12,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .confirm import Confirmation, _fit_task, essential_from_row
+from .confirm import Confirmation, Fit, _fit_task, essential_from_row, warm_with
+from .effects import augment, with_columns
+from .jsonio import is_pruned
 from .data import Dataset
 from .fit import ModelFit
-from .study import CandidateSpec, StudySpec
+from .study import CandidateSpec, StudySpec, run_candidate
 
 
 def _continued_half(half: CandidateSpec, row: ModelFit, data: Dataset, mid: int) -> tuple[CandidateSpec, Dataset]:
@@ -160,3 +163,52 @@ def backward_check(spec, cand, row, bmr, data, earlier_added: list[Added], this_
         say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
             f"effects, below the {x.threshold:.1f} it passed: dropped")
         cand, (row, bmr) = tasks[k][0], fits[k]
+
+
+def joint_fit(spec, cand, row, survivors, data, config, say):
+    """The current model with every surviving effect added, each new term at the ARD precision its own
+    re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
+
+    Returns the :class:`Fit` of the model with all of them."""
+    from .priors import frozen_ard
+
+    priors, fixed = essential_from_row(cand, row)
+    aspec, adata = cand.model_spec(), data
+    for c in survivors:
+        n = list(c.scales)
+        aspec, n = augment(aspec, c.fitted_effect, c.target, [c.scales[k] for k in n], names=n)
+        adata = with_columns(adata, c.fitted_effect)
+        priors.update(c.shape_prior)
+        for k in n:
+            a = c.psi_opt.get(k, 0.0)
+            if k not in c.kept_terms or is_pruned(a):
+                fixed[k] = 0.0
+            else:
+                priors[k] = frozen_ard(a)
+    acand = CandidateSpec(model=aspec, name=aspec.name, priors=priors, fixed=fixed, ard=[], substeps=cand.substeps)
+    say("fitting the distinct survivors together: " + ", ".join(c.effect for c in survivors))
+    arow, amr = run_candidate(acand, adata, spec, 0, warm=joint_start(acand, adata, survivors, fixed),
+                              final_posterior=config.posterior)
+    say(f"  together: ln BF = {arow.log_evidence - row.log_evidence:.2f}")
+    return Fit(acand, arow, amr, adata)
+
+
+def joint_start(acand: CandidateSpec, adata, survivors, fixed: dict):
+    """The warm start of a joint fit: of the survivors' own posteriors, each carrying every other survivor's
+    terms (and fitted shape) at that one's posterior mean, the one where the joint posterior is highest.
+
+    The model's shared parameters (stiffness, input gain, process noise) move with each effect added, so
+    the survivors' fits disagree on them by many standard deviations; from the wrong one a Laplace search
+    walks to the joint mode by thousands of Nelder-Mead evaluations."""
+    from .evaluate import _warm_point, build_target
+
+    target = build_target(acand.model_spec(), dict(acand.priors), {}, adata, acand.substeps)
+    best, best_lp = None, -math.inf
+    for s in survivors:
+        others = {n: v for c in survivors if c is not s
+                  for n, v in c.fit.row.mean.items() if n not in s.fit.row.mean and n not in fixed}
+        warm = warm_with(s.fit.mr.sampler, list(others), list(others.values())) if others else s.fit.mr.sampler
+        lp = target(_warm_point(target, warm)).log_posterior
+        if best is None or lp > best_lp:
+            best, best_lp = warm, lp
+    return best
