@@ -185,7 +185,7 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     effects = candidate_effects(fspec, scales=scales, levels=levels, frequencies=[p["f"] for p in peaks],
                                 frequency_resolution=spectrum.get("resolution", 0.0), extra=list(extra_effects))
     screened = screen_effects(fspec, phi, data, effects, dynamic_states(fspec), list(fspec.observed_columns),
-                              substeps=cand.substeps, progress=say)
+                              substeps=cand.substeps, progress=say, map_fn=mapper)
     screened = [c for c in screened if ((c.source or c.effect).name, c.target) not in present]
     say("screen: " + ", ".join(f"{c.effect.name} -> {c.target} (ln BF ~ {c.log_bayes_factor:.1f})"
                                for c in screened[:5]))

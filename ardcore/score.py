@@ -112,6 +112,10 @@ class Screener:
             e = fr.standardized[:, 0]
             self.eps = np.where(np.isfinite(e), e, 0.0)
 
+    def __getstate__(self) -> dict:
+        # the compiled screening models stay behind: a pool worker loads them from the on-disk kernel cache
+        return {**self.__dict__, "_models": {}}
+
     def term_scale(self, effect: Effect, target: str, data: Dataset) -> list[float] | None:
         """scale per term so that scale * term has the rms of the target's dynamics (None if a term is ~0)."""
         if effect.where == "noise":
