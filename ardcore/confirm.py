@@ -1,8 +1,8 @@
 """Confirmation of screened candidates by the full ARD re-selection (method.md section 9, step 4).
 
 :func:`trace_and_confirm` screens the library (:mod:`ardcore.screen`) and re-selects the model with each of
-the best distinct candidates added under ARD, side by side on a process pool; :func:`~ardcore.loop_checks.split_stability`
-and :func:`ardcore.loop_checks.joint_fit` check the survivors (:mod:`ardcore.loop_checks`);
+the best distinct candidates added under ARD, side by side on a process pool;
+:func:`~ardcore.loop_checks.split_stability` and :func:`~ardcore.loop_checks.joint_fit` check the survivors;
 :func:`ardcore.diagnose.diagnose` runs the loop around them.
 """
 
@@ -212,7 +212,14 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     fitted, tasks = map(list, zip(*[task(sc) for sc in chosen])) if chosen else ([], [])
     if chosen:
         say("confirming by evidence: " + ", ".join(f"{c.effect.name} -> {c.target}" for c in chosen))
-    results = mapper(_fit_task, tasks)
+    # a shape profiled to the edge of its range may leave it when fitted: its fit at the screen's shape runs
+    # beside it (in the same batch, not after it)
+    edge = [i for i, (_, shape) in enumerate(fitted)
+            if shape and at_range_edge(chosen[i].source, chosen[i].shape_value)]
+    hedge = {i: task(chosen[i], fit_shape=False) for i in edge}
+    results = mapper(_fit_task, tasks + [tk for _, tk in hedge.values()])
+    hedged = dict(zip(edge, results[len(tasks):]))
+    results = results[:len(tasks)]
     # a fitted shape that leaves the library's range has become another effect (a saturation level near 0 is
     # an offset, which the library has on its own): that candidate is confirmed at the screen's shape instead
     outside = [i for i, ((_, shape), (arow, _)) in enumerate(zip(fitted, results))
@@ -220,9 +227,10 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     if outside:
         say("  fitted shape outside the library's range, confirmed at the screen's shape instead: "
             + ", ".join(chosen[i].effect.name for i in outside))
-        redo = [task(chosen[i], fit_shape=False) for i in outside]
-        for i, (ft, tk), r in zip(outside, redo, mapper(_fit_task, [tk for _, tk in redo])):
-            fitted[i], tasks[i], results[i] = ft, tk, r
+        redo = [i for i in outside if i not in hedged]
+        hedged.update(zip(redo, mapper(_fit_task, [task(chosen[i], fit_shape=False)[1] for i in redo])))
+        for i in outside:
+            (fitted[i], tasks[i]), results[i] = hedge.get(i) or task(chosen[i], fit_shape=False), hedged[i]
     # the prior odds of each of the N candidates tried (Scott and Berger 2010): its ln BF also pays ln N
     threshold = config.min_log_bf + (math.log(max(1, len(screened))) if config.library_prior else 0.0)
     if chosen and config.library_prior:
@@ -291,7 +299,8 @@ def _within(effect: Effect, value: float) -> bool:
 
 EDGE = 0.05
 """A profiled shape within this distance (in log) of its range's end is at the edge (the golden-section
-refinement of :func:`ardcore.screen._screen_shape` ends within ~0.04 of an end it climbs to)."""
+refinement of :func:`ardcore.screen._screen_shape` ends within ~0.04 of an end it climbs to): its fit may
+leave the range."""
 
 
 def at_range_edge(effect: Effect, value: float) -> bool:
@@ -309,11 +318,6 @@ def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
     frequency stays at the screen's refined value (its sine and cosine are input columns)."""
     src = sc.source
     if src is None or not src.shape or src.shape[0] == "f" or sc.shape_value is None:
-        return sc.effect, {}
-    if at_range_edge(src, sc.shape_value):
-        # the profile rises to the edge of the library's range: the data want another family there (a
-        # smooth sign as wide as the velocities is a viscous damping, which the model has), and a fitted
-        # shape would only leave the range; the candidate is confirmed at the screen's shape
         return sc.effect, {}
     pname = shape_parameter_name(ms, src, target)
     return src.with_shape_parameter(pname), {pname: shape_prior(src)}
