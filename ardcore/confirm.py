@@ -303,12 +303,15 @@ refinement of :func:`ardcore.screen._screen_shape` ends within ~0.04 of an end i
 leave the range."""
 
 
-def at_range_edge(effect: Effect, value: float) -> bool:
-    """``value`` at (or beyond) either end of ``effect``'s shape range."""
+def at_range_edge(effect: Effect, value: float, end: str = "") -> str:
+    """Which end (``"low"``, ``"high"``) of ``effect``'s shape range ``value`` is at or beyond ("" for none);
+    with ``end``, only that one counts."""
     _, lo, hi = effect.shape
-    if lo <= 0:
-        return value <= lo or value >= hi
-    return value >= hi * math.exp(-EDGE) or value <= lo * math.exp(EDGE)
+    log = lo > 0
+    high = value >= (hi * math.exp(-EDGE) if log else hi)
+    low = value <= (lo * math.exp(EDGE) if log else lo)
+    at = "high" if high else "low" if low else ""
+    return at if not end or at == end else ""
 
 
 def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
@@ -318,6 +321,10 @@ def fitted_effect(ms, sc: Screened, target: str) -> tuple[Effect, dict]:
     frequency stays at the screen's refined value (its sine and cosine are input columns)."""
     src = sc.source
     if src is None or not src.shape or src.shape[0] == "f" or sc.shape_value is None:
+        return sc.effect, {}
+    if src.degenerate and at_range_edge(src, sc.shape_value, src.degenerate):
+        # the profile climbs to where the effect becomes a simpler family (the model's own or the library's):
+        # the data want that family, and a fitted shape would walk along the ridge beyond the range
         return sc.effect, {}
     pname = shape_parameter_name(ms, src, target)
     return src.with_shape_parameter(pname), {pname: shape_prior(src)}

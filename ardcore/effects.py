@@ -65,6 +65,10 @@ class Effect:
     under its prior, :func:`shape_prior`, instead of fixed at the screen's profile maximum)."""
     rate_of: str = ""
     """For an input's rate: the input column whose time derivative is the term's column (:meth:`columns_for`)."""
+    degenerate: str = ""
+    """The end of the shape range (``"low"``, ``"high"``) where the effect turns into a simpler family the
+    model or the library has (a smooth sign as wide as the velocities is a viscous damping): a profile that
+    climbs to it is confirmed at the screen's shape, since a fitted shape would walk along the ridge beyond."""
 
     def at(self, value: float) -> "Effect":
         """This effect with its shape parameter fixed to ``value`` (a forcing effect: its frequency)."""

@@ -133,27 +133,27 @@ def _oscillator_effects(x: str, v: str, scales: dict[str, float], inputs: list[s
         out.append(Effect(f"free_play({x})", "free-play",
                           (f"{_ramp(f'{x} - {{delta}}', lo, hi)} - {_ramp(f'-{x} - {{delta}}', lo, hi)}",),
                           f"dead zone of half-width {{delta}} in {x}", code=f"fpw{x}",
-                          shape=("delta", lo, hi)))
+                          shape=("delta", lo, hi), degenerate="low"))  # no gap: a linear stiffness
         out.append(Effect(f"saturation({x})", "stiffness", (f"{x} - {{xs}}*tanh({x}/{{xs}})",),
                           f"stiffness that saturates beyond |{x}| ~ {{xs}}", code=f"st{x}",
-                          shape=("xs", 0.2 * s, 1.5 * s)))
+                          shape=("xs", 0.2 * s, 1.5 * s), degenerate="high"))  # x^3 / 3 xs^2: a cubic
         # a restoring force periodic in x (a pendulum's gravity, a rotor in a periodic field): -k x becomes
         # -k L sin(x/L); its quintic and higher orders are tied to the cubic, so it extrapolates in amplitude.
         # Written as x^3 + O(x^5 / L^2) so that the coefficient is the cubic's and L only bends the higher
         # orders (with x - L sin(x/L) ~ x^3 / 6 L^2 the two trade off along a curved ridge)
         out.append(Effect(f"sine_stiffness({x})", "stiffness", (f"6*{{L}}**2*({x} - {{L}}*sin({x}/{{L}}))",),
                           f"restoring force periodic in {x}, L sin({x}/L) with L = {{L}}", code=f"sn{x}",
-                          shape=("L", 0.3 * s, 3.0 * s)))
+                          shape=("L", 0.3 * s, 3.0 * s), degenerate="high"))  # the cubic itself
         out += _contacts(x, s, level)
     sv = scales.get(v)
     if sv and sv > 0:
         # dry friction with a smooth sign (the EKF sees its slope) and Stribeck's decaying static peak
         out.append(Effect(f"dry_friction({v})", "friction", (f"tanh({v}/{{vs}})",),
                           "dry (Coulomb) friction, smooth sign over {vs}", code=f"fd{v}",
-                          shape=("vs", 0.005 * sv, 0.3 * sv)))
+                          shape=("vs", 0.005 * sv, 0.3 * sv), degenerate="high"))  # v / vs: viscous damping
         out.append(Effect(f"stribeck({v})", "friction", (f"tanh({v}/{0.01 * sv:.3g})*exp(-({v}/{{vs}})**2)",),
                           "Stribeck friction peak decaying over {vs}", code=f"fs{v}",
-                          shape=("vs", 0.02 * sv, 1.0 * sv)))
+                          shape=("vs", 0.02 * sv, 1.0 * sv), degenerate="high"))  # no decay: Coulomb
     for u in inputs:
         out += [Effect(f"input_cross({u}*{x})", "input", (f"{u}*{x}",), f"input-state cross term {u} {x}", code=f"u{u}{x}"),
                 Effect(f"input_cross({u}*{v})", "input", (f"{u}*{v}",), f"input-velocity cross term {u} {v}", code=f"u{u}{v}")]
@@ -207,7 +207,8 @@ def _level_effects(s_: str, scales: dict[str, float], inputs: list[str],
             Effect("offset", "offset", ("1",), "constant offset", code="off")]
     if sc and sc > 0:
         out.append(Effect(f"saturation({s_})", "state", (f"{s_} - {{xs}}*tanh({s_}/{{xs}})",),
-                          f"{s_} saturating beyond ~{{xs}}", code=f"qs{s_}", shape=("xs", 0.2 * sc, 1.5 * sc)))
+                          f"{s_} saturating beyond ~{{xs}}", code=f"qs{s_}", shape=("xs", 0.2 * sc, 1.5 * sc),
+                          degenerate="high"))  # a cube
     over = _overflow(s_, level)
     if over:
         out.append(Effect(f"overflow({s_})", "state", (over[0],), f"acts only above {s_} = {{h0}} (an overflow)",
