@@ -228,9 +228,10 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
         say("  fitted shape outside the library's range, confirmed at the screen's shape instead: "
             + ", ".join(chosen[i].effect.name for i in outside))
         redo = [i for i in outside if i not in hedged]
-        hedged.update(zip(redo, mapper(_fit_task, [task(chosen[i], fit_shape=False)[1] for i in redo])))
+        hedge.update({i: task(chosen[i], fit_shape=False) for i in redo})
+        hedged.update(zip(redo, mapper(_fit_task, [hedge[i][1] for i in redo])))
         for i in outside:
-            (fitted[i], tasks[i]), results[i] = hedge.get(i) or task(chosen[i], fit_shape=False), hedged[i]
+            (fitted[i], tasks[i]), results[i] = hedge[i], hedged[i]
     # the prior odds of each of the N candidates tried (Scott and Berger 2010): its ln BF also pays ln N
     threshold = config.min_log_bf + (math.log(max(1, len(screened))) if config.library_prior else 0.0)
     if chosen and config.library_prior:

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .chains import serial_map
 from .data import Dataset
 from .effects import Effect, with_columns
 from .model import ModelSpec
@@ -161,7 +162,7 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
                                 basis=sc.basis))
     say(f"screened {len(items)} plain candidates")
     # on a pool only once the model's own sensitivities are known (else each worker would compute them)
-    run = map_fn if map_fn is not None and sc.basis is not None else (lambda fn, tasks: [fn(x) for x in tasks])
+    run = map_fn if map_fn is not None and sc.basis is not None else serial_map
     for b in run(_shape_task, [(sc, e, t, data, k, shape_grid) for e, t in shaped]):
         if b is not None:
             if b.basis is not None:

@@ -67,7 +67,7 @@ def noise_parameters(spec: ModelSpec) -> list[str]:
 
 def _whitening(lik, phi: dict, names: list[str]) -> np.ndarray:
     """A square root of the likelihood's curvature inverse at ``phi`` (finite differences, |eigenvalues|):
-    Silverbox's parameters differ by 10 orders of magnitude and are tightly correlated, so a search in their
+    Silverbox's parameters differ by many orders of magnitude and are tightly correlated, so a search in their
     own units takes ~1,300 evaluations per fit and stops early; in these coordinates ~300."""
     x = np.array([phi[p] for p in names])
 
@@ -87,14 +87,11 @@ def _whitening(lik, phi: dict, names: list[str]) -> np.ndarray:
     return D[:, None] * V / np.sqrt(w)
 
 
-def _fit(spec: ModelSpec, phi: dict, noise: list, factor: float, data: Dataset, names: list, substeps,
-         maxfun: int, L: np.ndarray | None = None) -> dict:
-    """Maximum likelihood of ``names`` from ``phi``, the rest held; the noise parameters at ``factor`` x their
-    value in ``phi``. The search runs in coordinates whitened by ``L`` (:func:`_whitening` at ``phi`` when
-    None), where a unit step is about one standard deviation."""
+def _fit(lik, phi: dict, noise: list, factor: float, names: list, maxfun: int, L: np.ndarray) -> dict:
+    """Maximum likelihood (``lik``: a bound likelihood) of ``names`` from ``phi``, the rest held; the noise
+    parameters at ``factor`` x their value in ``phi``. The search runs in coordinates whitened by ``L``
+    (:func:`_whitening`), where a unit step is about one standard deviation."""
     phi = {**phi, **{p: phi[p] * factor for p in noise}}
-    lik = compile_model(spec).bind(data, substeps)
-    L = _whitening(lik, phi, names) if L is None else L
     x0 = np.array([phi[p] for p in names])
 
     def nll(z):
@@ -143,10 +140,12 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
         return None
     fit_part, test_part = data.slice(0, n_fit), data.slice(n_fit, None)
     names = [p for p in spec.free_parameters if p not in noise]
-    L = _whitening(compile_model(spec).bind(fit_part, substeps), phi, names)
+    model = compile_model(spec)
+    lik = model.bind(fit_part, substeps)
+    L = _whitening(lik, phi, names)
     fitted, start = {}, dict(phi)
     for f in sorted({1.0, *factors}, reverse=True):
-        q = _fit(spec, start, noise, f, fit_part, names, substeps, maxfun, L)
+        q = _fit(lik, start, noise, f, names, maxfun, L)
         fitted[f] = q
         start = {**q, **{p: phi[p] for p in noise}}  # the next factor scales phi's noise, not this one's
     rms = {}
@@ -158,5 +157,5 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
         return SimulationFit(1.0, dict(phi), noise, rms, n_fit, n - n_fit)
     # the whole record at the chosen factor, from the held-out fit (its noise parameters back at 1 x phi's)
     start = {**fitted[best], **{p: phi[p] for p in noise}}
-    return SimulationFit(best, _fit(spec, start, noise, best, data, names, substeps, maxfun, L), noise, rms,
+    return SimulationFit(best, _fit(model.bind(data, substeps), start, noise, best, names, maxfun, L), noise, rms,
                          n_fit, n - n_fit)
