@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .chains import ChainReport, RoundStats, pool_stats
+from .chains import ChainReport, Jump, RoundStats, pool_stats
 
 
 # --------------------------------------------------------------------------- coordinator
@@ -109,6 +109,21 @@ class AdaptationPool:
             return fallback
         scale = np.sqrt(np.diag(C))
         return (2.38**2 / d) * C + np.diag((1e-8 * scale) ** 2)
+
+    def jump(self, weight: float, df: float) -> Jump | None:
+        """The independence half of the proposal (:class:`~ardcore.chains.Jump`), fitted to the pooled latter
+        half of every chain's rounds: their mean and covariance as the t's centre and scale. None before
+        there are enough draws for a covariance (or with ``weight`` 0)."""
+        if not weight > 0 or self.rounds == 0 or not all(self.halves):
+            return None
+        n, mean, C = pool_stats([s for h in self.halves for s in self._window(h)])
+        if C is None or n <= 10 * self.d or not np.all(np.isfinite(C)):
+            return None
+        try:
+            np.linalg.cholesky(C)
+        except np.linalg.LinAlgError:
+            return None
+        return Jump(mean, C, float(weight), float(df))
 
     # -- driver side
     @property

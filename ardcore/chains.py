@@ -14,6 +14,7 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 
 from .errors import ArdflowError
+from .transform import free_coordinates
 
 @dataclass(frozen=True)
 class Step:
@@ -157,9 +158,89 @@ def safe_cholesky(cov: np.ndarray) -> np.ndarray:
     return np.diag(scale)
 
 
+class Jump(NamedTuple):
+    """The independence half of the sampler's proposal: a multivariate t around the posterior's centre.
+
+    A random walk with one fixed covariance crawls along a curved or stretched posterior (Sec 3.6's M3:
+    integrated autocorrelation times of ~200 draws with a well adapted covariance). Each step therefore
+    proposes, with probability ``weight``, a draw of this heavy-tailed independence proposal fitted to
+    the burn-in draws, and otherwise the random walk. The mixture q(y|x) = (1 - w) N(y; x, C_rw) +
+    w t(y; mean, cov, df) is fixed in the stationary stage and has a density, so the Metropolis-Hastings
+    ratio (q is not symmetric) and the Chib-Jeliazkov ordinate both use it exactly. Coordinates are the
+    sampler's unconstrained ones (:mod:`.transform`).
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    weight: float = 0.5
+    df: float = 5.0
+
+    def to_dict(self) -> dict:
+        return {"mean": np.asarray(self.mean).tolist(), "cov": np.asarray(self.cov).tolist(),
+                "weight": float(self.weight), "df": float(self.df)}
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "Jump | None":
+        if not d:
+            return None
+        return cls(np.asarray(d["mean"], float), np.asarray(d["cov"], float), float(d["weight"]), float(d["df"]))
+
+
+class MixedProposal:
+    """q(y|x) = (1 - w) N(y; x, L L^T) + w t(y; jump): draws and log densities (w = 0: the random walk)."""
+
+    def __init__(self, cov: np.ndarray, jump: Jump | None):
+        self.L = safe_cholesky(cov)
+        self.d = self.L.shape[0]
+        self.w = float(jump.weight) if jump is not None and jump.weight > 0 else 0.0
+        self.rw_const = -np.sum(np.log(np.diag(self.L))) - 0.5 * self.d * math.log(2 * math.pi)
+        if self.w:
+            from scipy.special import gammaln
+
+            self.mean, self.df = np.asarray(jump.mean, float), float(jump.df)
+            self.Lj = safe_cholesky(jump.cov)
+            d, v = self.d, self.df
+            self.t_const = (gammaln((v + d) / 2) - gammaln(v / 2) - 0.5 * d * math.log(v * math.pi)
+                            - np.sum(np.log(np.diag(self.Lj))))
+
+    def log_t(self, y: np.ndarray) -> np.ndarray:
+        from scipy.linalg import solve_triangular
+
+        u = solve_triangular(self.Lj, (np.atleast_2d(y) - self.mean).T, lower=True)
+        return self.t_const - 0.5 * (self.df + self.d) * np.log1p(np.sum(u * u, axis=0) / self.df)
+
+    def log_rw(self, diff: np.ndarray) -> np.ndarray:
+        from scipy.linalg import solve_triangular
+
+        u = solve_triangular(self.L, np.atleast_2d(diff).T, lower=True)
+        return self.rw_const - 0.5 * np.sum(u * u, axis=0)
+
+    def log_q(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """ln q(y | x) for rows of y and x (broadcast)."""
+        y, x = np.atleast_2d(y), np.atleast_2d(x)
+        if not self.w:
+            return self.log_rw(y - x)
+        return np.logaddexp(math.log1p(-self.w) + self.log_rw(y - x), math.log(self.w) + self.log_t(y))
+
+    def draw(self, rng: np.random.Generator, x: np.ndarray) -> np.ndarray:
+        if self.w and rng.random() < self.w:
+            g = rng.chisquare(self.df) / self.df
+            return self.mean + (self.Lj @ rng.standard_normal(self.d)) / math.sqrt(g)
+        return x + self.L @ rng.standard_normal(self.d)
+
+    def log_ratio(self, y: np.ndarray, x: np.ndarray) -> float:
+        """ln q(x|y) - ln q(y|x) (0 for the pure random walk: it is symmetric)."""
+        if not self.w:
+            return 0.0
+        r = math.log1p(-self.w) + float(self.log_rw(y - x)[0])
+        tx, ty = float(self.log_t(x)[0]), float(self.log_t(y)[0])
+        lw = math.log(self.w)
+        return float(np.logaddexp(r, lw + tx) - np.logaddexp(r, lw + ty))
+
+
 # --------------------------------------------------------------------------- one round
 def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: bool,
-              dr_scale: float = 0.1) -> RoundResult:
+              dr_scale: float = 0.1, jump: Jump | None = None) -> RoundResult:
     """Advance one chain by ``n`` samples.
 
     Parameters
@@ -168,61 +249,87 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
         ``x -> (log_posterior, log_likelihood)``.
     state : ChainState
     cov : ndarray
-        Proposal covariance for this round (fixed within the round).
+        Proposal covariance for this round (fixed within the round), in the unconstrained coordinates of
+        :mod:`.transform`.
     n : int
         Samples to draw.
     adaptive : bool
         Burn-in (delayed rejection on) or stationary (plain random-walk Metropolis).
     dr_scale : float
         The second-stage proposal covariance is ``dr_scale**2 * cov``.
+    jump : Jump, optional
+        Mix this independence proposal into every step (:class:`Jump`); delayed rejection is then off.
     """
     rng = state.generator()
+    free = free_coordinates(target)
     x = np.array(state.x, dtype=float)
     lp, ll = state.lp, state.ll
+    # the chain moves in unconstrained coordinates (:mod:`.transform`): lpz = lp + ln|dx/dz|
+    z, lpz = free.to_free(x), lp + free.log_jacobian(x)
     best_x, best_lp, best_ll = np.array(state.best_x), state.best_lp, state.best_ll
     d = x.size
     L = safe_cholesky(cov)
     S = np.empty((n, d))
+    Z = np.empty((n, d))
     LP = np.empty(n)
     LL = np.empty(n)
     acc = dr = n_second = 0
+
+    def at(zy):
+        y = free.from_free(zy)
+        lpy, lly = target(y)
+        return y, lpy, lly, (lpy + free.log_jacobian(y) if lpy > -math.inf else -math.inf)
+
+    mix = MixedProposal(cov, jump) if jump is not None and jump.weight > 0 else None
     for i in range(n):
+        if mix is not None:
+            w1 = mix.draw(rng, z)
+            y1, lp1, ll1, lpz1 = at(w1)
+            log_a1 = lpz1 - lpz + mix.log_ratio(w1, z) if lpz1 > -math.inf else -math.inf
+            if math.log(rng.random() + 1e-300) < log_a1:
+                x, lp, ll, lpz, z = y1, lp1, ll1, lpz1, w1
+                acc += 1
+            if lp > best_lp:
+                best_x, best_lp, best_ll = x.copy(), lp, ll
+            S[i], Z[i], LP[i], LL[i] = x, z, lp, ll
+            continue
         z1 = rng.standard_normal(d)
-        y1 = x + L @ z1
-        lp1, ll1 = target(y1)
-        log_a1 = lp1 - lp if lp1 > -math.inf else -math.inf
+        w1 = z + L @ z1
+        y1, lp1, ll1, lpz1 = at(w1)
+        log_a1 = lpz1 - lpz if lpz1 > -math.inf else -math.inf
         if math.log(rng.random() + 1e-300) < log_a1:
-            x, lp, ll = y1, lp1, ll1
+            x, lp, ll, lpz, z = y1, lp1, ll1, lpz1, w1
             acc += 1
         elif adaptive and dr_scale > 0:
             z2 = rng.standard_normal(d)
-            y2 = x + dr_scale * (L @ z2)
-            lp2, ll2 = target(y2)
+            w2 = z + dr_scale * (L @ z2)
+            y2, lp2, ll2, lpz2 = at(w2)
             n_second += 1
-            if lp2 > -math.inf:
+            if lpz2 > -math.inf:
                 # Delayed-rejection acceptance (Tierney & Mira 1999) for a symmetric second stage:
                 # a2 = pi(y2) q1(y2->y1) (1 - a1(y2,y1)) / [pi(x) q1(x->y1) (1 - a1(x,y1))]
                 w = z1 - dr_scale * z2  # L^{-1}(y1 - y2)
                 log_q_ratio = -0.5 * (w @ w - z1 @ z1)
-                a1_y2 = math.exp(min(0.0, lp1 - lp2)) if lp1 > -math.inf else 0.0
-                a1_x = math.exp(min(0.0, log_a1)) if lp1 > -math.inf else 0.0
+                a1_y2 = math.exp(min(0.0, lpz1 - lpz2)) if lpz1 > -math.inf else 0.0
+                a1_x = math.exp(min(0.0, log_a1)) if lpz1 > -math.inf else 0.0
                 if a1_y2 < 1.0:
-                    log_a2 = (lp2 - lp) + log_q_ratio + math.log1p(-a1_y2) - math.log1p(-a1_x)
+                    log_a2 = (lpz2 - lpz) + log_q_ratio + math.log1p(-a1_y2) - math.log1p(-a1_x)
                     if math.log(rng.random() + 1e-300) < log_a2:
-                        x, lp, ll = y2, lp2, ll2
+                        x, lp, ll, lpz, z = y2, lp2, ll2, lpz2, w2
                         dr += 1
         if lp > best_lp:
             best_x, best_lp, best_ll = x.copy(), lp, ll
-        S[i], LP[i], LL[i] = x, lp, ll
+        S[i], Z[i], LP[i], LL[i] = x, z, lp, ll
     new = ChainState(state.chain, x.tolist(), float(lp), float(ll), rng.bit_generator.state,
                      best_x.tolist(), float(best_lp), float(best_ll),
                      state.n_prop + S.shape[0], state.n_acc + acc, state.n_dr + dr)
-    h = max(1, S.shape[0] // 2)
-    return RoundResult(new, S, LP, LL, acc, dr, (RoundStats.of(S[:h]), RoundStats.of(S[h:]) if S.shape[0] > h
-                                                 else RoundStats.of(S[:h])), n + n_second)
+    # the halves' statistics (the pooled proposal, burn-in R-hat) are taken in the chain's coordinates z
+    h = max(1, Z.shape[0] // 2)
+    return RoundResult(new, S, LP, LL, acc, dr, (RoundStats.of(Z[:h]), RoundStats.of(Z[h:]) if Z.shape[0] > h
+                                                 else RoundStats.of(Z[:h])), n + n_second)
 
 
 def _round_task(args):
-    target, state, cov, n, adaptive, dr_scale = args
-    return run_round(target, state, cov, n, adaptive=adaptive, dr_scale=dr_scale)
+    target, state, cov, n, adaptive, dr_scale, *rest = args
+    return run_round(target, state, cov, n, adaptive=adaptive, dr_scale=dr_scale, jump=rest[0] if rest else None)
 

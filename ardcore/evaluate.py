@@ -12,6 +12,7 @@ from .mcmc import Map, SamplerConfig, SamplerResult, Step, initial_scale, sample
 from .starts import new_parameter_start
 from .posterior import ModelPosterior
 from .priors import ARD
+from .transform import free_coordinates
 
 INF = math.inf
 
@@ -122,7 +123,9 @@ def _laplace_state(target, xmap, C, ev, *, draws: int = 0, seed: int = 0) -> Sam
         z = np.random.default_rng(seed).standard_normal((draws, d))
         samples = (xmap + z @ L.T)[None]
     nan = np.full(samples.shape[:2], np.nan)
+    # a proposal covariance is in the sampler's unconstrained coordinates (:mod:`.transform`)
+    Cz = free_coordinates(target).cov_to_free(C, xmap) if np.all(np.isfinite(C)) else C
     return SamplerResult(list(target.names), samples, nan, nan, xmap, lp, ll,
-                         C, [st], np.ones(d), [], 0, True, 0.0, 0.0, 0)
+                         Cz, [st], np.ones(d), [], 0, True, 0.0, 0.0, 0)
 
 

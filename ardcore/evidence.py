@@ -14,8 +14,10 @@ import numpy as np
 from scipy.special import logsumexp
 from scipy.stats import chi2
 
+from .chains import Jump, MixedProposal
 from .mcmc import Map, SamplerError, SamplerResult, Step, fd_hessian, local_mode, safe_cholesky, serial_map
 from .starts import fd_derivatives
+from .transform import free_coordinates
 
 
 @dataclass
@@ -61,13 +63,6 @@ class Evidence:
         }
 
 
-def _log_mvn_kernel(diff: np.ndarray, L: np.ndarray) -> np.ndarray:
-    """log N(diff; 0, L L^T) for rows of diff."""
-    from scipy.linalg import solve_triangular
-
-    z = solve_triangular(L, diff.T, lower=True)
-    d = diff.shape[1]
-    return -0.5 * np.sum(z * z, axis=0) - np.sum(np.log(np.diag(L))) - 0.5 * d * math.log(2 * math.pi)
 
 
 def _batch_se(log_terms: np.ndarray, batches: int = 10) -> float:
@@ -92,29 +87,42 @@ def _iid_log_mean_se(log_terms: np.ndarray) -> float:
 
 
 def _cj_chain(args):
-    target, samples, lp, phi_star, lp_star, cov, J, se_ratio, seed = args
-    L = safe_cholesky(cov)
-    # numerator: (1/M) sum_g alpha(phi_g, phi*) q(phi* | phi_g)
-    log_alpha = np.minimum(0.0, lp_star - lp)
-    log_q = _log_mvn_kernel(phi_star[None, :] - samples, L)
-    num_terms = log_alpha + log_q
+    target, samples, lp, phi_star, lp_star, cov, J, se_ratio, seed, *rest = args
+    # the chains moved in unconstrained coordinates z with the fixed proposal q (the random walk N(z, cov),
+    # mixed with the independence proposal ``jump`` when there is one; :mod:`.transform`, :class:`Jump`):
+    # the ordinate is taken there, with the target's density in z (times |dx/dz|), and mapped back below
+    q = MixedProposal(cov, Jump.from_dict(rest[0]) if rest else None)
+    free = free_coordinates(target)
+    zs, z_star = free.to_free(samples), free.to_free(phi_star)
+    lpz = lp + free.log_jacobian(samples)
+    jac_star = float(free.log_jacobian(phi_star))
+    lpz_star = lp_star + jac_star
+    # numerator: (1/M) sum_g alpha(z_g, z*) q(z* | z_g)
+    log_q_to = q.log_q(z_star[None, :], zs)
+    log_alpha = np.minimum(0.0, lpz_star - lpz + q.log_q(zs, z_star[None, :]) - log_q_to)
+    num_terms = log_alpha + log_q_to
     log_num = logsumexp(num_terms) - math.log(samples.shape[0])
     num_se = _batch_se(num_terms)
-    # denominator: (1/J) sum_j alpha(phi*, phi_j), phi_j ~ q(. | phi*). Its draws are independent, so a few
+    # denominator: (1/J) sum_j alpha(z*, z_j), z_j ~ q(. | z*). Its draws are independent, so a few
     # hundred usually pin it far below the numerator's error (autocorrelated draws): stop once its error is
     # under se_ratio of the numerator's, at most J draws
     rng = np.random.default_rng(seed)
     den_terms: list = []
     while len(den_terms) < J:
-        for z in rng.standard_normal((min(PROPOSAL_BLOCK, J - len(den_terms)), phi_star.size)):
-            lpj = target(phi_star + L @ z).log_posterior
-            den_terms.append(min(0.0, lpj - lp_star) if lpj > -math.inf else -math.inf)
+        for _ in range(min(PROPOSAL_BLOCK, J - len(den_terms))):
+            zj = q.draw(rng, z_star)
+            y = free.from_free(zj)
+            lpj = target(y).log_posterior
+            if lpj > -math.inf:
+                lpj = lpj + free.log_jacobian(y)
+            den_terms.append(min(0.0, lpj - lpz_star + q.log_ratio(zj, z_star)) if lpj > -math.inf else -math.inf)
         if se_ratio > 0 and _iid_log_mean_se(np.asarray(den_terms)) <= se_ratio * num_se:
             break
     den = np.asarray(den_terms)
     log_den = logsumexp(den) - math.log(den.size)
     se = math.sqrt(num_se ** 2 + _batch_se(den) ** 2)
-    return log_num - log_den, se, den.size
+    # ln p(x*|d) = ln p(z*|d) - ln|dx/dz|(x*)
+    return log_num - log_den - jac_star, se, den.size
 
 
 def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
@@ -147,7 +155,7 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
     n_eval = 0
     for attempt in range(2):
         tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
-                  proposal_se_ratio, int(seeds[c])) for c in range(nc)]
+                  proposal_se_ratio, int(seeds[c]), res.jump) for c in range(nc)]
         out = map_fn(_cj_chain, tasks, step=Step("cj"))
         n_eval += sum(j for _, _, j in out)
         per = [ChainEvidence(lp_star - o, se, o) for o, se, _ in out]

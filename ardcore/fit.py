@@ -33,7 +33,14 @@ class ModelFit:
     kept, pruned : list of str
         ARD terms kept and pruned at psi_opt.
     map, mean, sd, q005, q995, rhat : dict
-        Posterior summaries per free parameter at psi_opt (q005/q995: the 99 % interval).
+        Posterior summaries per free parameter at psi_opt (q005/q995: the 99 % interval; rhat ArviZ's rank
+        R-hat).
+    diagnostics : dict
+        Per free parameter, ArviZ's ``r_hat``, ``ess_bulk``, ``ess_tail``, ``mcse_mean`` and ``mcse_sd`` of
+        the reported draws (:mod:`ardcore.diagnostics`).
+    converged : bool
+        Whether every parameter reached the sampler's quality target (R-hat <= max_rhat, bulk and tail ESS
+        >= min_ess) within its budget; False is said in ``warnings`` too.
     iterations, sampled_trials, reweighted_trials, n_evaluations : int
         The maximiser's trials and the likelihood evaluations they spent.
     wall_s : float
@@ -63,6 +70,8 @@ class ModelFit:
     wall_s: float = 0.0
     warnings: list = field(default_factory=list)
     per_chain_log_evidence: list = field(default_factory=list)
+    diagnostics: dict = field(default_factory=dict)
+    converged: bool = True
 
     def to_json(self) -> dict:
         """The summary's row (a pruned alpha spelt as :mod:`ardcore.jsonio` spells infinity)."""

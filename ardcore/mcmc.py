@@ -38,6 +38,7 @@ from .chains import (  # noqa: F401
     serial_map,
 )
 from .errors import ArdflowError
+from .diagnostics import Quality
 from .events import BurninRound, Note, ProgressEvent, StationaryRound
 from .sampling import SamplerConfig, SamplerResult  # noqa: F401
 from .starts import (  # noqa: F401
@@ -80,7 +81,8 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
     while pool.rounds < config.max_burnin_rounds:
         rnd = pool.rounds + 1
         dr_r = dr if rnd <= config.dr_rounds else 0.0
-        results = map_fn(_round_task, [(target, s, pool.proposal(c), config.round_size, True, dr_r)
+        jump = pool.jump(config.jump_weight, config.jump_df) if dr_r == 0 else None
+        results = map_fn(_round_task, [(target, s, pool.proposal(c), config.round_size, True, dr_r, jump)
                                        for c, s in enumerate(states)], step=Step("burnin", rnd))
         states = [q.state for q in results]
         for c, q in enumerate(results):
@@ -104,55 +106,117 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
     return states, b_acc, b_n, n_eval
 
 
+STRIDE = 10_000_000
+"""A stationary round's :class:`Step` index is ``pass * STRIDE + first draw`` (no task of a later pass shares
+a key with one of an earlier pass; the store's slot is the index modulo STRIDE)."""
+
+
 def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConfig, map_fn: Map = serial_map, *,
                       pool: AdaptationPool, counters: list, resume: dict | None = None) -> Generator:
-    """The stationary stage: M draws per chain by random-walk Metropolis with the fixed covariance ``cov``,
-    one event per round.
+    """The stationary stage: draws by Metropolis-Hastings with the fixed proposal (the random walk with
+    covariance ``cov`` mixed with the pool's independence proposal, :class:`~ardcore.chains.Jump`), one event
+    per round, until the draws meet the quality target or the budget is spent.
 
-    When the M draws' split R-hat exceeds ``config.rhat_threshold`` they are counted as more burn-in and
-    drawn again from where the chains are (at most ``config.stationary_restarts`` times); each pass writes
-    the same M slots, and its rounds are numbered on (:class:`Step` index ``pass * M + draw``, so no task of
-    a later pass shares a key with one of an earlier pass).
+    After ``config.n_stationary`` draws per chain (and after each extension) ArviZ's diagnostics are taken
+    (:mod:`.diagnostics`). When the rank R-hat of some parameter exceeds ``config.rhat_threshold`` the chains
+    had not settled: the draws count as more burn-in and are drawn again from where the chains are (at most
+    ``config.stationary_restarts`` times). Otherwise, while R-hat exceeds ``config.max_rhat`` or a bulk or
+    tail ESS is below ``config.min_ess``, the same chains continue with the same kernel (the draws so far
+    stay: one longer stationary run) by as many draws as the ESS says are missing, up to
+    ``config.stationary_budget`` draws per chain.
 
-    Returns samples (n_chains, M, d), their log posteriors and log likelihoods, the chain states, the
-    accepted count and the running count of likelihood evaluations (``counters``: accepted, proposed and
-    evaluated so far). ``resume`` (a checkpoint of this stage with the draws so far) continues it.
+    Returns samples (n_chains, draws, d), their log posteriors and log likelihoods, the chain states, the
+    accepted count, the running count of likelihood evaluations (``counters``: accepted, proposed and
+    evaluated so far) and the draws' diagnostics. ``resume`` (a checkpoint of this stage with the draws so
+    far) continues it.
     """
-    nc, d, M = len(states), len(target.names), config.n_stationary
-    samples = np.full((nc, M, d), np.nan)
-    lps = np.full((nc, M), np.nan)
-    lls = np.full((nc, M), np.nan)
-    done, s_acc, n_eval, passes = 0, 0, counters[2], 0
+    from .diagnostics import Quality, convergence
+
+    names = list(target.names)
+    nc, d, M = len(states), len(names), config.n_stationary
+    budget = config.stationary_budget
+    quality = Quality(config.max_rhat, config.min_ess)
+    goal, done, s_acc, n_eval, passes = M, 0, 0, counters[2], 0
     if resume is not None and resume["stage"] == "stationary":
         done, s_acc, passes = int(resume["done"]), int(resume["s_acc"]), int(resume.get("pass", 0))
+        goal = int(resume.get("goal", M))
+    samples = np.full((nc, goal, d), np.nan)
+    lps = np.full((nc, goal), np.nan)
+    lls = np.full((nc, goal), np.nan)
+    if done:
         samples[:, :done], lps[:, :done], lls[:, :done] = (resume["samples"][:, :done], resume["lp"][:, :done],
                                                            resume["ll"][:, :done])
+    jump = pool.jump(config.jump_weight, config.jump_df)
+
+    def checkpoint() -> dict:
+        return {"stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
+                "counters": [counters[0], counters[1], n_eval], "done": done, "s_acc": s_acc, "pass": passes,
+                "goal": goal}
+
     while True:
-        while done < M:
-            n = min(config.round_size, M - done)
-            results = map_fn(_round_task, [(target, s, cov, n, False, 0.0) for s in states],
-                             step=Step("stationary", passes * M + done))
+        while done < goal:
+            n = min(config.round_size, goal - done)
+            results = map_fn(_round_task, [(target, s, cov, n, False, 0.0, jump) for s in states],
+                             step=Step("stationary", passes * STRIDE + done))
             states = [q.state for q in results]
             n_eval += sum(q.evaluations for q in results)
             for c, q in enumerate(results):
                 samples[c, done:done + n], lps[c, done:done + n], lls[c, done:done + n] = q.samples, q.lp, q.ll
             s_acc += sum(q.accepted for q in results)
             done += n
-            yield RoundEvent("stationary", done // config.round_size, (
-                StationaryRound(done // config.round_size, done, M, sum(q.accepted for q in results) / (nc * n)),), {
-                "stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
-                "counters": [counters[0], counters[1], n_eval], "done": done, "s_acc": s_acc, "pass": passes})
-        r = rhat(list(samples))
-        if passes >= config.stationary_restarts or not np.any(r > config.rhat_threshold):
-            return samples, lps, lls, states, s_acc, n_eval
-        passes, done, s_acc = passes + 1, 0, 0
-        worst = int(np.argmax(r))
-        note = Note(f"stationary draws: R-hat {r[worst]:.3g} for {target.names[worst]} over {M} draws per chain; "
-                    f"counted as burn-in and drawn again (pass {passes + 1} of at most "
-                    f"{config.stationary_restarts + 1})")
-        yield RoundEvent("stationary", 0, (note,), {
-            "stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
-            "counters": [counters[0], counters[1], n_eval], "done": 0, "s_acc": 0, "pass": passes})
+            yield RoundEvent("stationary", -(-done // config.round_size), (
+                StationaryRound(-(-done // config.round_size), done, goal,
+                                sum(q.accepted for q in results) / (nc * n)),), checkpoint())
+        diag = convergence(names, samples[:, :done])
+        r_max, e_min, r_name, e_name = quality.worst(diag)
+        if quality.met(diag):
+            return samples[:, :done], lps[:, :done], lls[:, :done], states, s_acc, n_eval, diag
+        if r_max > config.rhat_threshold and passes < config.stationary_restarts:
+            # the kernel was fitted to chains that had not settled: these draws become one more adaptation
+            # round (the pool refits the random walk's covariance and the independence proposal to them)
+            states = _adapt_on(target, pool, states, samples[:, :done], lps[:, :done])
+            cov, jump = pool.cov, pool.jump(config.jump_weight, config.jump_df)
+            passes, done, s_acc, goal = passes + 1, 0, 0, M
+            samples, lps, lls = samples[:, :M], lps[:, :M], lls[:, :M]
+            note = Note(f"stationary draws: R-hat {r_max:.3g} for {r_name}; counted as burn-in (the proposal "
+                        f"refitted to them) and drawn again (pass {passes + 1} of at most "
+                        f"{config.stationary_restarts + 1})")
+            yield RoundEvent("stationary", 0, (note,), checkpoint())
+            continue
+        if done >= budget:
+            return samples[:, :done], lps[:, :done], lls[:, :done], states, s_acc, n_eval, diag
+        # the draws a chain still needs for the ESS target (ESS grows with the draws), plus a tenth
+        # (at most doubling: an ESS from few draws is pessimistic)
+        need = min(2 * done, done * 1.1 * quality.min_ess / max(e_min, 1.0)) if e_min < quality.min_ess \
+            else done * 1.25
+        rs = config.round_size
+        goal = int(min(budget, max(done + rs, -(-int(need) // rs) * rs)))
+        grow = goal - samples.shape[1]
+        samples = np.concatenate([samples, np.full((nc, grow, d), np.nan)], axis=1)
+        lps = np.concatenate([lps, np.full((nc, grow), np.nan)], axis=1)
+        lls = np.concatenate([lls, np.full((nc, grow), np.nan)], axis=1)
+        note = Note(f"stationary draws: {quality.describe(diag)} after {done} draws per chain; continuing to "
+                    f"{goal} (target R-hat <= {quality.max_rhat:g}, ESS >= {quality.min_ess:g}; budget {budget})")
+        yield RoundEvent("stationary", 0, (note,), checkpoint())
+
+
+def _adapt_on(target, pool, states: list, samples: np.ndarray, lps: np.ndarray) -> list:
+    """Report stationary draws that had not settled to the INCA pool as one more burn-in round (each chain's
+    two halves, in the sampler's coordinates); chains the pool finds stuck far below the best are moved."""
+    from .chains import ChainReport, RoundStats
+    from .transform import free_coordinates
+
+    free = free_coordinates(target)
+    rnd = pool.rounds + 1
+    h = samples.shape[1] // 2
+    for c, st in enumerate(states):
+        z = free.to_free(samples[c])
+        pool.report(c, rnd, (RoundStats.of(z[:h]), RoundStats.of(z[h:])),
+                    ChainReport(st.best_x, st.best_lp, st.best_ll, float(np.mean(lps[c, h:]))))
+    for c, src in pool.moved(rnd).items():
+        s, o = states[c], states[src]
+        s.x, s.lp, s.ll = list(o.x), o.lp, o.ll
+    return states
 
 
 def _begin(target, config: SamplerConfig, seed: int, map_fn: Map, warm, starts, factory, resume):
@@ -191,24 +255,28 @@ def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = seria
     b_acc, b_n, _ = counters
     rounds, converged, r, cov = pool.rounds, pool.converged(), pool.rhat(), pool.cov
     # ---- stationary stage: fixed proposal, plain RWM
-    samples, lps, lls, states, s_acc, n_eval = yield from stationary_rounds(
+    samples, lps, lls, states, s_acc, n_eval, diag = yield from stationary_rounds(
         target, states, cov, config, map_fn, pool=pool, counters=counters, resume=resume)
     best = max(states, key=lambda q: q.best_lp)
-    r_final = rhat(list(samples))
-    if np.any(r_final > config.rhat_threshold):
+    r_final = np.array([diag[n]["r_hat"] for n in names]) if names else np.ones(0)
+    quality = Quality(config.max_rhat, config.min_ess)
+    if not quality.met(diag):
         # the stationary draws are what the results rest on: a short burn-in whose draws then pass is no concern
         if not converged:
             warnings.append(f"burn-in did not reach R-hat < {config.burnin_rhat} in {rounds} rounds "
                             f"(max R-hat {np.max(r):.3g} for {names[int(np.argmax(r))]})")
-        warnings.append(f"stationary samples: max R-hat {np.max(r_final):.3g} ({names[int(np.argmax(r_final))]}) "
-                        f"exceeds {config.rhat_threshold}")
+        warnings.append(f"not converged: stationary draws reach {quality.describe(diag)} against R-hat <= "
+                        f"{quality.max_rhat:g} and ESS >= {quality.min_ess:g} within the budget of "
+                        f"{config.stationary_budget} draws per chain (sampler.max_stationary)")
     return SamplerResult(
         names=names, samples=samples, lp=lps, ll=lls,
         phi_star=np.array(best.best_x), lp_star=best.best_lp, ll_star=best.best_ll,
         proposal_cov=cov, states=states, rhat=r_final, rhat_history=list(pool.rhat_history),
         burnin_rounds=rounds, converged=converged,
-        acceptance=s_acc / max(1, config.n_chains * config.n_stationary), burnin_acceptance=b_acc / max(1, b_n),
-        n_evaluations=n_eval, warnings=warnings)
+        acceptance=s_acc / max(1, samples.shape[0] * samples.shape[1]), burnin_acceptance=b_acc / max(1, b_n),
+        n_evaluations=n_eval, warnings=warnings,
+        jump=(lambda j: j.to_dict() if j is not None else None)(pool.jump(config.jump_weight, config.jump_df)),
+        diagnostics=diag, quality_met=quality.met(diag))
 
 
 def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,

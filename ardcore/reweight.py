@@ -90,10 +90,12 @@ def reweight(names: list[str], samples: np.ndarray, psi_from: dict, psi_to: dict
     return Reweighted(top + math.log(mean), se, ess, nc * M, w / w.sum())
 
 
-def resample_states(res, weights: np.ndarray, seed: int):
+def resample_states(res, weights: np.ndarray, seed: int, free=None):
     """``res`` (a SamplerResult) whose chain states sit at draws resampled with ``weights`` (systematic
     resampling) and whose proposal covariance is the weighted draws' (scaled 2.38^2 / d, as the adaptation
-    scales it): the next sampled trial starts dispersed, already near its posterior, with a step fitted to it."""
+    scales it): the next sampled trial starts dispersed, already near its posterior, with a step fitted to it.
+    ``free`` (:class:`~ardcore.transform.Unconstrained`) gives the sampler's coordinates, in which the
+    covariance is taken (default: the draws' own)."""
     nc, M, d = res.samples.shape
     flat = res.samples.reshape(nc * M, d)
     p = np.asarray(weights, float).ravel()
@@ -104,6 +106,7 @@ def resample_states(res, weights: np.ndarray, seed: int):
     states = [dataclasses.replace(s, x=[float(v) for v in flat[i]], lp=float(lp[i]), ll=float(ll[i]))
               for s, i in zip(res.states, pick)]
     w = p / p.sum()
+    flat = free.to_free(flat) if free is not None else flat
     m = w @ flat
     C = (flat - m).T @ ((flat - m) * w[:, None])
     cov = res.proposal_cov

@@ -10,6 +10,7 @@ import numpy as np
 
 from .chains import ChainState, Map, SamplerError, Step, safe_cholesky, serial_map
 from .sampling import SamplerConfig, SamplerResult
+from .transform import free_coordinates
 
 
 # --------------------------------------------------------------------------- starts
@@ -178,16 +179,22 @@ def warm_positions(target, warm: SamplerResult, scale: np.ndarray) -> tuple[list
 
     new = np.array([0.0 if a is not None else new_parameter_start(p) for a, p in zip(keep, target.prior.priors)])
 
+    pos = [i for i, a in enumerate(keep) if a is not None]
+    free = free_coordinates(target)
+
     def place(x, project: bool = True) -> np.ndarray:
         x = np.asarray(x, float)
-        k = x[known] + (B @ (v - x[dropped]) if B is not None and project else 0.0)
-        out, j = new.copy(), 0
-        for i, a in enumerate(keep):
-            if a is not None:
-                out[i], j = k[j], j + 1
+        out = new.copy()
+        out[pos] = x[known]
+        if B is not None and project:
+            # the regression is the proposal's, in the sampler's unconstrained coordinates
+            z = free.to_free(out)
+            z[pos] = z[pos] + B @ (v - x[dropped])
+            out[pos] = free.from_free(z)[pos]
         return out
 
-    cov = np.diag((0.01 * scale) ** 2)
+    # the proposal is in the sampler's unconstrained coordinates: a new parameter's small step too
+    cov = free_coordinates(target).cov_to_free(np.diag((0.01 * scale) ** 2), new)
     sub = P[np.ix_(known, known)]
     if B is not None:
         cond = sub - B @ P[np.ix_(dropped, known)]
@@ -196,7 +203,6 @@ def warm_positions(target, warm: SamplerResult, scale: np.ndarray) -> tuple[list
             sub = cond * (len(warm.names) / max(len(names), 1))  # the 2.38^2 / d scaling of the smaller space
         except np.linalg.LinAlgError:
             pass
-    pos = [i for i, a in enumerate(keep) if a is not None]
     cov[np.ix_(pos, pos)] = sub
     return ([place(s.x) for s in warm.states], [place(warm.phi_star), place(warm.phi_star, project=False)],
             cov)
@@ -229,7 +235,8 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
                   config.overdispersion) for c in range(nc)]
         res = map_fn(_start_task, tasks, step=Step("start"))
         n_eval = sum(int(r[6]) for r in res)
-        cov = (2.38**2 / d) * np.mean([r[5] for r in res], axis=0)
+        free = free_coordinates(target)
+        cov = (2.38**2 / d) * np.mean([free.cov_to_free(r[5], r[3]) for r in res], axis=0)
         states = []
         for c, r in enumerate(res):
             x, lp, ll, xm, lpm, *_ = r
@@ -243,7 +250,7 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
             x = np.asarray(starts[c], dtype=float)
             lp, ll = target(x)
             states.append(ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll))
-        cov = np.diag((0.1 * scale) ** 2)
+        cov = free_coordinates(target).cov_to_free(np.diag((0.1 * scale) ** 2), np.asarray(starts[0], dtype=float))
     if not any(s.lp > -math.inf for s in states):
         raise SamplerError("no chain could start at a point of finite posterior density: "
                            "check the priors against the data and model")

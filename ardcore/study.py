@@ -115,6 +115,8 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
         q005={k: v["q005"] for k, v in post.items()},
         q995={k: v["q995"] for k, v in post.items()},
         rhat=dict(zip(res.names, map(float, res.rhat))),
+        diagnostics=_diagnostics(res),
+        converged=bool(getattr(res, "quality_met", True)),
         iterations=len(mr.history),
         sampled_trials=sum(1 for t in mr.history if t.sampled),
         reweighted_trials=sum(1 for t in mr.history if not t.sampled),
@@ -124,6 +126,18 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
         per_chain_log_evidence=[c.log_evidence for c in best.evidence.per_chain],
     )
     return row, mr
+
+
+def _diagnostics(res) -> dict:
+    """ArviZ's diagnostics of the reported draws: the sampler's own, else computed from them (a Laplace
+    posterior's independent draws)."""
+    from .diagnostics import convergence
+
+    if getattr(res, "diagnostics", None):
+        return res.diagnostics
+    if res.samples.ndim == 3 and res.samples.shape[0] >= 2 and res.samples.shape[1] >= 4:
+        return convergence(list(res.names), res.samples)
+    return {}
 
 
 def compare(fits: list[ModelFit], spec: StudySpec, data_meta: dict, wall_s: float) -> dict:

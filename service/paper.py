@@ -56,6 +56,17 @@ def reference_checks(summary: dict, true_values: dict) -> list[dict]:
         documented = "; ".join(why) if missing and len(why) == len(missing) else None
         out.append({"check": f"{name}: a3, a4 kept", "passed": not missing or documented is not None,
                     "detail": f"kept {sorted(kept)}", "documented": documented})
+    for name, r in rows.items():
+        # the intervals and the evidence rest on these draws: convergence by today's standard (ArviZ)
+        diag = r.get("diagnostics") or {}
+        if diag:
+            worst_r = max(d["r_hat"] for d in diag.values())
+            worst_e = min(min(d["ess_bulk"], d["ess_tail"]) for d in diag.values())
+            detail = f"max R-hat {worst_r:.3f}, min bulk/tail ESS {worst_e:.0f}"
+        else:
+            detail = "no diagnostics"
+        out.append({"check": f"{name}: posterior converged (R-hat <= 1.01, ESS >= 400)",
+                    "passed": bool(diag) and bool(r.get("converged", False)), "detail": detail})
     outside = []
     for p, v in true_values.items():
         if p in m2.get("q005", {}):

@@ -69,9 +69,11 @@ def _check_in_child(spec: StudySpec, keys: list[str], timeout_s: float, memory_m
 def estimate_evaluations(spec: StudySpec) -> float:
     """An upper estimate of a study's likelihood evaluations: every model runs ``max_trials`` trials, each
     with its start optimisation, every burn-in round (with delayed rejection: up to two per proposal), the
-    stationary draws and the Chib-Jeliazkov proposal draws."""
+    stationary draws up to their budget (``max_stationary``; each redraw of an unsettled stage is M more) and
+    the Chib-Jeliazkov proposal draws."""
     s, m = spec.sampler, spec.maximiser
-    per_trial = (s.n_chains * (s.start_maxfev + 2 * s.max_burnin_rounds * s.round_size + s.n_stationary)
+    per_trial = (s.n_chains * (s.start_maxfev + 2 * s.max_burnin_rounds * s.round_size
+                                + s.stationary_budget + s.stationary_restarts * s.n_stationary)
                  + s.n_proposal * s.n_chains)
     return float(len(spec.models) * m.max_trials * per_trial)
 
@@ -89,5 +91,5 @@ def check_budget(spec: StudySpec, n_rows: int, budget: float) -> dict:
     if cost > budget:
         raise Rejected(413, f"study too large for this service: about {ev:.3g} likelihood evaluations x "
                             f"{n_rows} rows x {sub} sub-steps = {cost:.3g} > budget {budget:.3g} (lower "
-                            f"sampler.max_burnin_rounds, n_stationary, n_chains, maximiser.max_trials or substeps)")
+                            f"sampler.max_burnin_rounds, n_stationary, max_stationary, n_chains, maximiser.max_trials or substeps)")
     return est

@@ -52,7 +52,8 @@ def _record(psi: dict, ev: Evidence, res: SamplerResult) -> dict:
         "ll_star": res.ll_star, "proposal_cov": res.proposal_cov, "states": [s.to_dict() for s in res.states],
         "rhat": res.rhat, "rhat_history": res.rhat_history, "burnin_rounds": res.burnin_rounds,
         "converged": res.converged, "acceptance": res.acceptance, "burnin_acceptance": res.burnin_acceptance,
-        "n_evaluations": res.n_evaluations, "warnings": res.warnings,
+        "n_evaluations": res.n_evaluations, "warnings": res.warnings, "jump": res.jump,
+        "diagnostics": res.diagnostics, "quality_met": res.quality_met,
     })
 
 
@@ -67,7 +68,8 @@ def _from_record(rec: dict, store: StudyStore, model: str, iteration: int) -> tu
         states=[ChainState.from_dict(s) for s in rec["states"]], rhat=np.array(rec["rhat"]),
         rhat_history=rec["rhat_history"], burnin_rounds=rec["burnin_rounds"], converged=rec["converged"],
         acceptance=rec["acceptance"], burnin_acceptance=rec["burnin_acceptance"],
-        n_evaluations=rec["n_evaluations"], warnings=list(rec["warnings"]))
+        n_evaluations=rec["n_evaluations"], warnings=list(rec["warnings"]), jump=rec.get("jump"),
+        diagnostics=rec.get("diagnostics", {}), quality_met=rec.get("quality_met", True))
     return ev, res
 
 
@@ -120,6 +122,7 @@ class StoredEvaluator(EvidenceEvaluator):
         finally:
             for p in pools:
                 p.close()
+        store.resize_draws(model, iteration, res.samples.shape[1])  # exactly the draws kept
         ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=seed + 7,
                             proposal_se_ratio=cfg.proposal_se_ratio, map_fn=dmap)
         ev.warnings = list(res.warnings) + ev.warnings

@@ -197,13 +197,33 @@ class StudyStore:
     def write_round(self, model: str, iteration: int, chain: int, start: int, samples: np.ndarray,
                     lp: np.ndarray, ll: np.ndarray) -> None:
         """Write one chain's round of stationary samples into its own chunk (idempotent). ``start`` counts
-        draws over the stage's passes (a redrawn stage writes its M slots again): the slot is ``start mod M``."""
+        draws over the stage's passes (:data:`ardcore.mcmc.STRIDE` per pass: a redrawn stage writes its slots
+        again): the slot is ``start mod STRIDE``."""
+        from ardflow.ardcore.mcmc import STRIDE
+
         tg = self.group()[self.trial_path(model, iteration)]
         n = samples.shape[0]
-        start %= tg["samples"].shape[1]
+        start %= STRIDE
         tg["samples"][chain, start:start + n, :] = samples
         tg["log_likelihood"][chain, start:start + n] = ll
         tg["log_prior"][chain, start:start + n] = lp - ll
+
+    def resize_draws(self, model: str, iteration: int, n_draws: int, *, grow_only: bool = False) -> None:
+        """Give a trial's arrays ``n_draws`` draws per chain (the stationary stage continues until its draws
+        meet the quality target, and ends with exactly the draws it kept). Only the orchestrator calls it,
+        before it submits the rounds that write beyond the end."""
+        g = self.group()
+        tg = g[self.trial_path(model, iteration)]
+        cur = tg["samples"].shape[1]
+        if n_draws == cur or (grow_only and n_draws < cur):
+            return
+        nc, _, d = tg["samples"].shape
+        tg["samples"].resize((nc, n_draws, d))
+        for k in ("log_likelihood", "log_prior"):
+            tg[k].resize((nc, n_draws))
+        if "draw" in tg:
+            del tg["draw"]
+        tg.create_array("draw", data=np.arange(n_draws), dimension_names=["draw"])
 
     def read_samples(self, model: str, iteration: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
         tg = self.group("r")[self.trial_path(model, iteration)]

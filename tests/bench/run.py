@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import statistics
@@ -365,7 +366,81 @@ def _study(args: list[str], out: Path) -> dict:
             "sampled_trials": {r["name"]: r.get("sampled_trials") for r in s["models"]},
             # every likelihood evaluation: start optimisation, burn-in, stationary draws, Chib-Jeliazkov proposals
             "evaluations": sum(int(r.get("n_evaluations", 0)) for r in s["models"]),
-            "checks": {c["check"]: c["passed"] for c in reference_checks(s, spec["true_values"])}}
+            "checks": {c["check"]: c["passed"] for c in reference_checks(s, spec["true_values"])},
+            **_store_convergence(out)}
+
+
+def _store_convergence(out: Path) -> dict:
+    """Every model's reported draws read from the zarr store with zarr itself and judged by ArviZ's
+    ``az.summary`` (not the project's own diagnostics): the worst R-hat and the smallest bulk or tail ESS."""
+    import arviz as az
+    import zarr
+
+    stores = [p for p in out.rglob("zarr.json") if (p.parent / "models").is_dir()]
+    if not stores:
+        return {}
+    g = zarr.open_group(str(stores[0].parent), mode="r")
+    rhat, ess = {}, {}
+    for name, mg in g["models"].groups():
+        it = mg.attrs.get("best_iteration")
+        if it is None:
+            continue
+        tg = mg[f"trials/{int(it):03d}"]
+        x = np.asarray(tg["samples"][:])
+        names = [str(v) for v in tg["param"][:]]
+        t = az.summary(az.from_dict({"posterior": {f"p{i}": x[..., i] for i in range(len(names))}}),
+                       kind="diagnostics", round_to="none")
+        rhat[name] = float(t["r_hat"].max())
+        ess[name] = float(min(t["ess_bulk"].min(), t["ess_tail"].min()))
+    return {"max_rhat": max(rhat.values()), "min_ess": min(ess.values()),
+            "max_rhat_per_model": rhat, "min_ess_per_model": ess}
+
+
+def bench_posterior(seeds: int = 5, models: tuple = ("M2", "M3")) -> dict:
+    """The sampler on Sec 3.6's M2 and M3 at their optimal psi, demo settings, ``seeds`` seeds: the reported
+    ln Z standard error against the seed-to-seed sd (``evidence_se_ratio``: mean se / sd, 1 is honest), and
+    ArviZ's ESS per likelihood evaluation with the independence proposal against the plain random walk."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from ardflow.ardcore.diagnostics import convergence
+    from ardflow.ardcore.evaluate import build_target
+    from ardflow.ardcore.evidence import chib_jeliazkov
+    from ardflow.ardcore.mcmc import executor_map, sample
+    from ardflow.ardcore.study import StudySpec
+
+    spec = StudySpec.model_validate(json.loads((ROOT / "examples" / "sec36.json").read_text()))
+    data = spec.data.load()
+    psi = {"a3": 1e-4, "a4": 1e-5, "a5": math.inf, "a6": math.inf}
+    out: dict = {}
+    ratios = []
+    with ProcessPoolExecutor(2) as ex:
+        mf = executor_map(ex)
+        for label in models:
+            cand = next(c for c in spec.models if c.label == label)
+            target = build_target(cand.model_spec(), dict(cand.priors), psi, data, cand.substeps)
+            lz, se, epe = [], [], []
+            for seed in range(seeds):
+                res = sample(target, spec.sampler, seed=100 + seed, map_fn=mf)
+                ev = chib_jeliazkov(target, res, n_proposal=spec.sampler.n_proposal, seed=seed + 7, map_fn=mf,
+                                    proposal_se_ratio=spec.sampler.proposal_se_ratio)
+                lz.append(ev.log_evidence)
+                se.append(ev.log_evidence_se)
+                d = convergence(list(res.names), res.samples)
+                epe.append(min(min(v["ess_bulk"], v["ess_tail"]) for v in d.values()) / res.n_evaluations)
+            sd = float(np.std(lz, ddof=1))
+            out[f"posterior_{label}_lnz_sd"] = sd
+            out[f"posterior_{label}_se_mean"] = float(np.mean(se))
+            out[f"posterior_{label}_ess_per_evaluation"] = float(np.mean(epe))
+            ratios.append(float(np.mean(se)) / sd if sd > 0 else math.nan)
+            # the same target with the plain random walk of method.md (jump_weight 0), one seed
+            rw = sample(target, spec.sampler.model_copy(update={"jump_weight": 0.0, "max_stationary": None}),
+                        seed=100, map_fn=mf)
+            d = convergence(list(rw.names), rw.samples)
+            out[f"posterior_{label}_ess_per_evaluation_random_walk"] = (
+                min(min(v["ess_bulk"], v["ess_tail"]) for v in d.values()) / rw.n_evaluations)
+    out["evidence_se_ratio"] = ratios[0]
+    out["evidence_se_ratio_per_model"] = dict(zip(models, ratios))
+    return out
 
 
 def bench_study() -> dict:
@@ -516,6 +591,7 @@ def _save_partial(res: dict) -> None:
 
 
 BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "study": bench_study,
+           "posterior": bench_posterior,
            "loop": bench_loop, "fresh": bench_fresh}
 
 

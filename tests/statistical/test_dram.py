@@ -82,8 +82,9 @@ def burnin_rounds(inca, seed, d=10):
     target = FunctionTarget(names, JointPrior(names, {n: Normal(sd=10.0) for n in names}), GaussianLoglik(np.zeros(d), S))
     rng = np.random.default_rng(seed)
     starts = 3 * rng.standard_normal((4, d))
+    # the random walk's own adaptation is what is compared: no independence proposal, no stop on quality
     cfg = SamplerConfig(n_chains=4, round_size=100, min_burnin_rounds=2, max_burnin_rounds=200, n_stationary=50,
-                        n_proposal=50, inca=inca)
+                        n_proposal=50, inca=inca, jump_weight=0.0, min_ess=0.0, max_rhat=2.0)
     return sample(target, cfg, seed=seed, starts=starts).burnin_rounds
 
 
@@ -104,7 +105,7 @@ def test_sampler_rounds_as_events_and_resume_from_one():
 
     target, _, _ = gaussian_target()
     cfg = SamplerConfig(n_chains=3, round_size=100, min_burnin_rounds=2, max_burnin_rounds=30, n_stationary=300,
-                        n_proposal=50, start_maxfev=200)
+                        n_proposal=50, start_maxfev=200, min_ess=0.0, max_rhat=2.0)
     gen = iter_sample(target, cfg, seed=4)
     events = []
     while True:
@@ -133,8 +134,10 @@ def _far_start_run(restarts: int, notes: list | None = None):
     """Chains started 30 sd out with two short burn-in rounds: the first stationary draws still disagree."""
     target, m, S = gaussian_target(d=2, seed=1)
     starts = m + 30 * np.sqrt(np.diag(S)) * np.sign(np.random.default_rng(0).standard_normal((4, 2)))
+    # the plain random walk, judged at the old threshold and not continued: the redraw alone is tested
     cfg = SamplerConfig(n_chains=4, round_size=20, min_burnin_rounds=2, max_burnin_rounds=2, n_stationary=100,
-                        n_proposal=50, stationary_restarts=restarts)
+                        n_proposal=50, stationary_restarts=restarts, jump_weight=0.0, max_stationary=100,
+                        min_ess=0.0, max_rhat=1.1)
     progress = (lambda e: notes.append(e)) if notes is not None else None
     return sample(target, cfg, seed=12, starts=starts, progress=progress), target, m, S, cfg, starts
 
