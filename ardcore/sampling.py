@@ -38,8 +38,9 @@ class SamplerConfig(BaseModel):
         The quality the stationary draws continue to (Vehtari et al. 2021; ArviZ's rank-normalised split
         R-hat, bulk and tail ESS of every parameter, over all chains).
     max_stationary : int, optional
-        The budget: stationary draws per chain at most (default 4 M). When it runs out before the quality
-        target, the result says so (``quality_met`` False, a warning) and the study reports it.
+        The budget: stationary draws per chain at most (default M: the draws are judged, not continued).
+        When it runs out before the quality target, the result says so (``quality_met`` False, a warning)
+        and the study reports it.
     n_proposal : int
         J, the most proposal draws at phi* per chain for Chib-Jeliazkov (the denominator).
     proposal_se_ratio : float
@@ -107,8 +108,8 @@ class SamplerConfig(BaseModel):
 
     @property
     def stationary_budget(self) -> int:
-        """Stationary draws per chain at most (``max_stationary``, default 4 ``n_stationary``)."""
-        return max(self.n_stationary, self.max_stationary if self.max_stationary is not None else 4 * self.n_stationary)
+        """Stationary draws per chain at most (``max_stationary``, default ``n_stationary``)."""
+        return max(self.n_stationary, self.max_stationary or self.n_stationary)
 
     @model_validator(mode="after")
     def _rounds(self):

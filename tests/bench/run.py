@@ -201,10 +201,11 @@ def bench_dask() -> dict:
         with LocalCluster(n_workers=nw, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
                 Client(cl) as c:
             sample(target, SamplerConfig(n_chains=4, round_size=50, n_stationary=50, n_proposal=50,
-                                         max_burnin_rounds=1), seed=0, map_fn=DaskMap(c, f"warm{nw}"))
+                                         min_burnin_rounds=1, max_burnin_rounds=1, max_stationary=50),
+                   seed=0, map_fn=DaskMap(c, f"warm{nw}"))
             t0 = time.perf_counter()
             res = sample(target, cfg, seed=1, map_fn=DaskMap(c, f"scale{nw}"))
-            n_chain_samples = cfg.n_chains * (res.burnin_rounds * cfg.round_size + cfg.n_stationary)
+            n_chain_samples = cfg.n_chains * (res.burnin_rounds * cfg.round_size + res.samples.shape[1])
             rates[nw] = n_chain_samples / (time.perf_counter() - t0)
         print(f"  {nw} worker(s): {rates[nw]:.0f} samples/s", flush=True)
 
