@@ -284,23 +284,17 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
     for i in range(n):
         if mix is not None:
             w1 = mix.draw(rng, z)
-            y1, lp1, ll1, lpz1 = at(w1)
-            log_a1 = lpz1 - lpz + mix.log_ratio(w1, z) if lpz1 > -math.inf else -math.inf
-            if math.log(rng.random() + 1e-300) < log_a1:
-                x, lp, ll, lpz, z = y1, lp1, ll1, lpz1, w1
-                acc += 1
-            if lp > best_lp:
-                best_x, best_lp, best_ll = x.copy(), lp, ll
-            S[i], Z[i], LP[i], LL[i] = x, z, lp, ll
-            continue
-        z1 = rng.standard_normal(d)
-        w1 = z + L @ z1
+        else:
+            z1 = rng.standard_normal(d)
+            w1 = z + L @ z1
         y1, lp1, ll1, lpz1 = at(w1)
-        log_a1 = lpz1 - lpz if lpz1 > -math.inf else -math.inf
+        # the mixture is not symmetric: its proposal ratio enters the acceptance
+        log_a1 = (lpz1 - lpz + (mix.log_ratio(w1, z) if mix is not None else 0.0)) if lpz1 > -math.inf \
+            else -math.inf
         if math.log(rng.random() + 1e-300) < log_a1:
             x, lp, ll, lpz, z = y1, lp1, ll1, lpz1, w1
             acc += 1
-        elif adaptive and dr_scale > 0:
+        elif mix is None and adaptive and dr_scale > 0:
             z2 = rng.standard_normal(d)
             w2 = z + dr_scale * (L @ z2)
             y2, lp2, ll2, lpz2 = at(w2)
