@@ -257,6 +257,8 @@ def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = seria
     # ---- stationary stage: fixed proposal, plain RWM
     samples, lps, lls, states, s_acc, n_eval, diag = yield from stationary_rounds(
         target, states, cov, config, map_fn, pool=pool, counters=counters, resume=resume)
+    # the kernel of the pass that was kept (a redrawn stage refits the pool), which Chib-Jeliazkov needs
+    cov, jump = pool.cov, pool.jump(config.jump_weight, config.jump_df)
     best = max(states, key=lambda q: q.best_lp)
     r_final = np.array([diag[n]["r_hat"] for n in names]) if names else np.ones(0)
     quality = Quality(config.max_rhat, config.min_ess)
@@ -275,7 +277,7 @@ def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = seria
         burnin_rounds=rounds, converged=converged,
         acceptance=s_acc / max(1, samples.shape[0] * samples.shape[1]), burnin_acceptance=b_acc / max(1, b_n),
         n_evaluations=n_eval, warnings=warnings,
-        jump=(lambda j: j.to_dict() if j is not None else None)(pool.jump(config.jump_weight, config.jump_df)),
+        jump=jump.to_dict() if jump is not None else None,
         diagnostics=diag, quality_met=quality.met(diag))
 
 

@@ -100,3 +100,33 @@ def test_stationary_draws_continue_to_the_quality_target_and_report_a_short_budg
     short = sample(target, cfg.model_copy(update={"max_stationary": 200}), seed=1)
     assert not short.quality_met and short.samples.shape[1] == 200
     assert any("not converged" in w for w in short.warnings)
+
+
+def test_the_result_carries_the_kernel_of_the_pass_it_kept():
+    """Chains started far out with a burn-in too short to settle: the first stationary pass is redrawn
+    with a proposal refitted to it, and the result must carry that proposal (Chib-Jeliazkov uses it)."""
+    from ardflow.ardcore.events import Note
+    from ardflow.ardcore.mcmc import serial_map
+
+    d = 4
+    S = correlated_cov(d, 1)
+    m = np.random.default_rng(11).standard_normal(d)
+    names = [f"p{i}" for i in range(d)]
+    target = FunctionTarget(names, JointPrior(names, {n: Normal(sd=3.0) for n in names}), GaussianLoglik(m, S))
+    starts = m + 30 * np.sqrt(np.diag(S)) * np.sign(np.random.default_rng(0).standard_normal((4, d)))
+    used = []
+
+    def recording_map(func, items, step=None):
+        if step is not None and step.kind == "stationary":
+            used.append((np.array(items[0][2]), items[0][6]))
+        return serial_map(func, items, step)
+
+    notes = []
+    cfg = SamplerConfig(n_chains=4, round_size=20, min_burnin_rounds=2, max_burnin_rounds=2, n_stationary=500,
+                        n_proposal=200, max_stationary=500)
+    res = sample(target, cfg, seed=12, starts=starts, map_fn=recording_map, progress=notes.append)
+    assert any(isinstance(e, Note) and "drawn again" in e.message for e in notes)
+    cov, jump = used[-1]
+    np.testing.assert_array_equal(res.proposal_cov, cov)
+    assert res.jump == jump.to_dict()
+    assert not np.allclose(used[0][0], cov)  # the redraw really used another proposal
