@@ -288,8 +288,8 @@ class Maximiser:
         # resampled starts need distinct draws to resample: with a few heavy weights the chains would all
         # start at one point, so then they continue from where the best trial's chains are
         spread = rw is not None and rw.ess >= 10 * len(bres.states)
-        warm = (resample_states(bres, rw.weights, self.seed + 1009 * self._iteration, free_coordinates(self.best_target, bres.names))
-                if spread else self.best_res)
+        warm = (resample_states(bres, rw.weights, self.seed + 1009 * self._iteration,
+                                free_coordinates(self.best_target, bres.names)) if spread else self.best_res)
         return (yield from self._sample(dict(self.psi, **{k: a}), warm, self._label(k, a)))
 
     def _prune_test(self, k: str):
@@ -355,7 +355,8 @@ class Maximiser:
                    {"ess": rw.ess, "n_draws": rw.n, "n_evaluations": 0}, reweighted_from=btr.iteration,
                    reweight_se=rw.se)
         self.history.append(tr)
-        return tr, resample_states(bres, rw.weights, self.seed + 1009 * it, free_coordinates(self.best_target, bres.names))
+        return tr, resample_states(bres, rw.weights, self.seed + 1009 * it,
+                                   free_coordinates(self.best_target, bres.names))
 
     def _label(self, k: str, a: float) -> str:
         return f"{k}: log10 alpha {math.log10(self.psi[k]):.2f} -> {math.log10(a):.2f}"

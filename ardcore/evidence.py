@@ -15,7 +15,7 @@ from scipy.special import logsumexp
 from scipy.stats import chi2
 
 from .chains import Jump, MixedProposal
-from .mcmc import Map, SamplerError, SamplerResult, Step, fd_hessian, local_mode, safe_cholesky, serial_map
+from .mcmc import Map, SamplerError, SamplerResult, Step, fd_hessian, local_mode, serial_map
 from .starts import fd_derivatives
 from .transform import free_coordinates
 
@@ -61,8 +61,6 @@ class Evidence:
             "method": self.method, "warnings": list(self.warnings),
             "per_chain": [c.__dict__ for c in self.per_chain], "n_evaluations": self.n_evaluations,
         }
-
-
 
 
 def _batch_se(log_terms: np.ndarray, batches: int = 10) -> float:

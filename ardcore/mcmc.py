@@ -24,6 +24,7 @@ import numpy as np
 
 from .adaptation import AdaptationPool, rhat, rhat_from_stats  # noqa: F401
 from .chains import (  # noqa: F401
+    ChainReport,
     ChainState,
     Map,
     RoundResult,
@@ -38,9 +39,10 @@ from .chains import (  # noqa: F401
     serial_map,
 )
 from .errors import ArdflowError
-from .diagnostics import Quality
+from .diagnostics import Quality, convergence
 from .events import BurninRound, Note, ProgressEvent, StationaryRound
 from .sampling import SamplerConfig, SamplerResult  # noqa: F401
+from .transform import free_coordinates
 from .starts import (  # noqa: F401
     _Counted,
     _start_task,
@@ -130,8 +132,6 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
     evaluated so far) and the draws' diagnostics. ``resume`` (a checkpoint of this stage with the draws so
     far) continues it.
     """
-    from .diagnostics import Quality, convergence
-
     names = list(target.names)
     nc, d, M = len(states), len(names), config.n_stationary
     budget = config.stationary_budget
@@ -203,9 +203,6 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
 def _adapt_on(target, pool, states: list, samples: np.ndarray, lps: np.ndarray) -> list:
     """Report stationary draws that had not settled to the INCA pool as one more burn-in round (each chain's
     two halves, in the sampler's coordinates); chains the pool finds stuck far below the best are moved."""
-    from .chains import ChainReport, RoundStats
-    from .transform import free_coordinates
-
     free = free_coordinates(target)
     rnd = pool.rounds + 1
     h = samples.shape[1] // 2

@@ -194,7 +194,7 @@ def warm_positions(target, warm: SamplerResult, scale: np.ndarray) -> tuple[list
         return out
 
     # the proposal is in the sampler's unconstrained coordinates: a new parameter's small step too
-    cov = free_coordinates(target).cov_to_free(np.diag((0.01 * scale) ** 2), new)
+    cov = free.cov_to_free(np.diag((0.01 * scale) ** 2), new)
     sub = P[np.ix_(known, known)]
     if B is not None:
         cond = sub - B @ P[np.ix_(dropped, known)]

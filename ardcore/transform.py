@@ -25,13 +25,14 @@ class Unconstrained:
 
     Parameters
     ----------
-    prior : JointPrior
-        Decides each parameter's map: lognormal -> log, uniform -> logit of the bounds, else identity.
+    priors : sequence of Prior or None
+        One per parameter, deciding its map: lognormal -> log, uniform -> logit of the bounds, anything
+        else (None included) -> identity.
     """
 
-    def __init__(self, prior):
+    def __init__(self, priors):
         kinds, lo, hi = [], [], []
-        for p in prior.priors:
+        for p in priors:
             kind = getattr(p, "kind", "")
             if kind == "lognormal":
                 kinds.append(_LOG), lo.append(0.0), hi.append(math.inf)
@@ -109,11 +110,6 @@ def free_coordinates(target, names: list[str] | None = None) -> Unconstrained:
     ``names`` in that order (a name the target lacks, such as a term pruned since, maps to itself)."""
     prior = getattr(target, "prior", None)
     if names is None:
-        chosen = list(prior.priors) if prior is not None else [None] * len(target.names)
-    else:
-        by_name = dict(zip(prior.names, prior.priors)) if prior is not None else {}
-        chosen = [by_name.get(n) for n in names]
-
-    class _Priors:
-        priors = chosen
-    return Unconstrained(_Priors())
+        return Unconstrained(list(prior.priors) if prior is not None else [None] * len(target.names))
+    by_name = dict(zip(prior.names, prior.priors)) if prior is not None else {}
+    return Unconstrained([by_name.get(n) for n in names])

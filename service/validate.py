@@ -91,5 +91,6 @@ def check_budget(spec: StudySpec, n_rows: int, budget: float) -> dict:
     if cost > budget:
         raise Rejected(413, f"study too large for this service: about {ev:.3g} likelihood evaluations x "
                             f"{n_rows} rows x {sub} sub-steps = {cost:.3g} > budget {budget:.3g} (lower "
-                            f"sampler.max_burnin_rounds, n_stationary, max_stationary, n_chains, maximiser.max_trials or substeps)")
+                            f"sampler.max_burnin_rounds, n_stationary, max_stationary, n_chains, "
+                            f"maximiser.max_trials or substeps)")
     return est

@@ -95,8 +95,8 @@ class ActorPool:
             self.pending = {k: v for k, v in self.pending.items() if k[1] > self.mirror.rounds}
         return done
 
-    _READ = frozenset({"proposal", "jump", "rounds", "cov", "best", "best_lp", "rhat_history", "rhat", "moved", "converged",
-                       "to_dict"})
+    _READ = frozenset({"proposal", "jump", "rounds", "cov", "best", "best_lp", "rhat_history", "rhat", "moved",
+                       "converged", "to_dict"})
 
     def __getattr__(self, name: str):
         # what the driver reads is read from the mirror, which every committed round refreshes

@@ -126,10 +126,6 @@ class DaskMap:
             return c.submit(_burnin_round_task, it, self.prefix, ch, step.index,
                             key=f"burnin-{self.prefix}-r{step.index:03d}-c{ch}{sfx}")
         if step is not None and step.kind == "stationary" and self.store is not None:
-            from ardflow.ardcore.mcmc import STRIDE
-
-            # the stage continues past its first M draws while their quality is short: make room first
-            self.store.resize_draws(self.model, self.iteration, step.index % STRIDE + int(it[3]), grow_only=True)
             return c.submit(_stationary_round_task, it, str(self.store), self.model, self.iteration,
                             ch, step.index, key=f"stationary-{self.prefix}-d{step.index:06d}-c{ch}{sfx}")
         name = step.kind if step is not None else getattr(func, "__name__", "task").strip("_")
@@ -138,6 +134,14 @@ class DaskMap:
 
     def __call__(self, func, items, step: Step | None = None):
         from distributed import wait
+
+        if step is not None and step.kind == "stationary" and self.store is not None and items:
+            from ardflow.ardcore.mcmc import STRIDE
+
+            # the stage continues past its first M draws while their quality is short: make room first
+            # (item[3] is the round's length, the same for every chain)
+            self.store.resize_draws(self.model, self.iteration, step.index % STRIDE + int(items[0][3]),
+                                    grow_only=True)
 
         futs = [self._submit(func, it, ch, step, 0) for ch, it in enumerate(items)]
         attempts = [0] * len(futs)

@@ -32,7 +32,7 @@ def _prior_mix(names, m, S):
 def test_unconstrained_round_trip_and_jacobian():
     pri = JointPrior(["a", "b", "c"], {"a": LogNormal(median=0.2, cov=50), "b": Uniform(low=-2, high=0),
                                        "c": Normal(sd=1.0)})
-    u = Unconstrained(pri)
+    u = Unconstrained(pri.priors)
     x = np.array([0.37, -1.3, 4.0])
     assert np.allclose(u.from_free(u.to_free(x)), x, rtol=1e-12)
     # ln|dx/dz| against a finite difference of from_free, coordinate by coordinate
