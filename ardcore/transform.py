@@ -31,15 +31,18 @@ class Unconstrained:
     """
 
     def __init__(self, priors):
-        kinds, lo, hi = [], [], []
+        kinds, lo, hi, width = [], [], [], []
         for p in priors:
             kind = getattr(p, "kind", "")
+            # width: the prior's own sd in z (lognormal: its s; uniform: the standard logistic's pi / sqrt 3)
             if kind == "lognormal":
-                kinds.append(_LOG), lo.append(0.0), hi.append(math.inf)
+                kinds.append(_LOG), lo.append(0.0), hi.append(math.inf), width.append(p.s)
             elif kind == "uniform":
                 kinds.append(_LOGIT), lo.append(float(p.low)), hi.append(float(p.high))
+                width.append(math.pi / math.sqrt(3.0))
             else:
-                kinds.append(_IDENTITY), lo.append(-math.inf), hi.append(math.inf)
+                kinds.append(_IDENTITY), lo.append(-math.inf), hi.append(math.inf), width.append(math.inf)
+        self.prior_sd = np.array(width)
         self.kind = np.array(kinds, dtype=int)
         self.lo, self.hi = np.array(lo), np.array(hi)
         self._log, self._logit = self.kind == _LOG, self.kind == _LOGIT
@@ -96,7 +99,12 @@ class Unconstrained:
         if self.identity:
             return np.asarray(cov, dtype=float)
         s = self.slope(x)
-        return np.asarray(cov, dtype=float) / np.outer(s, s)
+        C = np.asarray(cov, dtype=float) / np.outer(s, s)
+        # near a uniform prior's bound dx/dz -> 0 and the linearised sd in z explodes: no step wider than
+        # the prior itself in z (every proposal would land on the bound and be refused)
+        sd = np.sqrt(np.clip(np.diag(C), 0.0, None))
+        shrink = np.where(sd > self.prior_sd, self.prior_sd / np.where(sd > 0, sd, 1.0), 1.0)
+        return C * np.outer(shrink, shrink)
 
 
 def _expit(z: np.ndarray) -> np.ndarray:

@@ -42,6 +42,21 @@ def test_unconstrained_round_trip_and_jacobian():
     assert u.log_jacobian(np.array([0.37, 0.0, 4.0])) == -math.inf  # on the uniform's bound
 
 
+def test_a_covariance_taken_beside_a_bound_is_no_wider_than_the_prior_in_z():
+    """A start optimiser's mode on a uniform prior's bound (Sec 3.6 M3's A at 0): dx/dz -> 0 there, and the
+    linearised step in z must not exceed the prior's own sd in z, or every proposal lands on the bound."""
+    pri = JointPrior(["A", "B", "c"], {"A": Uniform(low=0.0, high=0.5), "B": LogNormal(median=0.3, cov=50),
+                                       "c": Normal(sd=1.0)})
+    u = Unconstrained(pri.priors)
+    C = np.diag([0.01, 0.01, 0.04]) + 0.001
+    Cz = u.cov_to_free(C, np.array([1e-9, 0.3, 0.0]))
+    sd = np.sqrt(np.diag(Cz))
+    assert sd[0] <= math.pi / math.sqrt(3) * (1 + 1e-12)
+    assert sd[1] == pytest.approx(math.sqrt(0.011) / 0.3)  # inside, the linearisation stands
+    assert sd[2] == pytest.approx(math.sqrt(0.041))
+    np.linalg.cholesky(Cz)  # still a covariance
+
+
 @pytest.mark.parametrize("d,seed", [(4, 0), (6, 3)])
 def test_evidence_exact_in_unconstrained_coordinates_with_the_jump(d, seed):
     """Chib-Jeliazkov with the mixed proposal, in logit coordinates, on a Gaussian likelihood whose
