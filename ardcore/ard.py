@@ -112,10 +112,13 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
     warm : SamplerResult, optional
         Warm start of the first trial (e.g. the fit of a nested model; parameters it lacks start at 0).
     """
-    m = Maximiser(ard, config, seed=seed, warm=warm, on_trial=on_trial)
+    # an evaluator without chains to continue (a closed-form evidence) has no budget: nothing is continued
+    m = Maximiser(ard, config, seed=seed, warm=warm, on_trial=on_trial,
+                  budget=getattr(evaluate, "stationary_budget", 0))
     while (req := m.next()) is not None:
         t0 = time.perf_counter()
-        target, ev, res = evaluate(req.psi, req.seed, req.warm, iteration=req.iteration)
+        more = {"extend": True} if req.extend else {}
+        target, ev, res = evaluate(req.psi, req.seed, req.warm, iteration=req.iteration, **more)
         m.observe(req, target, ev, res, time.perf_counter() - t0)
     return m.result()
 
@@ -123,13 +126,15 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
 @dataclass(frozen=True)
 class TrialRequest:
     """What the maximiser asks for next: the evidence at ``psi`` by sampling (MCMC + Chib-Jeliazkov or
-    Laplace), its chains warm-started from ``warm``."""
+    Laplace), its chains warm-started from ``warm``; with ``extend``, the chains of ``warm`` (sampled at
+    ``psi``) continued to the sampler's quality target instead (:func:`~ardcore.mcmc.continuation`)."""
 
     iteration: int
     psi: dict
     warm: SamplerResult | None
     action: str
     seed: int
+    extend: bool = False
 
 
 def _diff_se(a: Trial, b: Trial) -> float:
@@ -153,8 +158,10 @@ class Maximiser:
     """
 
     def __init__(self, ard: dict[str, float | None], config: MaximiserConfig, *, seed: int,
-                 warm: SamplerResult | None = None, on_trial: Callable[[Trial], None] | None = None):
+                 warm: SamplerResult | None = None, on_trial: Callable[[Trial], None] | None = None,
+                 budget: int = 0):
         self.config, self.seed, self.on_trial, self._warm = config, seed, on_trial, warm
+        self.budget = budget  # stationary draws per chain the reported trial's chains may continue to
         self.psi = {k: config.alpha_start for k in ard}
         self.thresholds = {k: (v if v is not None else config.prune_alpha) for k, v in ard.items()}
         self.visit = list(ard)[::-1] if config.order == "reverse" else list(ard)
@@ -218,6 +225,7 @@ class Maximiser:
             for k in self.visit:
                 changed = (yield from self._coordinate(k, sweeps)) or changed
         yield from self._settle()
+        yield from self._refine()
 
     def _coordinate(self, k: str, sweeps: int):
         """One coordinate of a sweep: re-test it if pruned, else its line search and prune test."""
@@ -327,12 +335,25 @@ class Maximiser:
         self._accept(tr, target, res)
         self._notify(tr)
 
+    def _refine(self):
+        """The search trials' draws are judged, not continued (:meth:`SamplerConfig.judged`): the reported
+        posterior is the optimum's chains continued to the quality target, and its evidence is taken again
+        from all their draws. (Not counted against ``max_trials``: it is the same trial, drawn longer.)"""
+        res = self.best_res
+        if (res is None or res.quality_met or not res.samples.size or res.adaptation is None
+                or res.samples.shape[1] >= self.budget):
+            return
+        tr, target, res = yield from self._sample(dict(self.psi), res, "optimum: chains continued to the quality "
+                                                  "target", extend=True)
+        self._accept(tr, target, res)
+        self._notify(tr)
+
     # -- helpers
-    def _sample(self, psi: dict, warm, action: str):
+    def _sample(self, psi: dict, warm, action: str, extend: bool = False):
         it = self._iteration
         self._iteration += 1
-        self.n_sampled += 1
-        return (yield TrialRequest(it, dict(psi), warm, action, self.seed + 1009 * it))
+        self.n_sampled += not extend
+        return (yield TrialRequest(it, dict(psi), warm, action, self.seed + 1009 * it, extend))
 
     def _reweighted(self, trial_psi: dict, action: str):
         """(trial, warm state) reweighted from the base trial's draws, or (None, weights or None) when that is

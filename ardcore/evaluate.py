@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from .evidence import chib_jeliazkov, laplace
-from .mcmc import Map, SamplerConfig, SamplerResult, Step, initial_scale, sample, serial_map
+from .mcmc import Map, SamplerConfig, SamplerResult, Step, continuation, continued, initial_scale, sample, serial_map
 from .starts import new_parameter_start
 from .posterior import ModelPosterior
 from .priors import ARD
@@ -39,8 +39,16 @@ class EvidenceEvaluator:
         # that the evidence itself assumed (what a screen of many candidates can afford)
         self.final_posterior = final_posterior
 
+    @property
+    def stationary_budget(self) -> int:
+        """Stationary draws per chain the reported trial's chains may continue to (0: Laplace, no chains)."""
+        return 0 if self.method == "laplace" else self.sampler.stationary_budget
+
     def __call__(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False,
-                 iteration: int | None = None):
+                 iteration: int | None = None, extend: bool = False):
+        """(target, evidence, sampler result) at ``psi``: chains warm-started from ``warm`` drawing the
+        judged M per chain (:meth:`SamplerConfig.judged`), or with ``extend`` the chains of ``warm``
+        continued to the quality target (:func:`~ardcore.mcmc.continuation`)."""
         target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
         if self.method == "laplace":
             x0 = _warm_point(target, warm) if warm is not None else self._cold_start(target, seed)
@@ -58,8 +66,13 @@ class EvidenceEvaluator:
                 # its line-search steps (only the ARD prior changes) instead of another Newton fit
                 res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
             return target, ev, res
-        res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn, warm=warm,
-                     progress=self.progress, cancel=self.cancel)
+        if extend:
+            res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn, resume=continuation(warm),
+                         progress=self.progress, cancel=self.cancel)
+            res = continued(res, warm)
+        else:
+            res = sample(target, self.sampler.judged(), seed=seed, map_fn=self.map_fn, warm=warm,
+                         progress=self.progress, cancel=self.cancel)
         ev = chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7,
                             proposal_se_ratio=self.sampler.proposal_se_ratio, map_fn=self.map_fn)
         ev.warnings = list(res.warnings) + ev.warnings

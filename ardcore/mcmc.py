@@ -17,7 +17,7 @@ and the driver (:func:`sample`), and re-exports the pieces.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Generator
 
 import numpy as np
@@ -121,8 +121,9 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
 
     After ``config.n_stationary`` draws per chain (and after each extension) ArviZ's diagnostics are taken
     (:mod:`.diagnostics`). When the rank R-hat of some parameter exceeds ``config.rhat_threshold`` the chains
-    had not settled: the draws count as more burn-in and are drawn again from where the chains are (at most
-    ``config.stationary_restarts`` times). Otherwise, while R-hat exceeds ``config.max_rhat`` or a bulk or
+    had not settled; when the ESS per draw is so low that the budget cannot reach ``config.min_ess`` at that
+    rate the kernel is poor. Either way the draws count as more burn-in (the pool refits the kernel to them)
+    and are drawn again from where the chains are (at most ``config.stationary_restarts`` times). Otherwise, while R-hat exceeds ``config.max_rhat`` or a bulk or
     tail ESS is below ``config.min_ess``, the same chains continue with the same kernel (the draws so far
     stay: one longer stationary run) by as many draws as the ESS says are missing, up to
     ``config.stationary_budget`` draws per chain.
@@ -137,9 +138,11 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
     budget = config.stationary_budget
     quality = Quality(config.max_rhat, config.min_ess)
     goal, done, s_acc, n_eval, passes = M, 0, 0, counters[2], 0
+    refit = False
     if resume is not None and resume["stage"] == "stationary":
         done, s_acc, passes = int(resume["done"]), int(resume["s_acc"]), int(resume.get("pass", 0))
         goal = int(resume.get("goal", M))
+        refit = bool(resume.get("refit"))
     samples = np.full((nc, goal, d), np.nan)
     lps = np.full((nc, goal), np.nan)
     lls = np.full((nc, goal), np.nan)
@@ -171,16 +174,25 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
         r_max, e_min, r_name, e_name = quality.worst(diag)
         if quality.met(diag):
             return samples[:, :done], lps[:, :done], lls[:, :done], states, s_acc, n_eval, diag
-        if r_max > config.rhat_threshold and passes < config.stationary_restarts:
-            # the kernel was fitted to chains that had not settled: these draws become one more adaptation
-            # round (the pool refits the random walk's covariance and the independence proposal to them)
+        # a kernel fitted to chains that had not settled (R-hat), or one so poor that the budget cannot reach
+        # the ESS target at the rate its draws give (ESS grows about linearly with the draws): these draws
+        # become one more adaptation round (the pool refits the random walk's covariance and the
+        # independence proposal to them) and the stage is drawn again
+        unsettled = r_max > config.rhat_threshold
+        # judged once per pass, with a factor 2 to spare: an ESS from few draws is pessimistic
+        hopeless = done == M < budget and 2 * e_min * budget / done < quality.min_ess
+        if refit or ((unsettled or hopeless) and passes < config.stationary_restarts):
+            why = (f"R-hat {r_max:.3g} for {r_name}" if unsettled else
+                   f"ESS {e_min:.0f} for {e_name} after {done} draws per chain, too slow for ESS "
+                   f"{quality.min_ess:g} within {budget}" if hopeless else
+                   f"{quality.describe(diag)} after {done} draws per chain")
+            refit = False
             states = _adapt_on(target, pool, states, samples[:, :done], lps[:, :done])
             cov, jump = pool.cov, pool.jump(config.jump_weight, config.jump_df)
             passes, done, s_acc, goal = passes + 1, 0, 0, M
             samples, lps, lls = samples[:, :M], lps[:, :M], lls[:, :M]
-            note = Note(f"stationary draws: R-hat {r_max:.3g} for {r_name}; counted as burn-in (the proposal "
-                        f"refitted to them) and drawn again (pass {passes + 1} of at most "
-                        f"{config.stationary_restarts + 1})")
+            note = Note(f"stationary draws: {why}; counted as burn-in (the proposal refitted to them) and drawn "
+                        f"again (pass {passes + 1} of at most {config.stationary_restarts + 1})")
             yield RoundEvent("stationary", 0, (note,), checkpoint())
             continue
         if done >= budget:
@@ -275,7 +287,32 @@ def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = seria
         acceptance=s_acc / max(1, samples.shape[0] * samples.shape[1]), burnin_acceptance=b_acc / max(1, b_n),
         n_evaluations=n_eval, warnings=warnings,
         jump=jump.to_dict() if jump is not None else None,
-        diagnostics=diag, quality_met=quality.met(diag))
+        diagnostics=diag, quality_met=quality.met(diag), adaptation=pool.to_dict())
+
+
+def continuation(res: SamplerResult) -> dict:
+    """The checkpoint from which :func:`sample` (``resume=``) continues the stationary stage of ``res``: the
+    same chains (their random streams included), whose stationary draws become one more adaptation round
+    (the kernel refitted to them: a search trial's kernel comes from a short burn-in, and its draws cost
+    nothing more now), then M draws judged and extended to the quality target within the budget of the
+    settings it is resumed with.
+
+    The continued result counts only the new likelihood evaluations; its burn-in acceptance is unknown
+    here (0): :func:`continued` carries it over.
+    """
+    if res.adaptation is None or not res.samples.size:
+        raise SamplerError("these draws cannot be continued: the result carries no coordinator state")
+    nc, m = res.samples.shape[:2]
+    return {"stage": "stationary", "states": [s.to_dict() for s in res.states], "pool": res.adaptation,
+            "counters": [0, 0, 0], "done": m, "goal": m, "pass": 0, "refit": True,
+            "s_acc": int(round(res.acceptance * nc * m)),
+            "samples": res.samples.copy(), "lp": res.lp.copy(), "ll": res.ll.copy()}
+
+
+def continued(res: SamplerResult, before: SamplerResult) -> SamplerResult:
+    """``res``, sampled from :func:`continuation` of ``before``, with the burn-in acceptance of ``before``
+    (the rest of the burn-in's record travels in the chain states and the coordinator)."""
+    return replace(res, burnin_acceptance=before.burnin_acceptance)
 
 
 def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,

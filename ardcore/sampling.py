@@ -40,7 +40,9 @@ class SamplerConfig(BaseModel):
     max_stationary : int, optional
         The budget: stationary draws per chain at most (default M: the draws are judged, not continued).
         When it runs out before the quality target, the result says so (``quality_met`` False, a warning)
-        and the study reports it.
+        and the study reports it. In a study it applies to the reported posterior: the maximiser's trials
+        draw M per chain (judged, redrawn when unsettled), and the chains of the trial it reports continue
+        to the target (:meth:`judged`, :func:`~ardcore.mcmc.continuation`).
     n_proposal : int
         J, the most proposal draws at phi* per chain for Chib-Jeliazkov (the denominator).
     proposal_se_ratio : float
@@ -111,6 +113,14 @@ class SamplerConfig(BaseModel):
         """Stationary draws per chain at most (``max_stationary``, default ``n_stationary``)."""
         return max(self.n_stationary, self.max_stationary or self.n_stationary)
 
+    def judged(self) -> "SamplerConfig":
+        """These settings without the extension: M draws per chain, judged (and redrawn once when unsettled)
+        but not continued; what the maximiser's search trials use. (A trial still unsettled after one redraw
+        is typically a bimodal posterior at a loose alpha: more redraws do not settle it, and its evidence
+        is compared with its standard error, not reported.)"""
+        return self.model_copy(update={"max_stationary": None,
+                                       "stationary_restarts": min(1, self.stationary_restarts)})
+
     @model_validator(mode="after")
     def _rounds(self):
         if self.max_burnin_rounds < self.min_burnin_rounds:
@@ -147,3 +157,6 @@ class SamplerResult:
     (:func:`ardcore.diagnostics.convergence`)."""
     quality_met: bool = True
     """Whether every parameter reached ``max_rhat`` and ``min_ess`` within the budget."""
+    adaptation: dict | None = None
+    """The INCA coordinator's final state (:meth:`~ardcore.adaptation.AdaptationPool.to_dict`): with
+    ``states`` and the draws, what continuing these chains needs (:func:`~ardcore.mcmc.continuation`)."""

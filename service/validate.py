@@ -67,15 +67,17 @@ def _check_in_child(spec: StudySpec, keys: list[str], timeout_s: float, memory_m
 
 
 def estimate_evaluations(spec: StudySpec) -> float:
-    """An upper estimate of a study's likelihood evaluations: every model runs ``max_trials`` trials, each
-    with its start optimisation, every burn-in round (with delayed rejection: up to two per proposal), the
-    stationary draws up to their budget (``max_stationary``; each redraw of an unsettled stage is M more) and
-    the Chib-Jeliazkov proposal draws."""
+    """An upper estimate of a study's likelihood evaluations: every model runs ``max_trials`` search trials,
+    each with its start optimisation, every burn-in round (with delayed rejection: up to two per proposal),
+    M stationary draws (each redraw of an unsettled stage is M more) and the Chib-Jeliazkov proposal draws;
+    then its optimum's chains continue up to the budget (``max_stationary``) and take the proposal draws
+    again."""
     s, m = spec.sampler, spec.maximiser
     per_trial = (s.n_chains * (s.start_maxfev + 2 * s.max_burnin_rounds * s.round_size
-                                + s.stationary_budget + s.stationary_restarts * s.n_stationary)
+                                + (1 + s.stationary_restarts) * s.n_stationary)
                  + s.n_proposal * s.n_chains)
-    return float(len(spec.models) * m.max_trials * per_trial)
+    refine = s.n_chains * (s.stationary_budget + s.stationary_restarts * s.n_stationary + s.n_proposal)
+    return float(len(spec.models) * (m.max_trials * per_trial + refine))
 
 
 def check_budget(spec: StudySpec, n_rows: int, budget: float) -> dict:

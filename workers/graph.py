@@ -33,7 +33,7 @@ import numpy as np
 from ardflow.ardcore.ard import EvidenceEvaluator, build_target
 from ardflow.ardcore.events import ModelDone, ModelEvent
 from ardflow.ardcore.evidence import ChainEvidence, Evidence, chib_jeliazkov
-from ardflow.ardcore.mcmc import ChainState, SamplerResult, sample
+from ardflow.ardcore.mcmc import ChainState, SamplerResult, continuation, continued, sample
 from ardflow.ardcore.fit import ModelFit
 from ardflow.ardcore.study import StudySpec, compare, run_candidate
 
@@ -53,7 +53,7 @@ def _record(psi: dict, ev: Evidence, res: SamplerResult) -> dict:
         "rhat": res.rhat, "rhat_history": res.rhat_history, "burnin_rounds": res.burnin_rounds,
         "converged": res.converged, "acceptance": res.acceptance, "burnin_acceptance": res.burnin_acceptance,
         "n_evaluations": res.n_evaluations, "warnings": res.warnings, "jump": res.jump,
-        "diagnostics": res.diagnostics, "quality_met": res.quality_met,
+        "diagnostics": res.diagnostics, "quality_met": res.quality_met, "adaptation": res.adaptation,
     })
 
 
@@ -69,7 +69,8 @@ def _from_record(rec: dict, store: StudyStore, model: str, iteration: int) -> tu
         rhat_history=rec["rhat_history"], burnin_rounds=rec["burnin_rounds"], converged=rec["converged"],
         acceptance=rec["acceptance"], burnin_acceptance=rec["burnin_acceptance"],
         n_evaluations=rec["n_evaluations"], warnings=list(rec["warnings"]), jump=rec.get("jump"),
-        diagnostics=rec.get("diagnostics", {}), quality_met=rec.get("quality_met", True))
+        diagnostics=rec.get("diagnostics", {}), quality_met=rec.get("quality_met", True),
+        adaptation=rec.get("adaptation"))
     return ev, res
 
 
@@ -86,9 +87,10 @@ class StoredEvaluator(EvidenceEvaluator):
         self.client, self.store, self.study_id, self.model = client, store, study_id, model
         self.map_fn = DaskMap(client, f"{study_id}-{model}")
 
-    def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None):
+    def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
+                 extend: bool = False):
         if self.method == "laplace" or iteration is None:
-            return super().__call__(psi, seed, warm, final=final, iteration=iteration)
+            return super().__call__(psi, seed, warm, final=final, iteration=iteration, extend=extend)
         model, store = self.model, self.store
         target = StoppableTarget(build_target(self.spec, self.essential, psi, self.data, self.substeps),
                                  self.study_id, max_task_s=float(os.environ.get("ARDFLOW_MAX_TASK_S", 21600)))
@@ -96,13 +98,23 @@ class StoredEvaluator(EvidenceEvaluator):
         if rec is not None and rec["psi"] == _json(psi):
             ev, res = _from_record(rec, store, model, iteration)
             return target, ev, res
-        cfg = self.sampler
+        # search trials draw the judged M; the reported one continues its chains to the quality target
+        cfg = self.sampler if extend else self.sampler.judged()
         prefix = f"{self.study_id}-{model}-it{iteration:03d}"
-        store.create_trial(model, iteration, list(target.names), cfg.n_chains, cfg.n_stationary, cfg.round_size, psi)
         ck = store.read_checkpoint(model, iteration)
         if ck is not None and ck.get("psi") != _json(psi):
             ck = None
-        if ck is not None and ck["stage"] == "stationary":
+        if ck is None and extend:
+            # the continued chains' draws so far are this trial's first draws
+            ck = continuation(warm)
+            nc, m = warm.samples.shape[:2]
+            store.create_trial(model, iteration, list(target.names), nc, m, cfg.round_size, psi)
+            for c in range(nc):
+                store.write_round(model, iteration, c, 0, warm.samples[c], warm.lp[c], warm.ll[c])
+        else:
+            store.create_trial(model, iteration, list(target.names), cfg.n_chains, cfg.n_stationary,
+                               cfg.round_size, psi)
+        if ck is not None and ck["stage"] == "stationary" and "samples" not in ck:
             s, lp, ll, _ = store.read_samples(model, iteration)
             ck.update(samples=s, lp=lp, ll=ll)
         dmap = DaskMap(self.client, prefix, store, model, iteration, coordinator=True)
@@ -122,6 +134,8 @@ class StoredEvaluator(EvidenceEvaluator):
         finally:
             for p in pools:
                 p.close()
+        if extend:
+            res = continued(res, warm)
         store.resize_draws(model, iteration, res.samples.shape[1])  # exactly the draws kept
         ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=seed + 7,
                             proposal_se_ratio=cfg.proposal_se_ratio, map_fn=dmap)

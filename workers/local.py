@@ -27,8 +27,9 @@ class LocalStoredEvaluator(EvidenceEvaluator):
         super().__init__(spec, essential, data, sampler, **kw)
         self.store, self.model = store, model
 
-    def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None):
-        target, ev, res = super().__call__(psi, seed, warm, final=final, iteration=iteration)
+    def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
+                 extend: bool = False):
+        target, ev, res = super().__call__(psi, seed, warm, final=final, iteration=iteration, extend=extend)
         if self.method == "laplace" or iteration is None or res is None or not res.samples.size:
             return target, ev, res
         nc, M, _ = res.samples.shape

@@ -171,13 +171,15 @@ class StudyStore:
 
     def create_trial(self, model: str, iteration: int, names: list[str], n_chains: int, n_draws: int,
                      round_size: int, psi: dict) -> None:
-        """Create (or keep, when the shape matches) the arrays of one trial."""
+        """Create (or keep, when chains and parameters match) the arrays of one trial. Kept arrays keep their
+        length: a stationary stage that grew them past ``n_draws`` resumes with its draws."""
         g = self.group()
         path = self.trial_path(model, iteration)
         if path in g:
             tg = g[path]
+            shape = tg["samples"].shape if "samples" in tg else None
             # a driver killed half-way through creating the trial leaves no "created" mark
-            if tg.attrs.get("created") and tg["samples"].shape == (n_chains, n_draws, len(names)):
+            if tg.attrs.get("created") and shape is not None and (shape[0], shape[2]) == (n_chains, len(names)):
                 return
             del g[path]
         tg = g.require_group(path)

@@ -145,3 +145,40 @@ def test_the_result_carries_the_kernel_of_the_pass_it_kept():
     np.testing.assert_array_equal(res.proposal_cov, cov)
     assert res.jump == jump.to_dict()
     assert not np.allclose(used[0][0], cov)  # the redraw really used another proposal
+
+
+def _exact_mix_target(d, seed):
+    from scipy.stats import multivariate_normal as mvn
+
+    S = np.diag(np.diag(correlated_cov(d, seed)))
+    m = np.random.default_rng(seed + 10).standard_normal(d)
+    names = [f"p{i}" for i in range(d)]
+    pri = _prior_mix(names, m, S)
+    odd = [i for i in range(d) if i % 2]
+    exact = sum(-math.log(pri[names[i]].high - pri[names[i]].low) for i in range(0, d, 2))
+    exact += mvn(np.zeros(len(odd)), S[np.ix_(odd, odd)] + 9 * np.eye(len(odd))).logpdf(m[odd])
+    return FunctionTarget(names, JointPrior(names, pri), GaussianLoglik(m, S)), exact
+
+
+def test_continued_chains_reach_the_target_and_keep_an_exact_evidence():
+    """A search trial's judged draws (short of the target) continued (:func:`continuation`): the kernel is
+    refitted to them, the new draws reach the target, only the new evaluations are counted, and
+    Chib-Jeliazkov on the continued draws still gives the exact ln Z."""
+    from ardflow.ardcore.mcmc import continuation, continued
+
+    target, exact = _exact_mix_target(4, 2)
+    cfg = SamplerConfig(n_chains=4, round_size=100, min_burnin_rounds=1, n_stationary=100, n_proposal=1000,
+                        max_stationary=5000, min_ess=1000)
+    first = sample(target, cfg.judged(), seed=4)
+    assert not first.quality_met and first.samples.shape[1] == 100
+    kept = first.samples.copy()
+    res = continued(sample(target, cfg, seed=99, resume=continuation(first)), first)
+    np.testing.assert_array_equal(first.samples, kept)  # the search trial's result is left as it was
+    assert res.quality_met and res.samples.shape[1] > 100
+    assert res.burnin_acceptance == first.burnin_acceptance and res.burnin_rounds == first.burnin_rounds
+    assert res.n_evaluations == res.samples.shape[0] * res.samples.shape[1]  # one evaluation per new draw
+    ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=5, proposal_se_ratio=0.5)
+    assert abs(ev.log_evidence - exact) < 5 * ev.log_evidence_se + 0.03
+    # the same chains again: the continuation is deterministic (its streams travel in the chain states)
+    again = sample(target, cfg, seed=1, resume=continuation(first))
+    np.testing.assert_array_equal(again.samples, res.samples)

@@ -292,3 +292,46 @@ def test_redrawn_stationary_passes_write_the_store_and_never_share_a_task_key(tm
     keys = [str(t["key"]) for t in ts.data if str(t["key"]).startswith("stationary-redraw")]
     n_rounds = cfg.n_stationary // cfg.round_size
     assert len(keys) == len(set(keys)) > cfg.n_chains * n_rounds  # more than one pass, no key twice
+
+
+def test_a_continued_trial_stopped_mid_extension_resumes_to_the_same_numbers(tmp_path, thread_cluster):
+    """The reported trial's chains continued past the judged draws (a quality target the search trials do
+    not reach): stopped between two of its extension's rounds, the driver resumes from the checkpoint and
+    the draws in the store, and ends with the numbers of an uninterrupted in-process run."""
+    from ardflow.ardcore.events import Note
+    from ardflow.workers.graph import StoredEvaluator, fit_model
+
+    raw = json.loads(SPEC.read_text())
+    raw["models"] = raw["models"][:1]
+    raw["sampler"].update(max_stationary=1200, min_ess=3000)
+    spec = load_spec_dict(raw, tmp_path)
+    ref = rows(select(spec))["quad"]
+    store = prepare_store(spec, tmp_path / "st")
+    data, sid = store.load_data(), store.meta["study_id"]
+
+    class Stop(Exception):
+        pass
+
+    def factory(*a, **kw):
+        return StoredEvaluator(*a, client=thread_cluster, store=store, study_id=sid, model="quad", **kw)
+
+    def stop_in_extension(ev):
+        if isinstance(ev.event, Note) and "continuing to" in ev.event.message:
+            raise Stop
+
+    with pytest.raises(Stop):
+        fit_model(store, spec, data, 0, factory, progress=stop_in_extension)
+    it = max(int(k) for k in store.group("r")["models/quad/trials"].group_keys())
+    ck = store.read_checkpoint("quad", it)
+    assert ck["stage"] == "stationary" and store.trial_record("quad", it) is None  # stopped inside it
+    row = fit_model(store, spec, data, 0, factory, progress=lambda ev: None)
+    assert row.log_evidence == pytest.approx(ref["log_evidence"], abs=1e-9)
+    assert row.diagnostics == ref["diagnostics"]
+    samples, _, _, _ = store.read_samples("quad", it)
+    assert samples.shape[1] == 1200 and not np.isnan(samples).any()
+
+
+def load_spec_dict(raw: dict, tmp_path):
+    p = tmp_path / "spec.json"
+    p.write_text(json.dumps(raw))
+    return load_spec(p)
