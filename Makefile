@@ -6,6 +6,7 @@ PY312 := $(shell \
     if [ -n "$$c" ] && [ -x "$$c" ] && "$$c" -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; then echo "$$c"; break; fi; \
   done)
 VENV := .venv
+DEMO_ARGS ?=
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
@@ -22,7 +23,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/ardflow demo --out runs/demo
+	$(VENV)/bin/ardflow demo --out runs/demo $(DEMO_ARGS)
 
 test: $(STAMP)
 	$(PY) -m pytest -q

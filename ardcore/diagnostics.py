@@ -49,9 +49,9 @@ class Quality:
         """The largest R-hat and the smallest ESS (bulk or tail) with the parameters they belong to."""
         if not diag:
             return 1.0, math.inf, "", ""
-        rh = {n: (v["r_hat"] if math.isfinite(v["r_hat"]) else math.inf) for n, v in diag.items()}
-        es = {n: min(v["ess_bulk"], v["ess_tail"]) if math.isfinite(min(v["ess_bulk"], v["ess_tail"])) else 0.0
-              for n, v in diag.items()}
+        # an undefined diagnostic (ArviZ's NaN, JSON's null: a parameter that never moved) is the worst case
+        rh = {n: _number(v.get("r_hat"), math.inf) for n, v in diag.items()}
+        es = {n: min(_number(v.get("ess_bulk"), 0.0), _number(v.get("ess_tail"), 0.0)) for n, v in diag.items()}
         r_name, e_name = max(rh, key=rh.get), min(es, key=es.get)
         return rh[r_name], es[e_name], r_name, e_name
 
@@ -62,3 +62,7 @@ class Quality:
     def describe(self, diag: dict) -> str:
         r, e, rn, en = self.worst(diag)
         return f"max R-hat {r:.3f} ({rn}), min ESS {e:.0f} ({en})"
+
+
+def _number(v, undefined: float) -> float:
+    return float(v) if v is not None and math.isfinite(v) else undefined

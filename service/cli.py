@@ -136,6 +136,8 @@ def _study_commands(sub) -> None:
     s = sub.add_parser("demo", help="the main job: the Section 3.6 study on an embedded cluster, with its report")
     s.add_argument("--out", default="runs/demo")
     s.add_argument("--full", action="store_true", help="paper-scale sampler settings")
+    s.add_argument("--spec", default=None, help="a Section 3.6 spec in place of examples/sec36.json (other "
+                                                "settings; the checks use its true_values)")
     s.add_argument("--workers", type=int, default=None)
     s.add_argument("--scheduler", default=None)
     s.add_argument("--performance-report", default=None, metavar="FILE.html")

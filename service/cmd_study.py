@@ -54,7 +54,7 @@ def cmd_demo(a) -> int:
     from ardflow.workers.graph import prepare_store
     from ardflow.workers.store import StudyStore
 
-    spec_path = EXAMPLES / "sec36.json"
+    spec_path = Path(a.spec) if getattr(a, "spec", None) else EXAMPLES / "sec36.json"
     spec = load_spec(spec_path)
     if a.full:
         spec = full_settings(spec)

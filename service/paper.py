@@ -1,5 +1,7 @@
 """The paper's reported results (shared/docs/reference-problem.md, "Results to reproduce")."""
 
+from ardflow.ardcore.diagnostics import Quality
+
 TABLE10_OFFSET = 2.77e4
 """Table 10 reports GoF and ln evidence minus this offset."""
 
@@ -60,8 +62,7 @@ def reference_checks(summary: dict, true_values: dict) -> list[dict]:
         # the intervals and the evidence rest on these draws: convergence by today's standard (ArviZ)
         diag = r.get("diagnostics") or {}
         if diag:
-            worst_r = max(d["r_hat"] for d in diag.values())
-            worst_e = min(min(d["ess_bulk"], d["ess_tail"]) for d in diag.values())
+            worst_r, worst_e, _, _ = Quality().worst(diag)
             detail = f"max R-hat {worst_r:.3f}, min bulk/tail ESS {worst_e:.0f}"
         else:
             detail = "no diagnostics"

@@ -3,6 +3,9 @@
 Keys (a contract; see README): ekf_m2_ms, ekf_numpy_ms, ekf_speedup, ekf_handwritten_ms,
 ekf_vs_handwritten, ekf_compile_first_call_s, ekf_cached_first_call_s, ekf_m2_substep_table.
 Existing keys written by other benchmarks are kept.
+
+``--tiny`` runs every group's code at a tiny size (the smoke test in ``make test``: a group that no longer
+runs fails there, not at the next ``make bench``); its figures measure nothing and go to ``--out`` only.
 """
 
 from __future__ import annotations
@@ -23,6 +26,19 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 ROOT = Path(__file__).resolve().parents[2]
 
 import numpy as np  # noqa: E402
+
+
+TINY_SAMPLER = {"n_chains": 2, "round_size": 50, "min_burnin_rounds": 1, "max_burnin_rounds": 2,
+                "n_stationary": 100, "max_stationary": 100, "n_proposal": 100, "start_maxfev": 100}
+"""Sampler settings of ``--tiny`` runs: every stage runs, none long."""
+
+TINY_MAXIMISER = {"step_decades": 4, "min_step_decades": 4, "max_sweeps": 1, "max_trials": 2}
+
+
+def _tiny_spec(spec, **sampler):
+    """``spec`` (a StudySpec) at the tiny settings."""
+    return spec.model_copy(update={"sampler": spec.sampler.model_copy(update={**TINY_SAMPLER, **sampler}),
+                                   "maximiser": spec.maximiser.model_copy(update=TINY_MAXIMISER)})
 
 
 def _median_ms(fn, repeats: int, number: int) -> float:
@@ -55,7 +71,7 @@ def first_call_seconds(cache: str) -> float:
     return json.loads(r.stdout.strip().splitlines()[-1])["first_call_s"]
 
 
-def bench_ekf() -> dict:
+def bench_ekf(tiny: bool = False) -> dict:
     from ardflow.ardcore.ekf import compile_model
     from ardflow.ardcore.library import AERO_GAMMA_EKF, AERO_TRUE, builtin
     from ardflow.ardcore.simulate import simulate_reference
@@ -71,16 +87,18 @@ def bench_ekf() -> dict:
     ll_np = ekf_m2_numpy(p, t, y, 10, AERO_GAMMA_EKF)
     assert abs(ll_gen - ll_hand) < 1e-6 * abs(ll_gen), (ll_gen, ll_hand)
     assert abs(ll_gen - ll_np) < 1e-6 * abs(ll_gen), (ll_gen, ll_np)
-    gen_ms = _median_ms(lambda: lik(p), repeats=15, number=20)
-    hand_ms = _median_ms(lambda: ekf_m2_handwritten(p, t, y, 10, AERO_GAMMA_EKF, 0.01), repeats=15, number=20)
-    np_ms = _median_ms(lambda: ekf_m2_numpy(p, t, y, 10, AERO_GAMMA_EKF), repeats=3, number=1)
-    table = {str(n): cm.loglik(p, ds, substeps=n) for n in (1, 2, 5, 10, 20, 50, 100, 200)}
+    rep, num = (1, 2) if tiny else (15, 20)
+    subs = (1, 2) if tiny else (1, 2, 5, 10, 20, 50, 100, 200)
+    gen_ms = _median_ms(lambda: lik(p), repeats=rep, number=num)
+    hand_ms = _median_ms(lambda: ekf_m2_handwritten(p, t, y, 10, AERO_GAMMA_EKF, 0.01), repeats=rep, number=num)
+    np_ms = _median_ms(lambda: ekf_m2_numpy(p, t, y, 10, AERO_GAMMA_EKF), repeats=1 if tiny else 3, number=1)
+    table = {str(n): cm.loglik(p, ds, substeps=n) for n in subs}
     # the same model with RK4 sub-steps (the default scheme of a new model), and the cost per sub-step
     rk = compile_model(builtin("M2").model_copy(update={"integrator": "rk4"}).revalidate())
-    table_rk4 = {str(n): rk.loglik(p, ds, substeps=n) for n in (1, 2, 5, 10, 20, 50, 100, 200)}
+    table_rk4 = {str(n): rk.loglik(p, ds, substeps=n) for n in subs}
     rk_lik = rk.bind(ds, substeps=2)
-    rk4_ms = _median_ms(lambda: rk_lik(p), repeats=15, number=20)
-    sb = silverbox_substep_table()
+    rk4_ms = _median_ms(lambda: rk_lik(p), repeats=rep, number=num)
+    sb = silverbox_substep_table(tiny)
     with tempfile.TemporaryDirectory() as cache:
         cold = first_call_seconds(cache)
         warm = first_call_seconds(cache)
@@ -100,7 +118,7 @@ def bench_ekf() -> dict:
     }
 
 
-def silverbox_substep_table() -> dict:
+def silverbox_substep_table(tiny: bool = False) -> dict:
     """Sub-step convergence on Silverbox: ln L on the estimation segment and the multisine free-run error of a
     Duffing model with input feedthrough (parameters fitted once by the loop, rounded), per scheme and hold."""
     from ardflow.ardcore.data import SILVERBOX_SPLITS, load_silverbox
@@ -112,14 +130,17 @@ def silverbox_substep_table() -> dict:
     phi = {"k": 1.845e5, "c": 41.94, "b": 1.941e5, "sigma": 1.986, "gamma": 1.261e-4, "k3": 7.228e5, "off": 997.8,
            "e": -0.03706}
     out = {}
-    for integ, hold in (("euler", "zoh"), ("euler", "foh"), ("rk4", "zoh"), ("rk4", "foh")):
+    schemes = (("euler", "zoh"), ("euler", "foh"), ("rk4", "zoh"), ("rk4", "foh"))
+    if tiny:
+        est, test, schemes = est.slice(0, 500), test.slice(0, 300), schemes[:1]
+    for integ, hold in schemes:
         spec = ModelSpec(name="sb", states=["y", "v"], inputs=["u"], diffusion={"v": "sigma"},
                          drift={"y": "v", "v": "-k*y - c*v - k3*y**3 - off + b*u"},
                          observations=[{"column": "y", "expr": "y + e*u", "noise_std": "gamma"}],
                          parameters=list(phi), initial_std={"y": 0.1, "v": 10.0}, integrator=integ, input_hold=hold)
         cm = compile_model(spec)
         row = {}
-        for n in (1, 2, 5, 20, 100):
+        for n in (1, 2) if tiny else (1, 2, 5, 20, 100):
             x0 = cm.filter(phi, test.slice(0, 51), n).filtered[-1]
             rest = test.slice(50, None)
             _, H = cm.simulate(phi, rest.t, x0=x0, inputs=rest.columns["u"][:, None], nsub=n, noise=False)
@@ -139,7 +160,7 @@ def _m2_target(psi):
     return build_target(cand.model_spec(), dict(cand.priors), psi, simulate_reference(1))
 
 
-def bench_engine() -> dict:
+def bench_engine(tiny: bool = False) -> dict:
     """Evidence noise over independent seeds, and single-core sampler throughput (M2, reference data)."""
     from concurrent.futures import ProcessPoolExecutor
 
@@ -148,11 +169,11 @@ def bench_engine() -> dict:
 
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": float("inf"), "a6": float("inf")}  # the paper's psi_opt
     target = _m2_target(psi)
-    cfg = SamplerConfig()
+    cfg = SamplerConfig(**TINY_SAMPLER) if tiny else SamplerConfig()
     vals, ses, walls = [], [], []
     with ProcessPoolExecutor(2) as ex:
         mf = executor_map(ex)
-        for seed in range(5):
+        for seed in range(2 if tiny else 5):
             t0 = time.perf_counter()
             res = sample(target, cfg, seed=1000 + seed, map_fn=mf)
             ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=2000 + seed, map_fn=mf)
@@ -165,7 +186,7 @@ def bench_engine() -> dict:
     lp, ll = target(x)
     st = ChainState(0, x.tolist(), lp, ll, np.random.PCG64(0).state, x.tolist(), lp, ll)
     t0 = time.perf_counter()
-    r = run_round(target, st, res.proposal_cov, 3000, adaptive=False)
+    r = run_round(target, st, res.proposal_cov, 100 if tiny else 3000, adaptive=False)
     rate = r.samples.shape[0] / (time.perf_counter() - t0)
     return {
         "evidence_sd_nats": float(np.std(vals, ddof=1)),
@@ -180,7 +201,7 @@ def _dir_mb(path) -> float:
     return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) / 1e6
 
 
-def bench_dask() -> dict:
+def bench_dask(tiny: bool = False) -> dict:
     """Scaling of chain throughput with workers, orchestration overhead, store size (M2, reference data)."""
     from concurrent.futures import ProcessPoolExecutor
 
@@ -195,7 +216,8 @@ def bench_dask() -> dict:
 
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": float("inf"), "a6": float("inf")}
     target = _m2_target(psi)
-    cfg = SamplerConfig(n_chains=4, round_size=500, n_stationary=3000, n_proposal=2000)
+    cfg = SamplerConfig(**{**TINY_SAMPLER, "n_chains": 4}) if tiny else \
+        SamplerConfig(n_chains=4, round_size=500, n_stationary=3000, n_proposal=2000)
     rates = {}
     for nw in (1, 2):
         with LocalCluster(n_workers=nw, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
@@ -245,7 +267,7 @@ def bench_dask() -> dict:
     }
 
 
-def bench_api() -> dict:
+def bench_api(tiny: bool = False) -> dict:
     """The service under load (real ``ardflow serve`` over HTTP, 2 drivers at most): 20 concurrent
     submissions of the Sec 3.3 study while 20 clients poll their status.
 
@@ -264,6 +286,7 @@ def bench_api() -> dict:
     import httpx
 
     token, max_running = "bench-token", 2
+    n_clients, n_polls = (2, 3) if tiny else (20, 40)
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -328,8 +351,9 @@ def bench_api() -> dict:
             stop = asyncio.Event()
             async with httpx.AsyncClient(headers=h, timeout=60) as c:
                 w = asyncio.create_task(watch(c, stop))
-                await asyncio.gather(*(submit(c, i) for i in range(20)), *(poll(c, 40) for _ in range(20)))
-                await asyncio.sleep(5)
+                await asyncio.gather(*(submit(c, i) for i in range(n_clients)),
+                                     *(poll(c, n_polls) for _ in range(n_clients)))
+                await asyncio.sleep(1 if tiny else 5)
                 stop.set()
                 await w
 
@@ -397,7 +421,7 @@ def _store_convergence(out: Path) -> dict:
             "max_rhat_per_model": rhat, "min_ess_per_model": ess}
 
 
-def bench_posterior(seeds: int = 5, models: tuple = ("M2", "M3")) -> dict:
+def bench_posterior(tiny: bool = False, seeds: int = 5, models: tuple = ("M2", "M3")) -> dict:
     """The sampler on Sec 3.6's M2 and M3 at their optimal psi, demo settings, ``seeds`` seeds: the reported
     ln Z standard error against the seed-to-seed sd (``evidence_se_ratio``: mean se / sd of the model furthest
     from 1, which is honest; per model beside it), and
@@ -411,6 +435,8 @@ def bench_posterior(seeds: int = 5, models: tuple = ("M2", "M3")) -> dict:
     from ardflow.ardcore.study import StudySpec
 
     spec = StudySpec.model_validate(json.loads((ROOT / "examples" / "sec36.json").read_text()))
+    if tiny:
+        spec, seeds, models = _tiny_spec(spec), 2, ("M2",)
     data = spec.data.load()
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": math.inf, "a6": math.inf}
     out: dict = {}
@@ -447,10 +473,19 @@ def bench_posterior(seeds: int = 5, models: tuple = ("M2", "M3")) -> dict:
     return out
 
 
-def bench_study() -> dict:
+def bench_study(tiny: bool = False) -> dict:
     """`make demo`'s study and the paper-scale one (`--full`), end to end on the embedded cluster."""
-    demo = _study(["demo"], ROOT / ".bench" / "study_demo")
-    full = _study(["select", str(ROOT / "examples" / "sec36.json"), "--full"], ROOT / ".bench" / "study_full")
+    if tiny:
+        from ardflow.ardcore.study import load_spec
+
+        spec = _tiny_spec(load_spec(ROOT / "examples" / "sec36.json"))
+        path = Path(tempfile.mkdtemp()) / "sec36_tiny.json"
+        path.write_text(spec.model_dump_json())
+        demo = _study(["select", str(path), "--workers", "2"], path.parent / "study")
+        full = dict(demo)
+    else:
+        demo = _study(["demo"], ROOT / ".bench" / "study_demo")
+        full = _study(["select", str(ROOT / "examples" / "sec36.json"), "--full"], ROOT / ".bench" / "study_full")
     out = {"study_demo_s": demo.pop("wall_s"), "study_full_s": full.pop("wall_s")}
     out.update({f"study_demo_{k}": v for k, v in demo.items()})
     out.update({f"study_full_{k}": v for k, v in full.items()})
@@ -467,7 +502,7 @@ def _after_mv(rep, seg: dict) -> dict:
     return out
 
 
-def bench_loop() -> dict:
+def bench_loop(tiny: bool = False) -> dict:
     """The closed loop on the shared real records, and the peers on the same data and splits, in one run.
 
     Silverbox: fit on the estimation segment, free run on the multisine and arrow test segments (first 50
@@ -489,6 +524,12 @@ def bench_loop() -> dict:
     out: dict = {}
     full = load_silverbox(data_dir / "SNLS80mV.csv")
     seg = {k: full.slice(*v) for k, v in SILVERBOX_SPLITS.items()}
+    # --tiny: short records and the tiny sampler (the same code path, nothing measured)
+    cut = (lambda d, n: d.slice(0, n)) if tiny else (lambda d, n: d)
+    shrink = _tiny_spec if tiny else (lambda spec: spec)
+    rounds = 1 if tiny else 3
+    if tiny:
+        seg = {k: cut(v, 3000 if k == "estimation" else 800) for k, v in seg.items()}
     # -- peers, same data and split
     y, u = seg["estimation"].columns["y"], seg["estimation"].columns["u"]
     tests = {"multisine": (seg["test_multisine"].columns["y"], seg["test_multisine"].columns["u"]),
@@ -508,11 +549,11 @@ def bench_loop() -> dict:
     out["loop_peer_best_multisine_mv"] = min(1e3 * r["multisine"] for r in peer.values())
     out["loop_peer_best_arrow_mv"] = min(1e3 * r["arrow"] for r in peer.values())
     # -- the loop on Silverbox
-    spec = load_spec(ROOT / "examples" / "silverbox_diagnose.json")
+    spec = shrink(load_spec(ROOT / "examples" / "silverbox_diagnose.json"))
     t0 = time.perf_counter()
     # `ardflow diagnose`'s defaults: three rounds after the first, then the simulation fit
-    rep = diagnose(spec, spec.data.load(ROOT / "examples"), test_data=seg["test_multisine"],
-                   config=DiagnoseConfig(max_rounds=3), progress=lambda m: print("  " + m, flush=True))
+    rep = diagnose(spec, cut(spec.data.load(ROOT / "examples"), 3000), test_data=seg["test_multisine"],
+                   config=DiagnoseConfig(max_rounds=rounds), progress=lambda m: print("  " + m, flush=True))
     out["loop_silverbox_s"] = time.perf_counter() - t0
     out["loop_silverbox_multisine_before_mv"] = 1e3 * rep.report["before"]["free_run"]["rms_error"]
     out["loop_silverbox_arrow_before_mv"] = 1e3 * rep.initial.free_run(seg["test_arrow"])["rms_error"]
@@ -520,13 +561,14 @@ def bench_loop() -> dict:
     out["loop_silverbox_simulation_factor"] = (rep.report.get("simulation") or {}).get("factor")
     out["loop_silverbox_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
     # -- the pendulum
-    pend = load_spec(ROOT / "examples" / "pendulum_diagnose.json")
+    pend = shrink(load_spec(ROOT / "examples" / "pendulum_diagnose.json"))
     pfull = load_pendulum(data_dir / "pendulum" / "adip_pend_data.mat")
     ptest = pfull.slice(40000, None)
-    ptest = type(ptest)(ptest.t[::20].copy(), {"y": ptest.columns["y"][::20].copy()}, ptest.meta)
+    ptest = cut(type(ptest)(ptest.t[::20].copy(), {"y": ptest.columns["y"][::20].copy()}, ptest.meta), 800)
     t0 = time.perf_counter()
-    pdata = pend.data.load(ROOT / "examples")
-    prep = diagnose(pend, pdata, test_data=ptest, progress=lambda m: print("  " + m, flush=True))
+    pdata = cut(pend.data.load(ROOT / "examples"), 800)
+    prep = diagnose(pend, pdata, test_data=ptest, config=DiagnoseConfig(max_rounds=rounds),
+                    progress=lambda m: print("  " + m, flush=True))
     out["loop_pendulum_s"] = time.perf_counter() - t0
     out["loop_pendulum_before_rad"] = prep.report["before"]["free_run"]["rms_error"]
     out["loop_pendulum_rad"] = (prep.report["after"] or prep.report["before"])["free_run"]["rms_error"]
@@ -546,10 +588,12 @@ def bench_loop() -> dict:
             "sigma": {"kind": "lognormal", "median": 0.002, "cov": 50}}}],
         "sampler": {"start_maxfev": 1500, "round_size": 250, "n_stationary": 1000, "n_proposal": 1000},
         "maximiser": {"step_decades": 2, "min_step_decades": 2, "max_sweeps": 1}, "seed": 3})
-    _save_partial(out)
+    ref = shrink(ref)
+    if not tiny:
+        _save_partial(out)
     t0 = time.perf_counter()
     try:
-        rrep = diagnose(ref, simulate_reference(3), config=DiagnoseConfig(max_rounds=1),
+        rrep = diagnose(ref, cut(simulate_reference(3), 1000), config=DiagnoseConfig(max_rounds=1),
                         progress=lambda m: print("  " + m, flush=True))
         out["loop_reference_s"] = time.perf_counter() - t0
         out["loop_reference_added"] = [a["effect"] + " -> " + a["target"] for a in rrep.added]
@@ -558,7 +602,7 @@ def bench_loop() -> dict:
     return out
 
 
-def bench_fresh() -> dict:
+def bench_fresh(tiny: bool = False) -> dict:
     """``make demo`` on a clean clone of HEAD: venv, install, cold kernel cache, the study and its report.
 
     Key: fresh_demo_s (wall time of ``make demo`` in the clone), fresh_demo_evaluations.
@@ -575,8 +619,14 @@ def bench_fresh() -> dict:
             (tmp / "shared").symlink_to(ROOT.parent / "shared")
         env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "ARDFLOW_CACHE_DIR")}
         env["ARDFLOW_CACHE_DIR"] = str(tmp / "kernel-cache")  # cold: every kernel generated and compiled
+        args = []
+        if tiny:
+            from ardflow.ardcore.study import load_spec
+
+            (tmp / "tiny.json").write_text(_tiny_spec(load_spec(clone / "examples" / "sec36.json")).model_dump_json())
+            args = [f"DEMO_ARGS=--spec {tmp / 'tiny.json'} --workers 2"]
         t0 = time.perf_counter()
-        subprocess.run(["make", "demo"], cwd=clone, env=env, check=True, stdout=subprocess.DEVNULL)
+        subprocess.run(["make", "demo", *args], cwd=clone, env=env, check=True, stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - t0
         s = json.loads((clone / "runs" / "demo" / "summary.json").read_text())
         return {"fresh_demo_s": wall,
@@ -603,13 +653,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=".bench/results.json")
     ap.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
+    ap.add_argument("--tiny", action="store_true", help="every group at a tiny size: the smoke test (figures "
+                                                        "meaningless)")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     res = json.loads(out.read_text()) if out.exists() else {}
     for name in a.only or BENCHES:
         print(f"[bench] {name} ...", flush=True)
-        r = BENCHES[name]()
+        r = BENCHES[name](tiny=a.tiny)
         res.update(r)
         for k, v in r.items():
             if isinstance(v, (int, float)) and not isinstance(v, bool):
