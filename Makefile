@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 	  echo "error: Python >= 3.12 not found. Install it with 'pyenv install 3.12.1' (looked in $(PYENV_ROOT)/versions/3.12.1, pyenv, PATH)." >&2; exit 1; fi
 	@test -x $(PY) || $(PY312) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q -e '.[test,bench]'
 	@touch $(STAMP)
 
 venv: $(STAMP)

@@ -649,6 +649,24 @@ BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": 
            "loop": bench_loop, "fresh": bench_fresh}
 
 
+CONTRACT = {
+    "ekf": ["ekf_m2_ms", "ekf_speedup", "ekf_vs_handwritten", "ekf_compile_first_call_s", "ekf_cached_first_call_s"],
+    "engine": ["evidence_sd_nats", "evidence_se_mean", "mcmc_samples_per_s"],
+    "dask": ["dask_samples_per_s_1w", "dask_samples_per_s_2w", "dask_scaling_2w", "dask_overhead",
+             "store_mb_per_1e6_samples"],
+    "api": ["api_status_p95_ms", "api_errors", "api_rss_mb", "api_max_drivers"],
+    "study": ["study_demo_s", "study_demo_evaluations", "study_demo_min_ess", "study_demo_max_rhat", "study_full_s",
+              "study_full_min_ess", "study_full_max_rhat"],
+    "posterior": ["evidence_se_ratio", "posterior_M2_ess_per_evaluation",
+                  "posterior_M2_ess_per_evaluation_random_walk"],
+    "loop": ["loop_silverbox_multisine_mv", "loop_silverbox_arrow_mv", "loop_pendulum_rad",
+             "loop_peer_best_multisine_mv", "loop_peer_pysindy_multisine_mv", "loop_peer_sysidentpy_multisine_mv",
+             "loop_peer_narx_pendulum_rad"],
+    "fresh": ["fresh_demo_s", "fresh_demo_evaluations"],
+}
+"""Keys each group must write (named in issues and the README: a contract); the smoke test checks them."""
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=".bench/results.json")
