@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import html
+import math
 import json
 from pathlib import Path
 
 import numpy as np
+
+from ardflow.ardcore.diagnostics import Quality
 
 from .paper import FIG15_M2OPT_BOUNDS, TABLE10, TABLE10_OFFSET
 from .report import (TAU_SECONDS, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint,
@@ -62,7 +65,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
             f"<p>Data: {html.escape(str(summary['data'].get('source')))}, {summary['data'].get('n')} points. "
             f"Best model: <b>{html.escape(best)}</b>. Wall time {summary['wall_s']:.0f} s.</p>",
             "<h2>Model comparison (Table 10 analogue)</h2>", table10,
-            f"<h2>Posterior of {html.escape(best)}</h2>", post_table, paper,
+            f"<h2>Posterior of {html.escape(best)}</h2>", post_table, _convergence_table(summary), paper,
             "<h2>Warnings</h2><ul>" + ("".join(warns) or "<li>none</li>") + "</ul>",
             "<h2>Figures</h2>"]
     for cap, f in figs:
@@ -119,6 +122,38 @@ def _comparison_table(summary: dict) -> str:
             f"<td class=l>{html.escape(json.dumps(r['psi_opt']))}</td>"]) + "</tr>")
     return ("<table><tr><th class=l>model</th><th>GoF</th><th>EIG</th><th>ln evidence</th><th>P(M|d)</th>"
                "<th class=l>kept</th><th class=l>pruned</th><th class=l>psi_opt</th></tr>" + "".join(rows) + "</table>")
+
+
+def _flag(bad: bool, text: str) -> str:
+    return f"<b class=warn>{text}</b>" if bad else text
+
+
+def _convergence_table(summary: dict) -> str:
+    """Every model's reported draws judged by ArviZ (rank-normalised split R-hat, bulk and tail ESS, MCSE
+    of the mean), the values outside the target marked (an undefined one, JSON null, counts as outside)."""
+    q = Quality()
+    rows = []
+    for r in summary["models"]:
+        diag = r.get("diagnostics") or {}
+        state = "converged" if r.get("converged") else "<b class=warn>not converged</b>"
+        for i, (n, d) in enumerate(diag.items()):
+            ok = {k: v is not None and math.isfinite(v) and (v <= q.max_rhat if k == "r_hat" else v >= q.min_ess)
+                  for k, v in ((k, d.get(k)) for k in ("r_hat", "ess_bulk", "ess_tail"))}
+            rows.append("<tr>" + (f"<td class=l rowspan={len(diag)}>{html.escape(r['name'])}<br>{state}</td>"
+                                  if i == 0 else "")
+                        + f"<td class=l>{html.escape(n)}</td>"
+                        f"<td>{_flag(not ok['r_hat'], _fmt(d.get('r_hat'), 4))}</td>"
+                        f"<td>{_flag(not ok['ess_bulk'], _fmt(d.get('ess_bulk'), 0))}</td>"
+                        f"<td>{_flag(not ok['ess_tail'], _fmt(d.get('ess_tail'), 0))}</td>"
+                        f"<td>{_fmt(d.get('mcse_mean') if d.get('mcse_mean') is None else f'{d['mcse_mean']:.2g}')}"
+                        "</td></tr>")
+    if not rows:
+        return ""
+    return (f"<h2>Convergence (ArviZ)</h2><p>Each model's reported draws, as <code>az.summary</code> judges them; "
+            f"the target is R-hat &le; {q.max_rhat:g} and bulk and tail ESS &ge; {q.min_ess:g} for every "
+            "parameter (Vehtari et al. 2021). The intervals and the evidence rest on these draws.</p>"
+            "<table><tr><th class=l>model</th><th class=l>parameter</th><th>R-hat</th><th>bulk ESS</th>"
+            "<th>tail ESS</th><th>MCSE mean</th></tr>" + "".join(rows) + "</table>")
 
 
 def _posterior_table(names, samples, truth: dict, ref_bounds) -> str:

@@ -28,10 +28,16 @@ def print_progress(ev: ModelEvent) -> None:
 
 
 def _print_table(summary: dict) -> None:
-    print(f"\n{'model':<12s} {'ln Z':>12s} {'se':>7s} {'GoF':>12s} {'EIG':>8s} {'P(M|d)':>8s}  kept / pruned")
+    from ardflow.ardcore.diagnostics import Quality
+
+    print(f"\n{'model':<12s} {'ln Z':>12s} {'se':>7s} {'GoF':>12s} {'EIG':>8s} {'P(M|d)':>8s} {'R-hat':>6s} "
+          f"{'ESS':>6s}  kept / pruned")
     for r in summary["models"]:
+        # the reported draws as ArviZ judged them: the worst R-hat and the smallest bulk or tail ESS
+        rh, ess, _, _ = Quality().worst(r.get("diagnostics") or {})
         print(f"{r['name']:<12s} {r['log_evidence']:12.3f} {r['log_evidence_se']:7.3f} {r['goodness_of_fit']:12.3f} "
-              f"{r['information_gain']:8.3f} {r['probability']:8.4f}  {r['kept']} / {r['pruned']}")
+              f"{r['information_gain']:8.3f} {r['probability']:8.4f} {rh:6.3f} {min(ess, 1e6):6.0f}  "
+              f"{r['kept']} / {r['pruned']}")
         for w in r["warnings"]:
             print(f"  warning: {w}")
 

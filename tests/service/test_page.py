@@ -79,6 +79,10 @@ def test_page_submit_watch_report(service, tmp_path):
             page.wait_for_selector(f"{row} td.status.done", timeout=300_000)
             assert page.locator(f"{row} .model").count() == 2
             assert "done" in page.inner_text(f"{row} .model >> nth=0")
+            # each model's convergence, as the summary's ArviZ diagnostics say
+            page.wait_for_selector(f"{row} .conv", timeout=30_000)
+            lines = page.locator(f"{row} .conv").all_inner_texts()
+            assert len(lines) == 2 and all("R-hat" in t and "ESS" in t for t in lines), lines
             with page.expect_popup() as pop:
                 page.click(f"{row} a.report")
             report = pop.value
@@ -86,6 +90,7 @@ def test_page_submit_watch_report(service, tmp_path):
             imgs = report.eval_on_selector_all("img", "els => els.map(e => e.naturalWidth)")
             assert imgs and all(w > 0 for w in imgs), imgs
             assert "pagetest" in report.content() or "quad" in report.content()
+            assert "Convergence (ArviZ)" in report.content()
         finally:
             browser.close()
     assert not errors, errors

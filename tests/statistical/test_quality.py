@@ -182,3 +182,25 @@ def test_continued_chains_reach_the_target_and_keep_an_exact_evidence():
     # the same chains again: the continuation is deterministic (its streams travel in the chain states)
     again = sample(target, cfg, seed=1, resume=continuation(first))
     np.testing.assert_array_equal(again.samples, res.samples)
+
+
+def test_pooled_evidence_error_is_calibrated_and_steadier_than_the_chains_spread():
+    """Four chains' estimates with a known error s, each with a batch-means error estimate (9 degrees of
+    freedom): the pooled se is unbiased for s / 2 (in variance) and varies far less from run to run than the
+    spread of the four alone; chains that disagree beyond their own errors get the spread."""
+    from ardflow.ardcore.evidence import BATCHES, pooled_se
+
+    rng = np.random.default_rng(0)
+    s, nc, runs = 0.3, 4, 4000
+    pooled, spread = [], []
+    for _ in range(runs):
+        v = rng.normal(0.0, s, nc)
+        w = s * np.sqrt(rng.chisquare(BATCHES - 1, nc) / (BATCHES - 1))
+        pooled.append(pooled_se(v, w))
+        spread.append(np.std(v, ddof=1) / math.sqrt(nc))
+    pooled, spread = np.array(pooled), np.array(spread)
+    assert np.mean(pooled ** 2) == pytest.approx(s * s / nc, rel=0.05)
+    assert np.std(pooled) / np.mean(pooled) < 0.6 * np.std(spread) / np.mean(spread)
+    # chains in different modes: their own errors are tiny, the spread is the error
+    v = np.array([0.0, 0.1, 2.0, 2.1])
+    assert pooled_se(v, np.full(4, 0.01)) == pytest.approx(np.std(v, ddof=1) / 2)
