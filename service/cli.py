@@ -160,6 +160,10 @@ def _service_commands(sub) -> None:
     s.add_argument("--scheduler", default=None)
     s.add_argument("--workers", type=int, default=None)
     s.add_argument("--max-body-mb", type=float, default=20.0)
+    s.add_argument("--forwarded-allow-ips", default=None, metavar="IPS",
+                   help="reverse proxies whose X-Forwarded-For/-Proto are believed (comma-separated; default none)")
+    s.add_argument("--max-connections", type=int, default=1000,
+                   help="open connections at most; more are answered 503 (default 1000)")
     s.set_defaults(fn=cmd_serve)
 
     for name, fn, hlp in (("submit", cmd_submit, "submit a study to a running service"),

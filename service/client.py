@@ -92,7 +92,7 @@ class Client:
         return self._check(self.http.get(f"/studies/{sid}")).json()
 
     def cancel(self, sid: str) -> dict:
-        return self._check(self.http.post(f"/studies/{sid}/cancel")).json()
+        return self._check(self.http.post(f"/studies/{sid}/cancel", json={})).json()
 
     def summary(self, sid: str) -> dict:
         return self._check(self.http.get(f"/studies/{sid}/summary")).json()

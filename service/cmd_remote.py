@@ -42,8 +42,11 @@ def cmd_serve(a) -> int:
         # a token always, unless asked otherwise on loopback: any local process or web page could talk to us
         tf = root / "token"
         token = tf.read_text().strip() if tf.exists() else secrets.token_urlsafe(24)
-        tf.write_text(token)
-        os.chmod(tf, 0o600)
+        # readable by the owner only from the moment it exists (never written first, restricted after)
+        fd = os.open(tf, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        os.fchmod(fd, 0o600)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(token)
         print(f"[ardflow] API token required (X-API-Token or Bearer); it is in {tf} "
               f"(export ARDFLOW_TOKEN=$(cat {tf}))", flush=True)
     # a page in the user's browser may not reach a loopback service under another name (DNS rebinding)
@@ -56,7 +59,10 @@ def cmd_serve(a) -> int:
                                   max_running=a.max_running, allowed_hosts=hosts), client)
         print(f"[ardflow] API on http://{a.host}:{a.port}/v1 (OpenAPI: /docs), registry {root.resolve()}", flush=True)
         try:
-            uvicorn.run(app, host=a.host, port=a.port, log_level="warning")
+            # X-Forwarded-* are believed only from the proxies named (never by default, loopback included)
+            uvicorn.run(app, host=a.host, port=a.port, log_level="warning",
+                        proxy_headers=bool(a.forwarded_allow_ips), forwarded_allow_ips=a.forwarded_allow_ips or "",
+                        limit_concurrency=a.max_connections, timeout_keep_alive=5)
         finally:
             app.state.runner.stop()
     return 0

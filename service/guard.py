@@ -4,13 +4,19 @@
   413 before its body is read whole (a ``Content-Length`` over the limit before any of it is read).
 * **Host**: with ``allowed_hosts`` the ``Host`` header must name one of them (a DNS-rebinding page cannot
   talk to a service on loopback under its own name), else 400.
-* **Content type**: a body of a ``POST`` must be declared as JSON, or as CSV on the data-set route (a
-  cross-site form cannot send ``text/plain`` without a pre-flight), else 415.
+* **Content type**: every ``POST`` (an empty one too) must be declared as JSON, or as CSV on the data-set
+  route (a cross-site form cannot send those without a pre-flight), else 415.
+* **Cross-site requests**: a state change (``POST``, ``PUT``, ``PATCH``, ``DELETE``) authenticated by the
+  page's cookie alone must come from the page's own origin: ``Sec-Fetch-Site`` same-origin (or none, typed
+  by the user) and an ``Origin`` naming this host and port; without either header it is refused (403).
+  SameSite does not separate two ports of one host, so the cookie alone proves nothing. Requests with a
+  token header cannot be forged cross-site (a custom header needs a pre-flight) and are not checked.
 """
 
 from __future__ import annotations
 
 import json
+import re
 
 
 async def _answer(send, status: int, detail: str) -> None:
@@ -18,6 +24,40 @@ async def _answer(send, status: int, detail: str) -> None:
     await send({"type": "http.response.start", "status": status,
                 "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
     await send({"type": "http.response.body", "body": body})
+
+
+_HOST = re.compile(r"(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]{0,251}[A-Za-z0-9])?)(?::[0-9]{1,5})?")
+
+
+def host_name(host: str) -> str | None:
+    """The name of a ``Host`` header (lower case, an IPv6 literal in brackets), or None unless the whole header
+    is a name or address with an optional port (``127.0.0.1:1@evil.example`` is not)."""
+    m = _HOST.fullmatch(host.strip())
+    return m.group(1).lower() if m else None
+
+
+STATE_CHANGES = ("POST", "PUT", "PATCH", "DELETE")
+
+
+def _cookie_only(headers: dict) -> bool:
+    """Authenticated (if at all) by the sign-in cookie alone: no token header a cross-site page could not set."""
+    from .auth import COOKIE
+
+    if "x-api-token" in headers or headers.get("authorization", "").lower().startswith("bearer "):
+        return False
+    return any(part.strip().startswith(COOKIE + "=") for part in headers.get("cookie", "").split(";"))
+
+
+def _same_origin(headers: dict) -> bool:
+    site = headers.get("sec-fetch-site")
+    if site is not None and site not in ("same-origin", "none"):
+        return False
+    origin = headers.get("origin")
+    if origin is None:
+        return site is not None  # a browser that sends neither header is not one we can vouch for
+    if origin == "null" or "://" not in origin:
+        return False
+    return origin.split("://", 1)[1].rstrip("/").lower() == headers.get("host", "").lower()
 
 
 class RequestGuard:
@@ -35,9 +75,9 @@ class RequestGuard:
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
         if self.allowed_hosts is not None:
             host = headers.get("host", "")
-            name = host.rsplit(":", 1)[0] if not host.startswith("[") else host.split("]")[0] + "]"
-            if name.lower() not in self.allowed_hosts:
-                return await _answer(send, 400, f"Host {host!r} is not served here")
+            name = host_name(host)
+            if name is None or name not in self.allowed_hosts:
+                return await _answer(send, 400, f"Host {host[:100]!r} is not served here")
         cl = headers.get("content-length")
         if cl is not None:
             if not cl.isdigit():
@@ -45,7 +85,11 @@ class RequestGuard:
             if int(cl) > self.max_body:
                 return await _answer(send, 413, f"request body larger than {self.max_body / 2**20:g} MB")
         method = scope.get("method", "GET")
-        if method in ("POST", "PUT", "PATCH") and (cl not in (None, "0") or "transfer-encoding" in headers):
+        if method in STATE_CHANGES and _cookie_only(headers) and not _same_origin(headers):
+            return await _answer(send, 403, "cross-site request refused: a change made with the page's sign-in "
+                                            "cookie must come from the page itself (Origin / Sec-Fetch-Site)")
+        if method == "POST" or (method in ("PUT", "PATCH") and (cl not in (None, "0")
+                                                                 or "transfer-encoding" in headers)):
             ctype = headers.get("content-type", "").split(";")[0].strip().lower()
             wanted = ("text/csv", "application/octet-stream") if scope["path"] in self.csv_paths \
                 else ("application/json",)

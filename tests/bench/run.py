@@ -359,7 +359,7 @@ def bench_api(tiny: bool = False) -> dict:
 
         asyncio.run(main())
         for sid in ids:
-            httpx.post(f"{base}/studies/{sid}/cancel", headers=h)
+            httpx.post(f"{base}/studies/{sid}/cancel", headers=h, json={})
     finally:
         os.killpg(p.pid, signal.SIGKILL)
     return {"api_status_p95_ms": float(np.percentile(lat, 95)) if lat else float("nan"),

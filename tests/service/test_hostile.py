@@ -199,7 +199,7 @@ def test_queue_cancel_delete_and_concurrent_figures(hostile):
         b = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=12)).json()["id"]
         d = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=13)).json()["id"]
         assert c.get(f"{url}/v1/studies/{d}").json()["status"] == "queued"
-        r = c.post(f"{url}/v1/studies/{d}/cancel")
+        r = c.post(f"{url}/v1/studies/{d}/cancel", json={})
         assert r.status_code == 200 and r.json()["status"] == "cancelled"
         assert (root / "studies" / d / "store" / "CANCELLED").exists()
         assert c.delete(f"{url}/v1/studies/{a}").status_code == 409  # running or queued: cancel first
@@ -228,7 +228,7 @@ def test_cancel_survives_sigkill_and_restart(tmp_path):
             sid = c.post(studies, json=dict(SPEC, seed=21)).json()["id"]
             while c.get(f"{studies}/{sid}").json()["status"] != "running":
                 time.sleep(0.2)
-            assert c.post(f"{studies}/{sid}/cancel").json()["status"] == "cancelled"
+            assert c.post(f"{studies}/{sid}/cancel", json={}).json()["status"] == "cancelled"
         svc.kill_and_restart()
         time.sleep(3)
         with httpx.Client(timeout=60, headers=H) as c:
@@ -269,7 +269,7 @@ def test_cancel_frees_a_worker_busy_inside_a_task(hostile, tmp_path):
         assert any(dc.processing().values()), "the study never started a task"
         time.sleep(3)
         t0 = time.time()
-        assert c.post(f"{base}/studies/{sid}/cancel").json()["status"] == "cancelled"
+        assert c.post(f"{base}/studies/{sid}/cancel", json={}).json()["status"] == "cancelled"
         def busy():  # tasks a worker thread is still executing (the scheduler forgets a dead client's at once)
             return sum(dc.run(lambda dask_worker: len(dask_worker.state.executing)).values())
 
@@ -296,5 +296,51 @@ def test_active_studies_are_limited_per_token(hostile, tmp_path):
         assert again.status_code == 429 and "per token" in again.json()["detail"]
         assert c.get(f"{base}/studies", headers={"X-API-Token": "nope"}).status_code == 401
         for r in (first, other):
-            c.post(f"{base}/studies/{r.json()['id']}/cancel", headers={"X-API-Token": "tok-a"})
+            c.post(f"{base}/studies/{r.json()['id']}/cancel", headers={"X-API-Token": "tok-a"}, json={})
         app.state.runner.stop()
+
+
+def test_cross_site_changes_with_the_cookie_are_refused(hostile):
+    """The page's sign-in cookie with a foreign Origin (another site, ``null``, another port of this host) or a
+    cross-site Sec-Fetch-Site, or with neither header, cannot cancel, submit or sign out; from the page's own
+    origin it can; a token header is not a cookie and is not checked."""
+    url, _, _, _ = hostile
+    host = url.split("://")[1]
+    with httpx.Client(timeout=60) as c:
+        sid = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=21), headers=H).json()["id"]
+        r = c.post(f"{url}/v1/session", json={"token": TOKEN}, headers={"Origin": url})
+        assert r.status_code in (200, 204), r.text
+        cookie = {"Cookie": f"ardflow_token={c.cookies.get('ardflow_token')}"}
+        c.cookies.clear()
+        J = {"Content-Type": "application/json"}
+        foreign = [{"Origin": "http://evil.example"}, {"Origin": "null"},
+                   {"Origin": f"http://127.0.0.1:{int(host.split(':')[1]) + 1}"},
+                   {"Origin": url, "Sec-Fetch-Site": "cross-site"}, {"Sec-Fetch-Site": "same-site"}, {}]
+        for h in foreign:
+            for method, path, body in (("POST", f"studies/{sid}/cancel", "{}"),
+                                       ("POST", "studies", json.dumps(dict(SPEC, seed=22))),
+                                       ("DELETE", "session", None)):
+                r = c.request(method, f"{url}/v1/{path}", headers={**cookie, **J, **h}, content=body)
+                assert r.status_code == 403 and "cross-site" in r.json()["detail"], (h, method, path, r.text)
+        assert c.get(f"{url}/v1/studies/{sid}", headers=H).json()["status"] not in ("cancelled",)
+        # the page itself: same origin
+        r = c.post(f"{url}/v1/studies/{sid}/cancel", headers={**cookie, **J, "Origin": url,
+                                                               "Sec-Fetch-Site": "same-origin"}, content="{}")
+        assert r.status_code == 200 and r.json()["status"] == "cancelled", r.text
+        # a token header from anywhere: not forgeable cross-site, so not checked
+        other = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=23), headers=H).json()["id"]
+        r = c.post(f"{url}/v1/studies/{other}/cancel", headers={**H, **J, "Origin": "http://evil.example"},
+                   content="{}")
+        assert r.status_code == 200
+
+
+def test_every_post_declares_json_and_the_host_header_is_parsed_strictly(hostile):
+    url, _, _, _ = hostile
+    with httpx.Client(timeout=60) as c:
+        r = c.post(f"{url}/v1/studies/nope-1/cancel", headers=H)  # an empty body, no Content-Type
+        assert r.status_code == 415 and "application/json" in r.json()["detail"]
+        for bad in ("127.0.0.1:1@evil.example", "127.0.0.1 evil.example", "127.0.0.1:", "evil.example",
+                    "127.0.0.1:80:80"):
+            r = c.get(f"{url}/v1/health", headers={"Host": bad})
+            assert r.status_code == 400, (bad, r.status_code)
+        assert c.get(f"{url}/v1/health", headers={"Host": "localhost:1234"}).status_code == 200
