@@ -71,9 +71,10 @@ class _Service:
         if hit is not None and now - hit[0] < self.STATUS_TTL:
             return hit[1]
         m = self.reg.meta(sid)
+        live = progress and m["status"] != "damaged"
         st = StudyStatus(id=sid, name=m.get("name", sid), status=m.get("status", "unknown"),
                          created=m.get("created", 0.0), error=m.get("error"),
-                         models=self.progress_cache.get(sid) if progress else {})
+                         models=self.progress_cache.get(sid) if live else {})
         if progress:
             self._recent[sid] = (now, st)
         return st
@@ -116,7 +117,12 @@ def _error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(ArdflowError)
     async def user_error(request: Request, exc: ArdflowError):
-        return JSONResponse({"detail": str(exc)}, 422)
+        return JSONResponse({"detail": app.state.registry.public(str(exc))}, 422)
+
+    @app.exception_handler(HTTPException)
+    async def http_error(request: Request, exc: HTTPException):
+        detail = app.state.registry.public(exc.detail) if isinstance(exc.detail, str) else exc.detail
+        return JSONResponse({"detail": detail}, exc.status_code, headers=getattr(exc, "headers", None))
 
 
 def _service_router(c: _Service) -> APIRouter:
@@ -243,7 +249,7 @@ def _studies_router(c: _Service) -> APIRouter:
     @r.get(f"{v1}/studies/{{sid}}/events", dependencies=[Depends(c.auth)],
              responses={200: {"content": {"text/event-stream": {}}}})
     async def events(sid: str, request: Request):
-        c.reg.meta(sid)
+        c.reg.readable(sid)
 
         async def gen():
             from ardflow.workers.graph import read_progress
@@ -294,7 +300,7 @@ def _diagnoses_router(c: _Service) -> APIRouter:
     def _diag_dir(sid: str, model: str) -> Path:
         if not re.match(r"^[A-Za-z][A-Za-z0-9_]{0,31}$", model):
             raise HTTPException(404, f"no model {model!r}")
-        c.reg.meta(sid)
+        c.reg.readable(sid)
         return c.reg.study_dir(sid) / "diagnoses" / model
 
     @r.post(f"{v1}/studies/{{sid}}/diagnoses", response_model=DiagnosisStatus, status_code=202,
@@ -340,13 +346,12 @@ def _diagnoses_router(c: _Service) -> APIRouter:
 
 
 def _reattach(reg: Registry, runner: Runner) -> None:
-    """Studies that were queued or running when the service stopped continue."""
+    """Studies that were queued or running when the service stopped continue; damaged ones are reported."""
     waiting = []
-    for sid in reg.ids():
-        try:
-            m = reg.meta(sid)
-        except Exception:  # noqa: BLE001 - a damaged entry must not stop the service
-            continue
+    for m in reg.metas():
+        sid = m["id"]
+        if m["status"] == "damaged":
+            log.warning("study %s is damaged (%s): listed as such; delete it", sid, m["error"])
         if m.get("status") in ("queued", "running"):
             waiting.append((m.get("created", 0.0), sid))
     for _, sid in sorted(waiting):

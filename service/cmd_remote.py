@@ -32,8 +32,12 @@ def cmd_serve(a) -> int:
 
     from .app import Settings, create_app
 
+    # everything under the root (studies, uploads, logs, reports) is the service user's alone: 0700/0600 at
+    # creation, in this process and in the drivers it starts
+    os.umask(0o077)
     root = Path(a.root)
     root.mkdir(parents=True, exist_ok=True)
+    os.chmod(root, 0o700)
     token = a.token or os.environ.get("ARDFLOW_TOKEN")
     loopback = _is_loopback(a.host)
     if a.insecure_no_auth and not loopback:

@@ -6,6 +6,7 @@ import json
 import logging
 import math
 import os
+import re
 import threading
 import time
 from pathlib import Path
@@ -22,6 +23,22 @@ log = logging.getLogger("ardflow.service")
 
 LIFECYCLE = ("status", "error")
 """What the study's store owns, never the registry's meta.json (:meth:`Registry.status`)."""
+
+DAMAGED = "damaged"
+"""The status of a study whose registry entry or store cannot be read."""
+
+
+def _why(exc: Exception) -> str:
+    """What went wrong reading a file, without the server's paths."""
+    text = str(exc).splitlines()[0][:160] if str(exc) else ""
+    return f"{type(exc).__name__}: {re.sub(r'(/[^/ ]+)+/?', '<file>', text)}" if text else type(exc).__name__
+
+
+def _mtime(p: Path) -> float:
+    try:
+        return p.stat().st_mtime
+    except OSError:
+        return 0.0
 
 # ------------------------------------------------------------------ the study registry
 class Registry:
@@ -42,12 +59,43 @@ class Registry:
 
     def meta(self, sid: str) -> dict:
         """The study's registry entry (id, name, owner, created, estimate) with its ``status`` and ``error``,
-        which its store owns (:meth:`status`)."""
+        which its store owns (:meth:`status`). A study whose files cannot be read is ``damaged`` (listed,
+        its error readable, deletable), never an exception."""
         p = self.study_dir(sid) / "meta.json"
         if not p.exists():
             raise HTTPException(404, f"no study {sid!r}")
-        m = {k: v for k, v in json.loads(p.read_text()).items() if k not in LIFECYCLE}
-        return {**m, **self.status(sid)}
+        try:
+            m = json.loads(p.read_text())
+            if not isinstance(m, dict):
+                raise ValueError("not a JSON object")
+        except (OSError, ValueError) as exc:
+            return {"id": sid, "name": sid, "created": _mtime(p), "status": DAMAGED,
+                    "error": f"its registry entry (meta.json) cannot be read: {_why(exc)}"}
+        m = {k: v for k, v in m.items() if k not in LIFECYCLE}
+        st = self.status(sid)
+        return {**m, **st, "error": self.public(st["error"])}
+
+    def public(self, text: str | None) -> str | None:
+        """``text`` (an error) as a user may read it: an uploaded data set is named by its id, a study's
+        files by their place in the study, and no path of this server remains."""
+        if not text:
+            return text
+        for root in {str(self.root.resolve()), str(self.root)}:
+            text = re.sub(re.escape(root) + r"/datasets/\.?([0-9a-f]+)\.csv", r"data set \1", text)
+            text = re.sub(re.escape(root) + r"/studies/([^/\s'\"]+)/?", r"study \1: ", text)
+            text = text.replace(root, "<registry>")
+        return text
+
+    def readable(self, sid: str) -> dict:
+        """:meth:`meta` of a study whose files can be read; a damaged one is a 409 that says so."""
+        m = self.meta(sid)
+        if m["status"] == DAMAGED:
+            raise HTTPException(409, f"study {sid} is damaged ({m['error']}); delete it")
+        return m
+
+    def damaged(self) -> list[tuple[str, str]]:
+        """(id, why) of every damaged study (the service reports them when it starts)."""
+        return [(m["id"], m["error"]) for m in self.metas() if m["status"] == DAMAGED]
 
     def status(self, sid: str) -> dict:
         """``{status, error}`` of a study, read from its store alone (the one owner of the study's status).
@@ -57,19 +105,28 @@ class Registry:
         (with its error), ``cancelled``; ``created`` (no driver has started on it yet) is ``queued``.
         """
         store = self.store(sid)
+        for attempt in range(2):
+            try:
+                m = store.meta if store.exists() else {}
+                if not isinstance(m, dict):
+                    raise ValueError("its attributes are not a JSON object")
+                break
+            except Exception as exc:  # noqa: BLE001 - whatever a damaged zarr.json raises, the study is damaged
+                if attempt:  # (read twice: a driver may be rewriting the file this instant)
+                    return {"status": DAMAGED, "error": f"its store cannot be read: {_why(exc)}"}
+                time.sleep(0.05)
         if store.read_text("CANCELLED") is not None:
             return {"status": "cancelled", "error": None}
-        m = store.meta if store.exists() else {}
         st = m.get("status", "created")
         return {"status": "queued" if st == "created" else st, "error": m.get("error") if st == "failed" else None}
 
     def metas(self) -> list[dict]:
-        """Every study's meta (damaged entries skipped)."""
+        """Every study's meta (a damaged one with status ``damaged``; one deleted meanwhile is left out)."""
         out = []
         for sid in self.ids():
             try:
-                out.append(self.meta(sid))
-            except (OSError, ValueError, HTTPException):
+                out.append({**self.meta(sid), "id": sid})
+            except HTTPException:
                 continue
         return out
 
@@ -84,6 +141,19 @@ class Registry:
         from ardflow.workers.store import StudyStore
 
         return StudyStore(self.study_dir(sid) / "store")
+
+
+def die_with_parent() -> None:
+    """In a child between fork and exec: the kernel sends it SIGTERM when the service dies (a SIGKILLed
+    service must not leave its drivers running; the store's driver lock refuses a second one anyway).
+    Linux only; elsewhere a no-op."""
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 class Runner:
@@ -123,7 +193,7 @@ class Runner:
         with self.lock:
             while self.queue and not self.closing and len(self.running()) < self.max_running:
                 sid = self.queue.pop(0)
-                if self.registry.status(sid)["status"] == "cancelled":
+                if self.registry.status(sid)["status"] in ("cancelled", DAMAGED):
                     continue
                 th = threading.Thread(target=self._run, args=(sid,), name=f"study-{sid}", daemon=True)
                 self.threads[sid] = th
@@ -154,7 +224,8 @@ class Runner:
             p = subprocess.Popen(["nice", "-n", "5", sys.executable, "-m", "ardflow.service.cli", "resume", str(store),
                                   "--scheduler", self.client.scheduler.address],
                                  stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                 env={**os.environ, "ARDFLOW_MAX_TASK_S": str(self.max_task_s)})
+                                 env={**os.environ, "ARDFLOW_MAX_TASK_S": str(self.max_task_s)},
+                                 preexec_fn=die_with_parent)
             self.procs[sid] = p
             rc = p.wait()
         if self.closing:
@@ -221,7 +292,8 @@ class Runner:
 
         def run():
             with open(out / "diagnose.log", "w") as logf:
-                p = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+                p = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     preexec_fn=die_with_parent)
                 self.procs[f"{sid}/diagnose/{model}"] = p
                 rc = p.wait()
             if self.closing:

@@ -47,16 +47,16 @@ def _results(reg: Registry, auth: TokenAuth) -> APIRouter:
 
     @r.get(f"{v1}/studies/{{sid}}/summary", dependencies=[Depends(auth)])
     def summary(sid: str) -> JSONResponse:
-        reg.meta(sid)
+        reg.readable(sid)
         text = reg.store(sid).read_text("summary.json")
         if text is None:
-            raise HTTPException(409, f"study {sid} has no summary yet (status {reg.meta(sid).get('status')})")
+            raise HTTPException(409, f"study {sid} has no summary yet (status {reg.readable(sid).get('status')})")
         return JSONResponse(json.loads(text))
 
     @r.get(f"{v1}/studies/{{sid}}/posterior/{{model}}", dependencies=[Depends(auth)],
              responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}})
     def posterior(sid: str, model: str, format: str = "json", max_draws: int = 2000):
-        reg.meta(sid)
+        reg.readable(sid)
         if format not in ("json", "npz"):
             raise HTTPException(422, "format must be 'json' or 'npz'")
         if not 1 <= max_draws <= 1_000_000:
@@ -81,7 +81,7 @@ def _results(reg: Registry, auth: TokenAuth) -> APIRouter:
     def inference_data(sid: str, model: str, log_likelihood: bool = False, max_draws: int | None = None):
         """ArviZ's groups (posterior, sample_stats, observed_data, optionally the pointwise log_likelihood) as
         NPZ; ``Client.posterior(..., as_inference_data=True)`` turns them into an ``xarray.DataTree``."""
-        reg.meta(sid)
+        reg.readable(sid)
         _best_trial(reg, sid, model)
         if max_draws is not None and not 1 <= max_draws <= 1_000_000:
             raise HTTPException(422, "max_draws must be between 1 and 1000000")
@@ -108,7 +108,7 @@ def _figures(reg: Registry, auth: TokenAuth) -> APIRouter:
     @r.get(f"{v1}/studies/{{sid}}/figures/{{name}}", dependencies=[Depends(auth)],
              responses={200: {"content": {"image/png": {}}}})
     def figure(sid: str, name: str):
-        reg.meta(sid)
+        reg.readable(sid)
         from ardflow.service.figures import FIGURES, render
 
         if name not in FIGURES:
@@ -124,7 +124,7 @@ def _figures(reg: Registry, auth: TokenAuth) -> APIRouter:
              responses={200: {"content": {"text/html": {}, "image/png": {}}}})
     def report_file(sid: str, name: str):
         """The study's report (``report.html``) and its figures (PNG), as written when the study finished."""
-        meta = reg.meta(sid)
+        meta = reg.readable(sid)
         d = reg.store(sid).path / "report"
         if not re.match(r"^[A-Za-z0-9_]{1,60}\.(png|html)$", name) or not (d / name).is_file():
             if meta.get("status") != "done":

@@ -13,7 +13,7 @@ from ardflow.ardcore.loop_config import DiagnoseConfig
 
 API_VERSION = "v1"
 ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
-FINAL = {"done", "failed", "cancelled"}
+FINAL = {"done", "failed", "cancelled", "damaged"}
 
 
 class Settings(BaseModel):

@@ -320,7 +320,13 @@ def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[ModelEvent
 def run_study(client, store: StudyStore, *, progress: Callable[[ModelEvent], None] | None = None,
               poll_s: float = 1.0, done: bool = True) -> dict:
     """Run (or continue) the study in ``store`` on ``client``; blocks until the summary exists. With
-    ``done`` False the caller marks the study done (after its report)."""
+    ``done`` False the caller marks the study done (after its report). One driver per store: a second one
+    is refused (:meth:`StudyStore.driver_lock`)."""
+    with store.driver_lock():
+        return _drive(client, store, progress, poll_s, done)
+
+
+def _drive(client, store: StudyStore, progress, poll_s: float, done: bool) -> dict:
     comp = start_study(client, store, done=done)
     offsets: dict[str, int] = {}
     while not comp.done():

@@ -43,7 +43,12 @@ class LocalStoredEvaluator(EvidenceEvaluator):
 def run_study_local(store: StudyStore, map_fn: Map, *, progress: Callable[[ModelEvent], None] | None = None,
                     done: bool = True) -> dict:
     """Run the study in ``store`` model after model, chains on ``map_fn``; returns the summary (``done``:
-    as :func:`workers.graph.run_study`)."""
+    as :func:`workers.graph.run_study`; one driver per store, as there)."""
+    with store.driver_lock():
+        return _drive_local(store, map_fn, progress, done)
+
+
+def _drive_local(store: StudyStore, map_fn: Map, progress, done: bool) -> dict:
     spec = StudySpec.model_validate(store.meta["spec"])
     data = store.load_data()
     start = time.time()

@@ -23,10 +23,13 @@ task rewrites the same chunk.
 from __future__ import annotations
 
 import json
+import os
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import zarr
+from ardflow.ardcore.errors import ArdflowError
 from ardflow.ardcore.fit import ModelFit
 from ardflow.ardcore.jsonio import atomic_write_text, to_jsonable  # noqa: F401
 
@@ -37,6 +40,10 @@ zarr.config.set({"async.concurrency": 4, "threading.max_workers": 2})
 
 
 _json = to_jsonable
+
+
+class StoreBusy(ArdflowError):
+    """Another driver holds this study's store."""
 
 
 class StudyStore:
@@ -144,6 +151,31 @@ class StudyStore:
     @property
     def meta(self) -> dict:
         return dict(self.group("r").attrs.get("ardflow", {}))
+
+    @contextmanager
+    def driver_lock(self):
+        """Held by the one driver of this study for as long as it runs (an exclusive ``flock`` on
+        ``DRIVER.lock``, which the kernel releases when the process dies, however it dies): a second driver
+        on the same store is refused (:class:`StoreBusy`) instead of racing the first. Stores behind an
+        fsspec URL have no such lock."""
+        if self.path is None:
+            yield
+            return
+        import fcntl
+
+        fd = os.open(self.path / "DRIVER.lock", os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                held = os.pread(fd, 64, 0).decode(errors="ignore").strip()
+                raise StoreBusy(f"another driver is running this study (pid {held or '?'}); it is not started "
+                                "twice") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
+            yield
+        finally:
+            os.close(fd)
 
     def update_meta(self, **kw) -> None:
         g = self.group()

@@ -421,7 +421,7 @@ def _store_convergence(out: Path) -> dict:
             "max_rhat_per_model": rhat, "min_ess_per_model": ess}
 
 
-def bench_posterior(tiny: bool = False, seeds: int = 5, models: tuple = ("M2", "M3")) -> dict:
+def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", "M3")) -> dict:
     """The sampler on Sec 3.6's M2 and M3 at their optimal psi, demo settings, ``seeds`` seeds: the reported
     ln Z standard error against the seed-to-seed sd (``evidence_se_ratio``: mean se / sd of the model furthest
     from 1, which is honest; per model beside it), and

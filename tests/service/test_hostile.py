@@ -3,10 +3,12 @@
 
 import copy
 import json
+import os
 import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import httpx
 import pytest
@@ -149,6 +151,8 @@ def _answers(url):
               "studies/nope-1/summary", "studies/nope-1/posterior/quad", "studies/nope-1/figures/evidence.png",
               "studies/nope-1/report/report.html", "studies/nope-1/diagnoses/quad", "studies/nope-1/events"):
         out.append((f"path {p[:30]}", dict(method="GET", url=f"{v1}/{p}", headers=H)))
+    missing = dict(SPEC, data={"dataset": "0123456789abcdef"})
+    out.append(("missing data set", dict(method="POST", url=f"{v1}/studies", headers=J, content=json.dumps(missing))))
     for p in ("studies/nope-1/cancel", "studies/nope-1/diagnoses"):
         out.append((f"post {p}", dict(method="POST", url=f"{v1}/{p}", headers=J, content="{}")))
     out.append(("delete unknown", dict(method="DELETE", url=f"{v1}/studies/nope-1", headers=H)))
@@ -168,6 +172,8 @@ def test_hostile_requests_get_4xx_at_request_time(hostile):
             detail = r.json().get("detail") if r.headers.get("content-type", "").startswith("application/json") else None
             if not (400 <= r.status_code < 500) or not detail:
                 bad.append((what, r.status_code, r.text[:200]))
+            if str(root) in r.text or str(root.resolve()) in r.text:  # the server's paths never leak
+                bad.append((what, "path leaked", r.text[:300]))
     assert not bad, bad
     # nothing half-made: no study directory without its meta.json, no temporary data file
     studies = [p for p in (root / "studies").iterdir()]
@@ -344,3 +350,96 @@ def test_every_post_declares_json_and_the_host_header_is_parsed_strictly(hostile
             r = c.get(f"{url}/v1/health", headers={"Host": bad})
             assert r.status_code == 400, (bad, r.status_code)
         assert c.get(f"{url}/v1/health", headers={"Host": "localhost:1234"}).status_code == 200
+
+
+def test_damaged_studies_are_listed_readable_as_errors_and_deletable(tmp_path):
+    """A truncated meta.json, a meta.json that is not an object, a garbage store zarr.json: the listing
+    still answers, each such study is ``damaged`` with a reason that names no server path, its results are a
+    409 that says so, it can be deleted; a restarted service lists them too."""
+    root = tmp_path / "svc"
+    with served(root, max_running=1) as (url, app, dc):
+        with httpx.Client(timeout=60, headers=H) as c:
+            ids = [c.post(f"{url}/v1/studies", json=dict(SPEC, seed=40 + i)).json()["id"] for i in range(4)]
+            for sid in ids:
+                c.post(f"{url}/v1/studies/{sid}/cancel", json={})
+            d = root / "studies"
+            # the first one ran (max_running 1): it stays intact; the others never started
+            (d / ids[1] / "meta.json").write_text('{"id": "x", "na')
+            (d / ids[2] / "meta.json").write_text("[1, 2]")
+            (d / ids[3] / "store" / "zarr.json").write_text("\x00garbage{")
+            time.sleep(0.3)  # past the status cache's lifetime
+            r = c.get(f"{url}/v1/studies")
+            assert r.status_code == 200, r.text
+            st = {s["id"]: s for s in r.json()}
+            for sid in ids[1:]:
+                assert st[sid]["status"] == "damaged" and st[sid]["error"], st[sid]
+                assert str(root) not in st[sid]["error"] and "/" not in st[sid]["error"], st[sid]["error"]
+                one = c.get(f"{url}/v1/studies/{sid}")
+                assert one.status_code == 200 and one.json()["status"] == "damaged"
+                for path in ("summary", "posterior/quad", "figures/evidence.png", "report/report.html", "events"):
+                    r = c.get(f"{url}/v1/studies/{sid}/{path}")
+                    assert r.status_code == 409 and "damaged" in r.json()["detail"], (path, r.status_code, r.text)
+            assert st[ids[0]]["status"] == "cancelled"
+            assert c.delete(f"{url}/v1/studies/{ids[1]}").status_code == 204
+    # a restart with the damaged files: the service starts and lists them
+    with served(root, max_running=1) as (url, app, dc):
+        with httpx.Client(timeout=60, headers=H) as c:
+            st = {s["id"]: s["status"] for s in c.get(f"{url}/v1/studies").json()}
+            assert ids[1] not in st and st[ids[2]] == st[ids[3]] == "damaged" and st[ids[0]] == "cancelled"
+            for sid in ids[2:]:
+                assert c.delete(f"{url}/v1/studies/{sid}").status_code == 204
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    status = Path(f"/proc/{pid}/status")
+    return not (status.exists() and "\nState:\tZ" in status.read_text())
+
+
+def test_a_killed_service_takes_its_driver_along_and_files_are_private(tmp_path):
+    """SIGKILL of the API process alone (its driver and cluster survive in the group): the driver dies with
+    it, the restarted service resumes the study with one driver, and every file under the root is the
+    service user's alone (0600, folders 0700)."""
+    import signal
+    import stat
+
+    root = tmp_path / "svc"
+    with ServiceProcess(root) as svc:
+        studies = f"{svc.url}/v1/studies"
+        with httpx.Client(timeout=60, headers=H) as c:
+            sid = c.post(studies, json=dict(SPEC, seed=31)).json()["id"]
+            lock = root / "studies" / sid / "store" / "DRIVER.lock"
+            deadline = time.time() + 120
+            while not (lock.exists() and lock.read_text().strip()) and time.time() < deadline:
+                time.sleep(0.2)
+            driver = int(lock.read_text())
+        os.kill(svc.p.pid, signal.SIGKILL)  # the API process only
+        svc.p.wait()
+        deadline = time.time() + 20
+        while _alive(driver) and time.time() < deadline:
+            time.sleep(0.2)
+        assert not _alive(driver), "the driver outlived the service"
+        svc.kill_and_restart()
+        with httpx.Client(timeout=60, headers=H) as c:
+            deadline = time.time() + 300
+            while c.get(f"{studies}/{sid}").json()["status"] not in ("done", "failed") and time.time() < deadline:
+                time.sleep(0.5)
+            assert c.get(f"{studies}/{sid}").json()["status"] == "done"
+    loose = [(str(p.relative_to(root)), oct(p.stat().st_mode & 0o777)) for p in [root, *root.rglob("*")]
+             if not p.is_symlink() and p.stat().st_mode & (stat.S_IRWXG | stat.S_IRWXO)]
+    assert not loose, loose[:10]
+
+
+def test_a_second_driver_on_one_store_is_refused(tmp_path):
+    from ardflow.ardcore.study import load_spec
+    from ardflow.workers.graph import prepare_store
+
+    store = prepare_store(load_spec(ROOT / "tests" / "workers" / "small_study.json"), tmp_path / "st")
+    with store.driver_lock():
+        r = subprocess.run([sys.executable, "-m", "ardflow.service.cli", "resume", str(tmp_path / "st"),
+                            "--workers", "1"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "another driver is running this study" in r.stderr, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
