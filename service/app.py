@@ -10,12 +10,14 @@ were running.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import json
 import logging
 import re
 import secrets
 import shutil
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -40,6 +42,39 @@ log = logging.getLogger("ardflow.service")
 COLUMN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
 
 # ------------------------------------------------------------------ the app
+class Admission:
+    """The queue and per-token limits, counted and reserved in one step under one lock, before the
+    submission awaits anything: a burst of parallel submissions cannot all see room that only one has.
+    A reservation lasts until the study is written and queued (or refused), so for a moment a study may
+    count twice: stricter, never looser."""
+
+    def __init__(self, reg: Registry, runner: Runner, settings: Settings):
+        self.reg, self.runner, self.settings = reg, runner, settings
+        self.lock = threading.Lock()
+        self.pending: dict[str, int] = {}
+
+    @contextlib.contextmanager
+    def slot(self, owner: str):
+        s = self.settings
+        with self.lock:
+            waiting = len(self.runner.queue) + sum(self.pending.values())
+            if waiting >= s.max_queued:
+                raise HTTPException(429, f"{waiting} studies are waiting already; try again later",
+                                    headers={"Retry-After": "60"})
+            active = self.pending.get(owner, 0) + sum(
+                1 for m in self.reg.metas() if m.get("owner") == owner and m.get("status") in ("queued", "running"))
+            if active >= s.max_active_per_token:
+                raise HTTPException(429, f"{active} of your studies are queued or running (at most "
+                                         f"{s.max_active_per_token} per token); try again later",
+                                    headers={"Retry-After": "60"})
+            self.pending[owner] = self.pending.get(owner, 0) + 1
+        try:
+            yield
+        finally:
+            with self.lock:
+                self.pending[owner] -= 1
+
+
 class _Service:
     """What the routes share: the registry, the runner, the settings, the token check, one thread for
     heavy work, the Dask client, and a short-lived cache of study status."""
@@ -61,6 +96,7 @@ class _Service:
             tokens.setdefault("default", settings.token)
         self.auth = TokenAuth(tokens)
         self._recent: dict[str, tuple[float, StudyStatus]] = {}
+        self.admission = Admission(self.reg, self.runner, settings)
 
     async def heavy(self, fn, *args, **kw):
         return await asyncio.get_running_loop().run_in_executor(self._heavy_pool, functools.partial(fn, *args, **kw))
@@ -194,14 +230,10 @@ def _submit_router(c: _Service) -> APIRouter:
         if spec.data.path is not None:
             raise HTTPException(422, "data.path is not accepted over the API: upload the data set "
                                      "(POST /v1/datasets) and give data.dataset")
-        if len(c.runner.queue) >= c.settings.max_queued:
-            raise HTTPException(429, f"{len(c.runner.queue)} studies are waiting already; try again later",
-                                headers={"Retry-After": "60"})
-        active = sum(1 for m in c.reg.metas() if m.get("owner") == owner and m.get("status") in ("queued", "running"))
-        if active >= c.settings.max_active_per_token:
-            raise HTTPException(429, f"{active} of your studies are queued or running (at most "
-                                     f"{c.settings.max_active_per_token} per token); try again later",
-                                headers={"Retry-After": "60"})
+        with c.admission.slot(owner):
+            return await _admitted(spec, owner)
+
+    async def _admitted(spec: StudySpec, owner: str) -> StudyCreated:
         try:
             # compiled in a child process with limits: a poison model is a 422 now, never a busy worker later
             await c.heavy(check_models, spec, timeout_s=c.settings.check_timeout_s, memory_mb=c.settings.check_memory_mb)

@@ -443,3 +443,31 @@ def test_a_second_driver_on_one_store_is_refused(tmp_path):
                             "--workers", "1"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "another driver is running this study" in r.stderr, r.stderr[-2000:]
     assert "Traceback" not in r.stderr
+
+
+def test_a_burst_of_submissions_cannot_pass_the_limits(hostile, tmp_path):
+    """30 parallel submissions from one token against a limit of 5, and from two tokens against a queue of
+    8: never more admitted than the limits, whatever the interleaving."""
+    _, _, _, dc = hostile
+    port = free_port()
+    app = create_app(Settings(root=tmp_path, tokens={"alice": "tok-a", "bob": "tok-b"}, max_running=1,
+                              max_active_per_token=5, max_queued=8), dc)
+    with Server(app, port), httpx.Client(timeout=120) as c:
+        base = f"http://127.0.0.1:{port}/v1"
+
+        def submit(i, tok):
+            return c.post(f"{base}/studies", json=dict(SPEC, seed=100 + i), headers={"X-API-Token": tok})
+
+        with ThreadPoolExecutor(30) as ex:
+            answers = list(ex.map(lambda i: submit(i, "tok-a"), range(30)))
+        ok = [r for r in answers if r.status_code == 202]
+        assert len(ok) == 5 and all(r.status_code == 429 for r in answers if r.status_code != 202)
+        waiting = len(app.state.runner.queue)  # alice's: one runs, the others wait
+        with ThreadPoolExecutor(30) as ex:
+            answers = list(ex.map(lambda i: submit(100 + i, "tok-b"), range(30)))
+        ok_b = [r for r in answers if r.status_code == 202]
+        # bob's own limit is 5 too, but the queue holds 8 at most
+        assert len(ok_b) == min(5, 8 - waiting) and len(app.state.runner.queue) <= 8
+        for r in ok + ok_b:
+            c.post(f"{base}/studies/{r.json()['id']}/cancel", headers={"X-API-Token": "tok-a"}, json={})
+        app.state.runner.stop()
