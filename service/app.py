@@ -29,7 +29,7 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from ardflow.ardcore.errors import ArdflowError
 from ardflow.ardcore.study import StudySpec
 
-from .auth import TokenAuth
+from .auth import StudyAccess, TokenAuth
 from .guard import RequestGuard
 from .page import page_router
 from .results import results_router
@@ -97,6 +97,7 @@ class _Service:
         self.auth = TokenAuth(tokens)
         self._recent: dict[str, tuple[float, StudyStatus]] = {}
         self.admission = Admission(self.reg, self.runner, settings)
+        self.access = StudyAccess(self.auth, self.reg, settings.admins)
 
     async def heavy(self, fn, *args, **kw):
         return await asyncio.get_running_loop().run_in_executor(self._heavy_pool, functools.partial(fn, *args, **kw))
@@ -129,7 +130,7 @@ def create_app(settings: Settings, client) -> FastAPI:
                        csv_paths=(f"/{API_VERSION}/datasets",))
     _error_handlers(app)
     for router in (_service_router(c), _submit_router(c), _studies_router(c), _diagnoses_router(c),
-                   results_router(c.reg, c.auth), page_router(c.auth)):
+                   results_router(c.reg, c.access), page_router(c.auth)):
         app.include_router(router)
     _reattach(c.reg, c.runner)
     return app
@@ -269,16 +270,17 @@ def _studies_router(c: _Service) -> APIRouter:
     r = APIRouter()
     v1 = f"/{API_VERSION}"
 
-    @r.get(f"{v1}/studies", response_model=list[StudyStatus], dependencies=[Depends(c.auth)])
-    def list_studies() -> list[StudyStatus]:
-        return [c.status(sid, progress=False) for sid in c.reg.ids()]
+    @r.get(f"{v1}/studies", response_model=list[StudyStatus])
+    def list_studies(owner: str = Depends(c.auth)) -> list[StudyStatus]:
+        # the caller's own studies (an admin's: all)
+        return [c.status(m["id"], progress=False) for m in c.reg.metas() if c.access.sees(owner, m)]
 
-    @r.get(f"{v1}/studies/{{sid}}", response_model=StudyStatus, dependencies=[Depends(c.auth)])
+    @r.get(f"{v1}/studies/{{sid}}", response_model=StudyStatus, dependencies=[Depends(c.access)])
     async def status(sid: str) -> StudyStatus:
         # small local reads, folded incrementally: cheaper on the event loop than a thread hop
         return c.status(sid)
 
-    @r.get(f"{v1}/studies/{{sid}}/events", dependencies=[Depends(c.auth)],
+    @r.get(f"{v1}/studies/{{sid}}/events", dependencies=[Depends(c.access)],
              responses={200: {"content": {"text/event-stream": {}}}})
     async def events(sid: str, request: Request):
         c.reg.readable(sid)
@@ -302,7 +304,7 @@ def _studies_router(c: _Service) -> APIRouter:
 
         return StreamingResponse(gen(), media_type="text/event-stream")
 
-    @r.post(f"{v1}/studies/{{sid}}/cancel", response_model=StudyStatus, dependencies=[Depends(c.auth)])
+    @r.post(f"{v1}/studies/{{sid}}/cancel", response_model=StudyStatus, dependencies=[Depends(c.access)])
     def cancel(sid: str) -> StudyStatus:
         m = c.reg.meta(sid)
         if m.get("status") in FINAL:
@@ -311,7 +313,7 @@ def _studies_router(c: _Service) -> APIRouter:
         c.forget(sid)
         return c.status(sid)
 
-    @r.delete(f"{v1}/studies/{{sid}}", status_code=204, dependencies=[Depends(c.auth)])
+    @r.delete(f"{v1}/studies/{{sid}}", status_code=204, dependencies=[Depends(c.access)])
     def delete(sid: str) -> Response:
         m = c.reg.meta(sid)
         if m.get("status") not in FINAL or sid in c.runner.running():
@@ -336,7 +338,7 @@ def _diagnoses_router(c: _Service) -> APIRouter:
         return c.reg.study_dir(sid) / "diagnoses" / model
 
     @r.post(f"{v1}/studies/{{sid}}/diagnoses", response_model=DiagnosisStatus, status_code=202,
-              dependencies=[Depends(c.auth)])
+              dependencies=[Depends(c.access)])
     def diagnose(sid: str, req: DiagnoseRequest) -> DiagnosisStatus:
         meta = c.reg.meta(sid)
         if meta.get("status") != "done":
@@ -354,7 +356,7 @@ def _diagnoses_router(c: _Service) -> APIRouter:
         c.runner.diagnose(sid, model, req)
         return DiagnosisStatus(model=model, status="running")
 
-    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}", dependencies=[Depends(c.auth)])
+    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}", dependencies=[Depends(c.access)])
     def diagnosis(sid: str, model: str) -> JSONResponse:
         d = _diag_dir(sid, model)
         if not (d / "status.json").exists():
@@ -366,7 +368,7 @@ def _diagnoses_router(c: _Service) -> APIRouter:
             body["figures"] = sorted(p.name for p in d.glob("*.png"))
         return JSONResponse(body)
 
-    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/figures/{{name}}", dependencies=[Depends(c.auth)],
+    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/figures/{{name}}", dependencies=[Depends(c.access)],
              responses={200: {"content": {"image/png": {}}}})
     def diagnosis_figure(sid: str, model: str, name: str):
         d = _diag_dir(sid, model)

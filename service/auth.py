@@ -45,3 +45,25 @@ class TokenAuth:
         if owner is None:
             raise HTTPException(401, "missing or wrong API token", headers={"WWW-Authenticate": "Bearer"})
         return owner
+
+
+class StudyAccess:
+    """FastAPI dependency of every route under ``/studies/{sid}``: the study's registry entry, when the caller
+    owns it or is an admin; otherwise 404, exactly as for a study that does not exist (another user's ids
+    are not confirmed)."""
+
+    def __init__(self, auth: TokenAuth, registry, admins: list[str]):
+        self.auth, self.registry, self.admins = auth, registry, set(admins)
+
+    def sees(self, owner: str, meta: dict) -> bool:
+        """Whether ``owner`` may see the study of ``meta`` (a damaged entry, whose owner is unknown: admins
+        only). Without authentication, or with one token (one user), everything is seen."""
+        return (len(self.auth.tokens) <= 1 or owner in self.admins
+                or (meta.get("owner") is not None and meta.get("owner") == owner))
+
+    async def __call__(self, sid: str, request: Request) -> dict:
+        owner = await self.auth(request)
+        meta = self.registry.meta(sid)
+        if not self.sees(owner, meta):
+            raise HTTPException(404, f"no study {sid!r}")
+        return meta

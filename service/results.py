@@ -11,7 +11,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import JSONResponse, Response
 
-from .auth import TokenAuth
+from .auth import StudyAccess
 from .registry import Registry
 from .schemas import API_VERSION, ID_RE, _finite
 
@@ -19,11 +19,11 @@ _render_lock = threading.Lock()  # matplotlib (mathtext, font cache) is not thre
 MAX_POINTWISE_DRAWS = 4000  # EKF passes one request may ask for
 
 
-def results_router(reg: Registry, auth: TokenAuth) -> APIRouter:
+def results_router(reg: Registry, access: StudyAccess) -> APIRouter:
     """Routes that read a study's store (read only): its results, then its figures and report."""
     r = APIRouter()
-    r.include_router(_results(reg, auth))
-    r.include_router(_figures(reg, auth))
+    r.include_router(_results(reg, access))
+    r.include_router(_figures(reg, access))
     return r
 
 
@@ -40,12 +40,12 @@ def _best_trial(reg: Registry, sid: str, model: str) -> int:
     return it
 
 
-def _results(reg: Registry, auth: TokenAuth) -> APIRouter:
+def _results(reg: Registry, access: StudyAccess) -> APIRouter:
     """The summary, a model's posterior draws and its ArviZ groups."""
     r = APIRouter()
     v1 = f"/{API_VERSION}"
 
-    @r.get(f"{v1}/studies/{{sid}}/summary", dependencies=[Depends(auth)])
+    @r.get(f"{v1}/studies/{{sid}}/summary", dependencies=[Depends(access)])
     def summary(sid: str) -> JSONResponse:
         reg.readable(sid)
         text = reg.store(sid).read_text("summary.json")
@@ -53,7 +53,7 @@ def _results(reg: Registry, auth: TokenAuth) -> APIRouter:
             raise HTTPException(409, f"study {sid} has no summary yet (status {reg.readable(sid).get('status')})")
         return JSONResponse(json.loads(text))
 
-    @r.get(f"{v1}/studies/{{sid}}/posterior/{{model}}", dependencies=[Depends(auth)],
+    @r.get(f"{v1}/studies/{{sid}}/posterior/{{model}}", dependencies=[Depends(access)],
              responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}})
     def posterior(sid: str, model: str, format: str = "json", max_draws: int = 2000):
         reg.readable(sid)
@@ -76,7 +76,7 @@ def _results(reg: Registry, auth: TokenAuth) -> APIRouter:
         return JSONResponse({"model": model, "iteration": it, "names": names, "n_chains": samples.shape[0],
                              "thin": step, "samples": _finite(flat[::step].tolist())})
 
-    @r.get(f"{v1}/studies/{{sid}}/inference_data/{{model}}", dependencies=[Depends(auth)],
+    @r.get(f"{v1}/studies/{{sid}}/inference_data/{{model}}", dependencies=[Depends(access)],
            responses={200: {"content": {"application/octet-stream": {}}}})
     def inference_data(sid: str, model: str, log_likelihood: bool = False, max_draws: int | None = None):
         """ArviZ's groups (posterior, sample_stats, observed_data, optionally the pointwise log_likelihood) as
@@ -100,12 +100,12 @@ def _results(reg: Registry, auth: TokenAuth) -> APIRouter:
     return r
 
 
-def _figures(reg: Registry, auth: TokenAuth) -> APIRouter:
+def _figures(reg: Registry, access: StudyAccess) -> APIRouter:
     """The figures, rendered from the store, and the report written when the study finished."""
     r = APIRouter()
     v1 = f"/{API_VERSION}"
 
-    @r.get(f"{v1}/studies/{{sid}}/figures/{{name}}", dependencies=[Depends(auth)],
+    @r.get(f"{v1}/studies/{{sid}}/figures/{{name}}", dependencies=[Depends(access)],
              responses={200: {"content": {"image/png": {}}}})
     def figure(sid: str, name: str):
         reg.readable(sid)
@@ -120,7 +120,7 @@ def _figures(reg: Registry, auth: TokenAuth) -> APIRouter:
             raise HTTPException(409, str(exc)) from None
         return Response(png, media_type="image/png")
 
-    @r.get(f"{v1}/studies/{{sid}}/report/{{name}}", dependencies=[Depends(auth)],
+    @r.get(f"{v1}/studies/{{sid}}/report/{{name}}", dependencies=[Depends(access)],
              responses={200: {"content": {"text/html": {}, "image/png": {}}}})
     def report_file(sid: str, name: str):
         """The study's report (``report.html``) and its figures (PNG), as written when the study finished."""

@@ -24,6 +24,8 @@ class Settings(BaseModel):
     token: Optional[str] = Field(None, description="API token; None (and no `tokens`) disables authentication")
     tokens: Optional[dict[str, str]] = Field(None, description="more API tokens by owner name (each owner's "
                                                                "active studies are limited separately)")
+    admins: list[str] = Field(["admin"], description="owners (names in `tokens`; `default` is the --token's) "
+                                                     "who see and act on every study; the others see their own")
     max_active_per_token: int = Field(20, ge=1, description="queued + running studies one token may have")
     max_body_mb: float = Field(20.0, gt=0)
     max_upload_rows: int = Field(2_000_000, gt=0)

@@ -471,3 +471,28 @@ def test_a_burst_of_submissions_cannot_pass_the_limits(hostile, tmp_path):
         for r in ok + ok_b:
             c.post(f"{base}/studies/{r.json()['id']}/cancel", headers={"X-API-Token": "tok-a"}, json={})
         app.state.runner.stop()
+
+
+def test_studies_belong_to_the_token_that_made_them(hostile, tmp_path):
+    """Two users and an admin: a user lists, reads and acts on their own studies only (another's answers 404,
+    as for no study at all); the admin sees and acts on all."""
+    _, _, _, dc = hostile
+    port = free_port()
+    app = create_app(Settings(root=tmp_path, tokens={"alice": "tok-a", "bob": "tok-b", "admin": "tok-root"},
+                              max_running=1), dc)
+    A, B, R = ({"X-API-Token": t} for t in ("tok-a", "tok-b", "tok-root"))
+    with Server(app, port), httpx.Client(timeout=60) as c:
+        base = f"http://127.0.0.1:{port}/v1"
+        a = c.post(f"{base}/studies", json=dict(SPEC, seed=51), headers=A).json()["id"]
+        b = c.post(f"{base}/studies", json=dict(SPEC, seed=52), headers=B).json()["id"]
+        assert [s["id"] for s in c.get(f"{base}/studies", headers=A).json()] == [a]
+        assert [s["id"] for s in c.get(f"{base}/studies", headers=B).json()] == [b]
+        assert {s["id"] for s in c.get(f"{base}/studies", headers=R).json()} == {a, b}
+        for method, path in (("GET", ""), ("GET", "/summary"), ("GET", "/events"), ("GET", "/figures/evidence.png"),
+                             ("GET", "/posterior/quad"), ("POST", "/cancel"), ("DELETE", "")):
+            r = c.request(method, f"{base}/studies/{a}{path}", headers=B, json={} if method == "POST" else None)
+            assert r.status_code == 404 and "no study" in r.json()["detail"], (method, path, r.status_code)
+        assert c.get(f"{base}/studies/{a}", headers=A).status_code == 200
+        assert c.post(f"{base}/studies/{a}/cancel", headers=R, json={}).json()["status"] == "cancelled"
+        assert c.post(f"{base}/studies/{b}/cancel", headers=B, json={}).json()["status"] == "cancelled"
+        app.state.runner.stop()
