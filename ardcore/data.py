@@ -150,7 +150,10 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
     if names and all(_is_number(h) for h in names):
         raise DataError(f"{path}: the first row must be a header of column names, got numbers")
     out = np.full((len(body), len(keep)), np.nan)
+    width = max(keep) + 1 if keep else 0
     for r, row in enumerate(body):
+        if len(row) < width:  # a missing value is an empty cell ("1,,3"), never a short row
+            raise DataError(f"{path}: row {r + 2} has {len(row)} cells, the header names {len(names)} columns")
         for j, i in enumerate(keep):
             cell = row[i].strip() if i < len(row) else ""
             if cell == "" or cell.lower() in ("nan", "na"):

@@ -185,7 +185,26 @@ class StudySpec(BaseModel):
         labels = [m.label for m in self.models]
         if len(set(labels)) != len(labels):
             raise ValueError("models: candidate names must be unique (set 'name')")
+        # the evidence integrates the likelihood against the prior: an improper one has no evidence
+        for i, m in enumerate(self.models):
+            for name, p in m.priors.items():
+                if not p.proper:
+                    raise ValueError(f"models[{i}].priors.{name}: a {p.kind} prior is improper and the evidence "
+                                     "needs a proper one (uniform, normal or lognormal)")
         return self
+
+    def check_data(self, data) -> None:
+        """Refuse a data set no candidate can be fitted to: each candidate's observed columns present with at
+        least one value, its inputs present and complete (:meth:`Dataset.arrays`). Raises DataError naming
+        the candidate and the column."""
+        from .errors import DataError
+
+        for i, m in enumerate(self.models):
+            ms = m.model_spec()
+            try:
+                data.arrays(ms.observed_columns, ms.inputs)
+            except DataError as exc:
+                raise DataError(f"models[{i}] ({m.label}): {exc}") from None
 
 
 def load_spec(path: str | Path) -> StudySpec:

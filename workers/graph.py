@@ -247,8 +247,10 @@ def compare_task(store_path: str, wall_start: float, *rows: ModelFit, done: bool
 
 def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None = None,
                   datasets: Path | None = None, study_id: str | None = None) -> StudyStore:
-    """Create the store with the spec and the data set (a new study id unless given)."""
+    """Create the store with the spec and the data set (a new study id unless given); a data set the models
+    cannot be fitted to is refused first (:meth:`StudySpec.check_data`)."""
     data = spec.data.load(base, datasets)
+    spec.check_data(data)
     store = StudyStore.create(store_path, spec.model_dump(mode="json"), data)
     meta = store.meta
     if not meta.get("study_id"):

@@ -496,3 +496,30 @@ def test_studies_belong_to_the_token_that_made_them(hostile, tmp_path):
         assert c.post(f"{base}/studies/{a}/cancel", headers=R, json={}).json()["status"] == "cancelled"
         assert c.post(f"{base}/studies/{b}/cancel", headers=B, json={}).json()["status"] == "cancelled"
         app.state.runner.stop()
+
+
+def test_data_and_priors_no_model_can_use_are_refused_at_submit(hostile):
+    """A short CSV row is refused at upload; an input with a gap, an observed column with no value and an
+    improper prior are refused at submit (422 naming the model and the column or prior), never inside a
+    worker later."""
+    url, root, _, _ = hostile
+    v1 = f"{url}/v1"
+    C = dict(H, **{"Content-Type": "text/csv"})
+
+    def upload(rows):
+        return httpx.post(f"{v1}/datasets", headers=C, content=("t,y,x\n" + rows).encode(), timeout=60)
+
+    r = upload("".join(f"{i},{i},{i}\n" for i in range(30)) + "30,1\n")
+    assert r.status_code == 422 and "row 32 has 2 cells" in r.json()["detail"], r.text
+    gap = upload("".join(f"{i},{i % 3},{'' if i == 7 else i}\n" for i in range(30))).json()["id"]
+    blind = upload("".join(f"{i},,{i}\n" for i in range(30))).json()["id"]
+    with httpx.Client(timeout=60, headers=H) as c:
+        for did, words in ((gap, "input column 'x' has NaN at row 8"), (blind, "observed column 'y' has no values")):
+            spec = dict(poly_study(), data={"dataset": did})
+            r = c.post(f"{v1}/studies", json=spec)
+            assert r.status_code == 422 and words in r.json()["detail"] and "poly" in r.json()["detail"], r.text
+            assert str(root) not in r.text
+        flat = poly_study()
+        flat["models"][0]["priors"]["a0"] = {"kind": "flat"}
+        r = c.post(f"{v1}/studies", json=flat)
+        assert r.status_code == 422 and "priors.a0" in r.text and "improper" in r.text, r.text
