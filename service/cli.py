@@ -179,8 +179,12 @@ def _service_commands(sub) -> None:
         else:
             s.add_argument("id")
             s.add_argument("--out", required=True)
-        s.add_argument("--url", default="http://127.0.0.1:8000")
-        s.add_argument("--token", default=None)
+        s.add_argument("--url", default=None,
+                       help="the service (default: $ARDFLOW_URL, else http://127.0.0.1:8000, where `ardflow serve` "
+                            "listens)")
+        s.add_argument("--token", default=None,
+                       help="API token (default: $ARDFLOW_TOKEN, else runs/service/token, which `ardflow serve` "
+                            "writes)")
         s.set_defaults(fn=fn)
 
 
@@ -202,6 +206,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except OSError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - only the service's transport errors are caught here
+        import httpx
+
+        if not isinstance(exc, httpx.TransportError):
+            raise
+        url = getattr(args, "url", None) or "the service"
+        print(f"error: cannot reach the ardflow service at {url} ({type(exc).__name__}: {exc}). Start one with "
+              "`ardflow serve`, or point the client elsewhere with --url or ARDFLOW_URL (token: --token, "
+              "ARDFLOW_TOKEN or runs/service/token)", file=sys.stderr)
         return 2
 
 

@@ -77,6 +77,7 @@ def _client(a):
 
     from .client import Client
 
+    a.url = a.url or os.environ.get("ARDFLOW_URL") or "http://127.0.0.1:8000"
     token = a.token or os.environ.get("ARDFLOW_TOKEN")
     local = Path("runs/service/token")  # what `ardflow serve` generates with its default --root
     if token is None and local.exists():

@@ -4,9 +4,13 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def run(*args, cwd=None):
@@ -48,10 +52,13 @@ def test_simulate_other_model_with_input(tmp_path):
     (["loglik", "cut.npz", "--model", "M2"], "cannot read NPZ file"),
     (["loglik", "ok.csv", "--model", "big.json"], "nested too deeply"),
     (["data", "check", "long.csv"], "not a CSV table"),
+    (["status", "--url", "http://127.0.0.1:9"], "cannot reach the ardflow service at http://127.0.0.1:9"),
+    (["submit", "ok.json", "--url", "http://127.0.0.1:9"], "Start one with `ardflow serve`"),
 ])
 def test_errors_are_one_line_without_traceback(tmp_path, args, msg):
     (tmp_path / "empty.csv").write_text("")
     (tmp_path / "ok.csv").write_text("t,y\n" + "".join(f"{i},{i % 3}\n" for i in range(20)))
+    (tmp_path / "ok.json").write_text((ROOT / "examples" / "sec33.json").read_text())
     (tmp_path / "long.csv").write_text("t,y\n0," + "9" * 140_000 + "\n")
     import io
 
