@@ -164,6 +164,8 @@ def _service_commands(sub) -> None:
                    help="reverse proxies whose X-Forwarded-For/-Proto are believed (comma-separated; default none)")
     s.add_argument("--max-connections", type=int, default=1000,
                    help="open connections at most; more are answered 503 (default 1000)")
+    s.add_argument("--header-timeout", type=float, default=10.0,
+                   help="seconds a connection may take to send a request's headers; then it is closed (default 10)")
     s.set_defaults(fn=cmd_serve)
 
     for name, fn, hlp in (("submit", cmd_submit, "submit a study to a running service"),

@@ -31,6 +31,7 @@ def cmd_serve(a) -> int:
     from ardflow.ardcore.errors import SpecError
 
     from .app import Settings, create_app
+    from .deadline import with_header_deadline
 
     # everything under the root (studies, uploads, logs, reports) is the service user's alone: 0700/0600 at
     # creation, in this process and in the drivers it starts
@@ -66,7 +67,8 @@ def cmd_serve(a) -> int:
             # X-Forwarded-* are believed only from the proxies named (never by default, loopback included)
             uvicorn.run(app, host=a.host, port=a.port, log_level="warning",
                         proxy_headers=bool(a.forwarded_allow_ips), forwarded_allow_ips=a.forwarded_allow_ips or "",
-                        limit_concurrency=a.max_connections, timeout_keep_alive=5)
+                        limit_concurrency=a.max_connections, timeout_keep_alive=5,
+                        http=with_header_deadline(a.header_timeout))
         finally:
             app.state.runner.stop()
     return 0

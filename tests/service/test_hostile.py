@@ -523,3 +523,37 @@ def test_data_and_priors_no_model_can_use_are_refused_at_submit(hostile):
         flat["models"][0]["priors"]["a0"] = {"kind": "flat"}
         r = c.post(f"{v1}/studies", json=flat)
         assert r.status_code == 422 and "priors.a0" in r.text and "improper" in r.text, r.text
+
+
+def test_slow_headers_are_cut_off(tmp_path):
+    """Connections sending their headers a byte a second are closed after the header deadline (10 s by
+    default), while the service keeps answering others."""
+    import socket
+
+    with ServiceProcess(tmp_path / "svc") as svc:
+        port = int(svc.url.rsplit(":", 1)[1])
+        socks = []
+        for _ in range(20):
+            s = socket.create_connection(("127.0.0.1", port))
+            s.sendall(b"GET /v1/health HTTP/1.1\r\nHo")
+            socks.append(s)
+        t0, closed = time.time(), set()
+        while len(closed) < len(socks) and time.time() - t0 < 25:
+            for i, s in enumerate(socks):
+                if i in closed:
+                    continue
+                try:
+                    s.sendall(b"s")
+                    s.settimeout(0.01)
+                    if s.recv(1) == b"":
+                        closed.add(i)
+                except (BlockingIOError, socket.timeout):
+                    pass
+                except OSError:
+                    closed.add(i)
+            assert httpx.get(f"{svc.url}/v1/health", timeout=5).status_code == 200
+            time.sleep(1.0)
+        elapsed = time.time() - t0
+        for s in socks:
+            s.close()
+        assert len(closed) == len(socks) and 8 <= elapsed <= 20, (len(closed), elapsed)
