@@ -82,6 +82,9 @@ class Confirmation:
     fitted_effect: Effect
     shape_prior: dict
     rival_of: str | None = None
+    rejected: str | None = None
+    """Why a confirmed effect was not added although the evidence supports it (its model free-runs worse or
+    its fit is degenerate, :func:`ardcore.diagnose._no_worse`)."""
     stability: dict | None = None
 
     @property
@@ -101,6 +104,8 @@ class Confirmation:
                "posterior": self.posterior, "shape": self.shape, "scales": self.scales, "survives": self.survives}
         if self.rival_of is not None:
             out["rival_of"] = self.rival_of
+        if self.rejected is not None:
+            out["rejected"] = self.rejected
         if self.stability is not None:
             out["stability"] = self.stability
         return to_jsonable(out)

@@ -238,13 +238,53 @@ def _check_columns(ms: ModelSpec, data: Dataset, test_data: Dataset) -> None:
 
 
 def _check_fitted(label: str, row: ModelFit, data: Dataset) -> None:
-    """The loop starts from a fit with a finite evidence; without one every residual and score is NaN."""
+    """The loop starts from a fit with a finite evidence and a posterior that moved; without them every
+    residual, score and comparison is NaN or meaningless."""
     if math.isfinite(row.log_evidence):
+        why = row.degenerate()
+        if why is not None:
+            raise FitError(f"diagnose: {why}")
         return
     big = max((float(np.nanmax(np.abs(v))) for v in data.columns.values() if np.any(np.isfinite(v))), default=0.0)
     raise FitError(f"diagnose: {label} has no finite evidence on these data (ln Z = {row.log_evidence}): its "
                    f"likelihood is not finite anywhere the fit reached. Check the data (largest |value| "
                    f"{big:.3g}) against the model's priors, initial state and noise levels")
+
+
+def _no_worse(survivors: list, fspec, phi, cand, data: Dataset, config, say) -> list:
+    """The survivors whose model is a result: its fit not degenerate (:meth:`ModelFit.degenerate`) and its
+    free run on the estimation record bounded and no worse than the current model's. The evidence judges
+    one-step predictions; an effect that improves them while the simulated response drifts off (or
+    diverges) would make the model worse where it is used. The others are marked and say why."""
+    if not survivors:
+        return survivors
+    before = free_run(fspec, phi, data, init_samples=config.init_samples, substeps=cand.substeps)["rms_error"]
+    kept = []
+    for c in survivors:
+        why = _worse(c.fit, before, config)
+        if why is None:
+            kept.append(c)
+            continue
+        c.survives, c.rejected = False, why
+        say(f"  {c.effect}: not added: {why}")
+    return kept
+
+
+def _worse(fit, before: float, config) -> str | None:
+    """Why the model of ``fit`` (a re-selection with an effect) is no improvement on one whose free run on
+    the estimation record has RMS error ``before``, or None."""
+    why = fit.row.degenerate()
+    if why is not None:
+        return why
+    fs, ph = _fitted(fit.cand, fit.row)
+    try:
+        after = free_run(fs, ph, fit.data, init_samples=config.init_samples, substeps=fit.cand.substeps)["rms_error"]
+    except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        return f"its free run failed ({type(exc).__name__})"
+    if math.isfinite(after) and after <= before * (1 + 1e-9):
+        return None
+    return (f"its free run on the estimation record {'diverges' if not math.isfinite(after) else 'is worse'} "
+            f"(RMS error {before:.4g} -> {after:.4g})")
 
 
 def _present(rounds: list[LoopRound]) -> set:
@@ -260,6 +300,7 @@ def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra
     ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
                                           extra_effects, say, mapper, present)
     survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
+    survivors = _no_worse(survivors, fspec, phi, cand, data, config, say)
     noise = [c for c in survivors if c.fitted_effect.where == "noise"
              and any(abs(c.fit.row.mean.get(n, 0.0)) > math.log(2) for n in c.scales)]
     deferred = [c for c in survivors if c not in noise] if noise else []
@@ -305,7 +346,14 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rnd: LoopR
         # others make redundant; taken when it beats the best single effect by more than min_log_bf
         j = joint_fit(spec, cand, row, survivors, data, config, say)
         if j.row.log_evidence > best.log_evidence + config.min_log_bf:
-            chosen, fit = survivors, j
+            fs, ph = _fitted(best.fit.cand, best.fit.row)
+            single = free_run(fs, ph, best.fit.data, init_samples=config.init_samples,
+                              substeps=best.fit.cand.substeps)["rms_error"]
+            why = _worse(j, single, config)  # together they must free-run no worse than the best alone
+            if why is None:
+                chosen, fit = survivors, j
+            else:
+                say(f"  the survivors together: not taken: {why}")
     jrow = fit.row
     recs = []
     for c in chosen:

@@ -100,3 +100,17 @@ class ModelFit:
     def summary(self, keys) -> dict:
         """The attributes ``keys`` as a dict (a report's excerpt)."""
         return {k: getattr(self, k) for k in keys}
+
+    def degenerate(self) -> str | None:
+        """What makes this fit no result, or None: a sampled parameter whose posterior has no spread (sd 0 or
+        not finite: the chains never moved it) or a sampled evidence without a finite, positive standard
+        error. (A Laplace evidence states no Monte Carlo error: its 0 is not a defect.)"""
+        flat = [k for k, v in self.sd.items() if not (math.isfinite(v) and v > 0)]
+        if flat:
+            return (f"{self.name}: the posterior of {', '.join(flat[:5])} has no spread (sd "
+                    f"{self.sd[flat[0]]:g}): the chains did not move, so neither the intervals nor the evidence "
+                    "are a result")
+        se = self.log_evidence_se
+        if self.evidence_method == "chib-jeliazkov" and not (math.isfinite(se) and se > 0):
+            return f"{self.name}: the evidence has no finite Monte Carlo error (se {se:g}): the chains did not move"
+        return None

@@ -270,3 +270,35 @@ def test_character_says_hardening_and_which_side_a_contact_stiffens():
     for side in ("contact_above(y)", "contact_below(y)"):
         assert word(side, -8.0) == "a stop: stiffer beyond the gap" and word(side, 8.0) == "softer beyond the gap"
     assert word("quadratic_stiffness(y)", -1.0) == "asymmetric (stiffer on one side)"
+
+
+def test_an_effect_is_added_only_if_its_model_free_runs_no_worse_and_its_fit_moved():
+    """The rule that keeps the loop from making a model worse, on a real fit: the linear oscillator fitted to
+    a hardening record, judged as the model an effect would make. Against a current model whose free run
+    is perfect it is worse (and says by how much); against one that diverges it is kept; a fit whose
+    posterior did not move is no result (and a study's own starting fit refuses to go on from one)."""
+    import dataclasses
+    import math
+
+    from ardflow.ardcore.confirm import Fit
+    from ardflow.ardcore.diagnose import _check_fitted, _worse
+    from ardflow.ardcore.errors import FitError
+    from ardflow.ardcore.study import run_candidate
+
+    data = _duffing_free_decay(-4.0, 3, n=800)
+    spec = _spec()
+    cand = spec.models[0]
+    row, mr = run_candidate(cand, data, spec, 0)
+    fit = Fit(cand, row, mr, data)
+    cfg = DiagnoseConfig()
+    assert _worse(fit, math.inf, cfg) is None
+    why = _worse(fit, 1e-12, cfg)
+    assert why is not None and "is worse (RMS error 1e-12 ->" in why
+    stuck = dataclasses.replace(row, sd={**row.sd, "k": 0.0})
+    assert "posterior of k has no spread" in _worse(Fit(cand, stuck, mr, data), math.inf, cfg)
+    with pytest.raises(FitError, match="has no spread"):
+        _check_fitted(cand.label, stuck, data)
+    # a sampled evidence needs a Monte Carlo error; a Laplace one states none
+    cj = dataclasses.replace(row, evidence_method="chib-jeliazkov", log_evidence_se=0.0)
+    assert "no finite Monte Carlo error" in cj.degenerate()
+    assert dataclasses.replace(row, evidence_method="laplace", log_evidence_se=0.0).degenerate() is None
