@@ -9,6 +9,8 @@ evidence maximisation, then the comparison of the optimal nested models
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import time
 from pathlib import Path
@@ -125,6 +127,9 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
         warnings=list(best.evidence.warnings),
         per_chain_log_evidence=[c.log_evidence for c in best.evidence.per_chain],
     )
+    why = row.degenerate()
+    if why is not None:  # reported as what it is, never as a converged result
+        row = dataclasses.replace(row, warnings=[*row.warnings, f"degenerate fit: {why}"], converged=False)
     return row, mr
 
 
