@@ -91,6 +91,7 @@ class _Service:
         # parsing, data loading and store creation hold the GIL for long stretches: one thread for them, so a
         # burst of submissions cannot starve the event loop that answers status requests
         self._heavy_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="submit")
+        self._parse_pool = None
         tokens = dict(settings.tokens or {})
         if settings.token is not None:
             tokens.setdefault("default", settings.token)
@@ -101,6 +102,16 @@ class _Service:
 
     async def heavy(self, fn, *args, **kw):
         return await asyncio.get_running_loop().run_in_executor(self._heavy_pool, functools.partial(fn, *args, **kw))
+
+    async def parse(self, fn, *args):
+        """``fn(*args)`` in the service's parser process (started on first use, spawned: the API process has
+        threads, which a fork would copy mid-lock)."""
+        if self._parse_pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self._parse_pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        return await asyncio.get_running_loop().run_in_executor(self._parse_pool, fn, *args)
 
     def status(self, sid: str, progress: bool = True) -> StudyStatus:
         now = time.monotonic()
@@ -162,6 +173,20 @@ def _error_handlers(app: FastAPI) -> None:
         return JSONResponse({"detail": detail}, exc.status_code, headers=getattr(exc, "headers", None))
 
 
+def read_upload(path: str, text: str) -> tuple[int, list[str]]:
+    """Write an uploaded CSV to ``path`` (owner-only) and read it as a data set: its rows and columns (in the
+    parser process)."""
+    import os
+
+    from ardflow.ardcore.data import read_dataset
+
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    ds = read_dataset(path)
+    return len(ds), list(ds.columns)
+
+
 def _service_router(c: _Service) -> APIRouter:
     """Health, the dashboard link and data-set upload."""
     r = APIRouter()
@@ -195,7 +220,8 @@ def _service_router(c: _Service) -> APIRouter:
         rows = max(text.count("\n"), text.count("\r"))
         if rows > c.settings.max_upload_rows:
             raise HTTPException(413, f"data set has more than {c.settings.max_upload_rows} rows")
-        header = text.lstrip("\ufeff").splitlines()[0] if text.strip() else ""
+        head = text.lstrip("\ufeff")[:70_000]  # the header line only: splitting the whole text would block
+        header = head.splitlines()[0] if head.strip() else ""
         for name in (h.strip().strip('"') for h in header.split(",")):
             if not COLUMN_RE.match(name):
                 raise HTTPException(422, f"column name {name[:40]!r} is not allowed: letters, digits and "
@@ -203,20 +229,18 @@ def _service_router(c: _Service) -> APIRouter:
         did = secrets.token_hex(8)
         tmp = c.reg.root / "datasets" / f".{did}.csv"
         try:
-            tmp.write_text(text)
-            from ardflow.ardcore.data import read_dataset
-
-            ds = await c.heavy(read_dataset, tmp)
+            # written and parsed in a child process: a large upload's parse holds no GIL the event loop needs
+            n, columns = await c.parse(read_upload, str(tmp), text)
         except Exception as exc:  # noqa: BLE001 - csv.Error (a field over its size limit) and friends: a 422
             tmp.unlink(missing_ok=True)  # never a temporary file left behind
             msg = (str(exc).replace(str(tmp), "data set") if isinstance(exc, ArdflowError)
                    else f"cannot read the data set: {str(exc)[:200] or type(exc).__name__}")
             raise HTTPException(422, msg) from None
-        if len(ds) > c.settings.max_upload_rows:
+        if n > c.settings.max_upload_rows:
             tmp.unlink(missing_ok=True)
             raise HTTPException(413, f"data set has more than {c.settings.max_upload_rows} rows")
         tmp.replace(c.reg.root / "datasets" / f"{did}.csv")
-        return DatasetInfo(id=did, rows=len(ds), columns=["t", *ds.columns])
+        return DatasetInfo(id=did, rows=n, columns=["t", *columns])
 
     return r
 
