@@ -178,6 +178,7 @@ def _service_commands(sub) -> None:
             s.add_argument("--wait", action="store_true")
         elif name == "status":
             s.add_argument("id", nargs="?")
+            s.add_argument("--json", action="store_true", help="the service's JSON, for scripts")
         else:
             s.add_argument("id")
             s.add_argument("--out", required=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -108,11 +109,44 @@ def cmd_status(a) -> int:
 
     with _client(a) as c:
         try:
-            print(json.dumps(c.status(a.id) if a.id else c.studies(), indent=2))
+            st = c.status(a.id) if a.id else c.studies()
+            if getattr(a, "json", False):
+                print(json.dumps(st, indent=2))
+                return 0
+            rows = [st] if a.id else st
+            best = {r["id"]: _best(c, r) for r in rows if r["status"] == "done"}
         except APIError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
+    print(status_table(rows, best, time.time()))
     return 0
+
+
+def _best(c, row: dict) -> str:
+    """'M2 (P 1.00)' for a finished study: its best model and that model's probability."""
+    s = c.summary(row["id"])
+    p = {m["name"]: m.get("probability") for m in s.get("models", [])}
+    b = s.get("best_model")
+    return f"{b} (P {p[b]:.2f})" if b in p and p[b] is not None else str(b)
+
+
+def _ago(seconds: float) -> str:
+    s = max(0, int(seconds))
+    return (f"{s} s" if s < 60 else f"{s // 60} min" if s < 3600 else f"{s // 3600} h {s % 3600 // 60} min") + " ago"
+
+
+def status_table(rows: list[dict], best: dict, now: float) -> str:
+    """Studies as a table a person reads: id, state, best model with its probability (when done), when it
+    was submitted, the longest ETA of its models while it runs, and its error."""
+    head = f"{'study':<28s} {'state':<10s} {'best model':<16s} {'submitted':<16s} {'ETA':<10s}"
+    out = [head]
+    for r in rows:
+        etas = [m.get("eta_s") for m in (r.get("models") or {}).values() if m.get("eta_s")]
+        eta = f"{max(etas) / 60:.0f} min" if etas and r["status"] == "running" else "-"
+        out.append(f"{r['id']:<28s} {r['status']:<10s} {best.get(r['id'], '-'):<16s} "
+                   f"{_ago(now - r.get('created', now)):<16s} {eta:<10s}"
+                   + (f" {r['error']}" if r.get("error") else ""))
+    return "\n".join(out) if rows else "no studies"
 
 
 def cmd_fetch(a) -> int:

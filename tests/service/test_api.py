@@ -276,8 +276,13 @@ def test_cli_submit_status_fetch(service, tmp_path):
                        timeout=300)
     assert r.returncode == 0, r.stderr
     sid = r.stdout.splitlines()[0].strip()
-    r = subprocess.run(base + ["status", sid] + common, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    r = subprocess.run(base + ["status", sid, "--json"] + common, cwd=ROOT, capture_output=True, text=True,
+                       timeout=60)
     assert r.returncode == 0 and json.loads(r.stdout)["status"] == "done"
+    # for people: a table with the best model and its probability, when it was submitted
+    r = subprocess.run(base + ["status"] + common, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    line = next(x for x in r.stdout.splitlines() if x.startswith(sid))
+    assert r.returncode == 0 and "done" in line and "quad (P 1.00)" in line and " ago" in line, r.stdout
     r = subprocess.run(base + ["fetch", sid, "--out", str(tmp_path / "f")] + common, cwd=ROOT, capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 0, r.stderr
