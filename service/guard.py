@@ -6,6 +6,7 @@
   talk to a service on loopback under its own name), else 400.
 * **Content type**: every ``POST`` (an empty one too) must be declared as JSON, or as CSV on the data-set
   route (a cross-site form cannot send those without a pre-flight), else 415.
+* **Duplicate keys**: a JSON body whose object repeats a key is refused (422), not read with the last one.
 * **Cross-site requests**: a state change (``POST``, ``PUT``, ``PATCH``, ``DELETE``) authenticated by the
   page's cookie alone must come from the page's own origin: ``Sec-Fetch-Site`` same-origin (or none, typed
   by the user) and an ``Origin`` naming this host and port; without either header it is refused (403).
@@ -60,6 +61,31 @@ def _same_origin(headers: dict) -> bool:
     return origin.split("://", 1)[1].rstrip("/").lower() == headers.get("host", "").lower()
 
 
+class _Duplicate(Exception):
+    pass
+
+
+def _no_duplicates(pairs):
+    seen = {}
+    for k, v in pairs:
+        if k in seen:
+            raise _Duplicate(k)
+        seen[k] = v
+    return seen
+
+
+def _duplicate_key(body: bytes) -> str | None:
+    """The first key that an object of the JSON ``body`` repeats (None: none, or not JSON at all, which the
+    route's own parser answers)."""
+    try:
+        json.loads(body, object_pairs_hook=_no_duplicates)
+    except _Duplicate as exc:
+        return str(exc.args[0])
+    except (ValueError, RecursionError):
+        return None
+    return None
+
+
 class RequestGuard:
     """ASGI middleware: body-size limit, Host allow-list, Content-Type of POST bodies."""
 
@@ -111,7 +137,13 @@ class RequestGuard:
             chunks.append(body)
             if not msg.get("more_body", False):
                 break
-        replay = [{"type": "http.request", "body": b"".join(chunks), "more_body": False}]
+        body = b"".join(chunks)
+        if body.strip() and headers.get("content-type", "").split(";")[0].strip().lower() == "application/json":
+            dup = _duplicate_key(body)
+            if dup is not None:
+                return await _answer(send, 422, f"duplicate key {dup[:60]!r} in the JSON body (which one was "
+                                                "meant is ambiguous)")
+        replay = [{"type": "http.request", "body": body, "more_body": False}]
 
         async def replayed():
             if replay:

@@ -557,3 +557,14 @@ def test_slow_headers_are_cut_off(tmp_path):
         for s in socks:
             s.close()
         assert len(closed) == len(socks) and 8 <= elapsed <= 20, (len(closed), elapsed)
+
+
+def test_a_json_body_with_a_repeated_key_is_refused(hostile):
+    url, _, _, _ = hostile
+    body = json.dumps(dict(SPEC, seed=61))[:-1] + ', "seed": 62}'
+    r = httpx.post(f"{url}/v1/studies", content=body, headers={**H, "Content-Type": "application/json"}, timeout=60)
+    assert r.status_code == 422 and "duplicate key 'seed'" in r.json()["detail"], r.text
+    nested = json.dumps(dict(SPEC, seed=63)).replace('"n_chains": 3', '"n_chains": 3, "n_chains": 4')
+    assert '"n_chains": 3, "n_chains": 4' in nested
+    r = httpx.post(f"{url}/v1/studies", content=nested, headers={**H, "Content-Type": "application/json"}, timeout=60)
+    assert r.status_code == 422 and "n_chains" in r.json()["detail"]
