@@ -61,8 +61,10 @@ class Admission:
             if waiting >= s.max_queued:
                 raise HTTPException(429, f"{waiting} studies are waiting already; try again later",
                                     headers={"Retry-After": "60"})
+            # the runner's queue and drivers are the queued and running studies: their owners are read from
+            # the registry's small entries (cached), never from every store (a scan grew with the registry)
             active = self.pending.get(owner, 0) + sum(
-                1 for m in self.reg.metas() if m.get("owner") == owner and m.get("status") in ("queued", "running"))
+                1 for sid in [*self.runner.queue, *self.runner.running()] if self.reg.owner(sid) == owner)
             if active >= s.max_active_per_token:
                 raise HTTPException(429, f"{active} of your studies are queued or running (at most "
                                          f"{s.max_active_per_token} per token); try again later",
@@ -187,6 +189,13 @@ def read_upload(path: str, text: str) -> tuple[int, list[str]]:
     return len(ds), list(ds.columns)
 
 
+def prepare_study(spec: dict, store: str, datasets: str, sid: str) -> None:
+    """:func:`workers.graph.prepare_store` of a submitted study (in the parser process)."""
+    from ardflow.workers.graph import prepare_store
+
+    prepare_store(StudySpec.model_validate(spec), store, datasets=Path(datasets), study_id=sid)
+
+
 def _service_router(c: _Service) -> APIRouter:
     """Health, the dashboard link and data-set upload."""
     r = APIRouter()
@@ -267,10 +276,14 @@ def _submit_router(c: _Service) -> APIRouter:
         sid = f"{spec.name}-{secrets.token_hex(4)}"
         d = c.reg.study_dir(sid)
         d.mkdir(parents=True)
-        from ardflow.workers.graph import prepare_store
+        from ardflow.workers.store import StudyStore
 
         try:
-            store = await c.heavy(prepare_store, spec, d / "store", datasets=c.reg.root / "datasets", study_id=sid)
+            # the data set is generated or read and the store written in the parser process (no GIL shared
+            # with the event loop that answers status requests)
+            await c.parse(prepare_study, spec.model_dump(mode="json"), str(d / "store"), str(c.reg.root / "datasets"),
+                          sid)
+            store = StudyStore(d / "store")
             estimate = check_budget(spec, int(store.meta.get("data", {}).get("n") or 0), c.settings.max_study_cost)
             c.reg.write_meta(sid, {"id": sid, "name": spec.name, "created": time.time(),
                                  "estimate": estimate, "owner": owner})

@@ -48,6 +48,7 @@ class Registry:
         self.root = Path(root)
         (self.root / "studies").mkdir(parents=True, exist_ok=True)
         (self.root / "datasets").mkdir(parents=True, exist_ok=True)
+        self._owners: dict[str, str | None] = {}
 
     def study_dir(self, sid: str) -> Path:
         if not ID_RE.match(sid):
@@ -85,6 +86,15 @@ class Registry:
             text = re.sub(re.escape(root) + r"/studies/([^/\s'\"]+)/?", r"study \1: ", text)
             text = text.replace(root, "<registry>")
         return text
+
+    def owner(self, sid: str) -> str | None:
+        """Who submitted ``sid`` (None when its entry cannot be read). An entry's owner never changes: cached."""
+        if sid not in self._owners:
+            try:
+                self._owners[sid] = json.loads((self.study_dir(sid) / "meta.json").read_text()).get("owner")
+            except (OSError, ValueError, AttributeError, HTTPException):
+                return None
+        return self._owners[sid]
 
     def readable(self, sid: str) -> dict:
         """:meth:`meta` of a study whose files can be read; a damaged one is a 409 that says so."""

@@ -268,9 +268,9 @@ def bench_dask(tiny: bool = False) -> dict:
 
 
 def bench_api(tiny: bool = False) -> dict:
-    """The service under load (real ``ardflow serve`` over HTTP, 2 drivers at most): 20 concurrent
-    submissions of the Sec 3.3 study and a large data-set upload (500,000 rows) while 20 clients poll their
-    status.
+    """The service under load (real ``ardflow serve`` over HTTP, 2 drivers at most): 50 concurrent
+    submissions of the Sec 3.3 study by three users and a large data-set upload (500,000 rows) while 20
+    clients poll the studies' status.
 
     Keys: api_status_p95_ms / _p99_ms / _p50_ms (status latency under that load), api_upload_s, api_requests, api_errors (answers
     other than 200/202 to valid requests), api_rss_mb (largest resident memory of the API process),
@@ -287,14 +287,18 @@ def bench_api(tiny: bool = False) -> dict:
     import httpx
 
     token, max_running = "bench-token", 2
-    n_clients, n_polls = (2, 3) if tiny else (20, 40)
+    n_submit, n_clients, n_polls = (2, 2, 3) if tiny else (50, 20, 40)
+    # three users submit (each under the per-token limit of 20); the admin's token polls every study
+    users = {f"user{i}": f"bench-user-{i}" for i in range(3)}
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     root = Path(tempfile.mkdtemp())
+    tokens_file = root.parent / f"{root.name}-tokens.json"
+    tokens_file.write_text(json.dumps({"admin": token, **users}))
     p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root", str(root),
-                          "--token", token, "--max-running", str(max_running)], stdout=subprocess.DEVNULL,
-                         stderr=subprocess.DEVNULL, start_new_session=True)
+                          "--tokens-file", str(tokens_file), "--max-running", str(max_running)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     base = f"http://127.0.0.1:{port}/v1"
     h = {"X-API-Token": token}
 
@@ -321,7 +325,8 @@ def bench_api(tiny: bool = False) -> dict:
         peak = {"running": 0, "queued": 0, "rss": rss_mb()}
 
         async def submit(c, i):
-            r = await c.post(f"{base}/studies", json=dict(spec, seed=100 + i))
+            who = list(users.values())[i % len(users)]
+            r = await c.post(f"{base}/studies", json=dict(spec, seed=100 + i), headers={"X-API-Token": who})
             if r.status_code != 202:
                 errors.append(("submit", r.status_code, r.text[:200]))
             else:
@@ -329,7 +334,7 @@ def bench_api(tiny: bool = False) -> dict:
 
         async def poll(c, n):
             while not ids:
-                if sum(e[0] == "submit" for e in errors) >= n_clients:
+                if sum(e[0] == "submit" for e in errors) >= n_submit:
                     return  # every submission refused: nothing to poll (the errors are reported)
                 await asyncio.sleep(0.05)
             k = 0
@@ -366,7 +371,7 @@ def bench_api(tiny: bool = False) -> dict:
             stop = asyncio.Event()
             async with httpx.AsyncClient(headers=h, timeout=120) as c:
                 w = asyncio.create_task(watch(c, stop))
-                await asyncio.gather(upload(c), *(submit(c, i) for i in range(n_clients)),
+                await asyncio.gather(upload(c), *(submit(c, i) for i in range(n_submit)),
                                      *(poll(c, n_polls) for _ in range(n_clients)))
                 await asyncio.sleep(1 if tiny else 5)
                 stop.set()
