@@ -443,11 +443,13 @@ def _store_convergence(out: Path) -> dict:
             "max_rhat_per_model": rhat, "min_ess_per_model": ess}
 
 
-def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", "M3")) -> dict:
+def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", "M3"), full: bool = False) -> dict:
     """The sampler on Sec 3.6's M2 and M3 at their optimal psi, demo settings, ``seeds`` seeds: the reported
     ln Z standard error against the seed-to-seed sd (``evidence_se_ratio``: mean se / sd of the model furthest
     from 1, which is honest; per model beside it), and
-    ArviZ's ESS per likelihood evaluation with the independence proposal against the plain random walk."""
+    ArviZ's ESS per likelihood evaluation with the independence proposal against the plain random walk.
+    With ``full`` the paper-scale settings (``--full``), keys ``posterior_full_*`` and
+    ``evidence_se_ratio_full``, no random-walk comparison."""
     from concurrent.futures import ProcessPoolExecutor
 
     from ardflow.ardcore.diagnostics import convergence
@@ -457,8 +459,13 @@ def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", 
     from ardflow.ardcore.study import StudySpec
 
     spec = StudySpec.model_validate(json.loads((ROOT / "examples" / "sec36.json").read_text()))
+    if full:
+        from ardflow.service.cmd_study import full_settings
+
+        spec = full_settings(spec)
     if tiny:
         spec, seeds, models = _tiny_spec(spec), 2, ("M2",)
+    pre, post = ("posterior_full_", "_full") if full else ("posterior_", "")
     data = spec.data.load()
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": math.inf, "a6": math.inf}
     out: dict = {}
@@ -478,11 +485,13 @@ def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", 
                 d = convergence(list(res.names), res.samples)
                 epe.append(min(min(v["ess_bulk"], v["ess_tail"]) for v in d.values()) / res.n_evaluations)
             sd = float(np.std(lz, ddof=1))
-            out[f"posterior_{label}_lnz"] = lz
-            out[f"posterior_{label}_lnz_sd"] = sd
-            out[f"posterior_{label}_se_mean"] = float(np.mean(se))
-            out[f"posterior_{label}_ess_per_evaluation"] = float(np.mean(epe))
+            out[f"{pre}{label}_lnz"] = lz
+            out[f"{pre}{label}_lnz_sd"] = sd
+            out[f"{pre}{label}_se_mean"] = float(np.mean(se))
+            out[f"{pre}{label}_ess_per_evaluation"] = float(np.mean(epe))
             ratios.append(float(np.mean(se)) / sd if sd > 0 else math.nan)
+            if full:
+                continue
             # the same target with the plain random walk of method.md (jump_weight 0), one seed
             rw = sample(target, spec.sampler.model_copy(update={"jump_weight": 0.0, "max_stationary": None}),
                         seed=100, map_fn=mf)
@@ -490,9 +499,14 @@ def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", 
             out[f"posterior_{label}_ess_per_evaluation_random_walk"] = (
                 min(min(v["ess_bulk"], v["ess_tail"]) for v in d.values()) / rw.n_evaluations)
     # the headline is the model whose reported error is furthest from its seed spread (either way)
-    out["evidence_se_ratio"] = max(ratios, key=lambda r: abs(math.log(r)) if r > 0 else math.inf)
-    out["evidence_se_ratio_per_model"] = dict(zip(models, ratios))
+    out[f"evidence_se_ratio{post}"] = max(ratios, key=lambda r: abs(math.log(r)) if r > 0 else math.inf)
+    out[f"evidence_se_ratio{post}_per_model"] = dict(zip(models, ratios))
     return out
+
+
+def bench_posterior_full(tiny: bool = False) -> dict:
+    """:func:`bench_posterior` at the paper-scale settings (8 seeds)."""
+    return bench_posterior(tiny, seeds=8, full=True)
 
 
 def bench_study(tiny: bool = False) -> dict:
@@ -667,7 +681,7 @@ def _save_partial(res: dict) -> None:
 
 
 BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "study": bench_study,
-           "posterior": bench_posterior,
+           "posterior": bench_posterior, "posterior_full": bench_posterior_full,
            "loop": bench_loop, "fresh": bench_fresh}
 
 
@@ -681,6 +695,7 @@ CONTRACT = {
               "study_full_min_ess", "study_full_max_rhat"],
     "posterior": ["evidence_se_ratio", "posterior_M2_ess_per_evaluation",
                   "posterior_M2_ess_per_evaluation_random_walk"],
+    "posterior_full": ["evidence_se_ratio_full", "posterior_full_M2_lnz_sd", "posterior_full_M2_se_mean"],
     "loop": ["loop_silverbox_multisine_mv", "loop_silverbox_arrow_mv", "loop_pendulum_rad",
              "loop_peer_best_multisine_mv", "loop_peer_pysindy_multisine_mv", "loop_peer_sysidentpy_multisine_mv",
              "loop_peer_narx_pendulum_rad"],
