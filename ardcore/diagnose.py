@@ -270,15 +270,20 @@ def _no_worse(survivors: list, fspec, phi, cand, data: Dataset, config, say) -> 
     return kept
 
 
+def _free_run_rms(fit, config) -> float:
+    """RMS error of the free run of ``fit``'s model (posterior mean) on its estimation record."""
+    fs, ph = _fitted(fit.cand, fit.row)
+    return free_run(fs, ph, fit.data, init_samples=config.init_samples, substeps=fit.cand.substeps)["rms_error"]
+
+
 def _worse(fit, before: float, config) -> str | None:
     """Why the model of ``fit`` (a re-selection with an effect) is no improvement on one whose free run on
     the estimation record has RMS error ``before``, or None."""
     why = fit.row.degenerate()
     if why is not None:
         return why
-    fs, ph = _fitted(fit.cand, fit.row)
     try:
-        after = free_run(fs, ph, fit.data, init_samples=config.init_samples, substeps=fit.cand.substeps)["rms_error"]
+        after = _free_run_rms(fit, config)
     except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
         return f"its free run failed ({type(exc).__name__})"
     if math.isfinite(after) and after <= before * (1 + 1e-9):
@@ -346,10 +351,7 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rnd: LoopR
         # others make redundant; taken when it beats the best single effect by more than min_log_bf
         j = joint_fit(spec, cand, row, survivors, data, config, say)
         if j.row.log_evidence > best.log_evidence + config.min_log_bf:
-            fs, ph = _fitted(best.fit.cand, best.fit.row)
-            single = free_run(fs, ph, best.fit.data, init_samples=config.init_samples,
-                              substeps=best.fit.cand.substeps)["rms_error"]
-            why = _worse(j, single, config)  # together they must free-run no worse than the best alone
+            why = _worse(j, _free_run_rms(best.fit, config), config)  # together they must free-run no worse than the best alone
             if why is None:
                 chosen, fit = survivors, j
             else:

@@ -39,6 +39,11 @@ class EvidenceEvaluator:
         # that the evidence itself assumed (what a screen of many candidates can afford)
         self.final_posterior = final_posterior
 
+    def config(self, extend: bool) -> SamplerConfig:
+        """The sampler settings of a trial: the judged M draws for a search trial, the full budget for the
+        reported trial's continued chains."""
+        return self.sampler if extend else self.sampler.judged()
+
     @property
     def stationary_budget(self) -> int:
         """Stationary draws per chain the reported trial's chains may continue to (0: Laplace, no chains)."""
@@ -67,11 +72,11 @@ class EvidenceEvaluator:
                 res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
             return target, ev, res
         if extend:
-            res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn, resume=continuation(warm),
+            res = sample(target, self.config(extend), seed=seed, map_fn=self.map_fn, resume=continuation(warm),
                          progress=self.progress, cancel=self.cancel)
             res = continued(res, warm)
         else:
-            res = sample(target, self.sampler.judged(), seed=seed, map_fn=self.map_fn, warm=warm,
+            res = sample(target, self.config(extend), seed=seed, map_fn=self.map_fn, warm=warm,
                          progress=self.progress, cancel=self.cancel)
         ev = chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7,
                             proposal_se_ratio=self.sampler.proposal_se_ratio, map_fn=self.map_fn)

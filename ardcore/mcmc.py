@@ -123,9 +123,10 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
     (:mod:`.diagnostics`). When the rank R-hat of some parameter exceeds ``config.rhat_threshold`` the chains
     had not settled; when the ESS per draw is so low that the budget cannot reach ``config.min_ess`` at that
     rate the kernel is poor. Either way the draws count as more burn-in (the pool refits the kernel to them)
-    and are drawn again from where the chains are (at most ``config.stationary_restarts`` times). Otherwise, while R-hat exceeds ``config.max_rhat`` or a bulk or
-    tail ESS is below ``config.min_ess``, the same chains continue with the same kernel (the draws so far
-    stay: one longer stationary run) by as many draws as the ESS says are missing, up to
+    and are drawn again from where the chains are (at most ``config.stationary_restarts`` times).
+    Otherwise, while R-hat exceeds ``config.max_rhat`` or a bulk or tail ESS is below ``config.min_ess``, the
+    same chains continue with the same kernel (the draws so far stay: one longer stationary run) by as many
+    draws as the ESS says are missing, up to
     ``config.stationary_budget`` draws per chain.
 
     Returns samples (n_chains, draws, d), their log posteriors and log likelihoods, the chain states, the

@@ -99,7 +99,7 @@ class StoredEvaluator(EvidenceEvaluator):
             ev, res = _from_record(rec, store, model, iteration)
             return target, ev, res
         # search trials draw the judged M; the reported one continues its chains to the quality target
-        cfg = self.sampler if extend else self.sampler.judged()
+        cfg = self.config(extend)
         prefix = f"{self.study_id}-{model}-it{iteration:03d}"
         ck = store.read_checkpoint(model, iteration)
         if ck is not None and ck.get("psi") != _json(psi):
