@@ -1,7 +1,7 @@
 """Data sets: named columns over a strictly increasing time axis.
 
-CSV (header row of names), NPZ (one array per name) and MATLAB ``.mat`` files
-(1-D variables of equal length) load through :func:`read_dataset`. Every
+CSV (header row of names; ``.csv.gz`` too), NPZ (one array per name) and MATLAB
+``.mat`` files (1-D variables of equal length) load through :func:`read_dataset`. Every
 problem is reported as a :class:`~ardcore.errors.DataError` whose message
 names the file, the column and, where it helps, the row.
 """
@@ -9,8 +9,11 @@ names the file, the column and, where it helps, the row.
 from __future__ import annotations
 
 import csv
+import gzip
+import hashlib
 import io
 import json
+import os
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -130,7 +133,13 @@ def _is_number(s: str) -> bool:
 
 
 def _read_csv(path: Path) -> dict[str, np.ndarray]:
-    text = path.read_text()
+    if path.suffix.lower() == ".gz":
+        try:
+            text = gzip.decompress(path.read_bytes()).decode()
+        except (OSError, EOFError, UnicodeDecodeError) as exc:  # truncated or not gzip
+            raise DataError(f"{path}: cannot read gzip-compressed CSV ({exc})") from None
+    else:
+        text = path.read_text()
     if not text.strip():
         raise DataError(f"{path}: empty file")
     try:
@@ -262,14 +271,69 @@ def read_dataset(path: str | Path, *, time: str = "t", fs: float | None = None,
     return Dataset(t, cols, meta)
 
 
-def load_silverbox(path: str | Path) -> Dataset:
-    """Silverbox benchmark (Wigren & Schoukens 2013): ``u`` = V1 input, ``y`` = V2 output."""
-    return read_dataset(path, fs=SILVERBOX_FS, rename={"V1": "u", "V2": "y"})
+SILVERBOX_SHA256 = "ae62d5a91230c10f76e6dd02c8a4fac3c9d4d8a95fbf50e87cb0c4885003e0f1"
+"""Checksum of the Silverbox record as published (``SNLS80mV.csv``, before compression)."""
 
 
-def load_pendulum(path: str | Path) -> Dataset:
-    """Free-decay pendulum record: ``t`` (s) and ``y`` = theta2 (rad)."""
-    return read_dataset(path, rename={"theta2": "y"}, columns=["y"])
+def silverbox_path() -> Path:
+    """The Silverbox record shipped with ardflow (``examples/data/SNLS80mV.csv.gz``; source, citation and
+    licence note in ``examples/data/README.md``)."""
+    # the examples sit beside the packages, in the repository and in an installed ardflow alike
+    return Path(__file__).resolve().parents[1] / "examples" / "data" / "SNLS80mV.csv.gz"
+
+
+def load_silverbox(path: str | Path | None = None, *, verify: bool = True) -> Dataset:
+    """Silverbox benchmark (Wigren & Schoukens 2013): ``u`` = V1 input, ``y`` = V2 output (volts).
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        A copy of ``SNLS80mV.csv`` (or ``.csv.gz``); default: the record shipped with ardflow.
+    verify : bool
+        Check the shipped record against :data:`SILVERBOX_SHA256` (a damaged copy is a DataError).
+    """
+    if path is None:
+        path = silverbox_path()
+        if verify:
+            digest = hashlib.sha256(gzip.decompress(path.read_bytes())).hexdigest()
+            if digest != SILVERBOX_SHA256:
+                raise DataError(f"{path.name}: checksum {digest[:12]}... is not the published record's "
+                                f"({SILVERBOX_SHA256[:12]}...); reinstall ardflow")
+    ds = read_dataset(path, fs=SILVERBOX_FS, rename={"V1": "u", "V2": "y"})
+    ds.meta["units"] = {"t": "s", "u": "V", "y": "V"}
+    return ds
+
+
+DATA_ENV = "ARDFLOW_DATA"
+"""Environment variable naming a folder of records that ardflow does not ship (relative data paths in
+a spec are looked up there when they are not found beside the spec)."""
+
+PENDULUM_RELPATH = "pendulum/adip_pend_data.mat"
+"""Where :func:`load_pendulum` looks for the pendulum record under ``$ARDFLOW_DATA``."""
+
+
+def external_path(rel: str | Path) -> Path | None:
+    """``$ARDFLOW_DATA/rel`` when the variable is set and the file exists there, else None."""
+    root = os.environ.get(DATA_ENV)
+    if root and (Path(root) / rel).exists():
+        return Path(root) / rel
+    return None
+
+
+def load_pendulum(path: str | Path | None = None) -> Dataset:
+    """Free-decay pendulum record: ``t`` (s) and ``y`` = theta2 (rad).
+
+    The record's source states no licence, so ardflow does not ship it: give its ``path``, or set
+    ``ARDFLOW_DATA`` to the folder that holds ``pendulum/adip_pend_data.mat``.
+    """
+    if path is None:
+        path = external_path(PENDULUM_RELPATH)
+        if path is None:
+            raise DataError(f"the pendulum record is not shipped with ardflow (its source states no licence): "
+                            f"set {DATA_ENV} to the folder that holds {PENDULUM_RELPATH}")
+    ds = read_dataset(path, rename={"theta2": "y"}, columns=["y"])
+    ds.meta["units"] = {"t": "s", "y": "rad"}
+    return ds
 
 
 SILVERBOX_SPLITS = {

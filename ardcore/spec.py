@@ -12,8 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from .ard import (
     MaximiserConfig,
 )
-from .data import Dataset, read_dataset
-from .errors import SpecError
+from .data import DATA_ENV, Dataset, external_path, read_dataset
+from .errors import DataError, SpecError
 from .library import builtin
 from .mcmc import SamplerConfig
 from .model import NAME_PATTERN, ModelSpec
@@ -68,6 +68,12 @@ class DataSpec(BaseModel):
             p = Path(self.path)
             if base is not None and not p.is_absolute():
                 p = base / p
+            if not p.exists() and not Path(self.path).is_absolute():
+                # a record ardflow does not ship: under $ARDFLOW_DATA
+                p = external_path(self.path) or p
+                if not p.exists():
+                    raise DataError(f"{self.path}: no such file (relative paths are read beside the spec, "
+                                    f"then under ${DATA_ENV})")
             ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
         if self.start is not None or self.stop is not None:
             ds = ds.slice(self.start, self.stop)

@@ -48,8 +48,8 @@ class TokenAuth:
 
 
 class StudyAccess:
-    """FastAPI dependency of every route under ``/studies/{sid}``: the study's registry entry, when the caller
-    owns it or is an admin; otherwise 404, exactly as for a study that does not exist (another user's ids
+    """FastAPI dependency of every route under ``/studies/{sid}``: passes when the caller owns the study or
+    is an admin; otherwise 404, exactly as for a study that does not exist (another user's ids
     are not confirmed)."""
 
     def __init__(self, auth: TokenAuth, registry, admins: list[str]):
@@ -61,9 +61,9 @@ class StudyAccess:
         return (len(self.auth.tokens) <= 1 or owner in self.admins
                 or (meta.get("owner") is not None and meta.get("owner") == owner))
 
-    async def __call__(self, sid: str, request: Request) -> dict:
+    async def __call__(self, sid: str, request: Request) -> None:
         owner = await self.auth(request)
-        meta = self.registry.meta(sid)
-        if not self.sees(owner, meta):
+        # the owner alone decides (cached: an entry's owner never changes); the route reads the status
+        if not (self.registry.study_dir(sid) / "meta.json").exists() or not self.sees(
+                owner, {"owner": self.registry.owner(sid)}):
             raise HTTPException(404, f"no study {sid!r}")
-        return meta

@@ -59,7 +59,7 @@ def cmd_serve(a) -> int:
     hosts = ["127.0.0.1", "localhost", "[::1]", "::1"] if loopback else None
     # the API's event loop gets the GIL back every 1 ms (not 5) from the threads that parse submissions
     sys.setswitchinterval(0.001)
-    with ClusterClient(a.scheduler, a.workers) as client:
+    with ClusterClient(a.scheduler, a.workers, scheduler_process=True) as client:
         tokens = json.loads(Path(a.tokens_file).read_text()) if a.tokens_file else None
         app = create_app(Settings(root=root, token=token, tokens=tokens, max_body_mb=a.max_body_mb,
                                   max_running=a.max_running, allowed_hosts=hosts), client)

@@ -150,6 +150,12 @@ class StudyStore:
 
     @property
     def meta(self) -> dict:
+        """The study's attributes (spec, status, error, ...). A local store's are read straight from the
+        group's ``zarr.json`` (its ``attributes`` member in the zarr v3 format): the service reads them on
+        every status request, and zarr's own open costs a round trip through its event-loop thread."""
+        if not self.remote:
+            doc = json.loads((self.path / "zarr.json").read_text())
+            return dict(doc.get("attributes", {}).get("ardflow", {}))
         return dict(self.group("r").attrs.get("ardflow", {}))
 
     @contextmanager

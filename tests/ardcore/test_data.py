@@ -6,7 +6,6 @@ import pytest
 from ardflow.ardcore.data import (SILVERBOX_SPLITS, Dataset, load_pendulum, load_silverbox, read_dataset)
 from ardflow.ardcore.errors import DataError
 
-SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
 
 
 def write(tmp_path, text, name="d.csv"):
@@ -72,22 +71,61 @@ def test_npz_roundtrip(tmp_path):
     assert np.array_equal(read_dataset(tmp_path / "back.csv").columns["y"], np.cos(t))
 
 
-@pytest.mark.skipif(not (SHARED / "SNLS80mV.csv").exists(), reason="shared data not present")
-def test_silverbox_loads_through_the_same_path():
-    ds = load_silverbox(SHARED / "SNLS80mV.csv")
+def test_silverbox_ships_with_its_checksum_and_splits():
+    ds = load_silverbox()
     assert len(ds) == 131072 and set(ds.columns) == {"u", "y"}
     assert ds.t[1] == pytest.approx(1 / 610.3515625)
+    assert ds.meta["units"]["y"] == "V"
     a, b = SILVERBOX_SPLITS["estimation"]
     est = ds.slice(a, b)
     assert len(est) == b - a and np.isfinite(est.columns["y"]).all()
 
 
-@pytest.mark.skipif(not (SHARED / "pendulum" / "adip_pend_data.mat").exists(), reason="shared data not present")
-def test_pendulum_mat_loads():
-    ds = load_pendulum(SHARED / "pendulum" / "adip_pend_data.mat")
+def test_a_damaged_silverbox_copy_is_refused(tmp_path, monkeypatch):
+    import gzip
+
+    import ardflow.ardcore.data as data
+
+    raw = bytearray(gzip.decompress(data.silverbox_path().read_bytes()))
+    raw[100] = ord("9") if raw[100] != ord("9") else ord("8")  # one digit changed
+    bad = tmp_path / "SNLS80mV.csv.gz"
+    bad.write_bytes(gzip.compress(bytes(raw)))
+    monkeypatch.setattr(data, "silverbox_path", lambda: bad)
+    with pytest.raises(DataError, match="checksum"):
+        data.load_silverbox()
+
+
+def test_truncated_gzip_csv_is_a_data_error(tmp_path):
+    p = tmp_path / "d.csv.gz"
+    p.write_bytes(b"\x1f\x8b\x08\x00garbage")
+    with pytest.raises(DataError, match="gzip"):
+        read_dataset(p)
+
+
+def test_pendulum_reads_from_ardflow_data(tmp_path, monkeypatch):
+    from tests.pendulum_standin import pendulum_folder
+
+    monkeypatch.delenv("ARDFLOW_DATA", raising=False)
+    with pytest.raises(DataError, match="ARDFLOW_DATA"):
+        load_pendulum()
+    monkeypatch.setenv("ARDFLOW_DATA", str(pendulum_folder(tmp_path)))
+    ds = load_pendulum()
     assert set(ds.columns) == {"y"}
     assert ds.t[0] == pytest.approx(0.061, abs=1e-6) and ds.t[-1] == pytest.approx(120, abs=0.01)
     assert 1.1 < np.max(ds.columns["y"]) < 1.4
+
+
+def test_spec_paths_fall_back_to_ardflow_data(tmp_path, monkeypatch):
+    from ardflow.ardcore.study import load_spec
+    from tests.pendulum_standin import pendulum_folder
+
+    spec_file = Path(__file__).resolve().parents[2] / "examples" / "pendulum_diagnose.json"
+    monkeypatch.setenv("ARDFLOW_DATA", str(tmp_path / "empty"))
+    with pytest.raises(DataError, match="ARDFLOW_DATA"):
+        load_spec(spec_file).data.load(spec_file.parent)
+    monkeypatch.setenv("ARDFLOW_DATA", str(pendulum_folder(tmp_path)))
+    ds = load_spec(spec_file).data.load(spec_file.parent)
+    assert len(ds) == (40000 - 2000) // 20
 
 
 def test_dataset_validates_direct_construction():

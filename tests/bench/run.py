@@ -125,7 +125,7 @@ def silverbox_substep_table(tiny: bool = False) -> dict:
     from ardflow.ardcore.ekf import compile_model
     from ardflow.ardcore.model import ModelSpec
 
-    d = load_silverbox(ROOT.parent / "shared" / "data" / "real" / "SNLS80mV.csv")
+    d = load_silverbox()
     est, test = d.slice(*SILVERBOX_SPLITS["estimation"]), d.slice(*SILVERBOX_SPLITS["test_multisine"])
     phi = {"k": 1.845e5, "c": 41.94, "b": 1.941e5, "sigma": 1.986, "gamma": 1.261e-4, "k3": 7.228e5, "off": 997.8,
            "e": -0.03706}
@@ -539,11 +539,12 @@ def _after_mv(rep, seg: dict) -> dict:
 
 
 def bench_loop(tiny: bool = False) -> dict:
-    """The closed loop on the shared real records, and the peers on the same data and splits, in one run.
+    """The closed loop on the real records, and the peers on the same data and splits, in one run.
 
     Silverbox: fit on the estimation segment, free run on the multisine and arrow test segments (first 50
     samples initialise). Pendulum: fit 2-40 s, free run 40-120 s. Reference data: the loop on the 5000-point
-    record (M2's data-generating form, one round). Keys: loop_silverbox_{multisine,arrow}_mv (after the loop: its
+    record (M2's data-generating form, one round). The pendulum is the real record when ``$ARDFLOW_DATA`` holds it,
+    else the synthetic stand-in (``loop_pendulum_record`` says which). Keys: loop_silverbox_{multisine,arrow}_mv (after the loop: its
     posterior mean; ..._simulation_mv its simulation fit, ``ardcore.simulation``; ..._simulation_factor),
     ..._before_mv, loop_silverbox_s, loop_pendulum_rad (+ _before), loop_pendulum_s, loop_reference_s,
     loop_peer_{arx,narx,pysindy,sysidentpy}_{multisine,arrow}_mv, loop_peer_best_multisine_mv,
@@ -556,9 +557,12 @@ def bench_loop(tiny: bool = False) -> dict:
 
     from . import peers
 
-    data_dir = ROOT.parent / "shared" / "data" / "real"
+    from ardflow.ardcore.data import PENDULUM_RELPATH, external_path
+
+    from ..pendulum_standin import pendulum_folder
+
     out: dict = {}
-    full = load_silverbox(data_dir / "SNLS80mV.csv")
+    full = load_silverbox()
     seg = {k: full.slice(*v) for k, v in SILVERBOX_SPLITS.items()}
     # --tiny: short records and the tiny sampler (the same code path, nothing measured)
     cut = (lambda d, n: d.slice(0, n)) if tiny else (lambda d, n: d)
@@ -597,8 +601,11 @@ def bench_loop(tiny: bool = False) -> dict:
     out["loop_silverbox_simulation_factor"] = (rep.report.get("simulation") or {}).get("factor")
     out["loop_silverbox_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
     # -- the pendulum
+    # the real record when $ARDFLOW_DATA holds it (it is not shipped), else the synthetic stand-in
+    out["loop_pendulum_record"] = "real" if external_path(PENDULUM_RELPATH) is not None else "stand-in"
+    os.environ["ARDFLOW_DATA"] = str(pendulum_folder(Path(tempfile.mkdtemp(prefix="ardflow-pendulum-"))))
     pend = shrink(load_spec(ROOT / "examples" / "pendulum_diagnose.json"))
-    pfull = load_pendulum(data_dir / "pendulum" / "adip_pend_data.mat")
+    pfull = load_pendulum()
     ptest = pfull.slice(40000, None)
     ptest = cut(type(ptest)(ptest.t[::20].copy(), {"y": ptest.columns["y"][::20].copy()}, ptest.meta), 800)
     t0 = time.perf_counter()
@@ -650,9 +657,6 @@ def bench_fresh(tiny: bool = False) -> dict:
     try:
         subprocess.run(["git", "clone", "-q", str(ROOT), str(tmp / "ardflow")], check=True)
         clone = tmp / "ardflow"
-        # the shared data sits next to the repository, as in the original layout
-        if not (tmp / "shared").exists() and (ROOT.parent / "shared").exists():
-            (tmp / "shared").symlink_to(ROOT.parent / "shared")
         env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "ARDFLOW_CACHE_DIR")}
         env["ARDFLOW_CACHE_DIR"] = str(tmp / "kernel-cache")  # cold: every kernel generated and compiled
         args = []
@@ -706,12 +710,13 @@ CONTRACT = {
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--out", default=".bench/results.json")
+    ap.add_argument("--out", default=None, help="default .bench/results.json (--tiny: .bench/tiny.json, so a smoke "
+                                                "run never overwrites measured figures)")
     ap.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
     ap.add_argument("--tiny", action="store_true", help="every group at a tiny size: the smoke test (figures "
                                                         "meaningless)")
     a = ap.parse_args(argv)
-    out = Path(a.out)
+    out = Path(a.out or (".bench/tiny.json" if a.tiny else ".bench/results.json"))
     out.parent.mkdir(parents=True, exist_ok=True)
     res = json.loads(out.read_text()) if out.exists() else {}
     for name in a.only or BENCHES:

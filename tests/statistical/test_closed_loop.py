@@ -15,10 +15,10 @@ from ardflow.ardcore.effects import Effect, augment
 from ardflow.ardcore.library import aero_true
 from ardflow.ardcore.simulate import simulate_reference
 from ardflow.ardcore.study import StudySpec, load_spec
+from tests.pendulum_standin import pendulum_folder
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(3600)]
 ROOT = Path(__file__).resolve().parents[2]
-DATA = ROOT.parent / "shared" / "data" / "real"
 
 # M2's optimal nested structure (the data-generating form) with essential priors: the proposed model
 M2_PRIORS = {"B": {"kind": "lognormal", "median": 0.2, "cov": 50}, "a1": {"kind": "uniform", "low": -2, "high": 0},
@@ -105,11 +105,13 @@ def test_effect_outside_the_library_is_reported_unexplained():
     assert any(abs(f - 0.15) < 0.015 for f in peaks), peaks
 
 
-def test_pendulum_sine_stiffness_and_held_out_free_run():
+def test_pendulum_sine_stiffness_and_held_out_free_run(tmp_path, monkeypatch):
+    # the real record when $ARDFLOW_DATA holds it, else the synthetic stand-in with the same physics
+    monkeypatch.setenv("ARDFLOW_DATA", str(pendulum_folder(tmp_path)))
     spec = load_spec(ROOT / "examples" / "pendulum_diagnose.json")
     base = ROOT / "examples"
     data = spec.data.load(base)
-    full = load_pendulum(DATA / "pendulum" / "adip_pend_data.mat")
+    full = load_pendulum()
     test = full.slice(40000, None)
     test = type(test)(test.t[::20].copy(), {"y": test.columns["y"][::20].copy()}, test.meta)
     rep = diagnose(spec, data, test_data=test, config=DiagnoseConfig(top_k=3, max_rounds=2))
@@ -132,7 +134,7 @@ def test_pendulum_sine_stiffness_and_held_out_free_run():
 def test_silverbox_hardening_cubic_on_the_test_segment():
     spec = load_spec(ROOT / "examples" / "silverbox_diagnose.json")
     data = spec.data.load(ROOT / "examples")
-    full = load_silverbox(DATA / "SNLS80mV.csv")
+    full = load_silverbox()
     test = full.slice(105712, 127400)
     rep = diagnose(spec, data, test_data=test, config=DiagnoseConfig(top_k=3, max_rounds=3))
     j = rep.to_json()
