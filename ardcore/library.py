@@ -3,7 +3,7 @@
 Every entry is an ordinary declarative :class:`~ardcore.model.ModelSpec`;
 users can copy one as JSON and edit it. The aeroelastic models (Euler sub-steps, as the paper's study was run and the
 reference data are simulated) follow
-``shared/docs/reference-problem.md`` (Eq. 15-18, Table 6); the candidate
+``docs/worked-example.md`` (Eq. 15-18, Table 6); the candidate
 terms e1..e6 of the paper are the parameters ``a1..a6`` here.
 """
 

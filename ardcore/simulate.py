@@ -1,6 +1,6 @@
 """Synthetic data: the reference measurement pipeline and generic simulation.
 
-The reference pipeline is fixed by ``shared/docs/reference-problem.md``
+The reference pipeline is fixed by ``docs/worked-example.md``
 (Section 3.2 and its Decisions): Euler-Maruyama with dtau = 1e-3 from rest,
 theta sampled every 0.1, N(0, gamma^2) measurement noise, a 4th-order
 zero-phase Butterworth low-pass at 0.2295 cycles per tau, and n_d = 5000

@@ -1,4 +1,4 @@
-"""The paper's reported results (shared/docs/reference-problem.md, "Results to reproduce")."""
+"""The paper's reported results (docs/worked-example.md, "What the paper reports")."""
 
 from ardflow.ardcore.diagnostics import Quality
 

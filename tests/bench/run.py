@@ -414,6 +414,10 @@ def _study(args: list[str], out: Path) -> dict:
             # every likelihood evaluation: start optimisation, burn-in, stationary draws, Chib-Jeliazkov proposals
             "evaluations": sum(int(r.get("n_evaluations", 0)) for r in s["models"]),
             "checks": {c["check"]: c["passed"] for c in reference_checks(s, spec["true_values"])},
+            # the table the worked example prints (README, generated)
+            "table": [{k: r.get(k) for k in ("name", "log_evidence", "log_evidence_se", "goodness_of_fit",
+                                             "information_gain", "probability", "kept", "pruned")}
+                      for r in s["models"]],
             **_store_convergence(out)}
 
 
@@ -521,6 +525,11 @@ def bench_study(tiny: bool = False) -> dict:
         full = dict(demo)
     else:
         demo = _study(["demo"], ROOT / ".bench" / "study_demo")
+        # the README's picture is the demo report's evidence figure, as this run drew it
+        import shutil
+
+        (ROOT / "docs" / "img").mkdir(exist_ok=True)
+        shutil.copyfile(ROOT / ".bench" / "study_demo" / "report" / "evidence.png", ROOT / "docs" / "img" / "evidence.png")
         full = _study(["select", str(ROOT / "examples" / "sec36.json"), "--full"], ROOT / ".bench" / "study_full")
     out = {"study_demo_s": demo.pop("wall_s"), "study_full_s": full.pop("wall_s")}
     out.update({f"study_demo_{k}": v for k, v in demo.items()})
@@ -719,10 +728,12 @@ def main(argv=None) -> int:
     out = Path(a.out or (".bench/tiny.json" if a.tiny else ".bench/results.json"))
     out.parent.mkdir(parents=True, exist_ok=True)
     res = json.loads(out.read_text()) if out.exists() else {}
+    ran: dict = {}  # what this run measured (the file also holds earlier runs' keys)
     for name in a.only or BENCHES:
         print(f"[bench] {name} ...", flush=True)
         r = BENCHES[name](tiny=a.tiny)
         res.update(r)
+        ran.update(r)
         for k, v in r.items():
             if isinstance(v, (int, float)) and not isinstance(v, bool):
                 print(f"  {k:28s} {v:.4g}")
@@ -730,6 +741,14 @@ def main(argv=None) -> int:
                       "date": time.strftime("%Y-%m-%d")}
     out.write_text(json.dumps(res, indent=2))
     print(f"[bench] wrote {out}")
+    if not a.tiny and a.out is None:
+        # the measured headline figures, with their provenance, for the README and docs
+        from .figures import FIGURES, publish, update_readme
+
+        publish(ran, " ".join(
+            ["python -m tests.bench.run"] + (["--only", *a.only] if a.only else [])), res["machine"])
+        update_readme()
+        print(f"[bench] wrote {FIGURES.relative_to(ROOT)} and the README's figures table")
     return 0
 
 
