@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DataError
+from ardflow.ardcore.errors import DataError
 
 MIN_POINTS = 10
 """Fewest samples a data set may have."""

@@ -27,16 +27,17 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from ardflow.ardcore.errors import ArdflowError
-from ardflow.ardcore.study import StudySpec
+from ardflow.ardcore.selection.spec import StudySpec
 
-from .auth import StudyAccess, TokenAuth
-from .guard import RequestGuard
-from .page import page_router
-from .results import results_router
-from .validate import Rejected, check_budget, check_models
-from .schemas import (API_VERSION, FINAL, ID_RE, DashboardLink, DatasetInfo, DiagnoseRequest,  # noqa: F401
-                      DiagnosisStatus, Health, Progress, Settings, StudyCreated, StudyStatus, _finite)
-from .registry import ProgressCache, Registry, Runner  # noqa: F401
+from ardflow.service.auth import StudyAccess, TokenAuth
+from ardflow.service.guard import RequestGuard
+from ardflow.service.page import page_router
+from ardflow.service.results import results_router
+from ardflow.service.validate import Rejected, check_budget, check_models
+from ardflow.service.schemas import (
+    API_VERSION, FINAL, DashboardLink, DatasetInfo, DiagnoseRequest, DiagnosisStatus, Health, Settings, StudyCreated, StudyStatus,
+)
+from ardflow.service.registry import ProgressCache, Registry, Runner
 
 log = logging.getLogger("ardflow.service")
 COLUMN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")

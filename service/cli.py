@@ -11,26 +11,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ardflow.ardcore.loop_config import DiagnoseConfig
+from ardflow.ardcore.loop.config import DiagnoseConfig
 
-from .cmd_local import (  # noqa: F401
-    EXAMPLES,
-    cmd_data,
-    cmd_example,
-    cmd_loglik,
-    cmd_models,
-    cmd_settings,
-    cmd_simulate,
+from ardflow.service.cmd_local import (
+    cmd_data, cmd_example, cmd_loglik, cmd_models, cmd_settings, cmd_simulate,
 )
-from .cmd_remote import cmd_fetch, cmd_serve, cmd_status, cmd_submit
-from .cmd_study import (  # noqa: F401
-    cmd_demo,
-    cmd_diagnose,
-    cmd_loo,
-    cmd_resume,
-    cmd_select,
-    full_settings,
-)
+from ardflow.service.cmd_remote import cmd_fetch, cmd_serve, cmd_status, cmd_submit
+from ardflow.service.cmd_study import cmd_demo, cmd_diagnose, cmd_loo, cmd_resume, cmd_select
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 
-def _kv(items: list[str] | None, what: str) -> dict[str, str]:
+def parse_assignments(items: list[str] | None, what: str) -> dict[str, str]:
     from ardflow.ardcore.errors import SpecError
 
     out = {}
@@ -37,8 +37,8 @@ def _floats(d: dict[str, str], what: str) -> dict[str, float]:
 
 def _load_model(name_or_file: str):
     from ardflow.ardcore.errors import ModelError
-    from ardflow.ardcore.library import BUILTINS, builtin
-    from ardflow.ardcore.model import ModelSpec
+    from ardflow.ardcore.model.library import BUILTINS, builtin
+    from ardflow.ardcore.model.declaration import ModelSpec
 
     if name_or_file in BUILTINS:
         return builtin(name_or_file)
@@ -59,7 +59,7 @@ def _write_sidecar(path: Path, meta: dict) -> None:
 
 def cmd_simulate(a) -> int:
     from ardflow.ardcore.errors import SpecError
-    from ardflow.ardcore.simulate import simulate_model, simulate_reference
+    from ardflow.ardcore.likelihood.simulate import simulate_model, simulate_reference
 
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -67,7 +67,7 @@ def cmd_simulate(a) -> int:
         ds = simulate_reference(a.seed)
     else:
         spec = _load_model(a.model)
-        params = _floats(_kv(a.param, "--param"), "parameter")
+        params = _floats(parse_assignments(a.param, "--param"), "parameter")
         missing = [p for p in spec.free_parameters if p not in params]
         if missing:
             raise SpecError(f"--param: no value for {missing[0]!r} (parameters: {spec.free_parameters})")
@@ -77,7 +77,7 @@ def cmd_simulate(a) -> int:
         inputs = {}
         rng = np.random.default_rng(a.seed + 1_000_003)
         for c in spec.inputs:
-            from ardflow.ardcore.simulate import lowpass
+            from ardflow.ardcore.likelihood.simulate import lowpass
 
             inputs[c] = a.input_std * lowpass(rng.standard_normal(a.n), 1.0 / a.dt, 0.2 / a.dt) * np.sqrt(5.0)
         ds = simulate_model(spec, params, t, a.seed, nsub=a.nsub, inputs=inputs)
@@ -88,12 +88,12 @@ def cmd_simulate(a) -> int:
 
 
 def cmd_loglik(a) -> int:
-    from ardflow.ardcore.ekf import compile_model
+    from ardflow.ardcore.likelihood.ekf import compile_model
     from ardflow.ardcore.errors import SpecError
 
     ds = _read_data(a)
     spec = _load_model(a.model)
-    params = _floats(_kv(a.param, "--param"), "parameter")
+    params = _floats(parse_assignments(a.param, "--param"), "parameter")
     missing = [p for p in spec.free_parameters if p not in params]
     if missing:
         raise SpecError(f"--param: no value for {missing[0]!r} (parameters: {spec.free_parameters})")
@@ -109,7 +109,7 @@ def cmd_loglik(a) -> int:
 def _read_data(a):
     from ardflow.ardcore.data import read_dataset
 
-    rename = _kv(getattr(a, "rename", None), "--rename")
+    rename = parse_assignments(getattr(a, "rename", None), "--rename")
     return read_dataset(a.data, fs=getattr(a, "fs", None), rename=rename)
 
 
@@ -126,7 +126,7 @@ def cmd_data(a) -> int:
         cols = read_columns(a.data)
         from ardflow.ardcore.data import Dataset
 
-        rename = _kv(a.rename, "--rename")
+        rename = parse_assignments(a.rename, "--rename")
         for o, n in rename.items():
             cols[n] = cols.pop(o)
         t = cols.pop("t") if "t" in cols else np.arange(len(next(iter(cols.values())))) / (a.fs or 1.0)
@@ -137,7 +137,7 @@ def cmd_data(a) -> int:
 
 
 def cmd_models(a) -> int:
-    from ardflow.ardcore.library import BUILTINS, builtin
+    from ardflow.ardcore.model.library import BUILTINS, builtin
 
     if a.name:
         print(_load_model(a.name).model_dump_json(indent=2))
@@ -171,8 +171,8 @@ def cmd_example(a) -> int:
     return 0
 
 
-SETTINGS_SECTIONS = {"sampler": "ardflow.ardcore.sampling:SamplerConfig",
-                     "maximiser": "ardflow.ardcore.ard:MaximiserConfig"}
+SETTINGS_SECTIONS = {"sampler": "ardflow.ardcore.sampling.config:SamplerConfig",
+                     "maximiser": "ardflow.ardcore.selection.maximiser:MaximiserConfig"}
 
 
 def settings_table(model) -> list[tuple[str, str, str, str]]:

@@ -8,13 +8,13 @@ from pathlib import Path
 
 from ardflow.workers.cluster import ClusterClient
 
-from .cmd_local import EXAMPLES, _kv
-from .progress import LiveProgress, _print_table
+from ardflow.service.cmd_local import EXAMPLES, parse_assignments
+from ardflow.service.progress import LiveProgress, print_table
 
 
 def full_settings(spec):
-    """The paper-scale sampler settings (method.md section 6): the engine's defaults."""
-    from ardflow.ardcore.mcmc import SamplerConfig
+    """The paper-scale sampler settings (docs/method.md section 5): the engine's defaults."""
+    from ardflow.ardcore.sampling.config import SamplerConfig
 
     keys = ("n_chains", "round_size", "n_stationary", "n_proposal")
     return spec.model_copy(update={"sampler": spec.sampler.model_copy(
@@ -42,7 +42,7 @@ def _run_on_dask(a, store) -> dict:
 
 def _report_and_finish(store) -> None:
     """The report, then the study's status ``done`` (the service reports done when all of it is written)."""
-    from .html_report import write_report
+    from ardflow.service.html_report import write_report
 
     print(f"[ardflow] report: {write_report(store).resolve()}", flush=True)
     store.update_meta(status="done")
@@ -50,7 +50,7 @@ def _report_and_finish(store) -> None:
 
 def cmd_demo(a) -> int:
     """The main job: the paper's Section 3.6 study (M1, M2, M3 with ARD) on an embedded LocalCluster."""
-    from ardflow.ardcore.study import load_spec
+    from ardflow.ardcore.selection.spec import load_spec
     from ardflow.workers.graph import prepare_store
     from ardflow.workers.store import StudyStore
 
@@ -82,8 +82,8 @@ def cmd_demo(a) -> int:
         store = prepare_store(spec, out, base=spec_path.parent)
         _run_on_dask(a, store)
     summary = json.loads(store.read_text("summary.json"))
-    _print_table(summary)
-    from .paper import check_label, reference_checks
+    print_table(summary)
+    from ardflow.service.paper import check_label, reference_checks
 
     print("\n[demo] checks against the paper (issue 'Main job'):")
     for c in reference_checks(summary, spec.true_values):
@@ -98,7 +98,7 @@ def cmd_demo(a) -> int:
 
 def cmd_select(a) -> int:
     """Run a study: chains on Dask (default) or on this machine; either way a zarr store with its report."""
-    from ardflow.ardcore.study import load_spec
+    from ardflow.ardcore.selection.spec import load_spec
     from ardflow.workers.graph import prepare_store
     from ardflow.workers.store import StudyStore
 
@@ -121,7 +121,7 @@ def cmd_select(a) -> int:
         summary = _run_on_dask(a, store)
     else:
         summary = _run_locally(a, store, spec)
-    _print_table(summary)
+    print_table(summary)
     print(f"\nsummary: {store}/summary.json  ({time.perf_counter() - t0:.1f} s)")
     return 0
 
@@ -130,7 +130,7 @@ def _run_locally(a, store, spec) -> dict:
     """The study serially or on a local process pool, into the same store layout and report as on Dask."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from ardflow.ardcore.mcmc import executor_map, serial_map
+    from ardflow.ardcore.sampling.chains import executor_map, serial_map
     from ardflow.workers.local import run_study_local
 
     with LiveProgress(spec.maximiser.max_trials) as live:
@@ -158,7 +158,7 @@ def cmd_resume(a) -> int:
     t0 = time.perf_counter()
     print(f"[ardflow] resuming study {store.meta['study_id']} in {store}", flush=True)
     summary = _run_on_dask(a, store)
-    _print_table(summary)
+    print_table(summary)
     print(f"\nsummary: {store}/summary.json  ({time.perf_counter() - t0:.1f} s)")
     return 0
 
@@ -166,11 +166,12 @@ def cmd_resume(a) -> int:
 def cmd_diagnose(a) -> int:
     """Close the loop on one model of a study spec or of a finished study store."""
     from ardflow.ardcore.data import read_dataset
-    from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
+    from ardflow.ardcore.loop.config import DiagnoseConfig
+    from ardflow.ardcore.loop.diagnose import diagnose
     from ardflow.ardcore.errors import SpecError
-    from ardflow.ardcore.study import StudySpec, load_spec
+    from ardflow.ardcore.selection.spec import StudySpec, load_spec
 
-    from .diagnose_report import write_diagnosis
+    from ardflow.service.diagnose_report import write_diagnosis
 
     src = Path(a.spec)
     if src.is_dir():
@@ -200,7 +201,7 @@ def cmd_diagnose(a) -> int:
     test = None
     if a.test_data:
         d = spec.data
-        rename = _kv(a.test_rename, "--test-rename") if a.test_rename else d.rename
+        rename = parse_assignments(a.test_rename, "--test-rename") if a.test_rename else d.rename
         test = read_dataset(a.test_data, time=d.time, fs=d.fs, rename=rename, columns=d.columns)
     elif a.test_start is not None or a.test_stop is not None:
         if spec.data.path is None:

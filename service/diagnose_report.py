@@ -1,4 +1,4 @@
-"""Writes a closed-loop diagnosis (:func:`ardcore.diagnose.diagnose`) to a directory: JSON, PNG figures, HTML."""
+"""Writes a closed-loop diagnosis (:func:`ardcore.loop.diagnose.diagnose`) to a directory: JSON, PNG figures, HTML."""
 
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ardflow.ardcore.diagnosis import Diagnosis
+from ardflow.ardcore.loop.result import Diagnosis
 
-from .report import _plt, _save
+from ardflow.service.report import pyplot, save_figure
 
 
 def _plot_tests(arrays: dict, col: str, out: Path) -> Path:
     """Innovation autocorrelation with 95 % bands and innovation spectrum with its peaks, before/after."""
-    plt = _plt()
+    plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.8))
     for label, style in (("before", "C3"), ("after", "C0")):
         if label not in arrays:
@@ -33,12 +33,12 @@ def _plot_tests(arrays: dict, col: str, out: Path) -> Path:
     a2.set(xlabel="frequency [cycles / time unit]", ylabel="PSD", title="innovation spectrum (peaks marked)")
     a1.legend(fontsize=8)
     a2.legend(fontsize=8)
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _plot_noise(arrays: dict, t: np.ndarray, out: Path) -> Path:
     """The smoothed process noise (drift the filter had to inject) per dynamic state, before/after."""
-    plt = _plt()
+    plt = pyplot()
     states = list(arrays["before"]["process_noise_rate"])
     fig, axes = plt.subplots(len(states), 1, figsize=(11, 2.4 * len(states)), squeeze=False)
     for ax, s in zip(axes[:, 0], states):
@@ -48,11 +48,11 @@ def _plot_noise(arrays: dict, t: np.ndarray, out: Path) -> Path:
         ax.set(ylabel=f"injected d{s}/dt", title=f"smoothed process noise on {s}")
         ax.legend(fontsize=8, loc="upper right")
     axes[-1, 0].set_xlabel("time")
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
-    plt = _plt()
+    plt = pyplot()
     c = report["candidates"][:k][::-1]
     fig, ax = plt.subplots(figsize=(8, 0.35 * len(c) + 1.2))
     conf = {(x["effect"], x["target"]): x for x in report["confirmed"]}
@@ -63,18 +63,18 @@ def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
     if not len(c):  # --max-rounds 0: nothing was screened
         ax.text(0.5, 0.5, "no candidates screened", ha="center", va="center", transform=ax.transAxes)
         ax.set_axis_off()
-        return _save(fig, out)
+        return save_figure(fig, out)
     ax.barh([f"{x['effect']} -> {x['target']}" for x in c], np.sign(v) * np.log10(1 + np.abs(v)), color=colors)
     ticks = [t for t in (-100, -10, 0, 3, 10, 100, 1000, 10000, 100000) if abs(t) <= max(10, np.abs(v).max() * 1.5)]
     ax.set_xticks(np.sign(ticks) * np.log10(1 + np.abs(ticks)), [str(t) for t in ticks])
     ax.axvline(np.log10(4), color="k", lw=0.6, ls=":")
     ax.set(xlabel="screened ln Bayes factor of adding the effect (dotted: 3 nats)",
            title="candidate effects (green: kept by evidence, orange: rejected by evidence)")
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _plot_free_run(arrays: dict, out: Path) -> Path:
-    plt = _plt()
+    plt = pyplot()
     fr0 = arrays["before"]["free_run"]
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(11, 6))
     t = fr0["t"]
@@ -102,7 +102,7 @@ def _plot_free_run(arrays: dict, out: Path) -> Path:
             a2.semilogy(f, P + 1e-300, st, lw=0.8, label=lab)
     a2.set(xlabel="frequency", ylabel="PSD", title="spectra (compare these, not phase, for self-excited systems)")
     a2.legend(fontsize=8)
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Path, col: str = "y") -> Path:

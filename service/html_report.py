@@ -9,11 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ardflow.ardcore.diagnostics import Quality
+from ardflow.ardcore.sampling.diagnostics import Quality
 
-from .paper import FIG15_M2OPT_BOUNDS, TABLE10, TABLE10_OFFSET
-from .report import (TAU_SECONDS, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint,
-                     plot_marginals)
+from ardflow.service.paper import FIG15_M2OPT_BOUNDS, TABLE10, TABLE10_OFFSET
+from ardflow.service.report import (
+    TAU_SECONDS, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint, plot_marginals,
+)
 
 _CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
 table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;padding:4px 8px;text-align:right}
@@ -40,7 +41,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
     out : path, optional
         Directory for the report (default: ``STORE/report`` for a local store).
     """
-    from ardflow.ardcore.study import StudySpec
+    from ardflow.ardcore.selection.spec import StudySpec
 
     summary = json.loads(store.read_text("summary.json") or "null")
     if summary is None:
@@ -196,7 +197,7 @@ def _paper_section(summary: dict, spec) -> str:
              "<th>GoF paper</th><th>GoF here</th><th>EIG paper</th><th>EIG here</th><th>P paper</th>"
              "<th>P here</th><th class=l>pruned paper</th><th class=l>pruned here</th></tr>" + "".join(prow)
              + "</table>")
-    from .paper import check_label, reference_checks
+    from ardflow.service.paper import check_label, reference_checks
 
     checks = reference_checks(summary, spec.true_values)
     paper += ("<h3>Checks</h3><table><tr><th class=l>check</th><th>result</th><th class=l>detail</th></tr>"

@@ -1,6 +1,6 @@
 """The paper's reported results (docs/worked-example.md, "What the paper reports")."""
 
-from ardflow.ardcore.diagnostics import Quality
+from ardflow.ardcore.sampling.diagnostics import Quality
 
 TABLE10_OFFSET = 2.77e4
 """Table 10 reports GoF and ln evidence minus this offset."""

@@ -27,8 +27,8 @@ def print_progress(ev: ModelEvent) -> None:
               f"acceptance {p.acceptance:.2f}", flush=True)
 
 
-def _print_table(summary: dict) -> None:
-    from ardflow.ardcore.diagnostics import Quality
+def print_table(summary: dict) -> None:
+    from ardflow.ardcore.sampling.diagnostics import Quality
 
     print(f"\n{'model':<12s} {'ln Z':>12s} {'se':>7s} {'GoF':>12s} {'EIG':>8s} {'P(M|d)':>8s} {'R-hat':>6s} "
           f"{'ESS':>6s}  kept / pruned")

@@ -17,7 +17,7 @@ from fastapi import HTTPException
 from ardflow.ardcore.events import BurninRound, ModelDone, Note, TrialDone
 from ardflow.ardcore.jsonio import to_jsonable
 
-from .schemas import ID_RE, DiagnoseRequest, Progress, _finite  # noqa: F401
+from ardflow.service.schemas import ID_RE, DiagnoseRequest, Progress, finite_or_none
 
 log = logging.getLogger("ardflow.service")
 
@@ -142,7 +142,7 @@ class Registry:
 
     def write_meta(self, sid: str, meta: dict) -> None:
         """Write the registry entry; the status and error are the store's and are not written here."""
-        from ardflow.workers.store import atomic_write_text
+        from ardflow.ardcore.jsonio import atomic_write_text
 
         atomic_write_text(self.study_dir(sid) / "meta.json",
                           json.dumps({k: v for k, v in meta.items() if k not in LIFECYCLE}))
@@ -252,7 +252,7 @@ class Runner:
     def cancel(self, sid: str) -> None:
         """Mark ``sid`` cancelled durably, then stop its driver (cooperatively, then by force)."""
         from ardflow.workers.graph import cancel_study
-        from ardflow.workers.store import atomic_write_text
+        from ardflow.ardcore.jsonio import atomic_write_text
 
         reg = self.registry
         with self.lock:
@@ -366,7 +366,7 @@ class ProgressCache:
                     p.stage = x.stage
                 p.elapsed_s = max(0.0, float(ev.time if ev.time is not None else started) - started)
                 if isinstance(x, BurninRound):
-                    p.rhat = _finite(x.rhat)
+                    p.rhat = finite_or_none(x.rhat)
                 if isinstance(x, TrialDone):
                     p.trials_done += 1
                     p.iteration = x.iteration

@@ -11,7 +11,7 @@ TAU_SECONDS = 0.156 / (2 * 8.5)
 """Seconds per non-dimensional time unit of the reference problem (c / 2U)."""
 
 
-def _plt():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
@@ -40,7 +40,7 @@ def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: n
     """
     from scipy.signal import welch
 
-    plt = _plt()
+    plt = pyplot()
     fs = 1.0 / float(np.median(np.diff(t)))
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(9, 7))
     if clean is not None:
@@ -61,12 +61,12 @@ def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: n
     if tau_seconds:
         sec = a1.secondary_xaxis("top", functions=(lambda x: x / tau_seconds, lambda x: x * tau_seconds))
         sec.set_xlabel("frequency [Hz]")
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
-def _save(fig, out):
+def save_figure(fig, out):
     """Save to a path (returned as Path) or a binary file object."""
-    plt = _plt()
+    plt = pyplot()
     fig.tight_layout()
     if isinstance(out, (str, Path)):
         out = Path(out)
@@ -77,7 +77,7 @@ def _save(fig, out):
 
 def plot_evidence_history(histories: dict[str, list[dict]], out):
     """ln evidence, goodness of fit and information gain per maximisation trial (Figs. 8, 11-14)."""
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 4))
     for i, (model, hist) in enumerate(histories.items()):
         it = [h["iteration"] for h in hist]
@@ -94,12 +94,12 @@ def plot_evidence_history(histories: dict[str, list[dict]], out):
             ax.set_xlabel("trial")
             ax.set_title(label)
     axes[0].legend(fontsize=8, title="dots: sampled, x: reweighted\nopen circles: accepted")
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def plot_ard_bounds(history: list[dict], ard: list[str], out):
     """Prior (+-2.576/sqrt(alpha)) and posterior 99 % bounds of each ARD parameter per trial (Fig. 9)."""
-    plt = _plt()
+    plt = pyplot()
     n = max(1, len(ard))
     fig, axes = plt.subplots(1, n, figsize=(3.6 * n, 3.6), squeeze=False)
     for ax, name in zip(axes[0], ard):
@@ -121,13 +121,13 @@ def plot_ard_bounds(history: list[dict], ard: list[str], out):
     axes[0][0].set_ylabel("99 % bounds")
     fig.suptitle("prior (grey), posterior (blue: accepted trial, orange: rejected); x: term removed "
                  "(orange: its prune test, rejected)", fontsize=9)
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def plot_marginals(names: list[str], samples: np.ndarray, out, true_values: dict | None = None,
                    reference_bounds: dict | None = None):
     """Marginal posteriors with 99 % bounds and the true values (Fig. 15)."""
-    plt = _plt()
+    plt = pyplot()
     d = len(names)
     cols = min(3, d)
     rows = int(np.ceil(d / cols))
@@ -149,12 +149,12 @@ def plot_marginals(names: list[str], samples: np.ndarray, out, true_values: dict
     for j in range(d, rows * cols):
         axes[j // cols][j % cols].axis("off")
     axes[0][0].legend(fontsize=7)
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def plot_joint(names: list[str], samples: np.ndarray, out, true_values: dict | None = None, max_points: int = 3000):
     """Pairwise joint posteriors (Fig. 16), thinned."""
-    plt = _plt()
+    plt = pyplot()
     d = len(names)
     flat = samples.reshape(-1, d)
     flat = flat[:: max(1, flat.shape[0] // max_points)]
@@ -176,4 +176,4 @@ def plot_joint(names: list[str], samples: np.ndarray, out, true_values: dict | N
             if j == 0:
                 ax.set_ylabel(names[i], fontsize=8)
             ax.tick_params(labelsize=6)
-    return _save(fig, out)
+    return save_figure(fig, out)

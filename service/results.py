@@ -11,9 +11,9 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import JSONResponse, Response
 
-from .auth import StudyAccess
-from .registry import Registry
-from .schemas import API_VERSION, ID_RE, _finite
+from ardflow.service.auth import StudyAccess
+from ardflow.service.registry import Registry
+from ardflow.service.schemas import API_VERSION, ID_RE, finite_or_none
 
 _render_lock = threading.Lock()  # matplotlib (mathtext, font cache) is not thread-safe
 MAX_POINTWISE_DRAWS = 4000  # EKF passes one request may ask for
@@ -74,7 +74,7 @@ def _results(reg: Registry, access: StudyAccess) -> APIRouter:
         flat = samples.reshape(-1, samples.shape[-1])
         step = max(1, flat.shape[0] // max_draws)
         return JSONResponse({"model": model, "iteration": it, "names": names, "n_chains": samples.shape[0],
-                             "thin": step, "samples": _finite(flat[::step].tolist())})
+                             "thin": step, "samples": finite_or_none(flat[::step].tolist())})
 
     @r.get(f"{v1}/studies/{{sid}}/inference_data/{{model}}", dependencies=[Depends(access)],
            responses={200: {"content": {"application/octet-stream": {}}}})

@@ -9,7 +9,7 @@ from typing import Any, Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from ardflow.ardcore.loop_config import DiagnoseConfig
+from ardflow.ardcore.loop.config import DiagnoseConfig
 
 API_VERSION = "v1"
 ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
@@ -106,11 +106,11 @@ class DashboardLink(BaseModel):
     url: Optional[str]
 
 
-def _finite(x):
+def finite_or_none(x):
     if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
+        return {k: finite_or_none(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
+        return [finite_or_none(v) for v in x]
     if isinstance(x, float) and not math.isfinite(x):
         return None
     return x

@@ -7,7 +7,7 @@ import subprocess
 import sys
 import threading
 
-from ardflow.ardcore.study import StudySpec
+from ardflow.ardcore.selection.spec import StudySpec
 
 _checked: set[str] = set()
 _lock = threading.Lock()
@@ -23,7 +23,7 @@ class Rejected(Exception):
 
 
 def check_models(spec: StudySpec, *, timeout_s: float = 30.0, memory_mb: int = 2048) -> None:
-    """Parse, differentiate and generate every model's kernel (:mod:`ardcore.check`) in a child process
+    """Parse, differentiate and generate every model's kernel (:mod:`ardcore.selection.validation`) in a child process
     with a wall-clock and an address-space limit; a model seen before (same structure) is not re-checked.
 
     Raises
@@ -31,7 +31,7 @@ def check_models(spec: StudySpec, *, timeout_s: float = 30.0, memory_mb: int = 2
     Rejected
         422 with the checker's message, or naming the limit the model ran into.
     """
-    from ardflow.ardcore.check import parse_models
+    from ardflow.ardcore.selection.validation import parse_models
     from ardflow.ardcore.errors import ArdflowError
 
     try:
@@ -49,7 +49,7 @@ def check_models(spec: StudySpec, *, timeout_s: float = 30.0, memory_mb: int = 2
 def _check_in_child(spec: StudySpec, keys: list[str], timeout_s: float, memory_mb: int) -> None:
     try:
         # the child sets its own memory limit (preexec_fn is not safe in a threaded server)
-        r = subprocess.run(["nice", "-n", "5", sys.executable, "-m", "ardflow.ardcore.check", "--memory-mb", str(memory_mb)],
+        r = subprocess.run(["nice", "-n", "5", sys.executable, "-m", "ardflow.ardcore.selection.validation", "--memory-mb", str(memory_mb)],
                            input=json.dumps(spec.model_dump(mode="json")), capture_output=True, text=True,
                            timeout=timeout_s)
     except subprocess.TimeoutExpired:

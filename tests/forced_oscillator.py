@@ -4,8 +4,8 @@ with noise 2e-3, u a band-limited random input (shared by the screen's unit test
 import numpy as np
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.library import builtin
-from ardflow.ardcore.simulate import simulate_model
+from ardflow.ardcore.model.library import builtin
+from ardflow.ardcore.likelihood.simulate import simulate_model
 
 TRUE = {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}
 

@@ -36,3 +36,34 @@ def test_nothing_reads_outside_the_repository():
     offenders = [str(p.relative_to(ROOT)) for p in TEXT if p != Path(__file__)
                  and re.search(r"\.\./shared|parent\s*/\s*\"shared\"", p.read_text(errors="ignore"))]
     assert not offenders, offenders
+
+
+def _modules() -> list[str]:
+    """Every module of the three packages, by its path inside its folder (``loop/diagnose.py``, ``graph.py``)."""
+    out = []
+    for top in ("ardcore", "workers", "service"):
+        for p in sorted((ROOT / top).rglob("*.py")):
+            if p.name != "__init__.py":
+                out.append(str(p.relative_to(ROOT / top)))
+    return out
+
+
+def test_every_module_is_named_in_the_architecture_page():
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    missing = [m for m in _modules() if f"`{m}`" not in text]
+    assert not missing, f"docs/architecture.md does not name {missing}"
+
+
+def test_types_the_architecture_page_names_live_where_it_says():
+    import ast
+
+    for line in (ROOT / "docs" / "architecture.md").read_text().splitlines():
+        cells = [c.strip() for c in line.split("|")]
+        paths = [c.strip("`") for c in cells if re.fullmatch(r"`[a-z_]+/[a-z_]+\.py`", c)]
+        if len(paths) != 1 or not (ROOT / "ardcore" / paths[0]).exists():
+            continue
+        tree = ast.parse((ROOT / "ardcore" / paths[0]).read_text())
+        defined = {n.name for n in tree.body if isinstance(n, (ast.ClassDef, ast.FunctionDef))}
+        defined |= {t.id for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
+        named = re.findall(r"`([A-Z]\w+)`", cells[-2])
+        assert set(named) <= defined, f"{paths[0]}: {set(named) - defined} not defined there"

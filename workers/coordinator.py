@@ -1,6 +1,6 @@
 """The INCA coordinator as a Dask actor, and the proxy the sampler talks to.
 
-The actor wraps :class:`ardcore.mcmc.AdaptationPool`: chain-round tasks report
+The actor wraps :class:`ardcore.sampling.driver.AdaptationPool`: chain-round tasks report
 their statistics to it at the end of every burn-in round, and the pooled
 covariance for the next round comes from it. Dask actors are not resilient:
 if the worker holding it dies, :class:`ActorPool` re-creates the actor on
@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import time
 
-from ardflow.ardcore.mcmc import AdaptationPool
+from ardflow.ardcore.sampling.adaptation import AdaptationPool
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,7 @@ def actor_variable_name(prefix: str) -> str:
 
 
 class ActorPool:
-    """Pool interface of :func:`ardcore.mcmc.burnin_rounds`, backed by a :class:`CoordinatorActor`.
+    """Pool interface of :func:`ardcore.sampling.driver.burnin_rounds`, backed by a :class:`CoordinatorActor`.
 
     Reads come from a local mirror synchronised after every committed round,
     so a lost actor never loses more than the round in flight.

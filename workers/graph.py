@@ -30,24 +30,28 @@ from typing import Callable
 
 import numpy as np
 
-from ardflow.ardcore.ard import EvidenceEvaluator, build_target
+from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator, build_target
 from ardflow.ardcore.events import ModelDone, ModelEvent
-from ardflow.ardcore.evidence import ChainEvidence, Evidence, chib_jeliazkov
-from ardflow.ardcore.mcmc import ChainState, SamplerResult, continuation, continued, sample
-from ardflow.ardcore.fit import ModelFit
-from ardflow.ardcore.study import StudySpec, compare, run_candidate
+from ardflow.ardcore.evidence.estimators import ChainEvidence, Evidence, chib_jeliazkov
+from ardflow.ardcore.sampling.chains import ChainState
+from ardflow.ardcore.sampling.config import SamplerResult
+from ardflow.ardcore.sampling.driver import continuation, continued, sample
+from ardflow.ardcore.selection.fit import ModelFit
+from ardflow.ardcore.selection.spec import StudySpec
+from ardflow.ardcore.selection.study import compare, run_candidate
 
-from .coordinator import ActorPool, wait_connected
-from .store import StudyStore, _json
-from .tasks import DaskMap, StoppableTarget, cancel_event_name  # noqa: F401
+from ardflow.workers.coordinator import ActorPool, wait_connected
+from ardflow.ardcore.jsonio import to_jsonable
+from ardflow.workers.store import StudyStore
+from ardflow.workers.tasks import DaskMap, StoppableTarget, cancel_event_name
 
 log = logging.getLogger("ardflow.workers")
 
 # --------------------------------------------------------------------------- trials with a store
 
 
-def _record(psi: dict, ev: Evidence, res: SamplerResult) -> dict:
-    return _json({
+def trial_json(psi: dict, ev: Evidence, res: SamplerResult) -> dict:
+    return to_jsonable({
         "psi": psi, "evidence": ev.to_dict(), "names": res.names, "phi_star": res.phi_star, "lp_star": res.lp_star,
         "ll_star": res.ll_star, "proposal_cov": res.proposal_cov, "states": [s.to_dict() for s in res.states],
         "rhat": res.rhat, "rhat_history": res.rhat_history, "burnin_rounds": res.burnin_rounds,
@@ -57,7 +61,7 @@ def _record(psi: dict, ev: Evidence, res: SamplerResult) -> dict:
     })
 
 
-def _from_record(rec: dict, store: StudyStore, model: str, iteration: int) -> tuple[Evidence, SamplerResult]:
+def trial_from_json(rec: dict, store: StudyStore, model: str, iteration: int) -> tuple[Evidence, SamplerResult]:
     e = rec["evidence"]
     ev = Evidence(e["log_evidence"], e["log_evidence_se"], e["goodness_of_fit"], e["information_gain"], e["method"],
                   [ChainEvidence(**c) for c in e["per_chain"]], list(e["warnings"]), e.get("n_evaluations", 0))
@@ -95,14 +99,14 @@ class StoredEvaluator(EvidenceEvaluator):
         target = StoppableTarget(build_target(self.spec, self.essential, psi, self.data, self.substeps),
                                  self.study_id, max_task_s=float(os.environ.get("ARDFLOW_MAX_TASK_S", 21600)))
         rec = store.trial_record(model, iteration)
-        if rec is not None and rec["psi"] == _json(psi):
-            ev, res = _from_record(rec, store, model, iteration)
+        if rec is not None and rec["psi"] == to_jsonable(psi):
+            ev, res = trial_from_json(rec, store, model, iteration)
             return target, ev, res
         # search trials draw the judged M; the reported one continues its chains to the quality target
         cfg = self.config(extend)
         prefix = f"{self.study_id}-{model}-it{iteration:03d}"
         ck = store.read_checkpoint(model, iteration)
-        if ck is not None and ck.get("psi") != _json(psi):
+        if ck is not None and ck.get("psi") != to_jsonable(psi):
             ck = None
         if ck is None and extend:
             # the continued chains' draws so far are this trial's first draws
@@ -126,7 +130,7 @@ class StoredEvaluator(EvidenceEvaluator):
             return p
 
         def checkpoint(d):
-            store.write_checkpoint(model, iteration, {**d, "psi": _json(psi)})
+            store.write_checkpoint(model, iteration, {**d, "psi": to_jsonable(psi)})
 
         try:
             res = sample(target, cfg, seed=seed, map_fn=dmap, warm=warm, progress=self.progress, cancel=self.cancel,
@@ -142,7 +146,7 @@ class StoredEvaluator(EvidenceEvaluator):
         ev.warnings = list(res.warnings) + ev.warnings
         if pools and pools[0].restarts:
             ev.warnings.append(f"coordinator actor restored {pools[0].restarts} time(s) after a lost worker")
-        store.finish_trial(model, iteration, _record(psi, ev, res))
+        store.finish_trial(model, iteration, trial_json(psi, ev, res))
         return target, ev, res
 
 
@@ -158,7 +162,7 @@ def stored_fit(store: StudyStore, model: str):
     rec = store.trial_record(model, it) if it is not None else None
     if not row or rec is None or "states" not in rec:
         return None
-    _, res = _from_record(rec, store, model, it)
+    _, res = trial_from_json(rec, store, model, it)
     return row, SimpleNamespace(sampler=res)
 
 
@@ -221,7 +225,7 @@ def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_fa
         store.create_trial(model, best_iteration, list(res.names), nc, M, M, mr.psi_opt)
         for c in range(nc):
             store.write_round(model, best_iteration, c, 0, res.samples[c], res.lp[c], res.ll[c])
-        store.finish_trial(model, best_iteration, {"psi": _json(mr.psi_opt), "final_laplace_posterior": True})
+        store.finish_trial(model, best_iteration, {"psi": to_jsonable(mr.psi_opt), "final_laplace_posterior": True})
     store.set_model_attrs(model, result=row, history=[t.to_dict() for t in mr.history],
                           best_iteration=best_iteration)
     progress(ModelEvent(cand.label, ModelDone(row.log_evidence)))
@@ -237,7 +241,7 @@ def compare_task(store_path: str, wall_start: float, *rows: ModelFit, done: bool
     summary = compare(list(rows), spec, meta.get("data", {}), time.time() - wall_start)
     summary["study_id"] = meta.get("study_id")
     history = store.histories([r.name for r in rows])
-    store.write_text("history.json", json.dumps(_json(history), indent=2))
+    store.write_text("history.json", json.dumps(to_jsonable(history), indent=2))
     store.write_summary(summary, done=done)
     return summary
 
@@ -341,7 +345,7 @@ def _drive(client, store: StudyStore, progress, poll_s: float, done: bool) -> di
             progress(ev)
     exc = comp.exception()
     if exc is not None:
-        from ardflow.ardcore.mcmc import Cancelled
+        from ardflow.ardcore.sampling.driver import Cancelled
 
         store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
         raise exc

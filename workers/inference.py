@@ -22,12 +22,12 @@ import json
 from dataclasses import dataclass
 
 import numpy as np
-from ardflow.ardcore.ekf import compile_model
-from ardflow.ardcore.fit import ModelFit
+from ardflow.ardcore.likelihood.ekf import compile_model
+from ardflow.ardcore.selection.fit import ModelFit
 from ardflow.ardcore.jsonio import to_jsonable
-from ardflow.ardcore.study import StudySpec
+from ardflow.ardcore.selection.spec import StudySpec
 
-from .store import StudyStore
+from ardflow.workers.store import StudyStore
 
 MAX_POINTWISE_DRAWS = 1000
 """Draws (all chains together) for which the pointwise log-likelihood is computed by default."""
@@ -68,7 +68,7 @@ def pointwise_log_likelihood(cand, row: ModelFit, data, samples: np.ndarray,
     -------
     dict of column name to ndarray of shape (chain, draw, time).
     """
-    from ardflow.ardcore.diagnose import fitted_spec
+    from ardflow.ardcore.loop.diagnose import fitted_spec
 
     ms = fitted_spec(cand, row)
     if list(ms.free_parameters) != list(names):

@@ -11,13 +11,13 @@ from __future__ import annotations
 import time
 from typing import Callable
 
-from ardflow.ardcore.ard import EvidenceEvaluator
+from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
 from ardflow.ardcore.events import ModelEvent
-from ardflow.ardcore.mcmc import Map
-from ardflow.ardcore.study import StudySpec
+from ardflow.ardcore.sampling.chains import Map
+from ardflow.ardcore.selection.spec import StudySpec
 
-from .graph import _record, compare_task, fit_model, progress_writer
-from .store import StudyStore
+from ardflow.workers.graph import compare_task, fit_model, progress_writer, trial_json
+from ardflow.workers.store import StudyStore
 
 
 class LocalStoredEvaluator(EvidenceEvaluator):
@@ -36,7 +36,7 @@ class LocalStoredEvaluator(EvidenceEvaluator):
         self.store.create_trial(self.model, iteration, list(res.names), nc, M, self.sampler.round_size, psi)
         for c in range(nc):
             self.store.write_round(self.model, iteration, c, 0, res.samples[c], res.lp[c], res.ll[c])
-        self.store.finish_trial(self.model, iteration, _record(psi, ev, res))
+        self.store.finish_trial(self.model, iteration, trial_json(psi, ev, res))
         return target, ev, res
 
 
@@ -69,7 +69,7 @@ def _drive_local(store: StudyStore, map_fn: Map, progress, done: bool) -> dict:
 
             rows.append(fit_model(store, spec, data, i, factory, progress=prog))
     except BaseException as exc:
-        from ardflow.ardcore.mcmc import Cancelled
+        from ardflow.ardcore.sampling.driver import Cancelled
 
         store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
         raise

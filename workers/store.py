@@ -30,16 +30,13 @@ from pathlib import Path
 import numpy as np
 import zarr
 from ardflow.ardcore.errors import ArdflowError
-from ardflow.ardcore.fit import ModelFit
-from ardflow.ardcore.jsonio import atomic_write_text, to_jsonable  # noqa: F401
+from ardflow.ardcore.selection.fit import ModelFit
+from ardflow.ardcore.jsonio import atomic_write_text, to_jsonable
 
 STORE_VERSION = 1
 
 # zarr's own pools stay small: Dask provides the parallelism
 zarr.config.set({"async.concurrency": 4, "threading.max_workers": 2})
-
-
-_json = to_jsonable
 
 
 class StoreBusy(ArdflowError):
@@ -134,7 +131,7 @@ class StudyStore:
         meta = dict(g.attrs.get("ardflow", {}))
         meta.update({"version": STORE_VERSION, "spec": spec_json})
         meta.setdefault("status", "created")
-        g.attrs["ardflow"] = _json(meta)
+        g.attrs["ardflow"] = to_jsonable(meta)
         if data is not None and "data" not in g:
             dg = g.require_group("data")
             dg.create_array("t", data=np.asarray(data.t), dimension_names=["time"])
@@ -186,7 +183,7 @@ class StudyStore:
     def update_meta(self, **kw) -> None:
         g = self.group()
         meta = dict(g.attrs.get("ardflow", {}))
-        meta.update(_json(kw))
+        meta.update(to_jsonable(kw))
         g.attrs["ardflow"] = meta
 
     def load_data(self):
@@ -199,9 +196,9 @@ class StudyStore:
     def write_summary(self, summary: dict, *, done: bool = True) -> None:
         """Write the summary; with ``done`` the study's status becomes ``done`` (a driver that renders a
         report afterwards marks it done itself once the report is written: done means all of it)."""
-        self.write_text("summary.json", json.dumps(_json(summary), indent=2))
+        self.write_text("summary.json", json.dumps(to_jsonable(summary), indent=2))
         self.update_meta(**({"status": "done"} if done else {}),
-                         summary=_json({k: v for k, v in summary.items() if k != "spec"}))
+                         summary=to_jsonable({k: v for k, v in summary.items() if k != "spec"}))
 
     # ---------------------------------------------------------------- trials
     def trial_path(self, model: str, iteration: int) -> str:
@@ -230,16 +227,16 @@ class StudyStore:
         tg.create_array("param", data=np.array(names, dtype="U32"), dimension_names=["param"])
         tg.create_array("chain", data=np.arange(n_chains), dimension_names=["chain"])
         tg.create_array("draw", data=np.arange(n_draws), dimension_names=["draw"])
-        tg.attrs["psi"] = _json(psi)
+        tg.attrs["psi"] = to_jsonable(psi)
         tg.attrs["done"] = False
         tg.attrs["created"] = True
 
     def write_round(self, model: str, iteration: int, chain: int, start: int, samples: np.ndarray,
                     lp: np.ndarray, ll: np.ndarray) -> None:
         """Write one chain's round of stationary samples into its own chunk (idempotent). ``start`` counts
-        draws over the stage's passes (:data:`ardcore.mcmc.STRIDE` per pass: a redrawn stage writes its slots
+        draws over the stage's passes (:data:`ardcore.sampling.driver.STRIDE` per pass: a redrawn stage writes its slots
         again): the slot is ``start mod STRIDE``."""
-        from ardflow.ardcore.mcmc import STRIDE
+        from ardflow.ardcore.sampling.driver import STRIDE
 
         tg = self.group()[self.trial_path(model, iteration)]
         n = samples.shape[0]
@@ -273,7 +270,7 @@ class StudyStore:
 
     def finish_trial(self, model: str, iteration: int, trial: dict) -> None:
         tg = self.group()[self.trial_path(model, iteration)]
-        tg.attrs["trial"] = _json(trial)
+        tg.attrs["trial"] = to_jsonable(trial)
         tg.attrs["done"] = True
 
     def trial_record(self, model: str, iteration: int) -> dict | None:
@@ -285,7 +282,7 @@ class StudyStore:
         return dict(tg.attrs["trial"]) if tg.attrs.get("done") else None
 
     def model_result(self, model: str) -> tuple[int | None, ModelFit | None]:
-        """The best iteration and the :class:`~ardcore.fit.ModelFit` of ``model`` (None while it runs);
+        """The best iteration and the :class:`~ardcore.selection.fit.ModelFit` of ``model`` (None while it runs);
         KeyError: no such model."""
         mg = self.group("r")[f"models/{model}"]
         it = mg.attrs.get("best_iteration")
@@ -302,10 +299,10 @@ class StudyStore:
         return {m: list(groups[m].attrs.get("history", [])) if m in groups else [] for m in names}
 
     def set_model_attrs(self, model: str, **kw) -> None:
-        """Attributes of ``model``'s group (``result``: its :class:`~ardcore.fit.ModelFit`, stored as JSON)."""
+        """Attributes of ``model``'s group (``result``: its :class:`~ardcore.selection.fit.ModelFit`, stored as JSON)."""
         mg = self.group().require_group(f"models/{model}")
         for k, v in kw.items():
-            mg.attrs[k] = v.to_json() if isinstance(v, ModelFit) else _json(v)
+            mg.attrs[k] = v.to_json() if isinstance(v, ModelFit) else to_jsonable(v)
 
     # ---------------------------------------------------------------- checkpoints
     @staticmethod
@@ -313,7 +310,7 @@ class StudyStore:
         return f"checkpoints/{model}/{iteration:03d}.json"
 
     def write_checkpoint(self, model: str, iteration: int, ck: dict) -> None:
-        self.write_text(self._checkpoint_rel(model, iteration), json.dumps(_json(ck)))
+        self.write_text(self._checkpoint_rel(model, iteration), json.dumps(to_jsonable(ck)))
 
     def read_checkpoint(self, model: str, iteration: int) -> dict | None:
         text = self.read_text(self._checkpoint_rel(model, iteration))

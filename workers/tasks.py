@@ -7,10 +7,10 @@ import logging
 import time
 from concurrent.futures import CancelledError
 
-from ardflow.ardcore.mcmc import Step, _round_task
+from ardflow.ardcore.sampling.chains import Step, round_task
 
-from .coordinator import actor_variable_name, wait_connected
-from .store import StudyStore
+from ardflow.workers.coordinator import actor_variable_name, wait_connected
+from ardflow.workers.store import StudyStore
 
 log = logging.getLogger("ardflow.workers")
 
@@ -28,7 +28,7 @@ class StoppableTarget:
     Cancellation is otherwise seen by the driver between rounds; a round (or a start optimisation, or the
     Chib-Jeliazkov proposals) of a slow likelihood can take minutes, during which the worker would stay
     busy after a cancel. Every ``check_s`` seconds of calls the study's cancel event is read (one small
-    scheduler request), and a set event raises :class:`~ardcore.mcmc.Cancelled` in the task, which frees
+    scheduler request), and a set event raises :class:`~ardcore.sampling.driver.Cancelled` in the task, which frees
     the worker at once.
     """
 
@@ -55,7 +55,7 @@ class StoppableTarget:
         if now - self._last > self.check_s:
             self._last = now
             if self._cancelled():
-                from ardflow.ardcore.mcmc import Cancelled
+                from ardflow.ardcore.sampling.driver import Cancelled
 
                 raise Cancelled(f"study {self.study_id} was cancelled")
             self._check_wall_clock()
@@ -70,7 +70,7 @@ class StoppableTarget:
 
         start = getattr(thread_state, "start_time", None)
         if start is not None and time.time() - start > self.max_task_s:
-            from ardflow.ardcore.mcmc import SamplerError
+            from ardflow.ardcore.sampling.chains import SamplerError
 
             raise SamplerError(f"a task of study {self.study_id} ran longer than its limit of "
                                f"{self.max_task_s:g} s (ARDFLOW_MAX_TASK_S); use fewer sub-steps or rows per "
@@ -89,7 +89,7 @@ class StoppableTarget:
 
 def _burnin_round_task(args, prefix: str, chain: int, round_index: int):
     """One burn-in round of one chain; the statistics go to the coordinator actor."""
-    res = _round_task(args)
+    res = round_task(args)
     try:
         from distributed import Variable
 
@@ -102,13 +102,13 @@ def _burnin_round_task(args, prefix: str, chain: int, round_index: int):
 
 def _stationary_round_task(args, store_path: str, model: str, iteration: int, chain: int, start: int):
     """One stationary round of one chain, streamed into its own chunk of the store."""
-    res = _round_task(args)
+    res = round_task(args)
     StudyStore(store_path).write_round(model, iteration, chain, start, res.samples, res.lp, res.ll)
     return res
 
 
 class DaskMap:
-    """:data:`ardcore.mcmc.Map` on a Dask client with deterministic task keys."""
+    """:data:`ardcore.sampling.driver.Map` on a Dask client with deterministic task keys."""
 
     def __init__(self, client, prefix: str, store: StudyStore | None = None, model: str | None = None,
                  iteration: int | None = None, coordinator: bool = False):
@@ -136,7 +136,7 @@ class DaskMap:
         from distributed import wait
 
         if step is not None and step.kind == "stationary" and self.store is not None and items:
-            from ardflow.ardcore.mcmc import STRIDE
+            from ardflow.ardcore.sampling.driver import STRIDE
 
             # the stage continues past its first M draws while their quality is short: make room first
             # (item[3] is the round's length, the same for every chain)

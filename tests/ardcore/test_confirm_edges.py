@@ -3,10 +3,10 @@ where the effect becomes a simpler family is confirmed at the screen's shape; an
 
 import pytest
 
-from ardflow.ardcore.confirm import at_range_edge, fitted_effect
-from ardflow.ardcore.families import candidate_effects
-from ardflow.ardcore.model import ModelSpec
-from ardflow.ardcore.screen import Screened
+from ardflow.ardcore.loop.confirm import at_range_edge, fitted_effect
+from ardflow.ardcore.effects.families import candidate_effects
+from ardflow.ardcore.model.declaration import ModelSpec
+from ardflow.ardcore.screening.screen import Screened
 
 
 def _spec() -> ModelSpec:

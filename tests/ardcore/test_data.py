@@ -116,7 +116,7 @@ def test_pendulum_reads_from_ardflow_data(tmp_path, monkeypatch):
 
 
 def test_spec_paths_fall_back_to_ardflow_data(tmp_path, monkeypatch):
-    from ardflow.ardcore.study import load_spec
+    from ardflow.ardcore.selection.spec import load_spec
     from tests.pendulum_standin import pendulum_folder
 
     spec_file = Path(__file__).resolve().parents[2] / "examples" / "pendulum_diagnose.json"

@@ -4,14 +4,16 @@ import numpy as np
 import pytest
 from scipy import optimize
 
-from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose, residual_tests
-from ardflow.ardcore.screen import screen_effects
-from ardflow.ardcore.ekf import compile_model
-from ardflow.ardcore.effects import augment, dynamic_states, feature_functions, oscillator_pairs
-from ardflow.ardcore.families import candidate_effects
-from ardflow.ardcore.library import builtin
-from ardflow.ardcore.simulate import simulate_model
-from ardflow.ardcore.study import StudySpec
+from ardflow.ardcore.loop.config import DiagnoseConfig
+from ardflow.ardcore.loop.diagnose import diagnose
+from ardflow.ardcore.loop.residual_tests import residual_tests
+from ardflow.ardcore.screening.screen import screen_effects
+from ardflow.ardcore.likelihood.ekf import compile_model
+from ardflow.ardcore.effects.base import augment, dynamic_states, feature_functions, oscillator_pairs
+from ardflow.ardcore.effects.families import candidate_effects
+from ardflow.ardcore.model.library import builtin
+from ardflow.ardcore.likelihood.simulate import simulate_model
+from ardflow.ardcore.selection.spec import StudySpec
 
 CFG = DiagnoseConfig()
 
@@ -54,7 +56,7 @@ def test_library_is_generic_in_the_models_structure():
     assert abs(f(np.array([d]), zeros[:1], zeros[:1])[0]) > 1e-4  # rounded, not kinked: the EKF sees a slope
 
 
-def _duffing_free_decay(k3, seed, n=1500):
+def duffing_free_decay(k3, seed, n=1500):
     t = np.arange(n) * 0.02
     spec = builtin("linear_oscillator")
     if k3:
@@ -67,7 +69,7 @@ def _duffing_free_decay(k3, seed, n=1500):
 
 
 def test_screen_ranks_the_missing_cubic_stiffness_first():
-    data = _duffing_free_decay(-4.0, 1)
+    data = duffing_free_decay(-4.0, 1)
     spec = builtin("linear_oscillator").model_copy(update={"constants": {"gamma": 1e-3}}).revalidate()
     lik = compile_model(spec).bind(data)
     r = optimize.minimize(lambda z: -lik(np.exp(z)), np.log([13, 0.05, 0.02]), method="Nelder-Mead")
@@ -78,7 +80,7 @@ def test_screen_ranks_the_missing_cubic_stiffness_first():
     assert ranked[0].log_bayes_factor > 30 > ranked[-1].log_bayes_factor
 
 
-def _spec():
+def duffing_spec():
     return StudySpec.model_validate({
         "name": "osc", "data": {"generator": "appendix_a"}, "evidence": "laplace",
         "models": [{"model": {**builtin("linear_oscillator").model_dump(mode="json"), "constants": {"gamma": 1e-3}},
@@ -90,8 +92,8 @@ def _spec():
 
 
 def test_loop_adds_hardening_cubic_and_the_error_falls():
-    data = _duffing_free_decay(-4.0, 3)
-    rep = diagnose(_spec(), data.slice(0, 1000), test_data=data.slice(1000, None),
+    data = duffing_free_decay(-4.0, 3)
+    rep = diagnose(duffing_spec(), data.slice(0, 1000), test_data=data.slice(1000, None),
                    config=DiagnoseConfig(top_k=2)).to_json()
     first = rep["added"][0]
     assert first["effect"] == "cubic_stiffness(y)" and first["character"] == "hardening"
@@ -103,8 +105,8 @@ def test_loop_adds_hardening_cubic_and_the_error_falls():
 
 @pytest.mark.parametrize("seed", [11, 12])
 def test_loop_adds_nothing_to_a_correct_model(seed):
-    data = _duffing_free_decay(0.0, seed)
-    rep = diagnose(_spec(), data, config=DiagnoseConfig(top_k=2, max_rounds=1)).to_json()
+    data = duffing_free_decay(0.0, seed)
+    rep = diagnose(duffing_spec(), data, config=DiagnoseConfig(top_k=2, max_rounds=1)).to_json()
     assert rep["added"] == [], rep["verdict"]
     assert "no evidence of a missing effect" in rep["verdict"] or "NOT explained" in rep["verdict"]
 
@@ -141,7 +143,7 @@ def test_screen_finds_a_measurement_feedthrough(seed):
 
 def test_screen_finds_the_outflow_law_of_a_level_model():
     """A tank h' = q u - a sqrt(h) proposed as the linear h' = q u - a h: a first-order model, no oscillator."""
-    from ardflow.ardcore.model import ModelSpec
+    from ardflow.ardcore.model.declaration import ModelSpec
 
     def tank(drift, params):
         return ModelSpec(name="tank", states=["h"], inputs=["u"], drift={"h": drift}, diffusion={"h": "s"},
@@ -166,7 +168,7 @@ def test_screen_finds_the_flow_between_two_tanks():
     """Two tanks in cascade, only the lower level measured; the pipe between them follows sqrt(h1), the model
     offered takes it as linear. The flow leaves h1 and enters h2 with one coefficient when the model's own
     coupling is one parameter in both drifts (it conserves the flow in its units), else one per side."""
-    from ardflow.ardcore.model import ModelSpec
+    from ardflow.ardcore.model.declaration import ModelSpec
 
     def tanks(law, c_name="a"):
         return ModelSpec(name="tanks", states=["h1", "h2"], inputs=["u"],
@@ -198,8 +200,8 @@ def test_screen_finds_the_flow_between_two_tanks():
 
 
 def test_parameter_shifts_name_what_the_first_fit_let_stand_in():
-    from ardflow.ardcore.diagnose import parameter_shifts
-    from ardflow.ardcore.fit import ModelFit
+    from ardflow.ardcore.loop.diagnose import parameter_shifts
+    from ardflow.ardcore.selection.fit import ModelFit
 
     before = {"mean": {"k": 35.45, "c": 0.026, "sigma": 0.9}, "sd": {"k": 0.2, "c": 0.001, "sigma": 0.01}}
     after = ModelFit(name="m", log_evidence=0.0, log_evidence_se=0.0,
@@ -217,10 +219,11 @@ def test_warm_with_carries_new_terms_into_chains_and_proposal():
     shape must reach every chain's position and the proposal (MCMC) as well as the best point (Laplace)."""
     from types import SimpleNamespace
 
-    from ardflow.ardcore.confirm import warm_with
-    from ardflow.ardcore.mcmc import ChainState, SamplerResult
-    from ardflow.ardcore.priors import LogNormal, Normal
-    from ardflow.ardcore.starts import initial_scale, warm_positions
+    from ardflow.ardcore.loop.confirm import warm_with
+    from ardflow.ardcore.sampling.chains import ChainState
+    from ardflow.ardcore.sampling.config import SamplerResult
+    from ardflow.ardcore.model.priors import LogNormal, Normal
+    from ardflow.ardcore.sampling.starts import initial_scale, warm_positions
 
     nan = np.full((0, 0), np.nan)
     states = [ChainState(c, [1.0 + c, 2.0], 0.0, 0.0, {}, [1.0, 2.0], 0.0, 0.0) for c in range(3)]
@@ -246,16 +249,16 @@ def test_a_record_no_parameter_can_fit_is_refused_with_its_reason():
     from ardflow.ardcore.data import Dataset
     from ardflow.ardcore.errors import FitError
 
-    d = _duffing_free_decay(0.0, 3, n=600)
+    d = duffing_free_decay(0.0, 3, n=600)
     y = d.columns["y"] * np.exp(np.linspace(0.0, 460.0, len(d)))
     with pytest.raises(FitError, match="no finite evidence") as err:
-        diagnose(_spec(), Dataset(d.t, {"y": y}, d.meta), config=DiagnoseConfig(top_k=1, max_rounds=1))
+        diagnose(duffing_spec(), Dataset(d.t, {"y": y}, d.meta), config=DiagnoseConfig(top_k=1, max_rounds=1))
     assert f"largest |value| {np.max(np.abs(y)):.3g}" in str(err.value)
 
 
 def test_character_says_hardening_and_which_side_a_contact_stiffens():
     """The report's word for a stiffness term follows its sign against the linear restoring slope."""
-    from ardflow.ardcore.verdict import character
+    from ardflow.ardcore.loop.verdict import character
 
     forced = builtin("forced_linear_oscillator")
     effects = {e.name: e for e in candidate_effects(forced, scales={"y": 1.0, "v": 2.0},
@@ -280,24 +283,24 @@ def test_an_effect_is_added_only_if_its_model_free_runs_no_worse_and_its_fit_mov
     import dataclasses
     import math
 
-    from ardflow.ardcore.confirm import Fit
-    from ardflow.ardcore.diagnose import _check_fitted, _worse
+    from ardflow.ardcore.loop.confirm import Fit
+    from ardflow.ardcore.loop.diagnose import check_fitted, worse_than_before
     from ardflow.ardcore.errors import FitError
-    from ardflow.ardcore.study import run_candidate
+    from ardflow.ardcore.selection.study import run_candidate
 
-    data = _duffing_free_decay(-4.0, 3, n=800)
-    spec = _spec()
+    data = duffing_free_decay(-4.0, 3, n=800)
+    spec = duffing_spec()
     cand = spec.models[0]
     row, mr = run_candidate(cand, data, spec, 0)
     fit = Fit(cand, row, mr, data)
     cfg = DiagnoseConfig()
-    assert _worse(fit, math.inf, cfg) is None
-    why = _worse(fit, 1e-12, cfg)
+    assert worse_than_before(fit, math.inf, cfg) is None
+    why = worse_than_before(fit, 1e-12, cfg)
     assert why is not None and "is worse (RMS error 1e-12 ->" in why
     stuck = dataclasses.replace(row, sd={**row.sd, "k": 0.0})
-    assert "posterior of k has no spread" in _worse(Fit(cand, stuck, mr, data), math.inf, cfg)
+    assert "posterior of k has no spread" in worse_than_before(Fit(cand, stuck, mr, data), math.inf, cfg)
     with pytest.raises(FitError, match="has no spread"):
-        _check_fitted(cand.label, stuck, data)
+        check_fitted(cand.label, stuck, data)
     # a sampled evidence needs a Monte Carlo error; a Laplace one states none
     cj = dataclasses.replace(row, evidence_method="chib-jeliazkov", log_evidence_se=0.0)
     assert "no finite Monte Carlo error" in cj.degenerate()

@@ -5,9 +5,9 @@ import pytest
 from scipy.linalg import expm
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.ekf import compile_model
-from ardflow.ardcore.library import builtin
-from ardflow.ardcore.simulate import simulate_model
+from ardflow.ardcore.likelihood.ekf import compile_model
+from ardflow.ardcore.model.library import builtin
+from ardflow.ardcore.likelihood.simulate import simulate_model
 
 PARAMS = {"a11": -0.1, "a12": 1.0, "a21": -1.0, "a22": -0.2, "q1": 0.05, "q2": 0.2, "r": 0.1}
 

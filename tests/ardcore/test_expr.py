@@ -2,7 +2,7 @@ import pytest
 import sympy as sp
 
 from ardflow.ardcore.errors import ModelError
-from ardflow.ardcore.expr import parse_expression
+from ardflow.ardcore.model.expr import parse_expression
 
 NAMES = {"x", "y", "a"}
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.initial import data_informed_initial, recentred
-from ardflow.ardcore.library import builtin
-from ardflow.ardcore.study import CandidateSpec
+from ardflow.ardcore.loop.initial import data_informed_initial, recentred
+from ardflow.ardcore.model.library import builtin
+from ardflow.ardcore.selection.spec import CandidateSpec
 
 
 def _record(y0, v0, n=200, dt=0.01, w=3.0):

@@ -2,8 +2,8 @@ import pytest
 from pydantic import ValidationError
 
 from ardflow.ardcore.errors import ModelError
-from ardflow.ardcore.library import BUILTINS, builtin
-from ardflow.ardcore.model import ModelSpec
+from ardflow.ardcore.model.library import BUILTINS, builtin
+from ardflow.ardcore.model.declaration import ModelSpec
 
 
 def base(**kw):
@@ -65,8 +65,8 @@ def test_a_copy_with_another_drift_compiles_its_own_kernel():
     the original's, cached under the copy's structure hash)."""
     import numpy as np
 
-    from ardflow.ardcore.ekf import compile_model
-    from ardflow.ardcore.library import builtin
+    from ardflow.ardcore.likelihood.ekf import compile_model
+    from ardflow.ardcore.model.library import builtin
 
     spec = builtin("forced_linear_oscillator")
     assert spec.sym is not None  # built and cached on the original

@@ -1,11 +1,11 @@
-"""The reference data pipeline reproduces reference-problem.md's behaviour."""
+"""The reference data pipeline reproduces worked-example.md's behaviour."""
 
 import numpy as np
 import pytest
 
-from ardflow.ardcore.ekf import compile_model
-from ardflow.ardcore.library import AERO_TRUE, builtin
-from ardflow.ardcore.simulate import lco_stats, simulate_reference
+from ardflow.ardcore.likelihood.ekf import compile_model
+from ardflow.ardcore.model.library import AERO_TRUE, builtin
+from ardflow.ardcore.likelihood.simulate import lco_stats, simulate_reference
 
 SEEDS = [0, 1, 2, 3, 4]
 
@@ -21,7 +21,7 @@ def test_lco_amplitude_period_modulation(sets, seed):
     y = ds.columns["y"]
     assert len(ds) == 5000 and np.allclose(np.diff(ds.t), 0.1)
     st = lco_stats(ds.t[-2500:], y[-2500:])  # the settled LCO
-    # reference-problem.md: amplitude ~0.095-0.106, period ~32.4, ~4 % / ~1-1.5 % modulation
+    # worked-example.md: amplitude ~0.095-0.106, period ~32.4, ~4 % / ~1-1.5 % modulation
     assert 0.090 <= st["amplitude"] <= 0.106
     assert 32.0 <= st["period"] <= 33.0
     assert 0.015 <= st["amplitude_modulation"] <= 0.07

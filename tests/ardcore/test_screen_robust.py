@@ -1,16 +1,16 @@
-"""The screen's adjustment to coloured innovations (ardcore.screen: innovation_background, spectral_score_cov)."""
+"""The screen's adjustment to coloured innovations (ardcore.screening.screen: innovation_background, spectral_score_cov)."""
 
 import numpy as np
 import pytest
 from scipy import linalg, optimize, signal
 
-from ardflow.ardcore.ekf import compile_model
-from ardflow.ardcore.effects import Effect
-from ardflow.ardcore.families import candidate_effects
-from ardflow.ardcore.library import builtin
-from ardflow.ardcore.robust import innovation_background, spectral_score_cov
-from ardflow.ardcore.screen import screen_effects
-from ardflow.ardcore.simulate import simulate_model
+from ardflow.ardcore.likelihood.ekf import compile_model
+from ardflow.ardcore.effects.base import Effect
+from ardflow.ardcore.effects.families import candidate_effects
+from ardflow.ardcore.model.library import builtin
+from ardflow.ardcore.screening.robust import innovation_background, spectral_score_cov
+from ardflow.ardcore.screening.screen import screen_effects
+from ardflow.ardcore.likelihood.simulate import simulate_model
 
 from ..forced_oscillator import base_spec, forced_data
 
@@ -109,7 +109,7 @@ def test_a_forcing_is_coherent_and_a_noise_driven_mode_is_not():
     """A sinusoid of fixed amplitude and phase keeps its coefficients over the record; a lightly damped mode
     driven by noise (a narrow-band random process, narrower than the spectrum's bins) does not, and is not
     taken for a forcing however large its spectral peak."""
-    from ardflow.ardcore.effects import augment
+    from ardflow.ardcore.effects.base import augment
 
     forcing = Effect("forcing(f=1.37)", "forcing", ("forcing0_sin", "forcing0_cos"), frequency=1.37, code="fo0")
 
@@ -139,8 +139,8 @@ def test_forward_selection_scores_jointly_and_finds_what_the_first_leaves():
     """distinct_candidates: the joint score from the screen's stored sensitivities reproduces each marginal
     ln BF exactly (no conditioning), a candidate conditioned on itself is worth nothing, and with a cubic and
     an even (y^2) stiffness planted together both are picked, the second by its conditional evidence."""
-    from ardflow.ardcore.effects import augment
-    from ardflow.ardcore.screen import conditional_log_bayes_factor, distinct_candidates
+    from ardflow.ardcore.effects.base import augment
+    from ardflow.ardcore.screening.screen import conditional_log_bayes_factor, distinct_candidates
 
     lib = {e.name: e for e in candidate_effects(base_spec())}
     truth, _ = augment(base_spec(), lib["cubic_stiffness(y)"], "v")
@@ -165,7 +165,7 @@ def test_forward_selection_scores_jointly_and_finds_what_the_first_leaves():
 def test_a_model_that_has_the_input_rate_screens_it_again_without_error():
     """A later round screens the library on a model that holds an input's rate already: its column is one of
     the model's inputs (it used to be appended a second time, and building the term's function failed)."""
-    from ardflow.ardcore.effects import augment, with_columns
+    from ardflow.ardcore.effects.base import augment, with_columns
 
     rate = next(e for e in candidate_effects(base_spec()) if e.name == "input_rate(u)")
     truth, names = augment(base_spec(), rate, "v")

@@ -1,16 +1,16 @@
-"""The simulation fit (ardcore.simulation): which parameters scale the process noise, and a model that lacks
+"""The simulation fit (ardcore.loop.simulation_fit): which parameters scale the process noise, and a model that lacks
 a damping term free-runs better at the noise level chosen on held-out data than at its posterior mean."""
 
 import numpy as np
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.evidence import laplace
-from ardflow.ardcore.model import ModelSpec
-from ardflow.ardcore.posterior import ModelPosterior
-from ardflow.ardcore.priors import LogNormal
-from ardflow.ardcore.simulate import simulate_model
-from ardflow.ardcore.simulation import noise_parameters, simulation_fit
-from ardflow.ardcore.freerun import free_run
+from ardflow.ardcore.evidence.estimators import laplace
+from ardflow.ardcore.model.declaration import ModelSpec
+from ardflow.ardcore.likelihood.posterior import ModelPosterior
+from ardflow.ardcore.model.priors import LogNormal
+from ardflow.ardcore.likelihood.simulate import simulate_model
+from ardflow.ardcore.loop.simulation_fit import noise_parameters, simulation_fit
+from ardflow.ardcore.loop.freerun import free_run
 
 
 def _osc(drift_v: str, params: list, diffusion: str = "sigma") -> ModelSpec:

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.ekf import compile_model
-from ardflow.ardcore.library import builtin
+from ardflow.ardcore.likelihood.ekf import compile_model
+from ardflow.ardcore.model.library import builtin
 
 from .test_ekf_exact import PARAMS, euler_transition
 

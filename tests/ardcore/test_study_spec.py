@@ -8,7 +8,8 @@ import pytest
 from pydantic import ValidationError
 
 from ardflow.ardcore.errors import SpecError
-from ardflow.ardcore.study import StudySpec, load_spec, model_probabilities
+from ardflow.ardcore.selection.spec import StudySpec, load_spec
+from ardflow.ardcore.selection.study import model_probabilities
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

@@ -10,7 +10,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ardflow.ardcore.library import AERO_CONSTANTS
+from ardflow.ardcore.model.library import AERO_CONSTANTS
 
 C1, C2, C3, C4, C5, C6 = (AERO_CONSTANTS[k] for k in ("c1", "c2", "c3", "c4", "c5", "c6"))
 

@@ -54,9 +54,9 @@ def _median_ms(fn, repeats: int, number: int) -> float:
 _FIRST_CALL = """
 import time, json, sys
 t0 = time.perf_counter()
-from ardflow.ardcore.simulate import simulate_reference
-from ardflow.ardcore.ekf import compile_model
-from ardflow.ardcore.library import builtin, AERO_TRUE
+from ardflow.ardcore.likelihood.simulate import simulate_reference
+from ardflow.ardcore.likelihood.ekf import compile_model
+from ardflow.ardcore.model.library import builtin, AERO_TRUE
 ds = simulate_reference(1)
 t1 = time.perf_counter()
 cm = compile_model(builtin("M2"))
@@ -72,9 +72,9 @@ def first_call_seconds(cache: str) -> float:
 
 
 def bench_ekf(tiny: bool = False) -> dict:
-    from ardflow.ardcore.ekf import compile_model
-    from ardflow.ardcore.library import AERO_GAMMA_EKF, AERO_TRUE, builtin
-    from ardflow.ardcore.simulate import simulate_reference
+    from ardflow.ardcore.likelihood.ekf import compile_model
+    from ardflow.ardcore.model.library import AERO_GAMMA_EKF, AERO_TRUE, builtin
+    from ardflow.ardcore.likelihood.simulate import simulate_reference
     from tests.bench.baselines import ekf_m2_handwritten, ekf_m2_numpy
 
     ds = simulate_reference(1)
@@ -122,8 +122,8 @@ def silverbox_substep_table(tiny: bool = False) -> dict:
     """Sub-step convergence on Silverbox: ln L on the estimation segment and the multisine free-run error of a
     Duffing model with input feedthrough (parameters fitted once by the loop, rounded), per scheme and hold."""
     from ardflow.ardcore.data import SILVERBOX_SPLITS, load_silverbox
-    from ardflow.ardcore.ekf import compile_model
-    from ardflow.ardcore.model import ModelSpec
+    from ardflow.ardcore.likelihood.ekf import compile_model
+    from ardflow.ardcore.model.declaration import ModelSpec
 
     d = load_silverbox()
     est, test = d.slice(*SILVERBOX_SPLITS["estimation"]), d.slice(*SILVERBOX_SPLITS["test_multisine"])
@@ -151,9 +151,9 @@ def silverbox_substep_table(tiny: bool = False) -> dict:
 
 
 def _m2_target(psi):
-    from ardflow.ardcore.ard import build_target
-    from ardflow.ardcore.simulate import simulate_reference
-    from ardflow.ardcore.study import load_spec
+    from ardflow.ardcore.evidence.evaluate import build_target
+    from ardflow.ardcore.likelihood.simulate import simulate_reference
+    from ardflow.ardcore.selection.spec import load_spec
 
     spec = load_spec(Path(__file__).resolve().parents[2] / "examples" / "sec35.json")
     cand = spec.models[0]
@@ -164,8 +164,10 @@ def bench_engine(tiny: bool = False) -> dict:
     """Evidence noise over independent seeds, and single-core sampler throughput (M2, reference data)."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from ardflow.ardcore.evidence import chib_jeliazkov
-    from ardflow.ardcore.mcmc import ChainState, SamplerConfig, executor_map, run_round, sample
+    from ardflow.ardcore.evidence.estimators import chib_jeliazkov
+    from ardflow.ardcore.sampling.chains import ChainState, executor_map, run_round
+    from ardflow.ardcore.sampling.config import SamplerConfig
+    from ardflow.ardcore.sampling.driver import sample
 
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": float("inf"), "a6": float("inf")}  # the paper's psi_opt
     target = _m2_target(psi)
@@ -207,11 +209,14 @@ def bench_dask(tiny: bool = False) -> dict:
 
     from distributed import Client, LocalCluster
 
-    from ardflow.ardcore.ard import EvidenceEvaluator
-    from ardflow.ardcore.mcmc import SamplerConfig, executor_map, sample
-    from ardflow.ardcore.simulate import simulate_reference
-    from ardflow.ardcore.study import load_spec
-    from ardflow.workers.graph import DaskMap, StoredEvaluator
+    from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
+    from ardflow.ardcore.sampling.config import SamplerConfig
+    from ardflow.ardcore.sampling.chains import executor_map
+    from ardflow.ardcore.sampling.driver import sample
+    from ardflow.ardcore.likelihood.simulate import simulate_reference
+    from ardflow.ardcore.selection.spec import load_spec
+    from ardflow.workers.tasks import DaskMap
+    from ardflow.workers.graph import StoredEvaluator
     from ardflow.workers.store import StudyStore
 
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": float("inf"), "a6": float("inf")}
@@ -456,11 +461,12 @@ def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", 
     ``evidence_se_ratio_full``, no random-walk comparison."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from ardflow.ardcore.diagnostics import convergence
-    from ardflow.ardcore.evaluate import build_target
-    from ardflow.ardcore.evidence import chib_jeliazkov
-    from ardflow.ardcore.mcmc import executor_map, sample
-    from ardflow.ardcore.study import StudySpec
+    from ardflow.ardcore.sampling.diagnostics import convergence
+    from ardflow.ardcore.evidence.evaluate import build_target
+    from ardflow.ardcore.evidence.estimators import chib_jeliazkov
+    from ardflow.ardcore.sampling.chains import executor_map
+    from ardflow.ardcore.sampling.driver import sample
+    from ardflow.ardcore.selection.spec import StudySpec
 
     spec = StudySpec.model_validate(json.loads((ROOT / "examples" / "sec36.json").read_text()))
     if full:
@@ -516,7 +522,7 @@ def bench_posterior_full(tiny: bool = False) -> dict:
 def bench_study(tiny: bool = False) -> dict:
     """`make demo`'s study and the paper-scale one (`--full`), end to end on the embedded cluster."""
     if tiny:
-        from ardflow.ardcore.study import load_spec
+        from ardflow.ardcore.selection.spec import load_spec
 
         spec = _tiny_spec(load_spec(ROOT / "examples" / "sec36.json"))
         path = Path(tempfile.mkdtemp()) / "sec36_tiny.json"
@@ -539,7 +545,7 @@ def bench_study(tiny: bool = False) -> dict:
 
 def _after_mv(rep, seg: dict) -> dict:
     """Free-run RMS errors (mV) of the loop's final model on the Silverbox test segments: its posterior mean
-    (``<segment>``) and its simulation fit (``<segment>_simulation``, ``ardcore.simulation``)."""
+    (``<segment>``) and its simulation fit (``<segment>_simulation``, ``ardcore.loop.simulation_fit``)."""
     out = {}
     for k in ("multisine", "arrow"):
         out[k] = 1e3 * rep.final.free_run(seg[f"test_{k}"])["rms_error"]
@@ -554,15 +560,16 @@ def bench_loop(tiny: bool = False) -> dict:
     samples initialise). Pendulum: fit 2-40 s, free run 40-120 s. Reference data: the loop on the 5000-point
     record (M2's data-generating form, one round). The pendulum is the real record when ``$ARDFLOW_DATA`` holds it,
     else the synthetic stand-in (``loop_pendulum_record`` says which). Keys: loop_silverbox_{multisine,arrow}_mv (after the loop: its
-    posterior mean; ..._simulation_mv its simulation fit, ``ardcore.simulation``; ..._simulation_factor),
+    posterior mean; ..._simulation_mv its simulation fit, ``ardcore.loop.simulation_fit``; ..._simulation_factor),
     ..._before_mv, loop_silverbox_s, loop_pendulum_rad (+ _before), loop_pendulum_s, loop_reference_s,
     loop_peer_{arx,narx,pysindy,sysidentpy}_{multisine,arrow}_mv, loop_peer_best_multisine_mv,
     loop_peer_best_arrow_mv, loop_peer_narx_pendulum_rad, loop_silverbox_added, loop_pendulum_added.
     """
     from ardflow.ardcore.data import SILVERBOX_SPLITS, load_pendulum, load_silverbox
-    from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
-    from ardflow.ardcore.simulate import simulate_reference
-    from ardflow.ardcore.study import StudySpec, load_spec
+    from ardflow.ardcore.loop.config import DiagnoseConfig
+    from ardflow.ardcore.loop.diagnose import diagnose
+    from ardflow.ardcore.likelihood.simulate import simulate_reference
+    from ardflow.ardcore.selection.spec import StudySpec, load_spec
 
     from . import peers
 
@@ -670,7 +677,7 @@ def bench_fresh(tiny: bool = False) -> dict:
         env["ARDFLOW_CACHE_DIR"] = str(tmp / "kernel-cache")  # cold: every kernel generated and compiled
         args = []
         if tiny:
-            from ardflow.ardcore.study import load_spec
+            from ardflow.ardcore.selection.spec import load_spec
 
             (tmp / "tiny.json").write_text(_tiny_spec(load_spec(clone / "examples" / "sec36.json")).model_dump_json())
             args = [f"DEMO_ARGS=--spec {tmp / 'tiny.json'} --workers 2"]

@@ -18,7 +18,8 @@ import uvicorn
 from distributed import Client as DaskClient
 from distributed import LocalCluster
 
-from ardflow.service.app import Settings, create_app
+from ardflow.service.schemas import Settings
+from ardflow.service.app import create_app
 from ardflow.service.client import APIError, Client
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -110,7 +111,7 @@ def test_submit_watch_summary_posterior(service, tmp_path):
 
 def test_uploaded_csv_study(service, tmp_path):
     url, _ = service
-    from ardflow.ardcore.study import appendix_a_data
+    from ardflow.ardcore.selection.spec import appendix_a_data
 
     ds = appendix_a_data(3)
     csv = tmp_path / "d.csv"
@@ -295,14 +296,14 @@ def test_cli_submit_status_fetch(service, tmp_path):
 
 def test_diagnose_over_http(service, tmp_path):
     """Fit a linear oscillator to Duffing data over the API, then close the loop over the API."""
-    from tests.ardcore.test_diagnose import _duffing_free_decay, _spec
+    from tests.ardcore.test_diagnose import duffing_free_decay, duffing_spec
 
     url, _ = service
-    data = _duffing_free_decay(-4.0, 3)
+    data = duffing_free_decay(-4.0, 3)
     est, held = tmp_path / "est.csv", tmp_path / "held.csv"
     data.slice(0, 1000).to_csv(est)
     data.slice(1000, None).to_csv(held)
-    spec = _spec().model_dump(mode="json", exclude_none=True)
+    spec = duffing_spec().model_dump(mode="json", exclude_none=True)
     spec["name"] = "osc"
     spec["data"] = {}
     with Client(url, token=TOKEN) as c:

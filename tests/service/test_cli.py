@@ -77,7 +77,7 @@ def test_diagnose_held_out_file_with_its_own_column_names(tmp_path):
     """A held-out file whose columns are named differently (yVal) is renamed by --test-rename."""
     import numpy as np
 
-    from ardflow.ardcore.simulate import simulate_model
+    from ardflow.ardcore.likelihood.simulate import simulate_model
 
     t = np.arange(1200) * 0.02
     d = simulate_model("linear_oscillator", {"k": 16.0, "c": 0.1, "sigma": 0.05}, t, 4, x0=[1.0, 0.0])
@@ -130,9 +130,9 @@ def test_live_progress_bars_and_plain_lines(capsys):
 
 def test_settings_are_listed_from_their_one_declaration():
     """`ardflow settings` prints every field the spec accepts, with the default and bounds the spec enforces."""
-    from ardflow.ardcore.ard import MaximiserConfig
-    from ardflow.ardcore.sampling import SamplerConfig
-    from ardflow.ardcore.spec import StudySpec
+    from ardflow.ardcore.selection.config import MaximiserConfig
+    from ardflow.ardcore.sampling.config import SamplerConfig
+    from ardflow.ardcore.selection.spec import StudySpec
 
     r = run("settings")
     assert r.returncode == 0, r.stderr
@@ -173,8 +173,8 @@ def test_serial_and_dask_executors_write_the_same_store_and_report(tmp_path):
 
 def test_full_settings_are_the_engines_defaults():
     """`--full` (select, demo) sets the paper-scale sampler sizes: the defaults of the one declaration."""
-    from ardflow.ardcore.sampling import SamplerConfig
-    from ardflow.ardcore.study import load_spec
+    from ardflow.ardcore.sampling.config import SamplerConfig
+    from ardflow.ardcore.selection.spec import load_spec
     from ardflow.service.cmd_study import full_settings
     from ardflow.service.cmd_local import EXAMPLES
 

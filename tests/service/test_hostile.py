@@ -13,7 +13,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from ardflow.service.app import Settings, create_app
+from ardflow.service.schemas import Settings
+from ardflow.service.app import create_app
 
 from .test_api import ROOT, SPEC, TOKEN, Server, ServiceProcess, free_port, served
 
@@ -434,7 +435,7 @@ def test_a_killed_service_takes_its_driver_along_and_files_are_private(tmp_path)
 
 
 def test_a_second_driver_on_one_store_is_refused(tmp_path):
-    from ardflow.ardcore.study import load_spec
+    from ardflow.ardcore.selection.spec import load_spec
     from ardflow.workers.graph import prepare_store
 
     store = prepare_store(load_spec(ROOT / "tests" / "workers" / "small_study.json"), tmp_path / "st")

@@ -10,7 +10,7 @@ import signal
 import httpx
 import pytest
 
-from ardflow.ardcore.study import DataSpec
+from ardflow.ardcore.selection.spec import DataSpec
 from tests.browser import FLAGS, chromium_path
 from tests.service.test_api import SPEC, TOKEN, free_port, start_service
 

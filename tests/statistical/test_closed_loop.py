@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.data import load_pendulum, load_silverbox
-from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
-from ardflow.ardcore.effects import Effect, augment
-from ardflow.ardcore.library import aero_true
-from ardflow.ardcore.simulate import simulate_reference
-from ardflow.ardcore.study import StudySpec, load_spec
+from ardflow.ardcore.loop.config import DiagnoseConfig
+from ardflow.ardcore.loop.diagnose import diagnose
+from ardflow.ardcore.effects.base import Effect, augment
+from ardflow.ardcore.model.library import aero_true
+from ardflow.ardcore.likelihood.simulate import simulate_reference
+from ardflow.ardcore.selection.spec import StudySpec, load_spec
 from tests.pendulum_standin import pendulum_folder
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(3600)]

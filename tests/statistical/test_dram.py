@@ -7,9 +7,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from ardflow.ardcore.mcmc import ChainState, SamplerConfig, rhat, run_round, sample
-from ardflow.ardcore.posterior import FunctionTarget
-from ardflow.ardcore.priors import JointPrior, Normal
+from ardflow.ardcore.sampling.chains import ChainState, run_round
+from ardflow.ardcore.sampling.config import SamplerConfig
+from ardflow.ardcore.sampling.adaptation import rhat
+from ardflow.ardcore.sampling.driver import sample
+from ardflow.ardcore.likelihood.posterior import FunctionTarget
+from ardflow.ardcore.model.priors import JointPrior, Normal
 
 from .targets import GaussianLoglik, correlated_cov
 
@@ -101,7 +104,7 @@ def test_sampler_rounds_as_events_and_resume_from_one():
     """iter_sample yields one typed event per round, each carrying the state to resume from; driven by hand
     it gives sample()'s result, and resuming from a stationary round's checkpoint (with the draws so far)
     gives the same draws as the run that was not interrupted."""
-    from ardflow.ardcore.mcmc import RoundEvent, iter_sample
+    from ardflow.ardcore.sampling.driver import RoundEvent, iter_sample
 
     target, _, _ = gaussian_target()
     cfg = SamplerConfig(n_chains=3, round_size=100, min_burnin_rounds=2, max_burnin_rounds=30, n_stationary=300,
@@ -130,7 +133,7 @@ def test_sampler_rounds_as_events_and_resume_from_one():
     assert resumed.n_evaluations == res.n_evaluations
 
 
-def _far_start_run(restarts: int, notes: list | None = None):
+def far_start_run(restarts: int, notes: list | None = None):
     """Chains started 30 sd out with two short burn-in rounds: the first stationary draws still disagree."""
     target, m, S = gaussian_target(d=2, seed=1)
     starts = m + 30 * np.sqrt(np.diag(S)) * np.sign(np.random.default_rng(0).standard_normal((4, 2)))
@@ -147,10 +150,10 @@ def test_stationary_draws_that_fail_rhat_are_drawn_again():
     rhat_threshold, or they count as burn-in and are drawn again from where the chains are."""
     from ardflow.ardcore.events import Note
 
-    once, *_ = _far_start_run(0)
+    once, *_ = far_start_run(0)
     assert np.max(once.rhat) > 1.1 and any("R-hat" in w for w in once.warnings)
     notes = []
-    res, target, m, S, cfg, starts = _far_start_run(6, notes)
+    res, target, m, S, cfg, starts = far_start_run(6, notes)
     redraws = [e for e in notes if isinstance(e, Note) and "drawn again" in e.message]
     assert redraws and np.max(res.rhat) < 1.1 and not any("R-hat" in w for w in res.warnings)
     flat = res.samples.reshape(-1, 2)
@@ -158,7 +161,7 @@ def test_stationary_draws_that_fail_rhat_are_drawn_again():
     # every evaluation is counted: redrawn passes included
     assert res.n_evaluations >= cfg.n_chains * cfg.n_stationary * (len(redraws) + 1)
     # resuming inside a redrawn pass gives the same draws
-    from ardflow.ardcore.mcmc import iter_sample
+    from ardflow.ardcore.sampling.driver import iter_sample
 
     gen = iter_sample(target, cfg, seed=12, starts=starts)
     cks = []

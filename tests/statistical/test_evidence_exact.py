@@ -7,12 +7,13 @@ import pytest
 from scipy.stats import multivariate_normal as mvn
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.evidence import chib_jeliazkov, laplace
-from ardflow.ardcore.library import builtin
-from ardflow.ardcore.mcmc import SamplerConfig, sample
-from ardflow.ardcore.model import ModelSpec
-from ardflow.ardcore.posterior import FunctionTarget, ModelPosterior
-from ardflow.ardcore.priors import JointPrior, Normal
+from ardflow.ardcore.evidence.estimators import chib_jeliazkov, laplace
+from ardflow.ardcore.model.library import builtin
+from ardflow.ardcore.sampling.config import SamplerConfig
+from ardflow.ardcore.sampling.driver import sample
+from ardflow.ardcore.model.declaration import ModelSpec
+from ardflow.ardcore.likelihood.posterior import FunctionTarget, ModelPosterior
+from ardflow.ardcore.model.priors import JointPrior, Normal
 
 from .targets import GaussianLoglik, correlated_cov
 
@@ -124,7 +125,7 @@ def test_linear_gaussian_state_space_cj_within_015_nats():
     t = np.arange(n) * 0.1
     rng = np.random.default_rng(11)
     u = np.sin(0.9 * t) + 0.5 * rng.standard_normal(n)
-    from ardflow.ardcore.simulate import simulate_model
+    from ardflow.ardcore.likelihood.simulate import simulate_model
 
     ds = simulate_model(spec, {"b1": 1.5, "b2": -0.4, "c": 0.3}, t, seed=12, nsub=20, inputs={"u": u})
     prior_mean, prior_sd = np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.0, 1.0])
@@ -140,7 +141,9 @@ def test_linear_gaussian_state_space_cj_within_015_nats():
 
 def test_chains_in_different_modes_raise_a_warning():
     """Chains stuck in different modes give per-chain estimates that disagree: it must be reported."""
-    from ardflow.ardcore.mcmc import ChainState, SamplerResult, rhat, run_round
+    from ardflow.ardcore.sampling.chains import ChainState, run_round
+    from ardflow.ardcore.sampling.config import SamplerResult
+    from ardflow.ardcore.sampling.adaptation import rhat
 
     from .targets import TwoModes
 
@@ -228,7 +231,7 @@ def test_warm_laplace_reaches_the_cold_mode_of_a_skewed_posterior():
 def test_fd_derivatives_exact_on_a_quadratic_and_second_order_otherwise():
     """The d^2 + d + 1 point rule: f, gradient and Hessian exact on a correlated quadratic (up to rounding),
     and on a smooth non-quadratic the Hessian's error falls ~4x when the steps halve (second order)."""
-    from ardflow.ardcore.starts import fd_derivatives
+    from ardflow.ardcore.sampling.starts import fd_derivatives
 
     d = 6
     A = np.linalg.inv(correlated_cov(d, 5))

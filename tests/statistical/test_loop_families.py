@@ -10,9 +10,10 @@ inside its fitted 99 % interval). On clean data (3 seeds) nothing is added.
 
 import pytest
 
-from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
-from ardflow.ardcore.effects import Effect, augment
-from ardflow.ardcore.study import StudySpec
+from ardflow.ardcore.loop.config import DiagnoseConfig
+from ardflow.ardcore.loop.diagnose import diagnose
+from ardflow.ardcore.effects.base import Effect, augment
+from ardflow.ardcore.selection.spec import StudySpec
 
 from ..forced_oscillator import base_spec, forced_data
 
@@ -126,10 +127,10 @@ def _true_model_interval(eff, target, value, seed) -> tuple[float, float]:
     no method can beat on this noise realisation."""
     import numpy as np
 
-    from ardflow.ardcore.effects import with_columns
-    from ardflow.ardcore.evidence import laplace
-    from ardflow.ardcore.posterior import ModelPosterior
-    from ardflow.ardcore.priors import Normal
+    from ardflow.ardcore.effects.base import with_columns
+    from ardflow.ardcore.evidence.estimators import laplace
+    from ardflow.ardcore.likelihood.posterior import ModelPosterior
+    from ardflow.ardcore.model.priors import Normal
 
     from ..forced_oscillator import TRUE
 
@@ -206,8 +207,8 @@ def test_van_der_pol_limit_cycle_from_a_linear_model():
     import numpy as np
 
     from ardflow.ardcore.data import Dataset
-    from ardflow.ardcore.model import ModelSpec
-    from ardflow.ardcore.simulate import simulate_model
+    from ardflow.ardcore.model.declaration import ModelSpec
+    from ardflow.ardcore.likelihood.simulate import simulate_model
 
     truth = ModelSpec(name="vdp", states=["y", "v"], drift={"y": "v", "v": "mu*(1 - y**2)*v - w2*y"},
                       diffusion={"v": "s"}, observations=[{"column": "y", "expr": "y", "noise_std": "g"}],

@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.diagnose import DiagnoseConfig, diagnose
-from ardflow.ardcore.effects import Effect, augment
-from ardflow.ardcore.library import builtin
-from ardflow.ardcore.simulate import simulate_model
-from ardflow.ardcore.study import StudySpec
+from ardflow.ardcore.loop.config import DiagnoseConfig
+from ardflow.ardcore.loop.diagnose import diagnose
+from ardflow.ardcore.effects.base import Effect, augment
+from ardflow.ardcore.model.library import builtin
+from ardflow.ardcore.likelihood.simulate import simulate_model
+from ardflow.ardcore.selection.spec import StudySpec
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 
@@ -109,8 +110,8 @@ def test_record_starting_in_motion_in_other_units():
 
 def _tank(A, n=3000, dt=0.5, seed=1):
     """A first-order tank in units x A: truth h' = -a2 sqrt(h) + b u + sigma xi, offered h' = -a h + b u."""
-    from ardflow.ardcore.model import ModelSpec
-    from ardflow.ardcore.simulate import lowpass
+    from ardflow.ardcore.model.declaration import ModelSpec
+    from ardflow.ardcore.likelihood.simulate import lowpass
 
     def model(truth):
         return ModelSpec(name="tank_true" if truth else "tank", description="first-order tank", states=["h"],
@@ -153,7 +154,7 @@ def _cascade(A, seed, sqrt_outflow=False, overflow=None, offered=("h1", "h2")):
     ``sqrt_outflow`` the lower tank drains through an orifice as well (c sqrt(h2)), offered as c*h2.
     ``overflow`` (state, level, rate): that tank also spills over, at ``rate`` x max(h - level x A, 0), a
     flow that leaves the system; ``offered`` are the laws of the model offered (pipe, lower outflow)."""
-    from ardflow.ardcore.model import ModelSpec
+    from ardflow.ardcore.model.declaration import ModelSpec
 
     def tanks(law, out, spill=None):
         extra = {st: "" for st in ("h1", "h2")}

@@ -4,8 +4,9 @@ import math
 
 import numpy as np
 
-from ardflow.ardcore.ard import INF, MaximiserConfig, maximise
-from ardflow.ardcore.evidence import Evidence
+from ardflow.ardcore.selection.maximiser import INF, maximise
+from ardflow.ardcore.selection.config import MaximiserConfig
+from ardflow.ardcore.evidence.estimators import Evidence
 
 
 def ard_gain(alpha, m, s):

@@ -4,7 +4,8 @@ import json
 
 import numpy as np
 
-from ardflow.ardcore.mcmc import AdaptationPool, RoundStats, rhat
+from ardflow.ardcore.sampling.adaptation import AdaptationPool, rhat
+from ardflow.ardcore.sampling.chains import RoundStats
 
 
 def halves_of(x):
@@ -50,9 +51,10 @@ def test_checkpoint_round_trip():
 def test_sampler_resumes_exactly_from_any_checkpoint():
     import copy
 
-    from ardflow.ardcore.mcmc import SamplerConfig, sample
-    from ardflow.ardcore.posterior import FunctionTarget
-    from ardflow.ardcore.priors import JointPrior, Normal
+    from ardflow.ardcore.sampling.config import SamplerConfig
+    from ardflow.ardcore.sampling.driver import sample
+    from ardflow.ardcore.likelihood.posterior import FunctionTarget
+    from ardflow.ardcore.model.priors import JointPrior, Normal
 
     from .targets import GaussianLoglik, correlated_cov
 

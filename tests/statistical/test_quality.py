@@ -6,12 +6,13 @@ import math
 import numpy as np
 import pytest
 
-from ardflow.ardcore.diagnostics import convergence
-from ardflow.ardcore.evidence import chib_jeliazkov
-from ardflow.ardcore.mcmc import SamplerConfig, sample
-from ardflow.ardcore.posterior import FunctionTarget
-from ardflow.ardcore.priors import JointPrior, LogNormal, Normal, Uniform
-from ardflow.ardcore.transform import Unconstrained
+from ardflow.ardcore.sampling.diagnostics import convergence
+from ardflow.ardcore.evidence.estimators import chib_jeliazkov
+from ardflow.ardcore.sampling.config import SamplerConfig
+from ardflow.ardcore.sampling.driver import sample
+from ardflow.ardcore.likelihood.posterior import FunctionTarget
+from ardflow.ardcore.model.priors import JointPrior, LogNormal, Normal, Uniform
+from ardflow.ardcore.sampling.transform import Unconstrained
 
 from .targets import GaussianLoglik, correlated_cov
 
@@ -121,7 +122,7 @@ def test_the_result_carries_the_kernel_of_the_pass_it_kept():
     """Chains started far out with a burn-in too short to settle: the first stationary pass is redrawn
     with a proposal refitted to it, and the result must carry that proposal (Chib-Jeliazkov uses it)."""
     from ardflow.ardcore.events import Note
-    from ardflow.ardcore.mcmc import serial_map
+    from ardflow.ardcore.sampling.chains import serial_map
 
     d = 4
     S = correlated_cov(d, 1)
@@ -164,7 +165,7 @@ def test_continued_chains_reach_the_target_and_keep_an_exact_evidence():
     """A search trial's judged draws (short of the target) continued (:func:`continuation`): the kernel is
     refitted to them, the new draws reach the target, only the new evaluations are counted, and
     Chib-Jeliazkov on the continued draws still gives the exact ln Z."""
-    from ardflow.ardcore.mcmc import continuation, continued
+    from ardflow.ardcore.sampling.driver import continuation, continued
 
     target, exact = _exact_mix_target(4, 2)
     cfg = SamplerConfig(n_chains=4, round_size=100, min_burnin_rounds=1, n_stationary=100, n_proposal=1000,
@@ -188,7 +189,7 @@ def test_pooled_evidence_error_is_calibrated_and_steadier_than_the_chains_spread
     """Four chains' estimates with a known error s, each with a batch-means error estimate (9 degrees of
     freedom): the pooled se is unbiased for s / 2 (in variance) and varies far less from run to run than the
     spread of the four alone; chains that disagree beyond their own errors get the spread."""
-    from ardflow.ardcore.evidence import BATCHES, pooled_se
+    from ardflow.ardcore.evidence.estimators import BATCHES, pooled_se
 
     rng = np.random.default_rng(0)
     s, nc, runs = 0.3, 4, 4000

@@ -1,4 +1,4 @@
-"""Reweighting between ARD trials (ardcore.reweight) against exact evidence: a conjugate polynomial
+"""Reweighting between ARD trials (ardcore.evidence.reweight) against exact evidence: a conjugate polynomial
 regression, where ln Z at every psi is known in closed form."""
 
 import math
@@ -6,12 +6,14 @@ import math
 import numpy as np
 import pytest
 
-from ardflow.ardcore.ard import INF, EvidenceEvaluator, MaximiserConfig, maximise
+from ardflow.ardcore.selection.maximiser import INF, maximise
+from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
+from ardflow.ardcore.selection.config import MaximiserConfig
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.library import builtin
-from ardflow.ardcore.mcmc import SamplerConfig
-from ardflow.ardcore.priors import Normal
-from ardflow.ardcore.reweight import reweight
+from ardflow.ardcore.model.library import builtin
+from ardflow.ardcore.sampling.config import SamplerConfig
+from ardflow.ardcore.model.priors import Normal
+from ardflow.ardcore.evidence.reweight import reweight
 
 GAMMA = 0.3
 ESSENTIAL = {"a0": 2.0, "a1": 3.0}
@@ -97,8 +99,8 @@ def test_prune_test_warm_start_is_the_exact_conditional():
     (scaled 2.38^2 / d) and the moved draws must be draws of the nested posterior."""
     from types import SimpleNamespace
 
-    from ardflow.ardcore.evaluate import build_target
-    from ardflow.ardcore.starts import initial_scale, warm_positions
+    from ardflow.ardcore.evidence.evaluate import build_target
+    from ardflow.ardcore.sampling.starts import initial_scale, warm_positions
 
     spec, data, X, y, _ = setup()
     psi = {"a2": 1e-2, "a3": 1e-2, "a4": 1e-2}

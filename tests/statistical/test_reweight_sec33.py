@@ -6,8 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ardflow.ardcore.ard import EvidenceEvaluator
-from ardflow.ardcore.study import load_spec, run_candidate
+from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
+from ardflow.ardcore.selection.spec import load_spec
+from ardflow.ardcore.selection.study import run_candidate
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(3600)]
 

@@ -5,8 +5,9 @@ from pathlib import Path
 
 import pytest
 
-from ardflow.ardcore.mcmc import executor_map
-from ardflow.ardcore.study import load_spec, select
+from ardflow.ardcore.sampling.chains import executor_map
+from ardflow.ardcore.selection.spec import load_spec
+from ardflow.ardcore.selection.study import select
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

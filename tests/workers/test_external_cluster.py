@@ -14,7 +14,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from ardflow.ardcore.study import load_spec, select
+from ardflow.ardcore.selection.spec import load_spec
+from ardflow.ardcore.selection.study import select
 
 ROOT = Path(__file__).resolve().parents[2]
 SPEC = ROOT / "tests" / "workers" / "small_study.json"

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from ardflow.ardcore.study import load_spec, select
+from ardflow.ardcore.selection.spec import load_spec
+from ardflow.ardcore.selection.study import select
 
 SPEC = Path(__file__).with_name("small_study.json")
 ROOT = Path(__file__).resolve().parents[2]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from distributed import Client, LocalCluster
 
-from ardflow.ardcore.study import load_spec
+from ardflow.ardcore.selection.spec import load_spec
 from ardflow.workers.graph import prepare_store, run_study
 from ardflow.workers.inference import InferenceGroups, inference_groups, to_inference_data
 

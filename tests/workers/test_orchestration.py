@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from distributed import Client, LocalCluster, get_task_stream
 
-from ardflow.ardcore.study import load_spec, select
+from ardflow.ardcore.selection.spec import load_spec
+from ardflow.ardcore.selection.study import select
 from ardflow.workers.graph import cancel_study, prepare_store, read_progress, run_study
 from ardflow.workers.store import StudyStore
 
@@ -73,7 +74,7 @@ def test_store_opens_with_xarray_named_dims(tmp_path, thread_cluster):
 
 
 def test_cancel_takes_effect(tmp_path, thread_cluster):
-    from ardflow.ardcore.mcmc import Cancelled
+    from ardflow.ardcore.sampling.driver import Cancelled
 
     store = prepare_store(load_spec(SPEC), tmp_path / "st")
     sid = store.meta["study_id"]
@@ -166,7 +167,8 @@ def test_killed_driver_resumes(tmp_path, reference_summary):
 
 
 def test_coordinator_actor_restored_after_its_worker_dies():
-    from ardflow.ardcore.mcmc import AdaptationPool, RoundStats
+    from ardflow.ardcore.sampling.adaptation import AdaptationPool
+    from ardflow.ardcore.sampling.chains import RoundStats
     from ardflow.workers.coordinator import ActorPool
 
     rng = np.random.default_rng(0)
@@ -261,7 +263,7 @@ def _calls_for(target, seconds):
 def test_task_wall_clock_limit_is_the_backstop(thread_cluster):
     """A task whose likelihood calls go on past ``max_task_s`` (as the worker timed the task) fails with a
     message naming the limit; within the limit it finishes."""
-    from ardflow.ardcore.mcmc import SamplerError
+    from ardflow.ardcore.sampling.chains import SamplerError
     from ardflow.workers.tasks import StoppableTarget
 
     t = StoppableTarget(_SlowTarget(), "no-such-study", max_task_s=1.0)
@@ -275,12 +277,12 @@ def test_task_wall_clock_limit_is_the_backstop(thread_cluster):
 def test_redrawn_stationary_passes_write_the_store_and_never_share_a_task_key(tmp_path, thread_cluster):
     """A stationary stage drawn again (its R-hat failed) on Dask: every pass's tasks have their own keys (a
     later pass never gets an earlier pass's cached result) and the store holds the final draws."""
-    from ardflow.ardcore.mcmc import sample
+    from ardflow.ardcore.sampling.driver import sample
     from ardflow.workers.tasks import DaskMap
 
-    from ..statistical.test_dram import _far_start_run
+    from ..statistical.test_dram import far_start_run
 
-    local, target, _, _, cfg, starts = _far_start_run(6)
+    local, target, _, _, cfg, starts = far_start_run(6)
     store = StudyStore.create(tmp_path / "st", {})
     store.create_trial("m", 0, list(target.names), cfg.n_chains, cfg.n_stationary, cfg.round_size, {})
     with get_task_stream(thread_cluster) as ts:

@@ -1,0 +1,343 @@
+"""Evidence estimators (docs/method.md sections 3-4).
+
+Chib-Jeliazkov from the stationary fixed-proposal samples of each chain, at
+phi* = the best point any chain has seen; Laplace at the MAP; goodness of fit
+and expected information gain by Eq. 13. Everything in log space.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import logsumexp
+from scipy.stats import chi2
+from scipy.stats import f as f_dist
+
+from ardflow.ardcore.sampling.chains import Jump, MixedProposal
+from ardflow.ardcore.sampling.chains import Map, SamplerError, Step, serial_map
+from ardflow.ardcore.sampling.config import SamplerResult
+from ardflow.ardcore.sampling.starts import fd_hessian, local_mode
+from ardflow.ardcore.sampling.starts import fd_derivatives
+from ardflow.ardcore.sampling.transform import free_coordinates
+
+
+@dataclass
+class ChainEvidence:
+    log_evidence: float
+    se: float                  # batch-means noise of this chain's estimate
+    log_posterior_ordinate: float
+
+
+@dataclass
+class Evidence:
+    """An evidence estimate with its decomposition.
+
+    Attributes
+    ----------
+    log_evidence, log_evidence_se : float
+        Mean over chains and its standard error.
+    goodness_of_fit : float
+        ln p(d | phi*) (Eq. 13).
+    information_gain : float
+        goodness_of_fit - log_evidence.
+    per_chain : list of ChainEvidence
+    method : str
+    warnings : list of str
+    """
+
+    log_evidence: float
+    log_evidence_se: float
+    goodness_of_fit: float
+    information_gain: float
+    method: str
+    per_chain: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    n_evaluations: int = 0
+    """Likelihood evaluations the estimate itself made (Chib-Jeliazkov: the proposal draws)."""
+
+    def to_dict(self) -> dict:
+        return {
+            "log_evidence": self.log_evidence, "log_evidence_se": self.log_evidence_se,
+            "goodness_of_fit": self.goodness_of_fit, "information_gain": self.information_gain,
+            "method": self.method, "warnings": list(self.warnings),
+            "per_chain": [c.__dict__ for c in self.per_chain], "n_evaluations": self.n_evaluations,
+        }
+
+
+BATCHES = 10
+"""Batches of a chain's terms for their batch-means error."""
+
+
+def _batch_se(log_terms: np.ndarray, batches: int = BATCHES) -> float:
+    """Standard error of ln(mean(exp(terms))) by batch means and the delta method."""
+    n = log_terms.size
+    b = max(2, min(batches, n // 10))
+    parts = np.array_split(log_terms, b)
+    lm = np.array([logsumexp(p) - math.log(p.size) for p in parts])
+    total = logsumexp(lm) - math.log(b)
+    rel = np.exp(lm - total)
+    return float(np.std(rel, ddof=1) / math.sqrt(b))
+
+
+def pooled_se(values: np.ndarray, within: np.ndarray, batches: int = BATCHES) -> float:
+    """Standard error of the mean of the per-chain estimates ``values``, whose own errors (batch means,
+    ``within``) are known.
+
+    The spread between a few chains alone is a poor estimate of their error (with 4 chains it has 3
+    degrees of freedom: the reported se would be off by 40 % from seed to seed); each chain's batch means
+    add ``batches - 1`` more. The two variance estimates of one chain's value are pooled by their degrees of
+    freedom, unless the spread between the chains exceeds what their own errors allow (an F test at 1 %:
+    batches too short for the autocorrelation, or chains in different modes); then the spread alone is
+    the error.
+    """
+    nc = values.size
+    if nc < 2:
+        return float(within[0]) if within.size else math.inf
+    between = float(np.var(values, ddof=1))
+    inside = float(np.mean(within ** 2))
+    k_b, k_w = nc - 1, nc * (batches - 1)
+    if not inside > 0 or between / inside > f_dist.ppf(0.99, k_b, k_w):
+        return math.sqrt(between / nc)
+    return math.sqrt((k_b * between + k_w * inside) / (k_b + k_w) / nc)
+
+
+PROPOSAL_BLOCK = 250  # denominator draws between two looks at its Monte Carlo error
+
+
+def _iid_log_mean_se(log_terms: np.ndarray) -> float:
+    """Standard error of ln(mean(exp(terms))) for independent terms (delta method); inf when all are zero."""
+    w = np.exp(log_terms - np.max(log_terms)) if np.isfinite(log_terms).any() else np.zeros(1)
+    m = w.mean()
+    return float(w.std(ddof=1) / m / math.sqrt(w.size)) if m > 0 and w.size > 1 else math.inf
+
+
+def _cj_chain(args):
+    target, samples, lp, phi_star, lp_star, cov, J, se_ratio, seed, *rest = args
+    # the chains moved in unconstrained coordinates z with the fixed proposal q (the random walk N(z, cov),
+    # mixed with the independence proposal ``jump`` when there is one; :mod:`.transform`, :class:`Jump`):
+    # the ordinate is taken there, with the target's density in z (times |dx/dz|), and mapped back below
+    q = MixedProposal(cov, Jump.from_dict(rest[0]) if rest else None)
+    free = free_coordinates(target)
+    zs, z_star = free.to_free(samples), free.to_free(phi_star)
+    lpz = lp + free.log_jacobian(samples)
+    jac_star = float(free.log_jacobian(phi_star))
+    lpz_star = lp_star + jac_star
+    # numerator: (1/M) sum_g alpha(z_g, z*) q(z* | z_g)
+    log_q_to = q.log_q(z_star[None, :], zs)
+    log_alpha = np.minimum(0.0, lpz_star - lpz + q.log_q(zs, z_star[None, :]) - log_q_to)
+    num_terms = log_alpha + log_q_to
+    log_num = logsumexp(num_terms) - math.log(samples.shape[0])
+    num_se = _batch_se(num_terms)
+    # denominator: (1/J) sum_j alpha(z*, z_j), z_j ~ q(. | z*). Its draws are independent, so a few
+    # hundred usually pin it far below the numerator's error (autocorrelated draws): stop once its error is
+    # under se_ratio of the numerator's, at most J draws
+    rng = np.random.default_rng(seed)
+    den_terms: list = []
+    while len(den_terms) < J:
+        for _ in range(min(PROPOSAL_BLOCK, J - len(den_terms))):
+            zj = q.draw(rng, z_star)
+            y = free.from_free(zj)
+            lpj = target(y).log_posterior
+            if lpj > -math.inf:
+                lpj = lpj + free.log_jacobian(y)
+            den_terms.append(min(0.0, lpj - lpz_star + q.log_ratio(zj, z_star)) if lpj > -math.inf else -math.inf)
+        if se_ratio > 0 and _iid_log_mean_se(np.asarray(den_terms)) <= se_ratio * num_se:
+            break
+    den = np.asarray(den_terms)
+    log_den = logsumexp(den) - math.log(den.size)
+    se = math.sqrt(num_se ** 2 + _batch_se(den) ** 2)
+    # ln p(x*|d) = ln p(z*|d) - ln|dx/dz|(x*)
+    return log_num - log_den - jac_star, se, den.size
+
+
+def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
+                   map_fn: Map = serial_map, proposal_se_ratio: float = 0.0) -> Evidence:
+    """Chib-Jeliazkov evidence per chain at phi* (Eq. 10-12); mean and standard error over chains.
+
+    Parameters
+    ----------
+    n_proposal : int
+        J, the most proposal draws at phi* per chain (the denominator).
+    proposal_se_ratio : float
+        Stop a chain's denominator draws (in blocks of 250) once their Monte Carlo error is below this
+        fraction of the numerator's; 0 always draws ``n_proposal``.
+
+    Raises
+    ------
+    ValueError
+        If a prior is improper (flat, or ARD with alpha = 0): the evidence is undefined.
+    """
+    if not target.prior.proper:
+        bad = [n for n, p in zip(target.prior.names, target.prior.priors) if not p.proper]
+        raise ValueError(f"evidence needs proper priors; improper: {bad}")
+    nc = res.samples.shape[0]
+    seeds = np.random.SeedSequence(seed).generate_state(nc)
+    # Z = int L pi <= max L: a chain whose estimate exceeds it never reached phi*'s mode (its draws
+    # put no proposal density at phi*), so its posterior ordinate is meaningless
+    bound = max(float(res.ll_star), float(np.nanmax(res.ll)) if np.isfinite(res.ll).any() else -math.inf)
+    warnings = []
+    phi_star, lp_star, ll_star = res.phi_star, res.lp_star, float(res.ll_star)
+    n_eval = 0
+    for attempt in range(2):
+        tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
+                  proposal_se_ratio, int(seeds[c]), res.jump) for c in range(nc)]
+        out = map_fn(_cj_chain, tasks, step=Step("cj"))
+        n_eval += sum(j for _, _, j in out)
+        per = [ChainEvidence(lp_star - o, se, o) for o, se, _ in out]
+        valid = [p for p in per if math.isfinite(p.log_evidence) and p.log_evidence <= bound]
+        if valid or attempt == 1 or not np.isfinite(res.lp).any():
+            break
+        # phi* sits where no stationary draw goes: take the best stationary draw instead
+        c, i = np.unravel_index(np.nanargmax(res.lp), res.lp.shape)
+        warnings.append(f"no chain's stationary draws reached phi* (ln post {lp_star:.2f}); the evidence is "
+                        f"taken at the best stationary draw (ln post {res.lp[c, i]:.2f}); burn-in did not settle")
+        phi_star, lp_star, ll_star = res.samples[c, i], float(res.lp[c, i]), float(res.ll[c, i])
+    if len(valid) < nc:
+        bad = [i for i, p in enumerate(per) if p not in valid]
+        warnings.append(f"chains {bad} gave impossible ln evidence estimates (above the largest ln L seen, "
+                        f"{bound:.2f}): they never reached phi*'s mode and were left out")
+    if not valid:
+        raise SamplerError("Chib-Jeliazkov: no chain reached the mode of phi* (every estimate exceeds max ln L); "
+                           "the sampler did not converge")
+    vals = np.array([p.log_evidence for p in valid])
+    per, nc = valid, len(valid)
+    mean = float(vals.mean())
+    se = pooled_se(vals, np.array([p.se for p in per]))
+    if nc > 1:
+        noise = np.array([max(p.se, 1e-3) for p in per])
+        stat = float(np.sum(((vals - mean) / noise) ** 2))
+        if stat > chi2.ppf(0.999, nc - 1) and np.ptp(vals) > 0.5:
+            warnings.append(f"per-chain ln evidence estimates disagree beyond their noise "
+                            f"(spread {np.ptp(vals):.2f} nats: {np.round(vals, 2).tolist()}); "
+                            "chains may sit in different modes")
+    gof = ll_star
+    return Evidence(mean, se, gof, gof - mean, "chib-jeliazkov", per, warnings, n_evaluations=n_eval)
+
+
+CHORD_STEPS = 4
+"""Newton steps :func:`laplace` takes with one finite-difference Hessian before taking it again."""
+BACKTRACKS = 8
+"""Halvings of a Newton step that does not descend before the Hessian is taken afresh."""
+
+
+def _same_scale(a, b) -> bool:
+    """Steps within a factor 2 of each other in every coordinate."""
+    return bool(np.all((a > 0.5 * b) & (a < 2 * b)))
+
+
+def newton(f, x: np.ndarray, h: np.ndarray, iters: int):
+    """Newton steps minimising ``f`` from ``x`` with finite-difference steps ``h``; returns x, h, whether it
+    converged (step < 1e-3 sd) and the last Hessian when it was taken at the returned x's predecessor
+    (else None).
+
+    A Hessian (with its gradient) costs d^2 evaluations and a gradient alone 2 d, so a Hessian is reused
+    for up to ``CHORD_STEPS`` steps (a chord method: near the mode it barely changes) and taken afresh when
+    a step fails to descend or the chord steps do not converge; ``iters`` bounds the Hessians. Far from the
+    mode a step is halved until it descends, and where the Hessian is not positive definite the step
+    uses its eigenvalues' magnitudes (a descent direction; the Hessian is taken afresh after it)."""
+    H = C = None
+    hessians = chords = 0
+    while True:
+        if H is None:
+            if hessians == iters:
+                return x, h, False, None
+            fx, g, H = fd_derivatives(f, x, h)
+            hessians, chords = hessians + 1, 0
+            if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
+                return x, h, False, None  # a step left the posterior's support
+            C, ok = _newton_inverse(H)
+            if C is None:
+                return x, h, False, None
+            sd = np.sqrt(np.diag(C))
+            h_used, h = h, np.where(np.isfinite(sd) & (sd > 0), 0.01 * sd, h)
+        fresh = chords == 0
+        if not fresh:
+            fx = f(x)
+            g = np.array([(f(x + h_used[i] * e) - f(x - h_used[i] * e)) / (2 * h_used[i])
+                          for i, e in enumerate(np.eye(x.size))])
+        step = C @ g
+        descends = f(x - step) <= fx
+        small = ok and np.all(np.abs(step) < 1e-3 * sd)
+        if small:
+            # converged: a step this small may not descend only by the likelihood's rounding noise
+            x = x - step if descends else x
+            # a fresh Hessian a step of < 1e-3 sd away, taken with steps of its own sd's size, is the
+            # mode's (the final one would be the same up to finite-difference error)
+            return x, h, True, (H if fresh and _same_scale(h_used, h) else None)
+        for _ in range(0 if descends else BACKTRACKS):
+            # far from the mode the quadratic model overshoots: halve the step until it descends
+            step = 0.5 * step
+            if f(x - step) <= fx:
+                descends = True
+                break
+        if descends:
+            x = x - step
+            chords += 1
+            if chords >= CHORD_STEPS or not ok:
+                H = None
+        elif fresh and _same_scale(h_used, h):
+            return x, h, False, None
+        else:
+            # an old curvature misled the step, or a fresh one taken with steps far from its own sd's
+            # size (the first, with the caller's steps): take it afresh here
+            H = None
+
+
+def _newton_inverse(H: np.ndarray) -> tuple[np.ndarray | None, bool]:
+    """(H^-1, True) when it is a covariance; else the inverse with H's eigenvalues' magnitudes (a descent
+    direction for a Newton step) and False; (None, False) when H has no usable eigenvalue."""
+    try:
+        C = np.linalg.inv(H)
+        if np.all(np.isfinite(C)) and np.all(np.diag(C) > 0):
+            return C, True
+    except np.linalg.LinAlgError:
+        pass
+    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    if not np.all(np.isfinite(w)) or np.max(np.abs(w)) == 0:
+        return None, False
+    return (V / np.maximum(np.abs(w), 1e-10 * np.max(np.abs(w)))) @ V.T, False
+
+
+def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: int = 4000,
+            polish: int = 3, warm: bool = False) -> tuple[Evidence, np.ndarray, np.ndarray]:
+    """Laplace evidence ln p(d) ~ L(MAP) + d/2 ln 2 pi - 1/2 ln |H| (Appendices A-B).
+
+    With ``warm`` (``x0`` from a neighbouring trial), Newton steps start at ``x0`` and Nelder-Mead runs only
+    when they do not converge.
+
+    Returns
+    -------
+    evidence : Evidence
+    phi_map : ndarray
+    cov : ndarray
+        H^{-1}, the Laplace posterior covariance.
+    """
+    x0 = np.asarray(x0, dtype=float)
+    d = x0.size
+    if scale is None:
+        scale = np.maximum(np.abs(x0) * 0.1, 1e-3)
+    f = lambda v: -target(v).log_posterior  # noqa: E731
+
+    converged, H = False, None
+    if warm:
+        # a warm start is near the mode: Newton from there, Nelder-Mead only if Newton does not converge
+        x, h, converged, H = newton(f, x0.copy(), 1e-3 * scale, polish + 5)
+    if not converged:
+        x, _ = local_mode(target, x0, scale, maxfev)
+        x, h, _, H = newton(f, x, 1e-3 * scale, polish)
+    if H is None:
+        H = fd_hessian(f, x, h)
+    sign, logdet = np.linalg.slogdet(H)
+    lp, ll = target(x)
+    warnings = []
+    if sign <= 0:
+        warnings.append("Hessian at the MAP is not positive definite: Laplace evidence invalid")
+    log_z = lp + 0.5 * d * math.log(2 * math.pi) - 0.5 * logdet
+    ev = Evidence(float(log_z), 0.0, float(ll), float(ll - log_z), "laplace", [], warnings)
+    try:
+        C = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        C = np.full((d, d), np.nan)
+    return ev, x, C

@@ -1,0 +1,152 @@
+"""The evidence at one psi: the posterior target with ARD priors N(0, 1/alpha) (alpha = inf fixes a term to
+0), its chains' starts (cold, or warm from the previous trial), and Chib-Jeliazkov or Laplace."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ardflow.ardcore.evidence.estimators import chib_jeliazkov, laplace
+from ardflow.ardcore.sampling.chains import Map, Step, serial_map
+from ardflow.ardcore.sampling.config import SamplerConfig, SamplerResult
+from ardflow.ardcore.sampling.driver import continuation, continued, sample
+from ardflow.ardcore.sampling.starts import initial_scale
+from ardflow.ardcore.sampling.starts import new_parameter_start
+from ardflow.ardcore.likelihood.posterior import ModelPosterior
+from ardflow.ardcore.model.priors import ARD
+from ardflow.ardcore.sampling.transform import free_coordinates
+
+INF = math.inf
+
+
+def build_target(spec, essential: dict, psi: dict, data, substeps=None) -> ModelPosterior:
+    """The posterior at psi: ARD priors N(0, 1/alpha), alpha = inf fixes the term to 0."""
+    pruned = {k: 0.0 for k, a in psi.items() if a == INF}
+    s = spec.with_fixed(**pruned) if pruned else spec
+    priors = dict(essential)
+    priors.update({k: ARD(alpha=a) for k, a in psi.items() if a != INF})
+    return ModelPosterior(s, priors, data, substeps)
+
+
+class EvidenceEvaluator:
+    """Evidence at a given psi, by Chib-Jeliazkov (sampling) or Laplace."""
+
+    def __init__(self, spec, essential, data, sampler: SamplerConfig, *, method: str = "chib-jeliazkov",
+                 substeps=None, map_fn: Map = serial_map, progress=None, cancel=None,
+                 final_posterior: str = "sample"):
+        self.spec, self.essential, self.data = spec, essential, data
+        self.sampler, self.method, self.substeps = sampler, method, substeps
+        self.map_fn, self.progress, self.cancel = map_fn, progress, cancel
+        # Laplace studies: "sample" draws the final posterior by MCMC, "laplace" takes the Gaussian N(MAP, H^-1)
+        # that the evidence itself assumed (what a screen of many candidates can afford)
+        self.final_posterior = final_posterior
+
+    def config(self, extend: bool) -> SamplerConfig:
+        """The sampler settings of a trial: the judged M draws for a search trial, the full budget for the
+        reported trial's continued chains."""
+        return self.sampler if extend else self.sampler.judged()
+
+    @property
+    def stationary_budget(self) -> int:
+        """Stationary draws per chain the reported trial's chains may continue to (0: Laplace, no chains)."""
+        return 0 if self.method == "laplace" else self.sampler.stationary_budget
+
+    def __call__(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False,
+                 iteration: int | None = None, extend: bool = False):
+        """(target, evidence, sampler result) at ``psi``: chains warm-started from ``warm`` drawing the
+        judged M per chain (:meth:`SamplerConfig.judged`), or with ``extend`` the chains of ``warm``
+        continued to the quality target (:func:`~ardcore.sampling.driver.continuation`)."""
+        target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
+        if self.method == "laplace":
+            x0 = warm_point(target, warm) if warm is not None else self._cold_start(target, seed)
+            ev, xmap, C = laplace(target, x0, initial_scale(target.prior) if warm is None else None,
+                                  warm=warm is not None)
+            res = None
+            if final and self.final_posterior == "laplace":
+                res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
+            elif final:
+                res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn,
+                             starts=_starts_around(xmap, C, self.sampler.n_chains, seed), progress=self.progress,
+                             cancel=self.cancel)
+            else:
+                # draws of N(MAP, H^-1), which the Laplace evidence assumes: the maximiser reweights them for
+                # its line-search steps (only the ARD prior changes) instead of another Newton fit
+                res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
+            return target, ev, res
+        if extend:
+            res = sample(target, self.config(extend), seed=seed, map_fn=self.map_fn, resume=continuation(warm),
+                         progress=self.progress, cancel=self.cancel)
+            res = continued(res, warm)
+        else:
+            res = sample(target, self.config(extend), seed=seed, map_fn=self.map_fn, warm=warm,
+                         progress=self.progress, cancel=self.cancel)
+        ev = chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7,
+                            proposal_se_ratio=self.sampler.proposal_se_ratio, map_fn=self.map_fn)
+        ev.warnings = list(res.warnings) + ev.warnings
+        return target, ev, res
+
+
+    def _cold_start(self, target, seed: int) -> np.ndarray:
+        """Best of local searches from the prior medians and n_chains - 1 dispersed prior points.
+
+        One local search from the medians can stop in a poor local mode of a rugged likelihood;
+        a Laplace evidence taken there would be wrong by many nats.
+        """
+        from ardflow.ardcore.sampling.starts import initial_points
+
+        scale = initial_scale(target.prior)
+        pts = [warm_point(target, None)]
+        pts += list(initial_points(target.prior, max(self.sampler.n_chains - 1, 0), np.random.default_rng(seed)))
+        tasks = [(target, np.asarray(p, dtype=float), scale, self.sampler.start_maxfev) for p in pts]
+        found = self.map_fn(_local_mode_task, tasks, step=Step("start"))
+        return max(found, key=lambda r: r[1])[0]
+
+
+def _local_mode_task(args):
+    from ardflow.ardcore.sampling.starts import local_mode
+
+    target, x0, scale, maxfev = args
+    return local_mode(target, x0, scale, maxfev)
+
+
+def warm_point(target, warm) -> np.ndarray:
+    if warm is None:
+        return np.array([p.quantile(0.5) if p.kind != "ard" else 0.0 for p in target.prior.priors])
+    idx = {n: i for i, n in enumerate(warm.names)}
+    return np.array([warm.phi_star[idx[n]] if n in idx else new_parameter_start(p)
+                     for n, p in zip(target.names, target.prior.priors)])
+
+
+def _starts_around(x, C, n, seed):
+    from ardflow.ardcore.sampling.chains import safe_cholesky
+
+    rng = np.random.default_rng(seed)
+    L = safe_cholesky(C if np.all(np.isfinite(C)) else np.diag(np.maximum(np.abs(x) * 1e-2, 1e-6) ** 2))
+    return np.array([x + 2.0 * L @ rng.standard_normal(x.size) for _ in range(n)])
+
+
+LAPLACE_DRAWS = 4000
+"""Draws of the Laplace posterior a Laplace trial carries (no likelihood evaluations: Gaussian draws)."""
+
+
+def _laplace_state(target, xmap, C, ev, *, draws: int = 0, seed: int = 0) -> SamplerResult:
+    """A SamplerResult carrying the MAP for warm starts of the next Laplace trial; with ``draws``, also
+    that many draws of the Laplace posterior N(MAP, C) as one chain (their lp/ll are not evaluated: NaN)."""
+    from ardflow.ardcore.sampling.chains import ChainState, safe_cholesky
+
+    lp, ll = target(xmap)
+    st = ChainState(0, xmap.tolist(), lp, ll, np.random.PCG64(0).state, xmap.tolist(), lp, ll)
+    d = xmap.size
+    samples = np.zeros((0, 0, d))
+    if draws:
+        L = safe_cholesky(C) if np.all(np.isfinite(C)) else np.zeros((d, d))
+        z = np.random.default_rng(seed).standard_normal((draws, d))
+        samples = (xmap + z @ L.T)[None]
+    nan = np.full(samples.shape[:2], np.nan)
+    # a proposal covariance is in the sampler's unconstrained coordinates (:mod:`.transform`)
+    Cz = free_coordinates(target).cov_to_free(C, xmap) if np.all(np.isfinite(C)) else C
+    return SamplerResult(list(target.names), samples, nan, nan, xmap, lp, ll,
+                         Cz, [st], np.ones(d), [], 0, True, 0.0, 0.0, 0)
+
+

@@ -1,0 +1,441 @@
+"""Closing the loop (docs/method.md section 8): residuals, tests, trace, add, report.
+
+:func:`diagnose` takes a study spec with one candidate model and its data:
+
+1. fits the candidate (ARD evidence maximisation as in any study);
+2. computes the **residuals** at the posterior mean: standardised EKF
+   innovations; the free-run (deterministic simulation) error; and the
+   process noise the filter had to inject, per dynamic state, from an RTS
+   smoother on the model with a small diagnostic noise (its level fitted by
+   maximum likelihood) on every dynamic state;
+3. **tests** them: whiteness (autocorrelation with 95 % bands, Ljung-Box),
+   normality (Jarque-Bera), spectral peaks of the innovations;
+4. **traces** the residual to an effect: every candidate of
+   :mod:`ardcore.effects.base` on every dynamic state (and every measurement effect
+   on every observed channel) is **screened by evidence** (:mod:`ardcore.screening.screen`:
+   a Laplace log Bayes factor from the EKF's own score and information, the
+   model's parameters profiled out, terms normalised, shape parameters such as a
+   free-play width or a forcing frequency profiled); the best few are
+   **confirmed** by the full ARD re-selection: each is added (normalised) under
+   an ARD prior and the candidate re-selected, so ARD decides whether the new
+   term survives;
+5. **reports** the error before and after.
+
+When no candidate survives, the result says so and describes the residual
+structure that remains (spectral peaks, the states that needed noise).
+
+Rooms: the residual tests live in :mod:`ardcore.loop.residual_tests`, the free run and its
+prediction band in :mod:`ardcore.loop.freerun`, the evidence screen in :mod:`ardcore.screening.screen` (its EKF score machinery in :mod:`ardcore.screening.score`),
+the library in :mod:`ardcore.effects.base`, the confirmations (re-selection, halves check, joint
+fit, process pool) in :mod:`ardcore.loop.confirm`, the verdict's words in :mod:`ardcore.loop.verdict`;
+the residuals themselves in :mod:`ardcore.loop.residuals`; this module holds the loop.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from typing import Callable
+
+import numpy as np
+
+from ardflow.ardcore.loop.checks import Added, backward_check, joint_fit, split_stability
+from ardflow.ardcore.loop.confirm import Confirmation, pool_mapper, trace_and_confirm
+from ardflow.ardcore.data import Dataset
+from ardflow.ardcore.effects.base import Effect, with_columns
+from ardflow.ardcore.errors import FitError, SpecError
+from ardflow.ardcore.loop.result import Diagnosis, FittedModel, LoopRound
+from ardflow.ardcore.loop.freerun import posterior_draws, free_run
+from ardflow.ardcore.loop.initial import data_informed_initial
+from ardflow.ardcore.jsonio import is_pruned
+from ardflow.ardcore.loop.config import DiagnoseConfig
+from ardflow.ardcore.model.declaration import ModelSpec
+from ardflow.ardcore.loop.residuals import Residuals, residuals
+from ardflow.ardcore.selection.fit import ModelFit
+from ardflow.ardcore.selection.spec import CandidateSpec, StudySpec
+from ardflow.ardcore.selection.study import run_candidate
+from ardflow.ardcore.loop.verdict import character, unexplained
+
+INF = math.inf
+
+
+# --------------------------------------------------------------------------- fit, free run, loop
+
+
+def fitted_spec(cand: CandidateSpec, row: ModelFit) -> ModelSpec:
+    """The candidate's model with the terms its optimal psi pruned fixed at 0."""
+    spec = cand.model_spec()
+    pruned = {k: 0.0 for k, v in row.psi_opt.items() if is_pruned(v)}
+    return spec.with_fixed(**pruned) if pruned else spec
+
+
+def _fitted(cand: CandidateSpec, row: ModelFit) -> tuple[ModelSpec, dict]:
+    """The candidate's model with pruned terms fixed at 0, and its posterior mean."""
+    spec = fitted_spec(cand, row)
+    return spec, row.point(spec.free_parameters)
+
+
+def _measure(fspec, phi, cand, row, bmr, data, test, col, config, rnd) -> tuple[Residuals, dict, dict]:
+    """The fitted model's residuals on the estimation data, its free run (with a band) on the test record
+    and the errors reported for both."""
+    res = residuals(fspec, phi, data, config, substeps=cand.substeps)
+    fr = free_run(fspec, phi, test, init_samples=config.init_samples, substeps=cand.substeps,
+                  draws=posterior_draws(bmr, fspec, config.band_draws, seed=rnd))
+    return res, fr, _errors(res, fr, row, col)
+
+
+def _errors(res: Residuals, fr: dict, row: ModelFit, col: str) -> dict:
+    t = res.tests[col]
+    keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error",
+            "band_coverage", "band_halfwidth_rms", "draws_rms_error", "n_draws")
+    # the first innovations carry the initial-state uncertainty, not the model's error
+    skip = min(10, max(0, res.raw_innovations.shape[0] // 10))
+    return {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[skip:, 0] ** 2))),
+            # what the model had to be pushed by (smoothed process noise, per unit time), per dynamic state
+            "injected_noise_rms": {s: float(np.sqrt(np.nanmean(r ** 2))) for s, r in res.process_noise_rate.items()},
+            "standardized_rms": t["rms"], "ljung_box": t["ljung_box"], "ljung_box_p": t["ljung_box_p"],
+            "free_run": {k: fr[k] for k in keep if k in fr},
+            "log_evidence": row.log_evidence, "log_evidence_se": row.log_evidence_se}
+
+
+def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None,
+             config: DiagnoseConfig | None = None, progress: Callable[[str], None] | None = None,
+             extra_effects: list[Effect] = (), base: tuple[ModelFit, object] | None = None) -> Diagnosis:
+    """Run the closed loop on the single candidate of ``spec`` (see module docstring).
+
+    Parameters
+    ----------
+    spec : StudySpec
+        Exactly one candidate: the model to diagnose, with its priors (ARD terms allowed).
+    data : Dataset
+        Estimation data.
+    test_data : Dataset, optional
+        Held-out record for the free-run error (default: ``data``).
+    extra_effects : list of Effect
+        Added to the built-in library.
+    base : (ModelFit, MaximiserResult), optional
+        An existing fit of the candidate (skips step 1).
+
+    Returns
+    -------
+    Diagnosis
+        Its ``report`` (``to_json``): ``before``/``after`` residual tests and errors, ``candidates``
+        (ranked), ``confirmed`` (evidence for the top few), ``added`` (the effects kept), ``verdict``
+        (text); the arrays for the figures; the initial and final models (``FittedModel``, for free runs
+        on further held-out records).
+    """
+    config = config or DiagnoseConfig()
+    t_start = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if progress:
+            progress(f"[{time.perf_counter() - t_start:6.0f} s] {msg}")
+
+    if len(spec.models) != 1:
+        raise SpecError(f"diagnose: the spec must have exactly one model (it has {len(spec.models)})")
+    test_data = test_data or data
+    _check_columns(spec.models[0].model_spec(), data, test_data)
+    spec, notes = _informed_start(spec, data, base, say)
+    cand = spec.models[0]
+    say(f"fitting {cand.label} ...")
+    row, bmr = base or run_candidate(cand, data, spec, 0, final_posterior=config.posterior)
+    check_fitted(cand.label, row, data)
+    col = cand.model_spec().observed_columns[0]
+    first = None
+    rounds, arrays = [], {}
+    cur_data, cur_test = data, test_data
+    workers = config.workers or min(os.cpu_count() or 1, max(config.top_k, 2))
+    mapper, close = pool_mapper(workers)
+    try:
+        for rnd in range(config.max_rounds + 1):
+            fspec, phi = _fitted(cand, row)
+            say(f"round {rnd}: {cand.label} ln Z = {row.log_evidence:.3f}; computing residuals")
+            res, fr, err = _measure(fspec, phi, cand, row, bmr, cur_data, cur_test, col, config, rnd)
+            if first is None:
+                initial = FittedModel(fspec, phi, (), cand.substeps)
+                first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
+                         "base_fit": row.summary(_BASE_FIT)}
+                arrays["before"] = _arrays(res, fr)
+            else:
+                arrays["after"] = _arrays(res, fr)
+                rounds[-1].record["after"] = err
+            if rnd == config.max_rounds:
+                break
+            rec, survivors = _trace_round(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
+                                          extra_effects, say, mapper, rnd, _present(rounds))
+            rounds.append(rec)
+            if not survivors:
+                break
+            cand, row, bmr, cur_data = _adopt(spec, cand, row, survivors, fspec, phi, cur_data, config, say, rec)
+            for e in rec.effects:
+                cur_test = with_columns(cur_test, e)
+            earlier = [x for r in rounds[:-1] for x in r.added]
+            cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, earlier, rnd, config, say, mapper)
+        out = _report(spec, data, test_data, first, rounds, arrays, row, notes, cand.label)
+        final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), cand.substeps)
+        simulation = _simulation(final, cur_data, cur_test, config, say, out)
+    finally:
+        close()
+    out["wall_s"] = time.perf_counter() - t_start
+    return Diagnosis(out, arrays, initial, final, simulation)
+
+
+def _simulation(final: FittedModel, data: Dataset, test: Dataset, config: DiagnoseConfig, say,
+                out: dict) -> FittedModel | None:
+    """The final model's simulation fit (:mod:`ardcore.loop.simulation_fit`), its record and free run in ``out``."""
+    from ardflow.ardcore.loop.simulation_fit import simulation_fit
+
+    if not config.simulation_factors:
+        return None
+    say("simulation fit: process-noise factors " + ", ".join(f"{f:g}" for f in config.simulation_factors)
+        + " on held-out data")
+    try:
+        sim = simulation_fit(final.spec, final.phi, data, substeps=final.substeps,
+                             factors=tuple(config.simulation_factors), held_out=config.simulation_held_out,
+                             init_samples=config.init_samples)
+    except (FitError, ValueError, np.linalg.LinAlgError) as e:  # the posterior's own result stands
+        out["simulation"] = {"error": f"{type(e).__name__}: {e}"}
+        return None
+    if sim is None:
+        return None
+    model = FittedModel(final.spec, sim.phi, final.effects, final.substeps)
+    fr = free_run(final.spec, sim.phi, test, init_samples=config.init_samples, substeps=final.substeps)
+    out["simulation"] = {**sim.to_json(), "free_run": {k: fr[k] for k in ("rms_error", "relative_rms_error", "n")}}
+    say(f"simulation fit: factor {sim.factor:g} (held-out free run "
+        + ", ".join(f"x{k:g} {v:.4g}" for k, v in sim.held_out_rms.items())
+        + f"); free-run RMS error {fr['rms_error']:.4g}")
+    return model
+
+
+_BASE_FIT = ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean", "sd")
+
+
+def _informed_start(spec: StudySpec, data: Dataset, base, say) -> tuple[StudySpec, list[str]]:
+    """The spec with its candidate's initial-state prior re-centred on the record where the declared one is
+    far off (not when an existing fit is given), and the notes saying so."""
+    if base is not None:
+        return spec, []
+    cand, notes = data_informed_initial(spec.models[0], data)
+    for n in notes:
+        say(n)
+    return (spec.model_copy(update={"models": [cand]}) if notes else spec), notes
+
+
+def _check_columns(ms: ModelSpec, data: Dataset, test_data: Dataset) -> None:
+    """Before any fit: a free run at the end must not be what finds a missing column."""
+    for what, d in (("data", data), ("held-out data", test_data)):
+        missing = [c for c in list(ms.observed_columns) + list(ms.inputs) if c not in d.columns]
+        if missing:
+            raise SpecError(f"diagnose: the {what} ({d.meta.get('source', 'given')}) has no column "
+                            f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
+
+
+def check_fitted(label: str, row: ModelFit, data: Dataset) -> None:
+    """The loop starts from a fit with a finite evidence and a posterior that moved; without them every
+    residual, score and comparison is NaN or meaningless."""
+    if math.isfinite(row.log_evidence):
+        why = row.degenerate()
+        if why is not None:
+            raise FitError(f"diagnose: {why}")
+        return
+    big = max((float(np.nanmax(np.abs(v))) for v in data.columns.values() if np.any(np.isfinite(v))), default=0.0)
+    raise FitError(f"diagnose: {label} has no finite evidence on these data (ln Z = {row.log_evidence}): its "
+                   f"likelihood is not finite anywhere the fit reached. Check the data (largest |value| "
+                   f"{big:.3g}) against the model's priors, initial state and noise levels")
+
+
+def _no_worse(survivors: list, fspec, phi, cand, data: Dataset, config, say) -> list:
+    """The survivors whose model is a result: its fit not degenerate (:meth:`ModelFit.degenerate`) and its
+    free run on the estimation record bounded and no worse than the current model's. The evidence judges
+    one-step predictions; an effect that improves them while the simulated response drifts off (or
+    diverges) would make the model worse where it is used. The others are marked and say why."""
+    if not survivors:
+        return survivors
+    before = free_run(fspec, phi, data, init_samples=config.init_samples, substeps=cand.substeps)["rms_error"]
+    kept = []
+    for c in survivors:
+        why = worse_than_before(c.fit, before, config)
+        if why is None:
+            kept.append(c)
+            continue
+        c.survives, c.rejected = False, why
+        say(f"  {c.effect}: not added: {why}")
+    return kept
+
+
+def _free_run_rms(fit, config) -> float:
+    """RMS error of the free run of ``fit``'s model (posterior mean) on its estimation record."""
+    fs, ph = _fitted(fit.cand, fit.row)
+    return free_run(fs, ph, fit.data, init_samples=config.init_samples, substeps=fit.cand.substeps)["rms_error"]
+
+
+def worse_than_before(fit, before: float, config) -> str | None:
+    """Why the model of ``fit`` (a re-selection with an effect) is no improvement on one whose free run on
+    the estimation record has RMS error ``before``, or None."""
+    why = fit.row.degenerate()
+    if why is not None:
+        return why
+    try:
+        after = _free_run_rms(fit, config)
+    except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        return f"its free run failed ({type(exc).__name__})"
+    if math.isfinite(after) and after <= before * (1 + 1e-9):
+        return None
+    return (f"its free run on the estimation record {'diverges' if not math.isfinite(after) else 'is worse'} "
+            f"(RMS error {before:.4g} -> {after:.4g})")
+
+
+def _present(rounds: list[LoopRound]) -> set:
+    """(library name, target) of the effects the model holds: not screened again (a second saturating flow
+    beside the first, its width already fitted, is a basis expansion, not an effect)."""
+    return {x.key for r in rounds for x in r.added if not x.record.get("removed")}
+
+
+def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper,
+                 rnd: int, present: set = frozenset()) -> tuple[LoopRound, list]:
+    """One round's trace: screen, confirm, check the survivors' stability; the round's record and survivors
+    (best first). With none, the record carries the verdict on what remains."""
+    ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
+                                          extra_effects, say, mapper, present)
+    survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
+    survivors = _no_worse(survivors, fspec, phi, cand, data, config, say)
+    noise = [c for c in survivors if c.fitted_effect.where == "noise"
+             and any(abs(c.fit.row.mean.get(n, 0.0)) > math.log(2) for n in c.scales)]
+    deferred = [c for c in survivors if c not in noise] if noise else []
+    if deferred:
+        # a noise level off by more than 2x changed what every dynamic candidate was screened and confirmed
+        # against (a filter that takes the misfit for process noise): the noise goes in alone, the others
+        # are screened again under it next round (a cubic and a sine stiffness tie until then)
+        say("the measurement noise changes by more than 2x: " + ", ".join(c.effect for c in deferred)
+            + " screened again under it next round")
+        survivors = noise
+    if config.split_z is not None:
+        for c in survivors:
+            if c.fitted_effect.where == "noise":
+                continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
+            c.stability = split_stability(spec, c, config, say, mapper)
+            c.survives = c.stability["stable"]
+            if c.survives and not config.joint:
+                break  # the best stable one is added
+        survivors = [c for c in survivors if (c.stability or {}).get("stable", True) and c.survives]
+    # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
+    tried = {(c.screened.effect.name, c.target) for c in confirmed}
+    order = sorted(confirmed, key=lambda c: (not c.survives, -c.log_bayes_factor))
+    ranking = [{"effect": c.effect, "target": c.target, "log_bayes_factor": c.log_bayes_factor,
+                "survives": c.survives} for c in order]
+    ranking += [{"effect": c.effect.name, "target": c.target, "score": c.log_bayes_factor,
+                 "screened_log_bayes_factor": c.log_bayes_factor} for c in ranked
+                if (c.effect.name, c.target) not in tried]
+    candidates, confirmations = [c.to_json() for c in ranked], [c.to_json() for c in confirmed]
+    rec = {"round": rnd, "model": cand.label, "ranking": ranking, "deferred": [c.effect for c in deferred],
+           "candidates": candidates, "confirmed": confirmations, "added": None}
+    if not survivors:
+        rec["verdict"] = unexplained(res, candidates, confirmations, col, config)
+    return LoopRound(rec), survivors
+
+
+def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rnd: LoopRound) -> tuple:
+    """Add the best survivor (or the survivors fitted together, when that is worth more); record what was
+    added in ``rnd``. Returns the new candidate, its row, its maximiser result and the augmented data."""
+    best: Confirmation = survivors[0]
+    chosen, fit = [best], best.fit
+    if config.joint and len(survivors) > 1:
+        # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
+        # others make redundant; taken when it beats the best single effect by more than min_log_bf
+        j = joint_fit(spec, cand, row, survivors, data, config, say)
+        if j.row.log_evidence > best.log_evidence + config.min_log_bf:
+            why = worse_than_before(j, _free_run_rms(best.fit, config), config)  # together they must free-run no worse than the best alone
+            if why is None:
+                chosen, fit = survivors, j
+            else:
+                say(f"  the survivors together: not taken: {why}")
+    jrow = fit.row
+    recs = []
+    for c in chosen:
+        eff = c.fitted_effect
+        post = {n: jrow.physical(n, c.scales[n]) for n in c.scales if n in jrow.mean}
+        shape = {n: jrow.physical(n, 1.0) for n in c.shape_prior if n in jrow.mean}
+        recs.append({"effect": c.effect, "kind": eff.kind, "target": c.target, "terms": list(eff.terms),
+                     "posterior": post, "shape": shape, "log_bayes_factor": c.log_bayes_factor,
+                     "character": character(fspec, phi, eff, {"posterior": post, "target": c.target})})
+    rec = rnd.record
+    rec["added"], rec["added_with"] = recs[0], recs[1:]
+    rnd.effects = [c.fitted_effect for c in chosen]
+    # what each must keep earning beside later effects: its threshold and coloured-innovation factor
+    rnd.added = [Added(a, rec["round"], list(c.scales), c.threshold, c.inflation, (c.fitted_effect.name, c.target))
+                 for a, c in zip(recs, chosen)]
+    say(f"round {rec['round']}: added " + ", ".join(f"{r['effect']} to {r['target']} "
+                                                   f"(ln BF {r['log_bayes_factor']:.1f})" for r in recs)
+        + (f"; together ln BF {jrow.log_evidence - row.log_evidence:.1f}" if len(recs) > 1 else ""))
+    return fit
+
+
+def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, notes, final_model: str) -> dict:
+    """The loop's JSON report: before/after, the rounds, what was added and removed, the verdict."""
+    records = [x.record for r in rounds for x in r.added]
+    rounds = [r.record for r in rounds]
+    added = [a for a in records if not a.get("removed")]
+    removed = [a for a in records if a.get("removed")]
+    out = {"model": spec.models[0].label, "final_model": final_model,
+           "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
+           "rounds": rounds,
+           "candidates": rounds[0]["candidates"] if rounds else [],
+           "confirmed": rounds[0]["confirmed"] if rounds else [],
+           "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
+           "removed": removed, "initial_state": notes, "tests_after": None,
+           "final_fit": row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
+    if not added:
+        out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
+        return out
+    a, b = out["after"], out["before"]
+    out["tests_after"] = _strip(arrays["after"]["tests"])
+    out["parameter_shifts"] = shifts = parameter_shifts(first["base_fit"], row)
+    out["verdict"] = ("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
+                                                 f"{x['log_bayes_factor']:.1f}"
+                                                 + (f", {x['character']}" if x.get("character") else "") + ")"
+                                                 for x in added)
+                      + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
+                      f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
+                      f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
+                      + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
+                                f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
+                      + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "
+                                f"absorbed part of what was missing" for k, v in shifts.items())
+                      + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
+    return out
+
+
+SHIFT_Z = 3.0
+"""A declared parameter that moves by more than this many posterior sd once the effects are in is reported."""
+
+
+def parameter_shifts(before: dict, after: ModelFit) -> dict:
+    """The model's own parameters that moved by more than ``SHIFT_Z`` posterior sd (the larger of the two fits')
+    between the first fit and the final one: before the effects were added they stood in for them (a
+    stiffness that took up part of a free-play), which a user reading the first fit alone would not know."""
+    out = {}
+    for k, m0 in before["mean"].items():
+        if k not in after.mean:
+            continue
+        sd = max(float(before["sd"].get(k, 0.0)), float(after.sd.get(k, 0.0)))
+        if sd > 0 and abs(after.mean[k] - m0) > SHIFT_Z * sd:
+            out[k] = {"before": float(m0), "after": float(after.mean[k]), "z": abs(after.mean[k] - m0) / sd}
+    return out
+
+
+def _strip(tests: dict) -> dict:
+    """JSON part of the tests (the spectrum arrays go to the figures)."""
+    out = {}
+    for c, t in tests.items():
+        d = {k: v for k, v in t.items() if k not in ("spectrum", "acf")}
+        d["acf"] = [float(x) for x in t["acf"]]
+        d["spectral_peaks"] = t["spectrum"]["peaks"]
+        out[c] = d
+    return out
+
+
+def _arrays(res: Residuals, fr: dict) -> dict:
+    return {"tests": res.tests, "innovations": res.innovations, "process_noise_rate": res.process_noise_rate,
+            "free_run": fr}
+

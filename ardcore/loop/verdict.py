@@ -1,0 +1,107 @@
+"""What the closed loop says about a model: the character of an added term and the verdict when nothing is
+added (used by :func:`ardcore.loop.diagnose.diagnose`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import sympy as sp
+
+from ardflow.ardcore.effects.base import Effect, oscillator_pairs
+from ardflow.ardcore.model.declaration import ModelSpec
+
+
+_ODD = ("cubic_stiffness", "quintic_stiffness", "saturation", "sine_stiffness")
+
+
+def character(spec: ModelSpec, phi: dict, eff: Effect, best: dict) -> str | None:
+    """'hardening' or 'softening' for an odd stiffness term (its sign against the linear restoring slope),
+    stiffer or softer beyond the gap for a one-sided contact; even and asymmetric terms (x^2, x|x|, x^4) make
+    the stiffness differ between the two sides instead."""
+    if eff.kind != "stiffness" or len(eff.terms) != 1 or not best["posterior"]:
+        return None
+    contact = eff.name.startswith("contact_")
+    if not eff.name.startswith(_ODD) and not contact:
+        return "asymmetric (stiffer on one side)"
+    pairs = oscillator_pairs(spec)
+    if not pairs:
+        return None
+    x, v = pairs[0]
+    sm = spec.sym
+    i = spec.states.index(best["target"])
+    xs = sp.Symbol(x, real=True)
+    slope = sp.diff(sm.drift[i], xs).subs({p: phi[str(p)] for p in sm.params})
+    slope = slope.subs({s: 0 for s in sm.states}).subs({u: 0 for u in sm.inputs})
+    try:
+        slope = float(slope)
+    except TypeError:
+        return None
+    coef = next(iter(best["posterior"].values()))["mean"]
+    if slope == 0 or coef == 0:
+        return None
+    same = np.sign(coef) == np.sign(slope)
+    if contact:  # its term rises with slope 1 beyond the gap on either side: the coefficient adds to the slope
+        return "a stop: stiffer beyond the gap" if same else "softer beyond the gap"
+    return "hardening" if same else "softening"
+
+
+def unexplained(res, ranked: list, confirmed: list, col: str, config) -> str:
+    t = res.tests[col]
+    white = t["ljung_box_p"] > 0.01
+    parts = []
+    if white and not t["spectrum"]["peaks"]:
+        parts.append("the innovations are white (Ljung-Box p = %.3g) with no spectral peak: "
+                     "no evidence of a missing effect" % t["ljung_box_p"])
+    else:
+        screened_out = ranked and not any(c["log_bayes_factor"] > config.min_score for c in ranked)
+        # every confirmed candidate rejected by the full evidence (not merely unstable): the same conclusion
+        rejected = confirmed and not any(c.get("survives") or c.get("stability") for c in confirmed)
+        if screened_out or rejected:
+            # the conclusion first: a right model with coloured noise and a missed effect must not read alike
+            parts.append("no effect of the library is supported by the evidence, so the model is adequate as far "
+                         "as the library can tell; the correlation left in the innovations is NOT explained by any "
+                         "effect in the library (it lies outside the library or in the noise model)")
+        else:
+            parts.append("the residual is NOT explained by any effect in the library")
+        parts.append("Ljung-Box Q = %.1f (p = %.2g)" % (t["ljung_box"], t["ljung_box_p"]))
+        if t["spectrum"]["peaks"]:
+            parts.append("innovation spectral peaks at " + ", ".join(
+                "%.4g%s" % (p["f"], f" (harmonic {p['harmonic']})" if p.get("harmonic") else "")
+                for p in t["spectrum"]["peaks"][:5]))
+        var = {s: float(np.nanvar(r)) for s, r in res.process_noise_rate.items()}
+        if var:
+            parts.append("injected process noise per state (variance of rate): " + ", ".join(
+                f"{s} {v:.3g}" for s, v in var.items()))
+        share = injected_share(res)
+        if share:
+            parts.append("the noise the filter injects is " + ", ".join(
+                f"{100 * v:.2g} % of the rms rate of change of {s}" for s, v in share.items())
+                + ("" if max(share.values()) > 0.1 else
+                   " (small: the model's dynamics carry the data; what remains is small or outside the dynamics, "
+                   "e.g. coloured measurement noise)"))
+    unstable = [c for c in confirmed if c.get("stability") and not c["stability"]["stable"]]
+    if unstable:
+        parts.append("supported by evidence but NOT stable between the two halves of the record (a term "
+                     "compensating for something that changes over time, not the missing effect): " + ", ".join(
+                         f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f}, z = "
+                         f"{max(c['stability']['z'].values()):.1f})" for c in unstable))
+    rest = [c for c in confirmed if c not in unstable]
+    if rest:
+        parts.append("tested by evidence and rejected: " + ", ".join(
+            f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f})" for c in rest))
+    elif ranked and not confirmed:
+        parts.append(f"no candidate's screened ln Bayes factor reaches {config.min_score:g} (best: "
+                     f"{ranked[0]['effect']} on {ranked[0]['target']}, {ranked[0]['log_bayes_factor']:.1f})")
+    return "; ".join(parts)
+
+
+def injected_share(res) -> dict:
+    """rms of the injected noise rate / rms rate of change of each dynamic state (how much the filter had to push)."""
+    out = {}
+    for s, r in res.process_noise_rate.items():
+        if s not in res.states:
+            continue
+        rate = np.diff(res.smoothed[:, res.states.index(s)]) / res.dt
+        d = float(np.sqrt(np.nanmean((rate - np.nanmean(rate)) ** 2)))
+        if d > 0 and np.isfinite(d):
+            out[s] = float(np.sqrt(np.nanmean(r ** 2))) / d
+    return out

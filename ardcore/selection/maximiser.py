@@ -1,0 +1,393 @@
+"""ARD evidence maximisation over psi = {alpha_i} (docs/method.md section 6).
+
+Start at alpha_i = ``alpha_start`` (nearly flat). Visit the ARD parameters from the last
+declared to the first (the most complex term first, see ``MaximiserConfig.order``). For
+each, a line search in log10 alpha: step up by ``step_decades`` while the evidence improves
+by more than ``step_noise_k`` times the standard error of the difference, then try half steps
+down to ``min_step_decades``. When a coordinate stops improving (or alpha passes its pruning
+threshold), test the nested model without the term (alpha = inf): unless the term is worth
+more than ``keep_nats`` plus the noise, it is pruned (fixed to 0) and the maximisation
+continues over the rest. Later sweeps also step down and re-test pruned terms; sweeps repeat
+until one changes nothing. Each trial warm-starts from the best state so far. Every trial is
+recorded in the history.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ardflow.ardcore.selection.config import MaximiserConfig
+from ardflow.ardcore.evidence.evaluate import (
+    EvidenceEvaluator,
+)
+from ardflow.ardcore.evidence.estimators import Evidence
+from ardflow.ardcore.jsonio import encode_alpha
+from ardflow.ardcore.sampling.config import SamplerResult
+from ardflow.ardcore.likelihood.posterior import ModelPosterior
+from ardflow.ardcore.evidence.reweight import resample_states, reweight, weighted_summary
+from ardflow.ardcore.sampling.transform import free_coordinates
+
+INF = math.inf
+
+
+@dataclass
+class Trial:
+    """One evidence evaluation during maximisation."""
+
+    iteration: int
+    psi: dict
+    evidence: Evidence
+    accepted: bool
+    action: str
+    wall_s: float
+    posterior: dict
+    diagnostics: dict
+    reweighted_from: int | None = None
+    """Iteration of the sampled trial whose draws were reweighted (None: this trial was sampled)."""
+    reweight_se: float = 0.0
+    """Monte Carlo se of the reweighting alone (the difference to its base trial has only this error)."""
+
+    @property
+    def sampled(self) -> bool:
+        return self.reweighted_from is None
+
+    def to_dict(self) -> dict:
+        return {
+            "iteration": self.iteration,
+            "psi": {k: encode_alpha(v) for k, v in self.psi.items()},
+            **self.evidence.to_dict(), "accepted": self.accepted, "action": self.action,
+            "wall_s": self.wall_s, "posterior": self.posterior, "diagnostics": self.diagnostics,
+            "sampled": self.sampled, "reweighted_from": self.reweighted_from, "reweight_se": self.reweight_se,
+        }
+
+
+@dataclass
+class MaximiserResult:
+    psi_opt: dict
+    best: Trial
+    sampler: SamplerResult | None
+    target: ModelPosterior
+    history: list = field(default_factory=list)
+
+    @property
+    def kept(self) -> list:
+        return [k for k, v in self.psi_opt.items() if v != INF]
+
+    @property
+    def pruned(self) -> list:
+        return [k for k, v in self.psi_opt.items() if v == INF]
+
+
+def posterior_summary(names, samples: np.ndarray) -> dict:
+    """mean, sd and 0.5 / 99.5 % quantiles per parameter of pooled samples (n, d)."""
+    q = np.quantile(samples, [0.005, 0.995], axis=0)
+    return {n: {"mean": float(samples[:, i].mean()), "sd": float(samples[:, i].std(ddof=1)),
+                "q005": float(q[0, i]), "q995": float(q[1, i])} for i, n in enumerate(names)}
+
+
+def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: MaximiserConfig, *,
+             seed: int, on_trial: Callable[[Trial], None] | None = None,
+             warm: SamplerResult | None = None) -> MaximiserResult:
+    """Maximise the evidence over the ARD hyper-parameters: :class:`Maximiser` driven by ``evaluate``.
+
+    Parameters
+    ----------
+    evaluate : EvidenceEvaluator
+    ard : dict
+        ARD parameter -> its pruning threshold (None: ``config.prune_alpha``).
+    config : MaximiserConfig
+    seed : int
+    on_trial : callable, optional
+        Called with every :class:`Trial` as soon as it is done.
+    warm : SamplerResult, optional
+        Warm start of the first trial (e.g. the fit of a nested model; parameters it lacks start at 0).
+    """
+    # an evaluator without chains to continue (a closed-form evidence) has no budget: nothing is continued
+    m = Maximiser(ard, config, seed=seed, warm=warm, on_trial=on_trial,
+                  budget=getattr(evaluate, "stationary_budget", 0))
+    while (req := m.next()) is not None:
+        t0 = time.perf_counter()
+        more = {"extend": True} if req.extend else {}
+        target, ev, res = evaluate(req.psi, req.seed, req.warm, iteration=req.iteration, **more)
+        m.observe(req, target, ev, res, time.perf_counter() - t0)
+    return m.result()
+
+
+@dataclass(frozen=True)
+class TrialRequest:
+    """What the maximiser asks for next: the evidence at ``psi`` by sampling (MCMC + Chib-Jeliazkov or
+    Laplace), its chains warm-started from ``warm``; with ``extend``, the chains of ``warm`` (sampled at
+    ``psi``) continued to the sampler's quality target instead (:func:`~ardcore.sampling.driver.continuation`)."""
+
+    iteration: int
+    psi: dict
+    warm: SamplerResult | None
+    action: str
+    seed: int
+    extend: bool = False
+
+
+def _diff_se(a: Trial, b: Trial) -> float:
+    """se of ln Z(a) - ln Z(b): a reweighted trial shares its base's estimate, so only the reweighting's own
+    error separates them."""
+    if a.reweighted_from is not None and a.reweighted_from == b.iteration:
+        return a.reweight_se
+    if b.reweighted_from is not None and b.reweighted_from == a.iteration:
+        return b.reweight_se
+    if a.reweighted_from is not None and a.reweighted_from == b.reweighted_from:
+        return math.hypot(a.reweight_se, b.reweight_se)
+    return math.hypot(a.evidence.log_evidence_se, b.evidence.log_evidence_se)
+
+
+class Maximiser:
+    """The ARD evidence maximisation (module docstring) as a sans-IO state machine.
+
+    :meth:`next` returns the next :class:`TrialRequest` (None when done); the caller evaluates it and
+    hands the outcome to :meth:`observe`. Reweighted steps need no likelihood and are decided inside.
+    Internally the plan is a generator: each place that needs a sampled trial yields its request.
+    """
+
+    def __init__(self, ard: dict[str, float | None], config: MaximiserConfig, *, seed: int,
+                 warm: SamplerResult | None = None, on_trial: Callable[[Trial], None] | None = None,
+                 budget: int = 0):
+        self.config, self.seed, self.on_trial, self._warm = config, seed, on_trial, warm
+        self.budget = budget  # stationary draws per chain the reported trial's chains may continue to
+        self.psi = {k: config.alpha_start for k in ard}
+        self.thresholds = {k: (v if v is not None else config.prune_alpha) for k, v in ard.items()}
+        self.visit = list(ard)[::-1] if config.order == "reverse" else list(ard)
+        self.history: list[Trial] = []
+        self.n_sampled = 0  # what max_trials limits
+        self._iteration = 0  # ids of sampled and reweighted trials
+        self.best: Trial | None = None
+        self.best_target = self.best_res = None
+        self.base = None  # (trial, result): the sampled trial whose draws reweighted trials come from
+        self.settled: dict[str, dict] = {}  # psi at which a coordinate's search last ended
+        self.pruned_at: dict[str, float] = {}  # the finite alpha a term had when it was pruned
+        self._plan_gen = self._plan()
+        self._reply = None
+        self._started = False
+
+    # -- the interface
+    def next(self) -> TrialRequest | None:
+        """The next trial to sample, or None when the maximisation is over."""
+        try:
+            if not self._started:
+                self._started = True
+                return next(self._plan_gen)
+            reply, self._reply = self._reply, None
+            return self._plan_gen.send(reply)
+        except StopIteration:
+            return None
+
+    def observe(self, request: TrialRequest, target, evidence: Evidence, res: SamplerResult | None,
+                wall_s: float) -> Trial:
+        """Record the outcome of ``request``."""
+        post, diag = {}, {}
+        if res is not None and res.samples.size:
+            post = posterior_summary(res.names, res.samples.reshape(-1, len(res.names)))
+            diag = {"rhat": dict(zip(res.names, map(float, res.rhat))), "burnin_rounds": res.burnin_rounds,
+                    "converged": res.converged, "acceptance": res.acceptance,
+                    "burnin_acceptance": res.burnin_acceptance,
+                    # every likelihood evaluation of the trial: start, burn-in, stationary draws, CJ proposals
+                    "n_evaluations": int(res.n_evaluations) + int(evidence.n_evaluations)}
+        if res is not None:
+            post.setdefault("_map", dict(zip(res.names, map(float, res.phi_star))))
+        tr = Trial(request.iteration, dict(request.psi), evidence, False, request.action, wall_s, post, diag)
+        self.history.append(tr)
+        self._reply = (tr, target, res)
+        return tr
+
+    def result(self) -> MaximiserResult:
+        return MaximiserResult(self.psi, self.best, self.best_res, self.best_target, self.history)
+
+    # -- the plan
+    def _plan(self):
+        cfg = self.config
+        tr, target, res = yield from self._sample(self.psi, self._warm, "start")
+        tr.accepted = True
+        self.best, self.best_target, self.best_res = tr, target, res
+        self.base = (tr, res)
+        self._notify(tr)
+        changed, sweeps = True, 0
+        while changed and self.n_sampled < cfg.max_trials and sweeps < cfg.max_sweeps:
+            changed = False
+            sweeps += 1
+            for k in self.visit:
+                changed = (yield from self._coordinate(k, sweeps)) or changed
+        yield from self._settle()
+        yield from self._refine()
+
+    def _coordinate(self, k: str, sweeps: int):
+        """One coordinate of a sweep: re-test it if pruned, else its line search and prune test."""
+        cfg, changed = self.config, False
+        if self.psi[k] == INF and sweeps > 1 and k in self.pruned_at and self.settled.get(k) != self.psi \
+                and self.n_sampled < cfg.max_trials:
+            changed = yield from self._retest(k)
+        if self.psi[k] == INF or self.settled.get(k) == self.psi:
+            self.settled[k] = dict(self.psi)
+            return changed
+        changed = (yield from self._line_search(k, sweeps)) or changed
+        if cfg.prune_test and self.n_sampled < cfg.max_trials:
+            changed = (yield from self._prune_test(k)) or changed
+        self.settled[k] = dict(self.psi)
+        return changed
+
+    def _line_search(self, k: str, sweeps: int):
+        """Up first (toward the simpler model); in later sweeps, when up does not pay, down: a term the other
+        terms' changes made more useful may have been shrunk too far. True when alpha moved."""
+        cfg, moved = self.config, False
+        for direction in ((1,) if sweeps == 1 else (1, -1)):
+            stp = cfg.step_decades
+            while stp >= cfg.min_step_decades - 1e-12 and self.n_sampled < cfg.max_trials:
+                a = self.psi[k] * 10.0 ** (direction * stp)
+                if a >= self.thresholds[k] or a < cfg.alpha_start * (1 - 1e-9):
+                    break
+                out = yield from self._step(k, stp, direction)
+                if out is None:
+                    break  # a reweighted smaller step was worse: so is this one
+                tr, target, res = out
+                if self._better(tr, self.best, cfg.step_noise_k):
+                    self._accept(tr, target, res)
+                    moved = True
+                else:
+                    stp /= 2.0
+                self._notify(tr)
+            if moved:
+                break
+        return moved
+
+    def _step(self, k: str, stp: float, direction: int):
+        """One line-search step of ``stp`` decades: (trial, target, state), or None when the step is known to
+        be worse without sampling it.
+
+        Reweighted when that is reliable. When it is not, smaller steps in the same direction are
+        reweighted (down to ``reweight_min_step`` decades): ln Z is unimodal in log alpha, so a reliable
+        smaller step that is worse means the full step is worse too (None), and one that is better is
+        taken instead. Only when no smaller step can be reweighted is the step sampled, its chains
+        starting at draws resampled with the weights.
+        """
+        cfg = self.config
+        a = self.psi[k] * 10.0 ** (direction * stp)
+        tr, state = self._reweighted(dict(self.psi, **{k: a}), self._label(k, a))
+        if tr is not None:
+            return tr, None, state
+        rw = state
+        sub = stp / 2.0
+        while sub >= cfg.reweight_min_step - 1e-12:
+            b = self.psi[k] * 10.0 ** (direction * sub)
+            t2, st2 = self._reweighted(dict(self.psi, **{k: b}), self._label(k, b))
+            if t2 is not None:
+                if self._better(t2, self.best, cfg.step_noise_k):
+                    return t2, None, st2
+                self._notify(t2)
+                return None
+            sub /= 2.0
+        bres = self.base[1]
+        # resampled starts need distinct draws to resample: with a few heavy weights the chains would all
+        # start at one point, so then they continue from where the best trial's chains are
+        spread = rw is not None and rw.ess >= 10 * len(bres.states)
+        warm = (resample_states(bres, rw.weights, self.seed + 1009 * self._iteration,
+                                free_coordinates(self.best_target, bres.names)) if spread else self.best_res)
+        return (yield from self._sample(dict(self.psi, **{k: a}), warm, self._label(k, a)))
+
+    def _prune_test(self, k: str):
+        """Occam: the nested model (alpha = inf) wins unless the term is worth more than the noise."""
+        tr, target, res = yield from self._sample(dict(self.psi, **{k: INF}), self.best_res,
+                                                  f"{k}: prune test (alpha = inf)")
+        pruned = not self._better(self.best, tr, margin=self.config.keep_nats)
+        if pruned:
+            self.pruned_at[k] = self.psi[k]
+            self._accept(tr, target, res)
+        self._notify(tr)
+        return pruned
+
+    def _retest(self, k: str):
+        """The other terms have moved since k was pruned: does k come back? (The prune test that follows
+        applies keep_nats.)"""
+        a = self.pruned_at[k]
+        tr, target, res = yield from self._sample(dict(self.psi, **{k: a}), self.best_res,
+                                                  f"{k}: re-test (alpha = {a:.3g})")
+        back = self._better(tr, self.best)
+        if back:
+            self._accept(tr, target, res)
+            del self.pruned_at[k]
+        self._notify(tr)
+        return back
+
+    def _settle(self):
+        """The accepted optimum is sampled (never left as a reweighted estimate). A prune test in between
+        compares its sampled alpha = inf trial with the reweighted estimate, whose se carries both the base
+        trial's and the reweighting's error."""
+        if self.best.sampled:
+            return
+        tr, target, res = yield from self._sample(dict(self.psi), self.best_res,
+                                                  "optimum: sampled at the line-search optimum")
+        self._accept(tr, target, res)
+        self._notify(tr)
+
+    def _refine(self):
+        """The search trials' draws are judged, not continued (:meth:`SamplerConfig.judged`): the reported
+        posterior is the optimum's chains continued to the quality target, and its evidence is taken again
+        from all their draws. (Not counted against ``max_trials``: it is the same trial, drawn longer.)"""
+        res = self.best_res
+        if (res is None or res.quality_met or not res.samples.size or res.adaptation is None
+                or res.samples.shape[1] >= self.budget):
+            return
+        tr, target, res = yield from self._sample(dict(self.psi), res, "optimum: chains continued to the quality "
+                                                  "target", extend=True)
+        self._accept(tr, target, res)
+        self._notify(tr)
+
+    # -- helpers
+    def _sample(self, psi: dict, warm, action: str, extend: bool = False):
+        it = self._iteration
+        self._iteration += 1
+        self.n_sampled += not extend
+        return (yield TrialRequest(it, dict(psi), warm, action, self.seed + 1009 * it, extend))
+
+    def _reweighted(self, trial_psi: dict, action: str):
+        """(trial, warm state) reweighted from the base trial's draws, or (None, weights or None) when that is
+        not reliable (or does not apply)."""
+        cfg = self.config
+        btr, bres = self.base
+        if not cfg.reweight or bres is None or not bres.samples.size:
+            return None, None
+        rw = reweight(bres.names, bres.samples, btr.psi, trial_psi)
+        if rw is None or not rw.reliable(cfg.reweight_min_ess, cfg.reweight_max_se):
+            return None, rw
+        it = self._iteration
+        self._iteration += 1
+        be = btr.evidence
+        lz = be.log_evidence + rw.log_ratio
+        ev = Evidence(lz, math.hypot(be.log_evidence_se, rw.se), be.goodness_of_fit, be.goodness_of_fit - lz,
+                      "reweighted", warnings=[])
+        tr = Trial(it, dict(trial_psi), ev, False, action + " (reweighted)", 0.0,
+                   weighted_summary(bres.names, bres.samples, rw.weights),
+                   {"ess": rw.ess, "n_draws": rw.n, "n_evaluations": 0}, reweighted_from=btr.iteration,
+                   reweight_se=rw.se)
+        self.history.append(tr)
+        return tr, resample_states(bres, rw.weights, self.seed + 1009 * it,
+                                   free_coordinates(self.best_target, bres.names))
+
+    def _label(self, k: str, a: float) -> str:
+        return f"{k}: log10 alpha {math.log10(self.psi[k]):.2f} -> {math.log10(a):.2f}"
+
+    def _better(self, tr: Trial, ref: Trial, k: float | None = None, margin: float = 0.0) -> bool:
+        k = self.config.noise_k if k is None else k
+        return (tr.evidence.log_evidence - ref.evidence.log_evidence
+                > max(k * _diff_se(tr, ref), self.config.min_gain) + margin)
+
+    def _accept(self, tr: Trial, target, res) -> None:
+        tr.accepted = True
+        self.best, self.best_target, self.best_res, self.psi = tr, target, res, dict(tr.psi)
+        if tr.sampled:
+            self.base = (tr, res)
+
+    def _notify(self, tr: Trial) -> None:
+        if self.on_trial:
+            self.on_trial(tr)

@@ -1,0 +1,232 @@
+"""A study as data: where the data come from, the candidate models with their priors and ARD terms, the
+sampler and maximiser settings (pydantic, strict: no extra fields, no NaN or infinity, bounded sizes)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal, Optional, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from ardflow.ardcore.selection.config import MaximiserConfig
+from ardflow.ardcore.data import DATA_ENV, Dataset, external_path, read_dataset
+from ardflow.ardcore.errors import DataError, SpecError
+from ardflow.ardcore.model.library import builtin
+from ardflow.ardcore.sampling.config import SamplerConfig
+from ardflow.ardcore.model.declaration import NAME_PATTERN, ModelSpec
+from ardflow.ardcore.model.priors import PriorSpec
+
+_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
+Name = Annotated[str, Field(pattern=NAME_PATTERN)]
+
+
+class DataSpec(BaseModel):
+    """Where the data come from: a file, or a documented generator."""
+
+    model_config = _STRICT
+    path: Optional[str] = Field(None, max_length=4096, description="CSV, NPZ or MAT file")
+    dataset: Optional[str] = Field(None, pattern=r"^[a-f0-9]{16}$",
+                                   description="id of a data set uploaded to the service (REST API)")
+    generator: Optional[Literal["reference", "appendix_a"]] = Field(
+        None, description="'reference': the paper's LCO data set; 'appendix_a': y = 3 + 5x + N(0, 0.3^2)")
+    seed: int = Field(1, ge=0, le=2**32 - 1)
+    time: Name = "t"
+    fs: Optional[float] = Field(None, gt=0)
+    rename: dict[str, Name] = Field(default_factory=dict, max_length=64)
+    columns: Optional[list[Name]] = None
+    start: Optional[int] = Field(None, ge=0)
+    stop: Optional[int] = Field(None, ge=1)
+    every: Optional[int] = Field(None, ge=1, le=100_000, description="keep every n-th row (after start/stop)")
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if sum(x is not None for x in (self.path, self.generator, self.dataset)) != 1:
+            raise ValueError("data: give exactly one of 'path', 'dataset' and 'generator'")
+        if self.start is not None and self.stop is not None and self.stop <= self.start:
+            raise ValueError(f"data: stop ({self.stop}) must be greater than start ({self.start})")
+        return self
+
+    def load(self, base: Path | None = None, datasets: Path | None = None) -> Dataset:
+        if self.dataset is not None:
+            if datasets is None:
+                raise SpecError("data.dataset refers to an uploaded data set: use it through the service")
+            p = datasets / f"{self.dataset}.csv"
+            if not p.exists():
+                raise SpecError(f"data.dataset: no uploaded data set {self.dataset!r}")
+            ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
+            ds.meta["source"] = f"dataset:{self.dataset}"
+        elif self.generator == "reference":
+            from ardflow.ardcore.likelihood.simulate import simulate_reference
+
+            ds = simulate_reference(self.seed)
+        elif self.generator == "appendix_a":
+            ds = appendix_a_data(self.seed)
+        else:
+            p = Path(self.path)
+            if base is not None and not p.is_absolute():
+                p = base / p
+            if not p.exists() and not Path(self.path).is_absolute():
+                # a record ardflow does not ship: under $ARDFLOW_DATA
+                p = external_path(self.path) or p
+                if not p.exists():
+                    raise DataError(f"{self.path}: no such file (relative paths are read beside the spec, "
+                                    f"then under ${DATA_ENV})")
+            ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
+        if self.start is not None or self.stop is not None:
+            ds = ds.slice(self.start, self.stop)
+        if self.every and self.every > 1:
+            k = self.every
+            ds = Dataset(ds.t[::k].copy(), {c: v[::k].copy() for c, v in ds.columns.items()}, dict(ds.meta))
+        return ds
+
+
+def appendix_a_data(seed: int, n: int = 100) -> Dataset:
+    """Appendix A: x evenly spaced on [0, 2], y = 3 + 5 x + N(0, 0.3^2)."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0.0, 2.0, n)
+    y = 3.0 + 5.0 * x + 0.3 * rng.standard_normal(n)
+    return Dataset(np.arange(n, dtype=float), {"x": x, "y": y},
+                   {"source": f"appendix_a(seed={seed})", "true_params": {"a0": 3.0, "a1": 5.0, "gamma": 0.3}})
+
+
+class ArdSettings(BaseModel):
+    model_config = _STRICT
+    prune_alpha: Optional[float] = Field(None, gt=0, description="pruning threshold for this parameter")
+
+
+class CandidateSpec(BaseModel):
+    """One candidate model with its priors."""
+
+    model_config = _STRICT
+    model: Union[Name, ModelSpec] = Field(description="a built-in model name or a full declaration")
+    name: Optional[Name] = None
+    priors: dict[Name, PriorSpec] = Field(default_factory=dict, max_length=64)
+    ard: Union[list[Name], dict[Name, ArdSettings]] = Field(default_factory=list)
+    fixed: dict[Name, float] = Field(default_factory=dict)
+    constants: dict[Name, float] = Field(
+        default_factory=dict, max_length=64,
+        description="overrides of the model's known constants (e.g. the declared measurement-noise std 'gamma')")
+    substeps: Optional[int] = Field(None, ge=1, le=10000)
+
+    @model_validator(mode="after")
+    def _check(self):
+        spec = self.resolved()  # applies `constants` (unknown names rejected there; NaN by the schema)
+        params = set(spec.parameters)
+        label = self.label
+        for where, names in (("priors", self.priors), ("ard", self.ard_names), ("fixed", self.fixed)):
+            for n in names:
+                if n not in params:
+                    raise ValueError(f"model {label}: {where}: {n!r} is not a parameter of the model "
+                                     f"(parameters: {spec.parameters})")
+        both = set(self.priors) & set(self.ard_names)
+        if both:
+            raise ValueError(f"model {label}: {sorted(both)[0]!r} has both an essential prior and an ARD prior")
+        spec = spec.with_fixed(**self.fixed) if self.fixed else spec
+        missing = [p for p in spec.free_parameters if p not in self.priors and p not in self.ard_names]
+        if missing:
+            raise ValueError(f"model {label}: no prior for parameter {missing[0]!r} "
+                             "(give it an essential prior, put it under 'ard', or fix it)")
+        fixed_ard = set(self.fixed) & set(self.ard_names)
+        if fixed_ard:
+            raise ValueError(f"model {label}: {sorted(fixed_ard)[0]!r} is both fixed and ARD")
+        return self
+
+    @property
+    def ard_names(self) -> list[str]:
+        return list(self.ard) if isinstance(self.ard, list) else list(self.ard.keys())
+
+    @property
+    def label(self) -> str:
+        if self.name:
+            return self.name
+        return self.model if isinstance(self.model, str) else self.model.name
+
+    def resolved(self) -> ModelSpec:
+        if isinstance(self.model, str):
+            try:
+                s = builtin(self.model)
+            except Exception as exc:
+                raise ValueError(str(exc)) from None
+        else:
+            s = self.model
+        return s.with_constants(**self.constants) if self.constants else s
+
+    def model_spec(self) -> ModelSpec:
+        s = self.resolved()
+        if self.fixed:
+            s = s.with_fixed(**self.fixed)
+        return s
+
+    def thresholds(self) -> dict:
+        if isinstance(self.ard, list):
+            return {k: None for k in self.ard}
+        return {k: v.prune_alpha for k, v in self.ard.items()}
+
+
+SamplerSpec = SamplerConfig
+"""The study's ``sampler`` section (one declaration: :class:`~ardcore.sampling.config.SamplerConfig`)."""
+MaximiserSpec = MaximiserConfig
+"""The study's ``maximiser`` section (one declaration: :class:`~ardcore.selection.maximiser.MaximiserConfig`)."""
+
+
+class StudySpec(BaseModel):
+    """A model-selection study (JSON on the CLI and over REST)."""
+
+    model_config = _STRICT
+    name: Name = "study"
+    description: str = Field("", max_length=4000)
+    data: DataSpec
+    models: list[CandidateSpec] = Field(min_length=1, max_length=16)
+    evidence: Literal["chib-jeliazkov", "laplace"] = "chib-jeliazkov"
+    sampler: SamplerConfig = Field(default_factory=SamplerConfig)
+    maximiser: MaximiserConfig = Field(default_factory=MaximiserConfig)
+    seed: int = Field(0, ge=0, le=2**32 - 1)
+    true_values: dict[Name, float] = Field(default_factory=dict, description="for reports only")
+
+    @model_validator(mode="after")
+    def _unique(self):
+        labels = [m.label for m in self.models]
+        if len(set(labels)) != len(labels):
+            raise ValueError("models: candidate names must be unique (set 'name')")
+        # the evidence integrates the likelihood against the prior: an improper one has no evidence
+        for i, m in enumerate(self.models):
+            for name, p in m.priors.items():
+                if not p.proper:
+                    raise ValueError(f"models[{i}].priors.{name}: a {p.kind} prior is improper and the evidence "
+                                     "needs a proper one (uniform, normal or lognormal)")
+        return self
+
+    def check_data(self, data) -> None:
+        """Refuse a data set no candidate can be fitted to: each candidate's observed columns present with at
+        least one value, its inputs present and complete (:meth:`Dataset.arrays`). Raises DataError naming
+        the candidate and the column."""
+        from ardflow.ardcore.errors import DataError
+
+        for i, m in enumerate(self.models):
+            ms = m.model_spec()
+            try:
+                data.arrays(ms.observed_columns, ms.inputs)
+            except DataError as exc:
+                raise DataError(f"models[{i}] ({m.label}): {exc}") from None
+
+
+def load_spec(path: str | Path) -> StudySpec:
+    """Read and validate a study spec; errors name the field."""
+    p = Path(path)
+    if not p.exists():
+        raise SpecError(f"{p}: no such file")
+    try:
+        return StudySpec.model_validate_json(p.read_text())
+    except ValidationError as exc:
+        raise SpecError(f"{p}: invalid study spec:\n{format_validation_error(exc)}") from None
+
+
+def format_validation_error(exc: ValidationError) -> str:
+    lines = []
+    for e in exc.errors():
+        loc = ".".join(str(x) for x in e["loc"] if not str(x).startswith("function-after"))
+        lines.append(f"  {loc or '(spec)'}: {e['msg']}")
+    return "\n".join(lines)
+
+

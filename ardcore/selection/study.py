@@ -1,0 +1,169 @@
+"""Study specification and the serial/executor-driven model-selection run.
+
+A study names a data set, candidate models (built-in names or full inline
+declarations) with their essential priors and ARD parameters, sampler and
+maximiser settings, and a seed. :func:`select` runs it: per model the ARD
+evidence maximisation, then the comparison of the optimal nested models
+(Eq. 7). The same spec is accepted unchanged by the REST API.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
+from ardflow.ardcore.selection.maximiser import MaximiserResult, maximise, posterior_summary
+from ardflow.ardcore.data import Dataset
+from ardflow.ardcore.events import ModelEvent, ProgressEvent, TrialDone
+from ardflow.ardcore.selection.fit import ModelFit
+from ardflow.ardcore.jsonio import to_jsonable
+from ardflow.ardcore.sampling.chains import Map, serial_map
+from ardflow.ardcore.selection.spec import (
+    CandidateSpec,
+    StudySpec,
+)
+
+
+# --------------------------------------------------------------------------- running
+def model_probabilities(log_z: list[float], se: list[float], prior: list[float] | None = None,
+                        n_draws: int = 4000, seed: int = 0) -> tuple[list[float], list[float]]:
+    """P(M_r | d) by Eq. 7 and its standard deviation from the evidence standard errors."""
+    lz = np.asarray(log_z, dtype=float)
+    lp = np.log(np.asarray(prior, dtype=float) / np.sum(prior)) if prior else np.full(lz.size, -math.log(lz.size))
+    w = lz + lp
+    p = np.exp(w - np.logaddexp.reduce(w))
+    rng = np.random.default_rng(seed)
+    draws = lz[None, :] + np.asarray(se)[None, :] * rng.standard_normal((n_draws, lz.size)) + lp
+    pd = np.exp(draws - np.logaddexp.reduce(draws, axis=1, keepdims=True))
+    return p.tolist(), pd.std(axis=0).tolist()
+
+
+def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *, map_fn: Map = serial_map,
+                  progress: Callable[[ModelEvent], None] | None = None, cancel=None,
+                  evaluator_factory: Callable[..., EvidenceEvaluator] | None = None,
+                  on_trial: Callable | None = None, warm=None,
+                  final_posterior: str = "sample") -> tuple[ModelFit, MaximiserResult]:
+    """ARD evidence maximisation for one candidate; returns its :class:`~ardcore.selection.fit.ModelFit` and the full
+    result.
+
+    ``evaluator_factory`` (same arguments as :class:`EvidenceEvaluator`) lets an
+    orchestrator substitute its own evaluator (caching, checkpoints, remote chains);
+    ``on_trial`` is called with every finished :class:`~ardcore.selection.maximiser.Trial`; ``warm`` (a
+    :class:`~ardcore.sampling.driver.SamplerResult`) warm-starts the first trial. With Laplace evidence,
+    ``final_posterior="laplace"`` reports the Laplace posterior N(MAP, H^-1) instead of sampling it.
+    """
+    t0 = time.perf_counter()
+    label = cand.label
+    ms = cand.model_spec()
+    essential = dict(cand.priors)
+    cfg = spec.sampler
+
+    def prog(p: ProgressEvent):
+        if progress:
+            progress(ModelEvent(label, p))
+
+    factory = evaluator_factory or EvidenceEvaluator
+    kw = {"final_posterior": final_posterior} if final_posterior != "sample" else {}
+    ev = factory(ms, essential, data, cfg, method=spec.evidence, substeps=cand.substeps,
+                 map_fn=map_fn, progress=prog, cancel=cancel, **kw)
+
+    def trial_done(tr):
+        prog(TrialDone(tr.iteration, tr.action, dict(tr.psi), tr.evidence.log_evidence, tr.evidence.log_evidence_se,
+                       tr.accepted))
+        if on_trial:
+            on_trial(tr)
+
+    seed = spec.seed * 1_000_003 + 7919 * index
+    mr = maximise(ev, cand.thresholds(), spec.maximiser, seed=seed, on_trial=trial_done, warm=warm)
+    res, target = mr.sampler, mr.target
+    if spec.evidence == "laplace":
+        target, _, res = ev(mr.psi_opt, seed + 99991, mr.sampler, final=True)
+        mr.sampler = res
+    flat = res.samples.reshape(-1, len(res.names))
+    post = posterior_summary(res.names, flat)
+    best = mr.best
+    row = ModelFit(
+        name=label,
+        log_evidence=best.evidence.log_evidence,
+        log_evidence_se=best.evidence.log_evidence_se,
+        goodness_of_fit=best.evidence.goodness_of_fit,
+        information_gain=best.evidence.information_gain,
+        evidence_method=best.evidence.method,
+        psi_opt=dict(mr.psi_opt),
+        kept=list(mr.kept),
+        pruned=list(mr.pruned),
+        map=dict(zip(res.names, map(float, res.phi_star))),
+        mean={k: v["mean"] for k, v in post.items()},
+        sd={k: v["sd"] for k, v in post.items()},
+        q005={k: v["q005"] for k, v in post.items()},
+        q995={k: v["q995"] for k, v in post.items()},
+        rhat=dict(zip(res.names, map(float, res.rhat))),
+        diagnostics=_diagnostics(res),
+        converged=bool(getattr(res, "quality_met", True)),
+        iterations=len(mr.history),
+        sampled_trials=sum(1 for t in mr.history if t.sampled),
+        reweighted_trials=sum(1 for t in mr.history if not t.sampled),
+        n_evaluations=sum(int(t.diagnostics.get("n_evaluations", 0)) for t in mr.history),
+        wall_s=time.perf_counter() - t0,
+        warnings=list(best.evidence.warnings),
+        per_chain_log_evidence=[c.log_evidence for c in best.evidence.per_chain],
+    )
+    why = row.degenerate()
+    if why is not None:  # reported as what it is, never as a converged result
+        row = dataclasses.replace(row, warnings=[*row.warnings, f"degenerate fit: {why}"], converged=False)
+    return row, mr
+
+
+def _diagnostics(res) -> dict:
+    """ArviZ's diagnostics of the reported draws: the sampler's own, else computed from them (a Laplace
+    posterior's independent draws)."""
+    from ardflow.ardcore.sampling.diagnostics import convergence
+
+    if getattr(res, "diagnostics", None):
+        return res.diagnostics
+    if res.samples.ndim == 3 and res.samples.shape[0] >= 2 and res.samples.shape[1] >= 4:
+        return convergence(list(res.names), res.samples)
+    return {}
+
+
+def compare(fits: list[ModelFit], spec: StudySpec, data_meta: dict, wall_s: float) -> dict:
+    """The comparison of the optimal nested models (Eq. 7) and the study summary."""
+    probs, psd = model_probabilities([f.log_evidence for f in fits], [f.log_evidence_se for f in fits],
+                                     seed=spec.seed)
+    rows = [{**f.to_json(), "probability": p, "probability_sd": s} for f, p, s in zip(fits, probs, psd)]
+    return to_jsonable({
+        "study": spec.name,
+        "data": data_meta,
+        "models": rows,
+        "best_model": max(fits, key=lambda f: f.log_evidence).name,
+        "seed": spec.seed,
+        "wall_s": wall_s,
+        "spec": spec.model_dump(mode="json"),
+    })
+
+
+def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[ModelEvent], None] | None = None,
+           base: Path | None = None, cancel=None) -> dict:
+    """Run a study in this process (or with ``map_fn`` over any executor), in memory.
+
+    Returns the summary dict with every trial of every model under ``"_history"``. Nothing is written:
+    files are the study store's (``ardflow select`` with any executor writes one zarr layout, see
+    :mod:`workers.store`).
+    """
+    t0 = time.perf_counter()
+    data = spec.data.load(base)
+    rows, results = [], {}
+    for i, cand in enumerate(spec.models):
+        row, mr = run_candidate(cand, data, spec, i, map_fn=map_fn, progress=progress, cancel=cancel)
+        rows.append(row)
+        results[cand.label] = mr
+    summary = compare(rows, spec, {"source": data.meta.get("source"), "n": len(data)}, time.perf_counter() - t0)
+    summary["_history"] = to_jsonable({k: [t.to_dict() for t in mr.history] for k, mr in results.items()})
+    return summary
