@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ardflow.ardcore.errors import DataError
+from .errors import DataError
 
 MIN_POINTS = 10
 """Fewest samples a data set may have."""

@@ -12,7 +12,7 @@ import math
 from dataclasses import asdict, dataclass, fields
 from typing import ClassVar, Union, dataclass_transform
 
-from ardflow.ardcore.jsonio import number, to_jsonable
+from .jsonio import number, to_jsonable
 
 
 @dataclass_transform(frozen_default=True)

@@ -29,15 +29,15 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from ardflow.ardcore.errors import ArdflowError
 from ardflow.ardcore.selection.spec import StudySpec
 
-from ardflow.service.auth import StudyAccess, TokenAuth
-from ardflow.service.guard import RequestGuard
-from ardflow.service.page import page_router
-from ardflow.service.results import results_router
-from ardflow.service.validate import Rejected, check_budget, check_models
-from ardflow.service.schemas import (
+from .auth import StudyAccess, TokenAuth
+from .guard import RequestGuard
+from .page import page_router
+from .results import results_router
+from .validate import Rejected, check_budget, check_models
+from .schemas import (
     API_VERSION, FINAL, DashboardLink, DatasetInfo, DiagnoseRequest, DiagnosisStatus, Health, Settings, StudyCreated, StudyStatus,
 )
-from ardflow.service.registry import ProgressCache, Registry, Runner
+from .registry import ProgressCache, Registry, Runner
 
 log = logging.getLogger("ardflow.service")
 COLUMN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")

@@ -13,11 +13,11 @@ import sys
 
 from ardflow.ardcore.loop.config import DiagnoseConfig
 
-from ardflow.service.cmd_local import (
+from .cmd_local import (
     cmd_data, cmd_example, cmd_loglik, cmd_models, cmd_settings, cmd_simulate,
 )
-from ardflow.service.cmd_remote import cmd_fetch, cmd_serve, cmd_status, cmd_submit
-from ardflow.service.cmd_study import cmd_demo, cmd_diagnose, cmd_loo, cmd_resume, cmd_select
+from .cmd_remote import cmd_fetch, cmd_serve, cmd_status, cmd_submit
+from .cmd_study import cmd_demo, cmd_diagnose, cmd_loo, cmd_resume, cmd_select
 
 
 def build_parser() -> argparse.ArgumentParser:

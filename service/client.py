@@ -19,7 +19,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from ardflow.service.schemas import FINAL
+from .schemas import FINAL
 
 
 class APIError(Exception):

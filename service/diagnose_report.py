@@ -10,7 +10,7 @@ import numpy as np
 
 from ardflow.ardcore.loop.result import Diagnosis
 
-from ardflow.service.report import pyplot, save_figure
+from .report import pyplot, save_figure
 
 
 def _plot_tests(arrays: dict, col: str, out: Path) -> Path:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import io
 
-from ardflow.service.report import plot_data_and_psd, plot_evidence_history
+from .report import plot_data_and_psd, plot_evidence_history
 
 
 def _data(store) -> bytes:

@@ -40,10 +40,10 @@ from ardflow.ardcore.selection.fit import ModelFit
 from ardflow.ardcore.selection.spec import StudySpec
 from ardflow.ardcore.selection.study import compare, run_candidate
 
-from ardflow.workers.coordinator import ActorPool, wait_connected
+from .coordinator import ActorPool, wait_connected
 from ardflow.ardcore.jsonio import to_jsonable
-from ardflow.workers.store import StudyStore
-from ardflow.workers.tasks import DaskMap, StoppableTarget, cancel_event_name
+from .store import StudyStore
+from .tasks import DaskMap, StoppableTarget, cancel_event_name
 
 log = logging.getLogger("ardflow.workers")
 

@@ -27,7 +27,7 @@ from ardflow.ardcore.selection.fit import ModelFit
 from ardflow.ardcore.jsonio import to_jsonable
 from ardflow.ardcore.selection.spec import StudySpec
 
-from ardflow.workers.store import StudyStore
+from .store import StudyStore
 
 MAX_POINTWISE_DRAWS = 1000
 """Draws (all chains together) for which the pointwise log-likelihood is computed by default."""

@@ -16,8 +16,8 @@ from ardflow.ardcore.events import ModelEvent
 from ardflow.ardcore.sampling.chains import Map
 from ardflow.ardcore.selection.spec import StudySpec
 
-from ardflow.workers.graph import compare_task, fit_model, progress_writer, trial_json
-from ardflow.workers.store import StudyStore
+from .graph import compare_task, fit_model, progress_writer, trial_json
+from .store import StudyStore
 
 
 class LocalStoredEvaluator(EvidenceEvaluator):

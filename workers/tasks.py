@@ -9,8 +9,8 @@ from concurrent.futures import CancelledError
 
 from ardflow.ardcore.sampling.chains import Step, round_task
 
-from ardflow.workers.coordinator import actor_variable_name, wait_connected
-from ardflow.workers.store import StudyStore
+from .coordinator import actor_variable_name, wait_connected
+from .store import StudyStore
 
 log = logging.getLogger("ardflow.workers")
 

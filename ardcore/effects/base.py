@@ -24,8 +24,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import sympy as sp
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.model.declaration import ModelSpec
+from ..data import Dataset
+from ..model.declaration import ModelSpec
 
 
 @dataclass(frozen=True)
@@ -129,7 +129,7 @@ def shape_prior(effect: Effect):
     """Prior of a shape parameter fitted with the effect (:meth:`Effect.with_shape_parameter`): lognormal
     with its median at the geometric middle of the library's range and that range within +-2 sd of ln(shape),
     so that the evidence pays for the shape as the screen's Occam factor does for its profile."""
-    from ardflow.ardcore.model.priors import LogNormal
+    from ..model.priors import LogNormal
 
     _, lo, hi = effect.shape
     s = math.log(hi / lo) / 4.0
@@ -252,7 +252,7 @@ def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | 
 
 def feature_functions(spec: ModelSpec, exprs: list[str]):
     """Vectorised numpy callables of expressions in the model's states and inputs: f(states, inputs) -> array."""
-    from ardflow.ardcore.model.expr import parse_expression
+    from ..model.expr import parse_expression
 
     names = list(spec.states) + list(spec.inputs)
     syms = [sp.Symbol(n, real=True) for n in names]

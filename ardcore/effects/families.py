@@ -38,8 +38,8 @@ from __future__ import annotations
 
 import sympy as sp
 
-from ardflow.ardcore.effects.base import RATE_COLUMN, Effect, dynamic_states, oscillator_pairs, user_inputs
-from ardflow.ardcore.model.declaration import ModelSpec
+from .base import RATE_COLUMN, Effect, dynamic_states, oscillator_pairs, user_inputs
+from ..model.declaration import ModelSpec
 
 
 def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None,

@@ -15,12 +15,12 @@ from scipy.special import logsumexp
 from scipy.stats import chi2
 from scipy.stats import f as f_dist
 
-from ardflow.ardcore.sampling.chains import Jump, MixedProposal
-from ardflow.ardcore.sampling.chains import Map, SamplerError, Step, serial_map
-from ardflow.ardcore.sampling.config import SamplerResult
-from ardflow.ardcore.sampling.starts import fd_hessian, local_mode
-from ardflow.ardcore.sampling.starts import fd_derivatives
-from ardflow.ardcore.sampling.transform import free_coordinates
+from ..sampling.chains import Jump, MixedProposal
+from ..sampling.chains import Map, SamplerError, Step, serial_map
+from ..sampling.config import SamplerResult
+from ..sampling.starts import fd_hessian, local_mode
+from ..sampling.starts import fd_derivatives
+from ..sampling.transform import free_coordinates
 
 
 @dataclass

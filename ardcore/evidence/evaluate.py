@@ -7,15 +7,15 @@ import math
 
 import numpy as np
 
-from ardflow.ardcore.evidence.estimators import chib_jeliazkov, laplace
-from ardflow.ardcore.sampling.chains import Map, Step, serial_map
-from ardflow.ardcore.sampling.config import SamplerConfig, SamplerResult
-from ardflow.ardcore.sampling.driver import continuation, continued, sample
-from ardflow.ardcore.sampling.starts import initial_scale
-from ardflow.ardcore.sampling.starts import new_parameter_start
-from ardflow.ardcore.likelihood.posterior import ModelPosterior
-from ardflow.ardcore.model.priors import ARD
-from ardflow.ardcore.sampling.transform import free_coordinates
+from .estimators import chib_jeliazkov, laplace
+from ..sampling.chains import Map, Step, serial_map
+from ..sampling.config import SamplerConfig, SamplerResult
+from ..sampling.driver import continuation, continued, sample
+from ..sampling.starts import initial_scale
+from ..sampling.starts import new_parameter_start
+from ..likelihood.posterior import ModelPosterior
+from ..model.priors import ARD
+from ..sampling.transform import free_coordinates
 
 INF = math.inf
 
@@ -93,7 +93,7 @@ class EvidenceEvaluator:
         One local search from the medians can stop in a poor local mode of a rugged likelihood;
         a Laplace evidence taken there would be wrong by many nats.
         """
-        from ardflow.ardcore.sampling.starts import initial_points
+        from ..sampling.starts import initial_points
 
         scale = initial_scale(target.prior)
         pts = [warm_point(target, None)]
@@ -104,7 +104,7 @@ class EvidenceEvaluator:
 
 
 def _local_mode_task(args):
-    from ardflow.ardcore.sampling.starts import local_mode
+    from ..sampling.starts import local_mode
 
     target, x0, scale, maxfev = args
     return local_mode(target, x0, scale, maxfev)
@@ -119,7 +119,7 @@ def warm_point(target, warm) -> np.ndarray:
 
 
 def _starts_around(x, C, n, seed):
-    from ardflow.ardcore.sampling.chains import safe_cholesky
+    from ..sampling.chains import safe_cholesky
 
     rng = np.random.default_rng(seed)
     L = safe_cholesky(C if np.all(np.isfinite(C)) else np.diag(np.maximum(np.abs(x) * 1e-2, 1e-6) ** 2))
@@ -133,7 +133,7 @@ LAPLACE_DRAWS = 4000
 def _laplace_state(target, xmap, C, ev, *, draws: int = 0, seed: int = 0) -> SamplerResult:
     """A SamplerResult carrying the MAP for warm starts of the next Laplace trial; with ``draws``, also
     that many draws of the Laplace posterior N(MAP, C) as one chain (their lp/ll are not evaluated: NaN)."""
-    from ardflow.ardcore.sampling.chains import ChainState, safe_cholesky
+    from ..sampling.chains import ChainState, safe_cholesky
 
     lp, ll = target(xmap)
     st = ChainState(0, xmap.tolist(), lp, ll, np.random.PCG64(0).state, xmap.tolist(), lp, ll)

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ardflow.ardcore.model.codegen import kernel_module
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.errors import ModelError
-from ardflow.ardcore.model.declaration import ModelSpec
+from ..model.codegen import kernel_module
+from ..data import Dataset
+from ..errors import ModelError
+from ..model.declaration import ModelSpec
 
 
 @dataclass

@@ -13,10 +13,10 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.likelihood.ekf import compile_model
-from ardflow.ardcore.model.declaration import ModelSpec
-from ardflow.ardcore.model.priors import JointPrior, Prior
+from ..data import Dataset
+from .ekf import compile_model
+from ..model.declaration import ModelSpec
+from ..model.priors import JointPrior, Prior
 
 
 class Density(NamedTuple):

@@ -14,11 +14,11 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.signal import butter, find_peaks, sosfiltfilt
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.likelihood.ekf import compile_model
-from ardflow.ardcore.errors import SpecError
-from ardflow.ardcore.model.library import AERO_TRUE, aero_true, builtin
-from ardflow.ardcore.model.declaration import ModelSpec
+from ..data import Dataset
+from .ekf import compile_model
+from ..errors import SpecError
+from ..model.library import AERO_TRUE, aero_true, builtin
+from ..model.declaration import ModelSpec
 
 
 @dataclass(frozen=True)

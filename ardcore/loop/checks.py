@@ -12,13 +12,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ardflow.ardcore.loop.confirm import Confirmation, Fit, fit_task, essential_from_row, warm_with
-from ardflow.ardcore.effects.base import augment, with_columns
-from ardflow.ardcore.jsonio import is_pruned
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.selection.fit import ModelFit
-from ardflow.ardcore.selection.spec import CandidateSpec, StudySpec
-from ardflow.ardcore.selection.study import run_candidate
+from .confirm import Confirmation, Fit, fit_task, essential_from_row, warm_with
+from ..effects.base import augment, with_columns
+from ..jsonio import is_pruned
+from ..data import Dataset
+from ..selection.fit import ModelFit
+from ..selection.spec import CandidateSpec, StudySpec
+from ..selection.study import run_candidate
 
 
 def _continued_half(half: CandidateSpec, row: ModelFit, data: Dataset, mid: int) -> tuple[CandidateSpec, Dataset]:
@@ -28,7 +28,7 @@ def _continued_half(half: CandidateSpec, row: ModelFit, data: Dataset, mid: int)
     the model's declared initial state, which is set in absolute units, biases its fit whenever the
     signal's scale differs from those units (the halves then disagree for a reason that is not the effect).
     The filtered standard deviations are doubled: the start must not hold the half to the full fit."""
-    from ardflow.ardcore.likelihood.ekf import compile_model
+    from ..likelihood.ekf import compile_model
 
     ms = half.model_spec()
     phi = {k: float(row.mean[k]) for k in ms.free_parameters if k in row.mean}
@@ -50,7 +50,7 @@ def _continued_half(half: CandidateSpec, row: ModelFit, data: Dataset, mid: int)
 
 def split_stability(spec: StudySpec, c: Confirmation, config, say, mapper) -> dict:
     """Refit the augmented model on each half of the record, the new terms' ARD priors frozen at psi_opt."""
-    from ardflow.ardcore.model.priors import frozen_ard
+    from ..model.priors import frozen_ard
 
     acand, data = c.fit.cand, c.fit.data
     priors = dict(acand.priors)
@@ -108,7 +108,7 @@ def savage_dickey(cand: CandidateSpec, row: ModelFit, mr, names: list[str]) -> f
     (a term without a normal prior, no draws)."""
     from scipy.stats import multivariate_normal
 
-    from ardflow.ardcore.model.priors import Normal
+    from ..model.priors import Normal
 
     res = getattr(mr, "sampler", None)
     priors, _ = essential_from_row(cand, row)
@@ -171,7 +171,7 @@ def joint_fit(spec, cand, row, survivors, data, config, say):
     re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
 
     Returns the :class:`Fit` of the model with all of them."""
-    from ardflow.ardcore.model.priors import frozen_ard
+    from ..model.priors import frozen_ard
 
     priors, fixed = essential_from_row(cand, row)
     aspec, adata = cand.model_spec(), data
@@ -201,7 +201,7 @@ def joint_start(acand: CandidateSpec, adata, survivors, fixed: dict):
     The model's shared parameters (stiffness, input gain, process noise) move with each effect added, so
     the survivors' fits disagree on them by many standard deviations; from the wrong one a Laplace search
     walks to the joint mode by thousands of Nelder-Mead evaluations."""
-    from ardflow.ardcore.evidence.evaluate import warm_point, build_target
+    from ..evidence.evaluate import warm_point, build_target
 
     target = build_target(acand.model_spec(), dict(acand.priors), {}, adata, acand.substeps)
     best, best_lp = None, -math.inf

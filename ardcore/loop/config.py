@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-from ardflow.ardcore.sampling.config import SETTINGS
+from ..sampling.config import SETTINGS
 
 
 class DiagnoseConfig(BaseModel):

@@ -14,16 +14,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.effects.base import (Effect, augment, dynamic_states, shape_parameter_name, shape_prior, user_inputs,
+from ..data import Dataset
+from ..effects.base import (Effect, augment, dynamic_states, shape_parameter_name, shape_prior, user_inputs,
                       with_columns)
-from ardflow.ardcore.model.declaration import ModelSpec
-from ardflow.ardcore.effects.families import candidate_effects
-from ardflow.ardcore.jsonio import is_pruned, to_jsonable
-from ardflow.ardcore.screening.screen import Screened, distinct_candidates, screen_effects
-from ardflow.ardcore.selection.fit import ModelFit
-from ardflow.ardcore.selection.spec import CandidateSpec
-from ardflow.ardcore.selection.study import run_candidate
+from ..model.declaration import ModelSpec
+from ..effects.families import candidate_effects
+from ..jsonio import is_pruned, to_jsonable
+from ..screening.screen import Screened, distinct_candidates, screen_effects
+from ..selection.fit import ModelFit
+from ..selection.spec import CandidateSpec
+from ..selection.study import run_candidate
 
 INF = math.inf
 
@@ -114,7 +114,7 @@ class Confirmation:
 
 def essential_from_row(cand: CandidateSpec, row: ModelFit) -> tuple[dict, dict]:
     """Priors of the fitted model with kept ARD terms frozen at their optimal alpha; pruned terms fixed."""
-    from ardflow.ardcore.model.priors import frozen_ard
+    from ..model.priors import frozen_ard
 
     priors = dict(cand.priors)
     fixed = dict(cand.fixed)

@@ -40,22 +40,22 @@ from typing import Callable
 
 import numpy as np
 
-from ardflow.ardcore.loop.checks import Added, backward_check, joint_fit, split_stability
-from ardflow.ardcore.loop.confirm import Confirmation, pool_mapper, trace_and_confirm
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.effects.base import Effect, with_columns
-from ardflow.ardcore.errors import FitError, SpecError
-from ardflow.ardcore.loop.result import Diagnosis, FittedModel, LoopRound
-from ardflow.ardcore.loop.freerun import posterior_draws, free_run
-from ardflow.ardcore.loop.initial import data_informed_initial
-from ardflow.ardcore.jsonio import is_pruned
-from ardflow.ardcore.loop.config import DiagnoseConfig
-from ardflow.ardcore.model.declaration import ModelSpec
-from ardflow.ardcore.loop.residuals import Residuals, residuals
-from ardflow.ardcore.selection.fit import ModelFit
-from ardflow.ardcore.selection.spec import CandidateSpec, StudySpec
-from ardflow.ardcore.selection.study import run_candidate
-from ardflow.ardcore.loop.verdict import character, unexplained
+from .checks import Added, backward_check, joint_fit, split_stability
+from .confirm import Confirmation, pool_mapper, trace_and_confirm
+from ..data import Dataset
+from ..effects.base import Effect, with_columns
+from ..errors import FitError, SpecError
+from .result import Diagnosis, FittedModel, LoopRound
+from .freerun import posterior_draws, free_run
+from .initial import data_informed_initial
+from ..jsonio import is_pruned
+from .config import DiagnoseConfig
+from ..model.declaration import ModelSpec
+from .residuals import Residuals, residuals
+from ..selection.fit import ModelFit
+from ..selection.spec import CandidateSpec, StudySpec
+from ..selection.study import run_candidate
+from .verdict import character, unexplained
 
 INF = math.inf
 
@@ -184,7 +184,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
 def _simulation(final: FittedModel, data: Dataset, test: Dataset, config: DiagnoseConfig, say,
                 out: dict) -> FittedModel | None:
     """The final model's simulation fit (:mod:`ardcore.loop.simulation_fit`), its record and free run in ``out``."""
-    from ardflow.ardcore.loop.simulation_fit import simulation_fit
+    from .simulation_fit import simulation_fit
 
     if not config.simulation_factors:
         return None

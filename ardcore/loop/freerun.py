@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.effects.base import user_inputs
-from ardflow.ardcore.likelihood.ekf import compile_model
-from ardflow.ardcore.loop.initial import recentred
-from ardflow.ardcore.model.declaration import ModelSpec
-from ardflow.ardcore.loop.residual_tests import dominant_frequency, harmonics
+from ..data import Dataset
+from ..effects.base import user_inputs
+from ..likelihood.ekf import compile_model
+from .initial import recentred
+from ..model.declaration import ModelSpec
+from .residual_tests import dominant_frequency, harmonics
 
 
 def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.jsonio import number
-from ardflow.ardcore.model.declaration import ModelSpec
-from ardflow.ardcore.selection.spec import CandidateSpec
+from ..data import Dataset
+from ..jsonio import number
+from ..model.declaration import ModelSpec
+from ..selection.spec import CandidateSpec
 
 FIRST_SAMPLES = 50
 

@@ -9,12 +9,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.effects.base import dynamic_states
-from ardflow.ardcore.likelihood.ekf import compile_model
-from ardflow.ardcore.loop.config import DiagnoseConfig
-from ardflow.ardcore.model.declaration import ModelSpec
-from ardflow.ardcore.loop.residual_tests import dominant_frequency, residual_tests
+from ..data import Dataset
+from ..effects.base import dynamic_states
+from ..likelihood.ekf import compile_model
+from .config import DiagnoseConfig
+from ..model.declaration import ModelSpec
+from .residual_tests import dominant_frequency, residual_tests
 
 
 @dataclass

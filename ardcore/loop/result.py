@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.effects.base import Effect, with_columns
-from ardflow.ardcore.jsonio import to_jsonable
-from ardflow.ardcore.model.declaration import ModelSpec
+from ..data import Dataset
+from ..effects.base import Effect, with_columns
+from ..jsonio import to_jsonable
+from ..model.declaration import ModelSpec
 
 
 @dataclass(frozen=True)
@@ -27,7 +27,7 @@ class FittedModel:
 
     def free_run(self, record: Dataset, **kw) -> dict:
         """:func:`ardcore.loop.freerun.free_run` of this model on ``record`` (the effects' columns added to it)."""
-        from ardflow.ardcore.loop.freerun import free_run
+        from .freerun import free_run
 
         for e in self.effects:
             record = with_columns(record, e)

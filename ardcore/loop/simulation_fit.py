@@ -24,11 +24,11 @@ import numpy as np
 import sympy as sp
 from scipy.optimize import minimize
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.likelihood.ekf import compile_model
-from ardflow.ardcore.loop.freerun import free_run
-from ardflow.ardcore.sampling.starts import fd_derivatives
-from ardflow.ardcore.model.declaration import ModelSpec
+from ..data import Dataset
+from ..likelihood.ekf import compile_model
+from .freerun import free_run
+from ..sampling.starts import fd_derivatives
+from ..model.declaration import ModelSpec
 
 
 @dataclass

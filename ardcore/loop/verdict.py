@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import sympy as sp
 
-from ardflow.ardcore.effects.base import Effect, oscillator_pairs
-from ardflow.ardcore.model.declaration import ModelSpec
+from ..effects.base import Effect, oscillator_pairs
+from ..model.declaration import ModelSpec
 
 
 _ODD = ("cubic_stiffness", "quintic_stiffness", "saturation", "sine_stiffness")

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import sympy as sp
 
-from ardflow.ardcore.model.printing import Emitter, symbol_names
-from ardflow.ardcore.model.declaration import ModelSpec
+from .printing import Emitter, symbol_names
+from .declaration import ModelSpec
 
 KERNEL_VERSION = "7"
 _lock = threading.Lock()

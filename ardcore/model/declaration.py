@@ -24,8 +24,8 @@ from typing import Annotated, Literal, Union
 import sympy as sp
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from ardflow.ardcore.errors import ModelError
-from ardflow.ardcore.model.expr import CONSTANTS, FUNCTIONS, expanded_size, parse_expression
+from ..errors import ModelError
+from .expr import CONSTANTS, FUNCTIONS, expanded_size, parse_expression
 
 NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
 _NAME_RE = re.compile(NAME_PATTERN)

@@ -14,7 +14,7 @@ from typing import Iterable
 
 import sympy as sp
 
-from ardflow.ardcore.errors import ModelError
+from ..errors import ModelError
 
 FUNCTIONS = {
     "sign": sp.sign,

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import math
 
-from ardflow.ardcore.errors import ModelError
-from ardflow.ardcore.model.declaration import ModelSpec
+from ..errors import ModelError
+from .declaration import ModelSpec
 
 # Structural constants of Eq. 15 (printed values, U = 8.50 m/s) and c6 (a_h = -0.628).
 AERO_CONSTANTS = {

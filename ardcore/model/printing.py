@@ -6,7 +6,7 @@ from __future__ import annotations
 import sympy as sp
 from sympy.printing.pycode import PythonCodePrinter
 
-from ardflow.ardcore.model.declaration import SymbolicModel
+from .declaration import SymbolicModel
 
 
 class Printer(PythonCodePrinter):

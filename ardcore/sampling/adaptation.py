@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ardflow.ardcore.sampling.chains import ChainReport, Jump, RoundStats, pool_stats
+from .chains import ChainReport, Jump, RoundStats, pool_stats
 
 
 # --------------------------------------------------------------------------- coordinator

@@ -13,8 +13,8 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from ardflow.ardcore.errors import ArdflowError
-from ardflow.ardcore.sampling.transform import free_coordinates
+from ..errors import ArdflowError
+from .transform import free_coordinates
 
 @dataclass(frozen=True)
 class Step:

@@ -22,8 +22,8 @@ from typing import Callable, Generator
 
 import numpy as np
 
-from ardflow.ardcore.sampling.adaptation import AdaptationPool
-from ardflow.ardcore.sampling.chains import (
+from .adaptation import AdaptationPool
+from .chains import (
     ChainReport,
     ChainState,
     Map,
@@ -33,12 +33,12 @@ from ardflow.ardcore.sampling.chains import (
     round_task,
     serial_map,
 )
-from ardflow.ardcore.errors import ArdflowError
-from ardflow.ardcore.sampling.diagnostics import Quality, convergence
-from ardflow.ardcore.events import BurninRound, Note, ProgressEvent, StationaryRound
-from ardflow.ardcore.sampling.config import SamplerConfig, SamplerResult
-from ardflow.ardcore.sampling.transform import free_coordinates
-from ardflow.ardcore.sampling.starts import (
+from ..errors import ArdflowError
+from .diagnostics import Quality, convergence
+from ..events import BurninRound, Note, ProgressEvent, StationaryRound
+from .config import SamplerConfig, SamplerResult
+from .transform import free_coordinates
+from .starts import (
     initial_states,
 )
 

@@ -8,9 +8,9 @@ from typing import Callable
 
 import numpy as np
 
-from ardflow.ardcore.sampling.chains import ChainState, Map, SamplerError, Step, safe_cholesky, serial_map
-from ardflow.ardcore.sampling.config import SamplerConfig, SamplerResult
-from ardflow.ardcore.sampling.transform import free_coordinates
+from .chains import ChainState, Map, SamplerError, Step, safe_cholesky, serial_map
+from .config import SamplerConfig, SamplerResult
+from .transform import free_coordinates
 
 
 # --------------------------------------------------------------------------- starts

@@ -14,11 +14,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 import sympy as sp
 
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.effects.base import Effect, augment, feature_functions, with_columns
-from ardflow.ardcore.likelihood.ekf import compile_model
-from ardflow.ardcore.model.declaration import ModelSpec
-from ardflow.ardcore.screening.robust import innovation_background, sandwich, spectral_score_cov
+from ..data import Dataset
+from ..effects.base import Effect, augment, feature_functions, with_columns
+from ..likelihood.ekf import compile_model
+from ..model.declaration import ModelSpec
+from .robust import innovation_background, sandwich, spectral_score_cov
 
 PRIOR_SD = 1.0
 """Prior sd of a normalised coefficient in the screen (1 = an effect the size of the target's dynamics)."""

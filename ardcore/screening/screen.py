@@ -37,12 +37,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ardflow.ardcore.sampling.chains import serial_map
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.effects.base import Effect, with_columns
-from ardflow.ardcore.model.declaration import ModelSpec
-from ardflow.ardcore.screening.robust import innovation_background, spectral_score_cov
-from ardflow.ardcore.screening.score import Basis, Screener, bayes_factor, nuisance_map
+from ..sampling.chains import serial_map
+from ..data import Dataset
+from ..effects.base import Effect, with_columns
+from ..model.declaration import ModelSpec
+from .robust import innovation_background, spectral_score_cov
+from .score import Basis, Screener, bayes_factor, nuisance_map
 
 COHERENCE_P = 1e-3
 """A forcing whose coefficients differ between segments of the record beyond this p-value is not a forcing."""

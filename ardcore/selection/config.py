@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field
 
-from ardflow.ardcore.sampling.config import SETTINGS
+from ..sampling.config import SETTINGS
 
 # the units of the maximiser's settings, each with the bounds any setting in it must respect
 Alpha = Annotated[float, Field(gt=0)]

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, fields
 
-from ardflow.ardcore.jsonio import decode_alpha, to_jsonable
+from ..jsonio import decode_alpha, to_jsonable
 
 
 @dataclass(frozen=True)

@@ -21,16 +21,16 @@ from typing import Callable
 
 import numpy as np
 
-from ardflow.ardcore.selection.config import MaximiserConfig
-from ardflow.ardcore.evidence.evaluate import (
+from .config import MaximiserConfig
+from ..evidence.evaluate import (
     EvidenceEvaluator,
 )
-from ardflow.ardcore.evidence.estimators import Evidence
-from ardflow.ardcore.jsonio import encode_alpha
-from ardflow.ardcore.sampling.config import SamplerResult
-from ardflow.ardcore.likelihood.posterior import ModelPosterior
-from ardflow.ardcore.evidence.reweight import resample_states, reweight, weighted_summary
-from ardflow.ardcore.sampling.transform import free_coordinates
+from ..evidence.estimators import Evidence
+from ..jsonio import encode_alpha
+from ..sampling.config import SamplerResult
+from ..likelihood.posterior import ModelPosterior
+from ..evidence.reweight import resample_states, reweight, weighted_summary
+from ..sampling.transform import free_coordinates
 
 INF = math.inf
 

@@ -9,13 +9,13 @@ from typing import Annotated, Literal, Optional, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from ardflow.ardcore.selection.config import MaximiserConfig
-from ardflow.ardcore.data import DATA_ENV, Dataset, external_path, read_dataset
-from ardflow.ardcore.errors import DataError, SpecError
-from ardflow.ardcore.model.library import builtin
-from ardflow.ardcore.sampling.config import SamplerConfig
-from ardflow.ardcore.model.declaration import NAME_PATTERN, ModelSpec
-from ardflow.ardcore.model.priors import PriorSpec
+from .config import MaximiserConfig
+from ..data import DATA_ENV, Dataset, external_path, read_dataset
+from ..errors import DataError, SpecError
+from ..model.library import builtin
+from ..sampling.config import SamplerConfig
+from ..model.declaration import NAME_PATTERN, ModelSpec
+from ..model.priors import PriorSpec
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 Name = Annotated[str, Field(pattern=NAME_PATTERN)]
@@ -57,7 +57,7 @@ class DataSpec(BaseModel):
             ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
             ds.meta["source"] = f"dataset:{self.dataset}"
         elif self.generator == "reference":
-            from ardflow.ardcore.likelihood.simulate import simulate_reference
+            from ..likelihood.simulate import simulate_reference
 
             ds = simulate_reference(self.seed)
         elif self.generator == "appendix_a":
@@ -201,7 +201,7 @@ class StudySpec(BaseModel):
         """Refuse a data set no candidate can be fitted to: each candidate's observed columns present with at
         least one value, its inputs present and complete (:meth:`Dataset.arrays`). Raises DataError naming
         the candidate and the column."""
-        from ardflow.ardcore.errors import DataError
+        from ..errors import DataError
 
         for i, m in enumerate(self.models):
             ms = m.model_spec()

@@ -18,14 +18,14 @@ from typing import Callable
 
 import numpy as np
 
-from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
-from ardflow.ardcore.selection.maximiser import MaximiserResult, maximise, posterior_summary
-from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.events import ModelEvent, ProgressEvent, TrialDone
-from ardflow.ardcore.selection.fit import ModelFit
-from ardflow.ardcore.jsonio import to_jsonable
-from ardflow.ardcore.sampling.chains import Map, serial_map
-from ardflow.ardcore.selection.spec import (
+from ..evidence.evaluate import EvidenceEvaluator
+from .maximiser import MaximiserResult, maximise, posterior_summary
+from ..data import Dataset
+from ..events import ModelEvent, ProgressEvent, TrialDone
+from .fit import ModelFit
+from ..jsonio import to_jsonable
+from ..sampling.chains import Map, serial_map
+from .spec import (
     CandidateSpec,
     StudySpec,
 )
@@ -124,7 +124,7 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
 def _diagnostics(res) -> dict:
     """ArviZ's diagnostics of the reported draws: the sampler's own, else computed from them (a Laplace
     posterior's independent draws)."""
-    from ardflow.ardcore.sampling.diagnostics import convergence
+    from ..sampling.diagnostics import convergence
 
     if getattr(res, "diagnostics", None):
         return res.diagnostics

@@ -12,14 +12,14 @@ from __future__ import annotations
 import json
 import sys
 
-from ardflow.ardcore.errors import ArdflowError, ModelError
+from ..errors import ArdflowError, ModelError
 
 
 def parse_models(spec) -> None:
     """Parse every expression of every candidate of ``spec`` (:func:`ardcore.model.declaration.parse_model`: cheap and
     bounded), without differentiating. The service runs this in-process before the child-process check,
     so that most bad models are answered at once."""
-    from ardflow.ardcore.model.declaration import parse_model
+    from ..model.declaration import parse_model
 
     for cand in spec.models:
         parse_model(cand.model_spec())
@@ -33,7 +33,7 @@ def check_study(spec) -> None:
     ModelError
         Naming the model and the field of the first expression that cannot become a kernel.
     """
-    from ardflow.ardcore.model.codegen import generate_source
+    from ..model.codegen import generate_source
 
     for i, cand in enumerate(spec.models):
         ms = cand.model_spec()
@@ -51,7 +51,7 @@ def check_study(spec) -> None:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    from ardflow.ardcore.selection.spec import StudySpec
+    from .spec import StudySpec
 
     ap = argparse.ArgumentParser(prog="python -m ardflow.ardcore.selection.validation", description="check a study's models (JSON on stdin)")
     ap.add_argument("--memory-mb", type=int, default=None, help="address-space limit of this process")
