@@ -147,6 +147,12 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
                     "selection above are unchanged.</p>")
     if j.get("added"):
         body.append(f"<h2>Effects added</h2><pre>{html.escape(json.dumps(j['added'], indent=1))}</pre>")
+    if j.get("replaced"):
+        body.append("<h2>Declared terms replaced</h2><table><tr><th>declared term</th><th>equation</th>"
+                    "<th>replaced by</th><th>ln BF for the model without it</th></tr>")
+        body += [f"<tr><td>{html.escape(r['parameter'])}*({html.escape(r['term'])})</td><td>{r['target']}</td>"
+                 f"<td>{html.escape(r['by'])}</td><td>{f(r['log_bayes_factor'])}</td></tr>" for r in j["replaced"]]
+        body.append("</table>")
     body.append("<h2>Candidates confirmed by evidence</h2><table><tr><th>effect</th><th>target</th>"
                 "<th>ln BF</th><th>ARD keeps</th><th>survives</th></tr>")
     body += [f"<tr><td>{html.escape(c['effect'])}</td><td>{c['target']}</td><td>{f(c['log_bayes_factor'])}</td>"

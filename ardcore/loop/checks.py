@@ -2,19 +2,23 @@
 halves of the record (:func:`split_stability`), the round's survivors fitted together (:func:`joint_fit`)
 and, after each round, whether effects of earlier rounds are
 still worth their place beside the later ones (:func:`backward_check`, with the Savage-Dickey shortcut
-:func:`savage_dickey` for effects far above their threshold).
+:func:`savage_dickey` for effects far above their threshold), and which of the user's declared terms an added
+effect may replace (:func:`declared_rivals`).
 """
 
 from __future__ import annotations
 
 import math
+import re
 from typing import NamedTuple
 
 import numpy as np
+import sympy as sp
 
 from .confirm import Confirmation, Fit, fit_task, essential_from_row, warm_with
-from ..effects.base import augment, with_columns
+from ..effects.base import Effect, augment, with_columns
 from ..jsonio import is_pruned
+from ..model.declaration import ModelSpec, symbolic
 from ..data import Dataset
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec, StudySpec
@@ -213,3 +217,50 @@ def joint_start(acand: CandidateSpec, adata, survivors, fixed: dict):
         if best is None or lp > best_lp:
             best, best_lp = warm, lp
     return best
+
+
+class Rival(NamedTuple):
+    """A declared term an added effect competes with: ``parameter`` times ``term`` in ``target``'s drift."""
+
+    parameter: str
+    term: str
+    target: str
+    effect: str
+
+
+def declared_rivals(spec: ModelSpec, added: list[tuple[Effect, str]], new_parameters: set) -> list[Rival]:
+    """The user's declared terms that an effect just added may replace.
+
+    Forward selection can only add: when the declared law is wrong (a linear outflow where the physics is a
+    square root of the level, a linear spring where the restoring force saturates), the added effect carries
+    the right law and the declared term lingers beside it. A rival is a term of the target's drift that is
+    linear in a free parameter of the user's (not one an effect brought), depends on the states of the
+    effect's terms and on no input, and whose parameter appears nowhere else in the model (so fixing it to 0
+    removes exactly that term). The evidence of the model without it decides (:func:`diagnose`).
+    """
+    sm = symbolic(spec)
+    index = {str(x): i for i, x in enumerate(sm.states)}
+    inputs = {str(u) for u in sm.inputs}
+    elsewhere = list(sm.diffusion) + list(sm.obs) + list(sm.obs_std) + list(sm.init_mean) + list(sm.init_std)
+    out = []
+    for eff, target in added:
+        if eff.where != "drift" or target not in index:
+            continue
+        states_of_effect = {x for x in index if any(re.search(rf"\b{re.escape(x)}\b", t) for t in eff.terms)}
+        drift = sm.drift[index[target]]
+        for p in sm.params:
+            name = str(p)
+            if name in new_parameters or p not in drift.free_symbols:
+                continue
+            if any(p in e.free_symbols for j, e in enumerate(sm.drift) if j != index[target]) or any(
+                    p in sp.sympify(e).free_symbols for e in elsewhere):
+                continue
+            term = sp.diff(drift, p)
+            if p in term.free_symbols or sp.simplify(drift - p * term).has(p):
+                continue  # not linear in p
+            names = {str(x) for x in term.free_symbols}
+            used = names & set(index)
+            if names & inputs or not used or not used <= states_of_effect:
+                continue
+            out.append(Rival(name, str(-term if term.could_extract_minus_sign() else term), target, eff.name))
+    return out

@@ -40,8 +40,8 @@ from typing import Callable
 
 import numpy as np
 
-from .checks import Added, backward_check, joint_fit, split_stability
-from .confirm import Confirmation, pool_mapper, trace_and_confirm
+from .checks import Added, backward_check, declared_rivals, joint_fit, split_stability
+from .confirm import Confirmation, Fit, fit_task, pool_mapper, trace_and_confirm
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import FitError, SpecError
@@ -172,6 +172,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 cur_test = with_columns(cur_test, e)
             earlier = [x for r in rounds[:-1] for x in r.added]
             cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, earlier, rnd, config, say, mapper)
+            cand, row, bmr = _replace_laws(spec, cand, row, bmr, cur_data, rounds, config, say, mapper)
         out = _report(spec, data, test_data, first, rounds, arrays, row, notes, cand.label)
         final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), cand.substeps)
         simulation = _simulation(final, cur_data, cur_test, config, say, out)
@@ -286,6 +287,43 @@ def worse_than_before(fit, before: float, config) -> str | None:
             f"(RMS error {before:.4g} -> {after:.4g})")
 
 
+def _replace_laws(spec, cand, row, bmr, data: Dataset, rounds: list[LoopRound], config, say, mapper):
+    """Drop the declared terms this round's effects replace (:func:`declared_rivals`): each is refitted out
+    (its parameter fixed at 0, side by side on the loop's pool); the one whose removal raises ln Z most is
+    dropped when the model without it is more probable (ln Bayes factor > 0 for the smaller model, equal
+    prior odds) and free-runs no worse on the estimation record. Repeats while one goes. Recorded in the
+    round as ``replaced``."""
+    rnd = rounds[-1]
+    new_params = {n for r in rounds for x in r.added for n in x.params} | {
+        n for r in rounds for x in r.added for n in x.record.get("shape", {})}
+    added = [(e, x.record["target"]) for e, x in zip(rnd.effects, rnd.added)]
+    replaced = rnd.record.setdefault("replaced", [])
+    while True:
+        rivals = [r for r in declared_rivals(cand.model_spec(), added, new_params)]
+        if not rivals:
+            return cand, row, bmr
+        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, r.parameter: 0.0}}), data, spec, bmr.sampler,
+                  config.posterior) for r in rivals]
+        fits = mapper(fit_task, tasks)
+        gain = [frow.log_evidence - row.log_evidence for frow, _ in fits]
+        k = int(np.nanargmax(gain)) if np.isfinite(gain).any() else 0
+        r = rivals[k]
+        if not gain[k] > 0:
+            say(f"  the declared {r.parameter}*({r.term}) in {r.target}'s equation stays beside {r.effect} "
+                f"(worth {-gain[k]:.1f} nats)")
+            return cand, row, bmr
+        fit = Fit(tasks[k][0], fits[k][0], fits[k][1], data)
+        why = worse_than_before(fit, _free_run_rms(Fit(cand, row, bmr, data), config), config)
+        if why is not None:
+            say(f"  the declared {r.parameter}*({r.term}) stays: without it {why}")
+            return cand, row, bmr
+        replaced.append({"parameter": r.parameter, "term": r.term, "target": r.target, "by": r.effect,
+                         "log_bayes_factor": float(gain[k])})
+        say(f"  {r.effect} replaces the declared {r.parameter}*({r.term}) in {r.target}'s equation "
+            f"(ln BF {gain[k]:.1f} for the model without it)")
+        cand, (row, bmr) = tasks[k][0], fits[k]
+
+
 def _present(rounds: list[LoopRound]) -> set:
     """(library name, target) of the effects the model holds: not screened again (a second saturating flow
     beside the first, its width already fitted, is a basis expansion, not an effect)."""
@@ -377,13 +415,14 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
     rounds = [r.record for r in rounds]
     added = [a for a in records if not a.get("removed")]
     removed = [a for a in records if a.get("removed")]
+    replaced = [x for r in rounds for x in r.get("replaced", [])]
     out = {"model": spec.models[0].label, "final_model": final_model,
            "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
            "rounds": rounds,
            "candidates": rounds[0]["candidates"] if rounds else [],
            "confirmed": rounds[0]["confirmed"] if rounds else [],
            "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
-           "removed": removed, "initial_state": notes, "tests_after": None,
+           "removed": removed, "replaced": replaced, "initial_state": notes, "tests_after": None,
            "final_fit": row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
     if not added:
         out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
@@ -398,6 +437,9 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
                       + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
                       f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
                       f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
+                      + "".join(f"; it replaces the declared term {x['parameter']}*({x['term']}) of the "
+                                f"{x['target']} equation (ln BF {x['log_bayes_factor']:.1f} without it)"
+                                for x in replaced)
                       + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
                                 f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
                       + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "

@@ -101,6 +101,54 @@ def test_loop_adds_hardening_cubic_and_the_error_falls():
     assert post["q005"] < -4.0 < post["q995"]
     assert rep["after"]["free_run"]["rms_error"] < 0.5 * rep["before"]["free_run"]["rms_error"]
     assert rep["after"]["log_evidence"] > rep["before"]["log_evidence"] + 10
+    # the cubic adds to the declared linear stiffness, it cannot replace it: k stays
+    assert rep["replaced"] == [], rep["verdict"]
+
+
+def _tank(drift):
+    from ardflow.ardcore.model.declaration import ModelSpec
+
+    return ModelSpec(name="tank", states=["h"], inputs=["u"], drift={"h": drift}, diffusion={"h": "s"},
+                     observations=[{"column": "y", "expr": "h", "noise_std": 0.005}],
+                     parameters=["q", "a", "s"], initial_mean={"h": 1.0}, initial_std={"h": 0.1})
+
+
+def test_the_loop_replaces_a_wrong_declared_law():
+    """A tank whose outflow is a square root of the level, declared linear: the loop adds the square-root
+    outflow and drops the declared linear one (the model without it is more probable), not both."""
+    rng = np.random.default_rng(3)
+    t = np.arange(3000) * 0.1
+    u = 1.0 + 0.8 * np.sign(np.sin(2 * np.pi * t / 40)) + 0.1 * rng.standard_normal(t.size)
+    data = simulate_model(_tank("q*u - a*sqrt(abs(h))*sign(h)"), {"q": 0.5, "a": 0.5, "s": 0.01}, t, 3,
+                          inputs={"u": u}, x0=[1.0])
+    lognormal = {"kind": "lognormal", "median": 0.5, "cov": 100}
+    spec = StudySpec.model_validate({
+        "name": "tank", "data": {"generator": "appendix_a"}, "evidence": "laplace", "seed": 1,
+        "models": [{"model": _tank("q*u - a*h").model_dump(mode="json", exclude_none=True),
+                    "priors": {"q": lognormal, "a": lognormal,
+                               "s": {"kind": "lognormal", "median": 0.01, "cov": 100}}}]})
+    d = diagnose(spec, data.slice(0, 2000), test_data=data.slice(2000, None), config=DiagnoseConfig(max_rounds=2))
+    rep = d.to_json()
+    assert [(a["effect"], a["target"]) for a in rep["added"] if a["kind"] != "noise"] == [("sqrt_outflow(h)", "h")]
+    assert [(r["parameter"], r["term"], r["by"]) for r in rep["replaced"]] == [("a", "h", "sqrt_outflow(h)")]
+    assert rep["replaced"][0]["log_bayes_factor"] > 0 and "replaces the declared term a*(h)" in rep["verdict"]
+    assert "a" not in d.final.phi  # the final model's outflow is the square root alone
+    assert rep["after"]["free_run"]["rms_error"] < 0.2 * rep["before"]["free_run"]["rms_error"]
+
+
+def test_declared_rivals_are_the_linear_terms_of_the_effects_states_alone():
+    from ardflow.ardcore.effects.base import Effect
+    from ardflow.ardcore.loop.checks import declared_rivals
+
+    sqrt_out = Effect("sqrt_outflow(h)", "state", ("sqrt(abs(h))*sign(h)",))
+    # q*u is an input's term, a*h the outflow: only the outflow competes
+    assert [(r.parameter, r.term) for r in declared_rivals(_tank("q*u - a*h"), [(sqrt_out, "h")], set())] == \
+        [("a", "h")]
+    # a parameter that appears elsewhere (here in the noise) cannot be dropped alone
+    shared = _tank("q*u - s*h")
+    assert declared_rivals(shared, [(sqrt_out, "h")], set()) == []
+    # a term that is not linear in its parameter is not a rival
+    assert declared_rivals(_tank("q*u - a**2*h"), [(sqrt_out, "h")], set()) == []
 
 
 @pytest.mark.parametrize("seed", [11, 12])
