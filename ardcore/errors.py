@@ -19,3 +19,11 @@ class SpecError(ArdflowError, ValueError):
 
 class FitError(ArdflowError):
     """A model could not be fitted to its data (no finite likelihood anywhere the search reached)."""
+
+
+def did_you_mean(name: str, choices) -> str:
+    """``" (did you mean 'x'?)"`` for the closest of ``choices`` to a mistyped ``name``, or ``""``."""
+    import difflib
+
+    close = difflib.get_close_matches(str(name), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""

@@ -36,7 +36,7 @@ def _floats(d: dict[str, str], what: str) -> dict[str, float]:
 
 
 def _load_model(name_or_file: str):
-    from ardflow.ardcore.errors import ModelError
+    from ardflow.ardcore.errors import ModelError, did_you_mean
     from ardflow.ardcore.model.library import BUILTINS, builtin
     from ardflow.ardcore.model.declaration import ModelSpec
 
@@ -48,8 +48,8 @@ def _load_model(name_or_file: str):
             return ModelSpec.model_validate_json(p.read_text())
         except ValueError as exc:
             raise ModelError(f"{p}: {exc}") from None
-    raise ModelError(f"unknown model {name_or_file!r}: give a built-in name ({', '.join(BUILTINS)}) "
-                     "or a model JSON file")
+    raise ModelError(f"unknown model {name_or_file!r}{did_you_mean(name_or_file, BUILTINS)}: give a built-in "
+                     f"name ({', '.join(BUILTINS)}) or a model JSON file")
 
 
 def _write_sidecar(path: Path, meta: dict) -> None:
@@ -154,6 +154,8 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 def cmd_example(a) -> int:
     """List the example study specs, or write one out to start your own study from."""
+    from ardflow.ardcore.errors import did_you_mean
+
     names = sorted(p.stem for p in EXAMPLES.glob("*.json"))
     if not a.name:
         for n in names:
@@ -161,7 +163,7 @@ def cmd_example(a) -> int:
             print(f"{n:22s} {desc[:90]}")
         return 0
     if a.name not in names:
-        raise SystemExit(f"error: no example {a.name!r} (examples: {', '.join(names)})")
+        raise SystemExit(f"error: no example {a.name!r}{did_you_mean(a.name, names)} (examples: {', '.join(names)})")
     text = (EXAMPLES / f"{a.name}.json").read_text()
     if a.out:
         Path(a.out).write_text(text)

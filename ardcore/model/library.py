@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-from ..errors import ModelError
+from ..errors import ModelError, did_you_mean
 from .declaration import ModelSpec
 
 # Structural constants of Eq. 15 (printed values, U = 8.50 m/s) and c6 (a_h = -0.628).
@@ -164,4 +164,5 @@ def builtin(name: str) -> ModelSpec:
     try:
         return BUILTINS[name]()
     except KeyError:
-        raise ModelError(f"unknown built-in model {name!r} (known: {', '.join(BUILTINS)})") from None
+        raise ModelError(f"unknown built-in model {name!r}{did_you_mean(name, BUILTINS)} "
+                         f"(known: {', '.join(BUILTINS)})") from None

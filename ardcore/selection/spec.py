@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from .config import MaximiserConfig
 from ..data import DATA_ENV, Dataset, external_path, read_dataset
-from ..errors import DataError, SpecError
+from ..errors import DataError, SpecError, did_you_mean
 from ..model.library import builtin
 from ..sampling.config import SamplerConfig
 from ..model.declaration import NAME_PATTERN, ModelSpec
@@ -222,11 +222,32 @@ def load_spec(path: str | Path) -> StudySpec:
         raise SpecError(f"{p}: invalid study spec:\n{format_validation_error(exc)}") from None
 
 
+def _field_names(model=None, seen=None) -> set:
+    """Every field name of the study spec and the settings it holds (what a mistyped key is matched to)."""
+    import typing
+
+    model, seen = model or StudySpec, seen if seen is not None else set()
+    if model in seen:
+        return set()
+    seen.add(model)
+    names = set(model.model_fields)
+    for f in model.model_fields.values():
+        stack = [f.annotation]
+        while stack:
+            t = stack.pop()
+            if isinstance(t, type) and issubclass(t, BaseModel):
+                names |= _field_names(t, seen)
+            stack.extend(typing.get_args(t))
+    return names
+
+
 def format_validation_error(exc: ValidationError) -> str:
+    """One line per error, naming the field (a mistyped key with the closest valid one)."""
     lines = []
     for e in exc.errors():
         loc = ".".join(str(x) for x in e["loc"] if not str(x).startswith("function-after"))
-        lines.append(f"  {loc or '(spec)'}: {e['msg']}")
+        hint = did_you_mean(e["loc"][-1], _field_names()) if e["type"] == "extra_forbidden" and e["loc"] else ""
+        lines.append(f"  {loc or '(spec)'}: {e['msg']}{hint}")
     return "\n".join(lines)
 
 
