@@ -136,6 +136,12 @@ class _Service:
 
 def create_app(settings: Settings, client) -> FastAPI:
     """The FastAPI app over a Dask ``client`` (which it never exposes)."""
+    # the modules the request paths import (zarr, the study graph, the store) are loaded now: the first
+    # request would otherwise load them on the event loop, and every status request waits behind it
+    from importlib import import_module
+
+    for name in ("ardflow.workers.graph", "ardflow.workers.store", "ardflow.workers.inference"):
+        import_module(name)
     c = _Service(settings, client)
     app = FastAPI(title="ardflow", version="0.1.0",
                   description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")
