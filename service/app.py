@@ -412,6 +412,16 @@ def _diagnoses_router(c: _Service) -> APIRouter:
             body["figures"] = sorted(p.name for p in d.glob("*.png"))
         return JSONResponse(body)
 
+    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/report/{{name}}", dependencies=[Depends(c.access)],
+             responses={200: {"content": {"text/html": {}, "image/png": {}}}})
+    def diagnosis_report(sid: str, model: str, name: str):
+        """The diagnosis report (``diagnosis.html``) and its figures, beside each other as the report links them."""
+        d = _diag_dir(sid, model)
+        if not re.match(r"^[a-z_]{1,40}\.(png|html)$", name) or not (d / name).is_file():
+            raise HTTPException(404, f"no diagnosis report file {name!r} (a diagnosis writes it when it finishes)")
+        kind = "text/html; charset=utf-8" if name.endswith(".html") else "image/png"
+        return Response((d / name).read_bytes(), media_type=kind)
+
     @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/figures/{{name}}", dependencies=[Depends(c.access)],
              responses={200: {"content": {"image/png": {}}}})
     def diagnosis_figure(sid: str, model: str, name: str):

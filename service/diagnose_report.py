@@ -129,7 +129,7 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
         rows.append((f"free run: {key}", b, ((j.get("after") or {}).get("free_run") or {}).get(key)))
 
     def f(x):
-        return "" if x is None else (f"{x:.5g}" if isinstance(x, float) else html.escape(str(x)))
+        return "" if x is None else (f"{x:.4g}" if isinstance(x, float) else html.escape(str(x)))
 
     body = [f"<h1>Diagnosis of {html.escape(str(j['model']))}</h1>",
             f"<p><b>Verdict.</b> {html.escape(j['verdict'])}</p>",
@@ -146,7 +146,18 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
                     "choice for simulation, not the evidence's: the posterior, its intervals and the model "
                     "selection above are unchanged.</p>")
     if j.get("added"):
-        body.append(f"<h2>Effects added</h2><pre>{html.escape(json.dumps(j['added'], indent=1))}</pre>")
+        # one row per coefficient: the effect, its term, the coefficient's posterior mean and 99 % interval
+        body.append("<h2>Effects added</h2><table><tr><th>effect</th><th>equation</th><th>character</th>"
+                    "<th>ln BF</th><th>coefficient</th><th>mean</th><th>99 % interval</th></tr>")
+        for a in j["added"]:
+            post = {**a.get("posterior", {}), **a.get("shape", {})} or {"-": {}}
+            for i, (name, q) in enumerate(post.items()):
+                lead = (f"<td>{html.escape(a['effect'])}</td><td>{html.escape(a['target'])}</td>"
+                        f"<td>{html.escape(a.get('character') or '')}</td><td>{f(a['log_bayes_factor'])}</td>"
+                        if i == 0 else "<td></td>" * 4)
+                body.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{f(q.get('mean'))}</td>"
+                            f"<td>[{f(q.get('q005'))}, {f(q.get('q995'))}]</td></tr>")
+        body.append("</table>")
     if j.get("replaced"):
         body.append("<h2>Declared terms replaced</h2><table><tr><th>declared term</th><th>equation</th>"
                     "<th>replaced by</th><th>ln BF for the model without it</th></tr>")

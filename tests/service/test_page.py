@@ -99,3 +99,55 @@ def test_page_submit_watch_report(service, tmp_path):
     with httpx.Client(base_url=service, headers={"X-API-Token": TOKEN}) as c:
         meta = c.get(f"/v1/studies/{sid}/summary").json()
         assert meta["spec"]["data"].get("dataset") and not meta["spec"]["data"].get("generator")
+
+
+def test_page_result_diagnosis_reports_and_delete(service, tmp_path):
+    """A finished study on the page: its result (best model, P(M|d), kept and pruned terms), a diagnosis
+    started from the page and watched to its report (served as HTML with its figures), the study report, and
+    delete; nothing on the way is raw JSON or an error page."""
+    from ardflow.service.client import Client
+    from tests.ardcore.test_diagnose import duffing_free_decay, duffing_spec
+
+    sync_api = pytest.importorskip("playwright.sync_api")
+    est = tmp_path / "est.csv"
+    duffing_free_decay(-4.0, 3).slice(0, 1000).to_csv(est)
+    spec = duffing_spec().model_dump(mode="json", exclude_none=True)
+    spec.update(name="osc", data={})
+    with Client(service, token=TOKEN) as c:
+        sid = c.submit(spec, csv=est)
+        assert c.wait(sid, poll_s=0.3, timeout=300, progress=False)["status"] == "done"
+    errors: list[str] = []
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium_path(), headless=True, args=FLAGS)
+        try:
+            page = browser.new_page()
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("dialog", lambda d: d.accept())  # the delete confirmation
+            page.route("**/*", lambda r: r.continue_() if r.request.url.startswith(service) else r.abort())
+            page.goto(service + "/")
+            page.fill("#token", TOKEN)
+            page.click("#signin button")
+            row = f"tr[data-id='{sid}']"
+            page.wait_for_selector(f"{row} .result", timeout=30_000)
+            result = page.inner_text(f"{row} .result")
+            assert "best model" in result and "P(M|d)" in result and "kept:" in result, result
+            assert "about" not in page.inner_text(f"{row} .model >> nth=0")  # no ETA once done
+            page.click(f"{row} button.diagnose")
+            page.wait_for_selector(f"{row} a.diagnosis-report", timeout=300_000)
+            for link, must in ((f"{row} a.diagnosis-report", "Verdict"), (f"{row} a.report", "Convergence (ArviZ)")):
+                with page.expect_popup() as pop:
+                    page.click(link)
+                rep = pop.value
+                rep.wait_for_load_state("load")
+                text = rep.inner_text("body")
+                assert must in text and not text.lstrip().startswith("{"), text[:300]
+                imgs = rep.eval_on_selector_all("img", "els => els.map(e => e.naturalWidth)")
+                assert imgs and all(w > 0 for w in imgs), imgs
+                rep.close()
+            page.click(f"{row} button.delete")
+            page.wait_for_selector(row, state="detached", timeout=30_000)
+        finally:
+            browser.close()
+    assert not errors, errors
+    with httpx.Client(base_url=service, headers={"X-API-Token": TOKEN}) as c:
+        assert c.get(f"/v1/studies/{sid}").status_code == 404
