@@ -36,7 +36,7 @@ def _plot_tests(arrays: dict, col: str, out: Path) -> Path:
     return save_figure(fig, out)
 
 
-def _plot_noise(arrays: dict, t: np.ndarray, out: Path) -> Path:
+def _plot_noise(arrays: dict, t: np.ndarray, out: Path, time_label: str = "time") -> Path:
     """The smoothed process noise (drift the filter had to inject) per dynamic state, before/after."""
     plt = pyplot()
     states = list(arrays["before"]["process_noise_rate"])
@@ -47,7 +47,7 @@ def _plot_noise(arrays: dict, t: np.ndarray, out: Path) -> Path:
                 ax.plot(t[1:], arrays[label]["process_noise_rate"][s], color=style, lw=0.5, label=label)
         ax.set(ylabel=f"injected d{s}/dt", title=f"smoothed process noise on {s}")
         ax.legend(fontsize=8, loc="upper right")
-    axes[-1, 0].set_xlabel("time")
+    axes[-1, 0].set_xlabel(time_label)
     return save_figure(fig, out)
 
 
@@ -73,7 +73,9 @@ def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
     return save_figure(fig, out)
 
 
-def _plot_free_run(arrays: dict, out: Path) -> Path:
+def _plot_free_run(arrays: dict, out: Path, label=str) -> Path:
+    """The free run before and after against the data, with its bands, and the spectra; ``label(column)`` is
+    an axis label with its unit (:meth:`DataSpec.axis_label`)."""
     plt = pyplot()
     fr0 = arrays["before"]["free_run"]
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(11, 6))
@@ -90,8 +92,9 @@ def _plot_free_run(arrays: dict, out: Path) -> Path:
             a1.fill_between(fr1["t"][:n], fr1["band"][0][:n], fr1["band"][1][:n], color="C0", alpha=0.2, lw=0,
                             label=f"90 % band, after ({100 * fr1['band_coverage']:.0f} % of data inside)")
         a1.plot(fr1["t"][:n], fr1["y_free"][:n], "C0", lw=0.8, label="free run, after")
-    a1.set(xlabel="time", ylabel="output", title="free-run simulation against the (held-out) data")
-    a1.legend(fontsize=8)
+    a1.set(xlabel=label("t"), ylabel=label(arrays.get("column", "y")),
+           title="free-run simulation against the (held-out) data")
+    a1.legend(fontsize=9, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     from scipy import signal
 
     fs = 1.0 / float(np.median(np.diff(t)))
@@ -100,23 +103,26 @@ def _plot_free_run(arrays: dict, out: Path) -> Path:
         if np.all(np.isfinite(y)):
             f, P = signal.welch(y - np.mean(y), fs=fs, nperseg=min(y.size, 4096))
             a2.semilogy(f, P + 1e-300, st, lw=0.8, label=lab)
-    a2.set(xlabel="frequency", ylabel="PSD", title="spectra (compare these, not phase, for self-excited systems)")
-    a2.legend(fontsize=8)
+    a2.set(xlabel="frequency [Hz]" if label("t").endswith("[s]") else "frequency [cycles per time unit]",
+           ylabel="PSD", title="spectra (compare these, not phase, for self-excited systems)")
+    a2.legend(fontsize=9, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return save_figure(fig, out)
 
 
-def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Path, col: str = "y") -> Path:
-    """Write ``diagnosis.json``, the figures and ``diagnosis.html`` into ``out_dir``; returns the JSON path."""
+def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Path, col: str = "y",
+                    label=str) -> Path:
+    """Write ``diagnosis.json``, the figures and ``diagnosis.html`` into ``out_dir``; returns the JSON path.
+    ``label(column)``: an axis label with its unit, as the spec declares them (:meth:`DataSpec.axis_label`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    arrays, j = diagnosis.arrays, diagnosis.to_json()
+    arrays, j = {**diagnosis.arrays, "column": col}, diagnosis.to_json()
     figs = {
         "tests.png": ("whiteness and spectrum of the innovations, before and after", _plot_tests(arrays, col,
                                                                                                  out / "tests.png")),
         "process_noise.png": ("process noise the filter had to inject, per state",
-                              _plot_noise(arrays, data_t, out / "process_noise.png")),
+                              _plot_noise(arrays, data_t, out / "process_noise.png", label("t"))),
         "candidates.png": ("candidate effects ranked", _plot_candidates(diagnosis.report, out / "candidates.png")),
-        "free_run.png": ("free run against the data", _plot_free_run(arrays, out / "free_run.png")),
+        "free_run.png": ("free run against the data", _plot_free_run(arrays, out / "free_run.png", label)),
     }
     path = out / "diagnosis.json"
     path.write_text(json.dumps(j, indent=2))

@@ -86,9 +86,12 @@ def _report_figures(store, spec, summary, names, samples, truth, ref_bounds, out
     data = store.load_data()
     figs: list[tuple[str, str]] = []
     col = "y" if "y" in data.columns else next(iter(data.columns))
+    # names and units as the spec declares them (data.units, data.labels)
+    seconds = spec.data.units.get("t") == "s"
     plot_data_and_psd(data.t, data.columns[col], out / "data_psd.png",
                       cutoff=0.2295 if reference else None, tau_seconds=TAU_SECONDS if reference else None,
-                      title=f"{spec.name}: data ({col})", time_label="tau" if reference else "time")
+                      title=f"{spec.name}: {spec.data.axis_label(col)}", time_label=spec.data.axis_label("t"),
+                      y_label=spec.data.axis_label(col), frequency_unit="Hz" if seconds else "cycles per time unit")
     figs.append(("Data and its power spectral density (Figs. 2-3)", "data_psd.png"))
 
     histories = store.histories([r["name"] for r in summary["models"]])

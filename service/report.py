@@ -22,7 +22,8 @@ def pyplot():
 
 def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: np.ndarray | None = None,
                       cutoff: float | None = None, title: str = "Reference data",
-                      time_label: str = "non-dimensional time tau", tau_seconds: float | None = TAU_SECONDS) -> Path:
+                      time_label: str = "non-dimensional time tau", tau_seconds: float | None = TAU_SECONDS,
+                      y_label: str = "pitch angle theta [rad]", frequency_unit: str = "cycles per time unit") -> Path:
     """The measured signal (paper Fig. 2) and its power spectral density (Fig. 3).
 
     Parameters
@@ -37,6 +38,8 @@ def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: n
         Low-pass cut-off (cycles per time unit), marked on the spectrum.
     tau_seconds : float, optional
         When given, the spectrum's top axis is also labelled in Hz.
+    y_label, frequency_unit : str
+        The measured channel's axis label (with its unit) and the spectrum's frequency unit.
     """
     from scipy.signal import welch
 
@@ -44,18 +47,19 @@ def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: n
     fs = 1.0 / float(np.median(np.diff(t)))
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(9, 7))
     if clean is not None:
-        a0.plot(t, clean, color="0.7", lw=2.0, label="clean theta")
-    a0.plot(t, y, lw=0.7, color="C0", label="measured (noisy, filtered)")
+        a0.plot(t, clean, color="0.7", lw=2.0, label="noise-free")
+    a0.plot(t, y, lw=0.7, color="C0", label="measured")
     a0.set_xlabel(time_label)
-    a0.set_ylabel("pitch angle theta [rad]")
+    a0.set_ylabel(y_label)
     a0.set_title(title)
-    a0.legend(loc="upper left", fontsize=8)
+    if clean is not None:
+        a0.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     f, pxx = welch(y - np.mean(y), fs=fs, nperseg=min(len(y), 2048))
     a1.semilogy(f, pxx, color="C0")
     if cutoff:
         a1.axvline(cutoff, color="C3", ls="--", lw=1, label=f"low-pass cut-off {cutoff:g}")
         a1.legend(fontsize=8)
-    a1.set_xlabel("frequency [cycles per time unit]")
+    a1.set_xlabel(f"frequency [{frequency_unit}]")
     a1.set_ylabel("PSD")
     a1.set_xlim(0, min(fs / 2, 5 * cutoff) if cutoff else fs / 2)
     if tau_seconds:

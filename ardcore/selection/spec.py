@@ -38,6 +38,23 @@ class DataSpec(BaseModel):
     start: Optional[int] = Field(None, ge=0)
     stop: Optional[int] = Field(None, ge=1)
     every: Optional[int] = Field(None, ge=1, le=100_000, description="keep every n-th row (after start/stop)")
+    units: dict[Name, Annotated[str, Field(max_length=32)]] = Field(
+        default_factory=dict, max_length=64, description="unit of each column and of time (t), for reports: "
+                                                           "{'t': 's', 'y': 'V'}")
+    labels: dict[Name, Annotated[str, Field(max_length=80)]] = Field(
+        default_factory=dict, max_length=64, description="what each column is, for reports: "
+                                                           "{'y': 'output voltage'}")
+
+    def axis_label(self, column: str) -> str:
+        """``"output voltage y [V]"``: the column's declared label and unit (the reference problem's own
+        names for its generated data; otherwise the column's name alone where none is declared)."""
+        defaults = {"y": ("pitch angle theta", "rad"), "t": ("non-dimensional time tau", "")} \
+            if self.generator == "reference" else {}
+        label, unit = defaults.get(column, ("time" if column == "t" else column, ""))
+        if column in self.labels:
+            label = self.labels[column] if column == "t" else f"{self.labels[column]} {column}"
+        unit = self.units.get(column, unit)
+        return f"{label} [{unit}]" if unit else label
 
     @model_validator(mode="after")
     def _one_source(self):

@@ -131,3 +131,13 @@ def test_spec_paths_fall_back_to_ardflow_data(tmp_path, monkeypatch):
 def test_dataset_validates_direct_construction():
     with pytest.raises(DataError, match="has 3 values for 12 times"):
         Dataset(np.arange(12.0), {"y": np.zeros(3)})
+
+
+def test_reports_label_axes_with_the_specs_names_and_units():
+    from ardflow.ardcore.selection.spec import DataSpec
+
+    d = DataSpec(path="x.csv", units={"t": "s", "y": "V"}, labels={"y": "output voltage"})
+    assert (d.axis_label("y"), d.axis_label("t"), d.axis_label("u")) == ("output voltage y [V]", "time [s]", "u")
+    # the reference problem's generated record keeps its own names; another record never borrows them
+    assert DataSpec(generator="reference").axis_label("y") == "pitch angle theta [rad]"
+    assert "theta" not in DataSpec(path="x.csv").axis_label("y")
