@@ -219,7 +219,7 @@ def cmd_diagnose(a) -> int:
                    progress=lambda s: print(f"[diagnose] {s}", flush=True))
     path = write_diagnosis(rep, data.t, a.out, col=spec.models[0].model_spec().observed_columns[0],
                            label=spec.data.axis_label)
-    print(f"\n{rep.verdict}")
+    print(f"\n{rep.report.get('headline', '')}\n\n{rep.verdict}")
     print(f"\nreport: {path} and {Path(a.out) / 'diagnosis.html'}  ({time.perf_counter() - t0:.1f} s)")
     return 0
 

@@ -138,7 +138,9 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
         return "" if x is None else (f"{x:.4g}" if isinstance(x, float) else html.escape(str(x)))
 
     body = [f"<h1>Diagnosis of {html.escape(str(j['model']))}</h1>",
-            f"<p><b>Verdict.</b> {html.escape(j['verdict'])}</p>",
+            f"<p class='verdict'><b>Verdict.</b> {html.escape(j.get('headline') or j['verdict'])}</p>",
+            f"<details><summary>The loop's account, step by step</summary><p>{html.escape(j['verdict'])}</p>"
+            "</details>",
             "<h2>Error before and after</h2><table><tr><th>measure</th><th>before</th><th>after</th></tr>"]
     body += [f"<tr><td>{html.escape(k)}</td><td>{f(b)}</td><td>{f(a)}</td></tr>" for k, b, a in rows]
     body.append("</table>")

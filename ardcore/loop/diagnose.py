@@ -55,7 +55,7 @@ from .residuals import Residuals, residuals
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec, StudySpec
 from ..selection.study import run_candidate
-from .verdict import character, unexplained
+from .verdict import character, headline, unexplained
 
 INF = math.inf
 
@@ -424,8 +424,11 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
            "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
            "removed": removed, "replaced": replaced, "initial_state": notes, "tests_after": None,
            "final_fit": row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
+    col = spec.models[0].model_spec().observed_columns[0]
+    unit = (data.meta.get("units") or {}).get(col, "")
     if not added:
         out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
+        out["headline"] = headline(out, col, unit)
         return out
     a, b = out["after"], out["before"]
     out["tests_after"] = _strip(arrays["after"]["tests"])
@@ -445,6 +448,7 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
                       + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "
                                 f"absorbed part of what was missing" for k, v in shifts.items())
                       + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
+    out["headline"] = headline(out, col, unit)
     return out
 
 

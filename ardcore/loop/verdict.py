@@ -105,3 +105,29 @@ def injected_share(res) -> dict:
         if d > 0 and np.isfinite(d):
             out[s] = float(np.sqrt(np.nanmean(r ** 2))) / d
     return out
+
+
+def headline(report: dict, col: str, unit: str = "") -> str:
+    """The verdict in at most three short sentences that agree with the report's own tests: what was added
+    (or replaced), the error before and after, and whether structure is left in the innovations."""
+    u = f" {unit}" if unit else ""
+    added, replaced = report.get("added") or [], report.get("replaced") or []
+    before, after = report["before"], report.get("after") or report["before"]
+    if added:
+        what = "Added " + ", ".join(f"{x['effect']} to the {x['target']} equation" for x in added)
+        what += "".join(f", replacing the declared {r['parameter']}*({r['term']})" for r in replaced) + "."
+        error = (f"Free-run RMS error {before['free_run']['rms_error']:.3g}{u} -> "
+                 f"{after['free_run']['rms_error']:.3g}{u}; ln Z {before['log_evidence']:.1f} -> "
+                 f"{after['log_evidence']:.1f}.")
+    else:
+        what = "Nothing was added: no effect of the library is supported by the evidence."
+        error = f"Free-run RMS error {before['free_run']['rms_error']:.3g}{u}."
+    p = ((report.get("tests_after") or report.get("tests_before") or {}).get(col) or {}).get("ljung_box_p")
+    if p is None:
+        left = ""
+    elif p < 0.01:
+        left = (f" Structure remains in the innovations (Ljung-Box p = {p:.1g}) that no effect of the library "
+                "explains.")
+    else:
+        left = f" The innovations left are white (Ljung-Box p = {p:.2f})."
+    return f"{what} {error}{left}"

@@ -95,6 +95,8 @@ class DataSpec(BaseModel):
         if self.every and self.every > 1:
             k = self.every
             ds = Dataset(ds.t[::k].copy(), {c: v[::k].copy() for c, v in ds.columns.items()}, dict(ds.meta))
+        if self.units:
+            ds.meta["units"] = {**ds.meta.get("units", {}), **self.units}
         return ds
 
 

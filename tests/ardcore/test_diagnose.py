@@ -353,3 +353,21 @@ def test_an_effect_is_added_only_if_its_model_free_runs_no_worse_and_its_fit_mov
     cj = dataclasses.replace(row, evidence_method="chib-jeliazkov", log_evidence_se=0.0)
     assert "no finite Monte Carlo error" in cj.degenerate()
     assert dataclasses.replace(row, evidence_method="laplace", log_evidence_se=0.0).degenerate() is None
+
+
+def test_headline_is_three_sentences_that_agree_with_the_tests():
+    from ardflow.ardcore.loop.verdict import headline
+
+    fr = {"rms_error": 0.2}
+    base = {"before": {"free_run": fr, "log_evidence": 10.0}, "added": [], "replaced": []}
+    white = dict(base, tests_before={"y": {"ljung_box_p": 0.4}})
+    assert headline(white, "y", "V") == ("Nothing was added: no effect of the library is supported by the evidence. "
+                                         "Free-run RMS error 0.2 V. The innovations left are white (Ljung-Box "
+                                         "p = 0.40).")
+    added = dict(base, added=[{"effect": "sqrt_outflow(h)", "target": "h"}],
+                 replaced=[{"parameter": "a", "term": "h"}], after={"free_run": {"rms_error": 0.01},
+                                                                   "log_evidence": 30.0},
+                 tests_after={"y": {"ljung_box_p": 1e-20}})
+    text = headline(added, "y")
+    assert text.count(". ") + 1 <= 3 and "replacing the declared a*(h)" in text and "0.2 -> 0.01" in text
+    assert "Structure remains" in text and "white" not in text  # never "adequate" beside p = 1e-20
