@@ -14,6 +14,7 @@ from ardflow.ardcore.sampling.diagnostics import Quality
 from .paper import FIG15_M2OPT_BOUNDS, TABLE10, TABLE10_OFFSET
 from .report import (
     TAU_SECONDS, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint, plot_marginals,
+    plot_model_probabilities, plot_prediction,
 )
 
 _CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -70,6 +71,9 @@ def write_report(store, out: str | Path | None = None) -> Path:
             "<h2>Warnings</h2><ul>" + ("".join(warns) or "<li>none</li>") + "</ul>",
             "<h2>Figures</h2>"]
     for cap, f in figs:
+        if not f:
+            body.append(f"<p class=warn>{html.escape(cap)}</p>")
+            continue
         body.append(f"<figure><img src='{f}' alt='{html.escape(cap)}'><figcaption>{html.escape(cap)}</figcaption>"
                     "</figure>")
     page = (f"<!doctype html><html><head><meta charset='utf-8'><title>ardflow: {html.escape(spec.name)}</title>"
@@ -94,6 +98,16 @@ def _report_figures(store, spec, summary, names, samples, truth, ref_bounds, out
                       y_label=spec.data.axis_label(col), frequency_unit="Hz" if seconds else "cycles per time unit")
     figs.append(("Data and its power spectral density (Figs. 2-3)", "data_psd.png"))
 
+    plot_model_probabilities(summary["models"], out / "probabilities.png")
+    figs.append(("Posterior probability of each candidate model (Eq. 7), with its ln evidence", "probabilities.png"))
+    try:
+        plot_prediction(data.t, data.columns[col], *_best_innovations(spec, summary, data, col),
+                        out / "prediction.png", model=best, y_label=spec.data.axis_label(col),
+                        time_label=spec.data.axis_label("t"))
+        figs.append((f"Data against {best}'s one-step prediction, and the standardised residuals", "prediction.png"))
+    except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not cost the report
+        figs.append((f"(the prediction of {best} could not be drawn: {type(exc).__name__})", ""))
+
     histories = store.histories([r["name"] for r in summary["models"]])
     plot_evidence_history(histories, out / "evidence.png")
     figs.append(("ln evidence, goodness of fit and information gain per maximisation trial (Figs. 8, 11-14)",
@@ -113,6 +127,27 @@ def _report_figures(store, spec, summary, names, samples, truth, ref_bounds, out
     return figs
 
 
+def _best_innovations(spec, summary: dict, data, col: str) -> tuple:
+    """The best model's innovations on ``col`` and their variances at its posterior mean (the EKF)."""
+    from ardflow.ardcore.likelihood.ekf import compile_model
+    from ardflow.ardcore.loop.diagnose import fitted_spec
+    from ardflow.ardcore.selection.fit import ModelFit
+
+    best = summary["best_model"]
+    cand = next(c for c in spec.models if c.label == best)
+    fit = ModelFit.from_json(next(r for r in summary["models"] if r["name"] == best))
+    fspec = fitted_spec(cand, fit)
+    res = compile_model(fspec).filter(fit.point(fspec.free_parameters), data, cand.substeps)
+    j = fspec.observed_columns.index(col)
+    return res.innovations[:, j], res.innovation_var[:, j]
+
+
+def _psi(psi: dict) -> str:
+    """psi_opt as a reader wants it: 'a3 1e-04, a5 pruned'."""
+    return ", ".join(f"{k} {'pruned' if str(v) == 'inf' or v == math.inf else f'{float(v):.0e}'}"
+                     for k, v in psi.items()) or "-"
+
+
 def _comparison_table(summary: dict) -> str:
     """The model comparison (the paper's Table 10 analogue)."""
     rows = []
@@ -123,7 +158,7 @@ def _comparison_table(summary: dict) -> str:
             f"<td>{_fmt(r['log_evidence'])} &plusmn; {_fmt(r['log_evidence_se'])}</td>",
             f"<td>{_fmt(r['probability'], 4)}</td>",
             f"<td class=l>{', '.join(r['kept']) or '-'}</td>", f"<td class=l>{', '.join(r['pruned']) or '-'}</td>",
-            f"<td class=l>{html.escape(json.dumps(r['psi_opt']))}</td>"]) + "</tr>")
+            f"<td class=l>{html.escape(_psi(r['psi_opt']))}</td>"]) + "</tr>")
     return ("<table><tr><th class=l>model</th><th>GoF</th><th>EIG</th><th>ln evidence</th><th>P(M|d)</th>"
                "<th class=l>kept</th><th class=l>pruned</th><th class=l>psi_opt</th></tr>" + "".join(rows) + "</table>")
 

@@ -181,3 +181,41 @@ def plot_joint(names: list[str], samples: np.ndarray, out, true_values: dict | N
                 ax.set_ylabel(names[i], fontsize=8)
             ax.tick_params(labelsize=6)
     return save_figure(fig, out)
+
+
+def plot_prediction(t: np.ndarray, y: np.ndarray, innovations: np.ndarray, innovation_var: np.ndarray,
+                    out: str | Path, *, model: str, y_label: str, time_label: str) -> Path:
+    """The data against the model's one-step prediction (the EKF forecast, with its 95 % band), and the
+    standardised residuals below it (white noise of unit variance when the model carries the data)."""
+    plt = pyplot()
+    pred = y - innovations
+    sd = np.sqrt(innovation_var)
+    n = min(t.size, 3000)  # a readable stretch of the record
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(11, 6.5), sharex=True, gridspec_kw={"height_ratios": [2, 1]})
+    a0.fill_between(t[:n], (pred - 1.96 * sd)[:n], (pred + 1.96 * sd)[:n], color="C1", alpha=0.25, lw=0,
+                    label="95 % prediction band")
+    a0.plot(t[:n], y[:n], "k.", ms=2, label="data")
+    a0.plot(t[:n], pred[:n], "C1", lw=0.9, label=f"{model}: one-step prediction")
+    a0.set(ylabel=y_label, title=f"data against the prediction of {model} (posterior mean)")
+    a0.legend(fontsize=9, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    z = innovations / sd
+    a1.plot(t[:n], z[:n], "C0", lw=0.6)
+    a1.axhspan(-1.96, 1.96, color="0.9", zorder=0)
+    a1.set(xlabel=time_label, ylabel="standardised residual", title="residuals (grey: 95 % of white noise)")
+    return save_figure(fig, out)
+
+
+def plot_model_probabilities(rows: list[dict], out: str | Path) -> Path:
+    """P(M|d) of each candidate, with its ln evidence and standard error written on its bar."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 0.6 + 0.55 * len(rows)))
+    names = [r["name"] for r in rows]
+    p = [float(r.get("probability") or 0.0) for r in rows]
+    ax.barh(names, p, color=["C2" if v == max(p) else "C7" for v in p])
+    for i, r in enumerate(rows):
+        ax.text(min(p[i], 0.62) + 0.01, i, f"P = {p[i]:.3f}   ln Z = {r['log_evidence']:.2f} ± "
+                f"{r['log_evidence_se']:.2f}", va="center", fontsize=9)
+    ax.set(xlim=(0, 1), xlabel="posterior model probability P(M|d) (equal prior odds)",
+           title="which model the data support")
+    ax.invert_yaxis()
+    return save_figure(fig, out)
