@@ -130,7 +130,7 @@ def _report_figures(store, spec, summary, names, samples, truth, ref_bounds, out
 def _best_innovations(spec, summary: dict, data, col: str) -> tuple:
     """The best model's innovations on ``col`` and their variances at its posterior mean (the EKF)."""
     from ardflow.ardcore.likelihood.ekf import compile_model
-    from ardflow.ardcore.loop.diagnose import fitted_spec
+    from ardflow.ardcore.loop.freerun import fitted_spec
     from ardflow.ardcore.selection.fit import ModelFit
 
     best = summary["best_model"]
@@ -144,8 +144,9 @@ def _best_innovations(spec, summary: dict, data, col: str) -> tuple:
 
 def _psi(psi: dict) -> str:
     """psi_opt as a reader wants it: 'a3 1e-04, a5 pruned'."""
-    return ", ".join(f"{k} {'pruned' if str(v) == 'inf' or v == math.inf else f'{float(v):.0e}'}"
-                     for k, v in psi.items()) or "-"
+    from ardflow.ardcore.jsonio import is_pruned
+
+    return ", ".join(f"{k} {'pruned' if is_pruned(v) else f'{float(v):.0e}'}" for k, v in psi.items()) or "-"
 
 
 def _comparison_table(summary: dict) -> str:

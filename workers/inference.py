@@ -68,7 +68,7 @@ def pointwise_log_likelihood(cand, row: ModelFit, data, samples: np.ndarray,
     -------
     dict of column name to ndarray of shape (chain, draw, time).
     """
-    from ardflow.ardcore.loop.diagnose import fitted_spec
+    from ardflow.ardcore.loop.freerun import fitted_spec
 
     ms = fitted_spec(cand, row)
     if list(ms.free_parameters) != list(names):

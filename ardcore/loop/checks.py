@@ -3,7 +3,8 @@ halves of the record (:func:`split_stability`), the round's survivors fitted tog
 and, after each round, whether effects of earlier rounds are
 still worth their place beside the later ones (:func:`backward_check`, with the Savage-Dickey shortcut
 :func:`savage_dickey` for effects far above their threshold), and which of the user's declared terms an added
-effect may replace (:func:`declared_rivals`).
+effect may replace (:func:`declared_rivals`, :func:`replace_laws`); and that nothing added makes the free run
+worse (:func:`no_worse`, :func:`worse_than_before`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from ..effects.base import Effect, augment, with_columns
 from ..jsonio import is_pruned
 from ..model.declaration import ModelSpec, symbolic
 from ..data import Dataset
+from ..errors import FitError
+from .freerun import fitted, free_run
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec, StudySpec
 from ..selection.study import run_candidate
@@ -256,11 +259,89 @@ def declared_rivals(spec: ModelSpec, added: list[tuple[Effect, str]], new_parame
                     p in sp.sympify(e).free_symbols for e in elsewhere):
                 continue
             term = sp.diff(drift, p)
-            if p in term.free_symbols or sp.simplify(drift - p * term).has(p):
-                continue  # not linear in p
+            if p in term.free_symbols:
+                continue  # not linear in p (a derivative free of p means drift = p * term + rest)
             names = {str(x) for x in term.free_symbols}
             used = names & set(index)
             if names & inputs or not used or not used <= states_of_effect:
                 continue
             out.append(Rival(name, str(-term if term.could_extract_minus_sign() else term), target, eff.name))
     return out
+
+
+def no_worse(survivors: list, fspec, phi, cand, data: Dataset, config, say) -> list:
+    """The survivors whose model is a result: its fit not degenerate (:meth:`ModelFit.degenerate`) and its
+    free run on the estimation record bounded and no worse than the current model's. The evidence judges
+    one-step predictions; an effect that improves them while the simulated response drifts off (or
+    diverges) would make the model worse where it is used. The others are marked and say why."""
+    if not survivors:
+        return survivors
+    before = free_run(fspec, phi, data, init_samples=config.init_samples, substeps=cand.substeps)["rms_error"]
+    kept = []
+    for c in survivors:
+        why = worse_than_before(c.fit, before, config)
+        if why is None:
+            kept.append(c)
+            continue
+        c.survives, c.rejected = False, why
+        say(f"  {c.effect}: not added: {why}")
+    return kept
+
+
+def free_run_rms(fit, config) -> float:
+    """RMS error of the free run of ``fit``'s model (posterior mean) on its estimation record."""
+    fs, ph = fitted(fit.cand, fit.row)
+    return free_run(fs, ph, fit.data, init_samples=config.init_samples, substeps=fit.cand.substeps)["rms_error"]
+
+
+def worse_than_before(fit, before: float, config) -> str | None:
+    """Why the model of ``fit`` (a re-selection with an effect) is no improvement on one whose free run on
+    the estimation record has RMS error ``before``, or None."""
+    why = fit.row.degenerate()
+    if why is not None:
+        return why
+    try:
+        after = free_run_rms(fit, config)
+    except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        return f"its free run failed ({type(exc).__name__})"
+    if math.isfinite(after) and after <= before * (1 + 1e-9):
+        return None
+    return (f"its free run on the estimation record {'diverges' if not math.isfinite(after) else 'is worse'} "
+            f"(RMS error {before:.4g} -> {after:.4g})")
+
+
+def replace_laws(spec, cand, row, bmr, data: Dataset, rounds: list, config, say, mapper):
+    """Drop the declared terms this round's effects replace (:func:`declared_rivals`): each is refitted out
+    (its parameter fixed at 0, side by side on the loop's pool); the one whose removal raises ln Z most is
+    dropped when the model without it is more probable (ln Bayes factor > 0 for the smaller model, equal
+    prior odds) and free-runs no worse on the estimation record. Repeats while one goes. Recorded in the
+    round as ``replaced``."""
+    rnd = rounds[-1]
+    new_params = {n for r in rounds for x in r.added for n in x.params} | {
+        n for r in rounds for x in r.added for n in x.record.get("shape", {})}
+    added = [(e, x.record["target"]) for e, x in zip(rnd.effects, rnd.added)]
+    replaced = rnd.record.setdefault("replaced", [])
+    while True:
+        rivals = declared_rivals(cand.model_spec(), added, new_params)
+        if not rivals:
+            return cand, row, bmr
+        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, r.parameter: 0.0}}), data, spec, bmr.sampler,
+                  config.posterior) for r in rivals]
+        fits = mapper(fit_task, tasks)
+        gain = [frow.log_evidence - row.log_evidence for frow, _ in fits]
+        k = int(np.nanargmax(gain)) if np.isfinite(gain).any() else 0
+        r = rivals[k]
+        if not gain[k] > 0:
+            say(f"  the declared {r.parameter}*({r.term}) in {r.target}'s equation stays beside {r.effect} "
+                f"(worth {-gain[k]:.1f} nats)")
+            return cand, row, bmr
+        fit = Fit(tasks[k][0], fits[k][0], fits[k][1], data)
+        why = worse_than_before(fit, free_run_rms(Fit(cand, row, bmr, data), config), config)
+        if why is not None:
+            say(f"  the declared {r.parameter}*({r.term}) stays: without it {why}")
+            return cand, row, bmr
+        replaced.append({"parameter": r.parameter, "term": r.term, "target": r.target, "by": r.effect,
+                         "log_bayes_factor": float(gain[k])})
+        say(f"  {r.effect} replaces the declared {r.parameter}*({r.term}) in {r.target}'s equation "
+            f"(ln BF {gain[k]:.1f} for the model without it)")
+        cand, (row, bmr) = tasks[k][0], fits[k]

@@ -40,20 +40,20 @@ from typing import Callable
 
 import numpy as np
 
-from .checks import Added, backward_check, declared_rivals, joint_fit, split_stability
-from .confirm import Confirmation, Fit, fit_task, pool_mapper, trace_and_confirm
+from .checks import (Added, backward_check, free_run_rms, joint_fit, no_worse, replace_laws, split_stability,
+                     worse_than_before)
+from .confirm import Confirmation, pool_mapper, trace_and_confirm
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import FitError, SpecError
 from .result import Diagnosis, FittedModel, LoopRound
-from .freerun import posterior_draws, free_run
+from .freerun import fitted, free_run, posterior_draws
 from .initial import data_informed_initial
-from ..jsonio import is_pruned
 from .config import DiagnoseConfig
 from ..model.declaration import ModelSpec
 from .residuals import Residuals, residuals
 from ..selection.fit import ModelFit
-from ..selection.spec import CandidateSpec, StudySpec
+from ..selection.spec import StudySpec
 from ..selection.study import run_candidate
 from .verdict import character, headline, unexplained
 
@@ -61,19 +61,6 @@ INF = math.inf
 
 
 # --------------------------------------------------------------------------- fit, free run, loop
-
-
-def fitted_spec(cand: CandidateSpec, row: ModelFit) -> ModelSpec:
-    """The candidate's model with the terms its optimal psi pruned fixed at 0."""
-    spec = cand.model_spec()
-    pruned = {k: 0.0 for k, v in row.psi_opt.items() if is_pruned(v)}
-    return spec.with_fixed(**pruned) if pruned else spec
-
-
-def _fitted(cand: CandidateSpec, row: ModelFit) -> tuple[ModelSpec, dict]:
-    """The candidate's model with pruned terms fixed at 0, and its posterior mean."""
-    spec = fitted_spec(cand, row)
-    return spec, row.point(spec.free_parameters)
 
 
 def _measure(fspec, phi, cand, row, bmr, data, test, col, config, rnd) -> tuple[Residuals, dict, dict]:
@@ -149,7 +136,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     mapper, close = pool_mapper(workers)
     try:
         for rnd in range(config.max_rounds + 1):
-            fspec, phi = _fitted(cand, row)
+            fspec, phi = fitted(cand, row)
             say(f"round {rnd}: {cand.label} ln Z = {row.log_evidence:.3f}; computing residuals")
             res, fr, err = _measure(fspec, phi, cand, row, bmr, cur_data, cur_test, col, config, rnd)
             if first is None:
@@ -172,7 +159,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 cur_test = with_columns(cur_test, e)
             earlier = [x for r in rounds[:-1] for x in r.added]
             cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, earlier, rnd, config, say, mapper)
-            cand, row, bmr = _replace_laws(spec, cand, row, bmr, cur_data, rounds, config, say, mapper)
+            cand, row, bmr = replace_laws(spec, cand, row, bmr, cur_data, rounds, config, say, mapper)
         out = _report(spec, data, test_data, first, rounds, arrays, row, notes, cand.label)
         final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), cand.substeps)
         simulation = _simulation(final, cur_data, cur_test, config, say, out)
@@ -246,84 +233,6 @@ def check_fitted(label: str, row: ModelFit, data: Dataset) -> None:
                    f"{big:.3g}) against the model's priors, initial state and noise levels")
 
 
-def _no_worse(survivors: list, fspec, phi, cand, data: Dataset, config, say) -> list:
-    """The survivors whose model is a result: its fit not degenerate (:meth:`ModelFit.degenerate`) and its
-    free run on the estimation record bounded and no worse than the current model's. The evidence judges
-    one-step predictions; an effect that improves them while the simulated response drifts off (or
-    diverges) would make the model worse where it is used. The others are marked and say why."""
-    if not survivors:
-        return survivors
-    before = free_run(fspec, phi, data, init_samples=config.init_samples, substeps=cand.substeps)["rms_error"]
-    kept = []
-    for c in survivors:
-        why = worse_than_before(c.fit, before, config)
-        if why is None:
-            kept.append(c)
-            continue
-        c.survives, c.rejected = False, why
-        say(f"  {c.effect}: not added: {why}")
-    return kept
-
-
-def _free_run_rms(fit, config) -> float:
-    """RMS error of the free run of ``fit``'s model (posterior mean) on its estimation record."""
-    fs, ph = _fitted(fit.cand, fit.row)
-    return free_run(fs, ph, fit.data, init_samples=config.init_samples, substeps=fit.cand.substeps)["rms_error"]
-
-
-def worse_than_before(fit, before: float, config) -> str | None:
-    """Why the model of ``fit`` (a re-selection with an effect) is no improvement on one whose free run on
-    the estimation record has RMS error ``before``, or None."""
-    why = fit.row.degenerate()
-    if why is not None:
-        return why
-    try:
-        after = _free_run_rms(fit, config)
-    except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-        return f"its free run failed ({type(exc).__name__})"
-    if math.isfinite(after) and after <= before * (1 + 1e-9):
-        return None
-    return (f"its free run on the estimation record {'diverges' if not math.isfinite(after) else 'is worse'} "
-            f"(RMS error {before:.4g} -> {after:.4g})")
-
-
-def _replace_laws(spec, cand, row, bmr, data: Dataset, rounds: list[LoopRound], config, say, mapper):
-    """Drop the declared terms this round's effects replace (:func:`declared_rivals`): each is refitted out
-    (its parameter fixed at 0, side by side on the loop's pool); the one whose removal raises ln Z most is
-    dropped when the model without it is more probable (ln Bayes factor > 0 for the smaller model, equal
-    prior odds) and free-runs no worse on the estimation record. Repeats while one goes. Recorded in the
-    round as ``replaced``."""
-    rnd = rounds[-1]
-    new_params = {n for r in rounds for x in r.added for n in x.params} | {
-        n for r in rounds for x in r.added for n in x.record.get("shape", {})}
-    added = [(e, x.record["target"]) for e, x in zip(rnd.effects, rnd.added)]
-    replaced = rnd.record.setdefault("replaced", [])
-    while True:
-        rivals = [r for r in declared_rivals(cand.model_spec(), added, new_params)]
-        if not rivals:
-            return cand, row, bmr
-        tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, r.parameter: 0.0}}), data, spec, bmr.sampler,
-                  config.posterior) for r in rivals]
-        fits = mapper(fit_task, tasks)
-        gain = [frow.log_evidence - row.log_evidence for frow, _ in fits]
-        k = int(np.nanargmax(gain)) if np.isfinite(gain).any() else 0
-        r = rivals[k]
-        if not gain[k] > 0:
-            say(f"  the declared {r.parameter}*({r.term}) in {r.target}'s equation stays beside {r.effect} "
-                f"(worth {-gain[k]:.1f} nats)")
-            return cand, row, bmr
-        fit = Fit(tasks[k][0], fits[k][0], fits[k][1], data)
-        why = worse_than_before(fit, _free_run_rms(Fit(cand, row, bmr, data), config), config)
-        if why is not None:
-            say(f"  the declared {r.parameter}*({r.term}) stays: without it {why}")
-            return cand, row, bmr
-        replaced.append({"parameter": r.parameter, "term": r.term, "target": r.target, "by": r.effect,
-                         "log_bayes_factor": float(gain[k])})
-        say(f"  {r.effect} replaces the declared {r.parameter}*({r.term}) in {r.target}'s equation "
-            f"(ln BF {gain[k]:.1f} for the model without it)")
-        cand, (row, bmr) = tasks[k][0], fits[k]
-
-
 def _present(rounds: list[LoopRound]) -> set:
     """(library name, target) of the effects the model holds: not screened again (a second saturating flow
     beside the first, its width already fitted, is a basis expansion, not an effect)."""
@@ -337,7 +246,7 @@ def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra
     ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
                                           extra_effects, say, mapper, present)
     survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
-    survivors = _no_worse(survivors, fspec, phi, cand, data, config, say)
+    survivors = no_worse(survivors, fspec, phi, cand, data, config, say)
     noise = [c for c in survivors if c.fitted_effect.where == "noise"
              and any(abs(c.fit.row.mean.get(n, 0.0)) > math.log(2) for n in c.scales)]
     deferred = [c for c in survivors if c not in noise] if noise else []
@@ -383,7 +292,7 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rnd: LoopR
         # others make redundant; taken when it beats the best single effect by more than min_log_bf
         j = joint_fit(spec, cand, row, survivors, data, config, say)
         if j.row.log_evidence > best.log_evidence + config.min_log_bf:
-            why = worse_than_before(j, _free_run_rms(best.fit, config), config)  # together they must free-run no worse than the best alone
+            why = worse_than_before(j, free_run_rms(best.fit, config), config)  # together they must free-run no worse than the best alone
             if why is None:
                 chosen, fit = survivors, j
             else:

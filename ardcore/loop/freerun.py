@@ -6,10 +6,26 @@ import numpy as np
 
 from ..data import Dataset
 from ..effects.base import user_inputs
+from ..jsonio import is_pruned
 from ..likelihood.ekf import compile_model
 from .initial import recentred
 from ..model.declaration import ModelSpec
+from ..selection.fit import ModelFit
+from ..selection.spec import CandidateSpec
 from .residual_tests import dominant_frequency, harmonics
+
+
+def fitted_spec(cand: CandidateSpec, row: ModelFit) -> ModelSpec:
+    """The candidate's model with the terms its optimal psi pruned fixed at 0."""
+    spec = cand.model_spec()
+    pruned = {k: 0.0 for k, v in row.psi_opt.items() if is_pruned(v)}
+    return spec.with_fixed(**pruned) if pruned else spec
+
+
+def fitted(cand: CandidateSpec, row: ModelFit) -> tuple[ModelSpec, dict]:
+    """The candidate's model with pruned terms fixed at 0, and its posterior mean."""
+    spec = fitted_spec(cand, row)
+    return spec, row.point(spec.free_parameters)
 
 
 def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
