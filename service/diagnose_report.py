@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import html
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +70,12 @@ def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
     ax.set_xticks(np.sign(ticks) * np.log10(1 + np.abs(ticks)), [str(t) for t in ticks])
     ax.axvline(np.log10(4), color="k", lw=0.6, ls=":")
     ax.set(xlabel="screened ln Bayes factor of adding the effect (dotted: 3 nats)",
-           title="candidate effects (green: kept by evidence, orange: rejected by evidence)")
+           title="candidate effects of round 0, as screened")
+    from matplotlib.patches import Patch
+
+    ax.legend(handles=[Patch(color="C2", label="confirmed and kept"), Patch(color="C1", label="confirmed, rejected"),
+                       Patch(color="0.6", label="screened only")], fontsize=9, loc="upper left",
+              bbox_to_anchor=(1.01, 1.0))
     return save_figure(fig, out)
 
 
@@ -109,6 +115,123 @@ def _plot_free_run(arrays: dict, out: Path, label=str) -> Path:
     return save_figure(fig, out)
 
 
+def _num(x) -> str:
+    """A number at 4 significant digits (blank when absent)."""
+    if x is None:
+        return ""
+    return f"{x:.4g}" if isinstance(x, float) else html.escape(str(x))
+
+
+# the error table's rows: (key in the report, what it is, its unit: "data" is the measured column's unit)
+ERRORS = [("innovation_rms", "one-step prediction error (innovation RMS)", "data"),
+          ("standardized_rms", "standardised innovation RMS (1 when the filter's variances are right)", ""),
+          ("log_evidence", "ln Z", "nats"),
+          ("free_run.rms_error", "free-run RMS error", "data"),
+          ("free_run.relative_rms_error", "free-run RMS error / RMS of the data", ""),
+          ("free_run.draws_rms_error", "free-run RMS error, median over posterior draws", "data"),
+          ("free_run.band_coverage", "share of the data inside the 90 % band of the draws", "%"),
+          ("free_run.band_halfwidth_rms", "the 90 % band's half-width (RMS)", "data"),
+          ("free_run.amplitude_error", "oscillation amplitude error (relative)", ""),
+          ("free_run.frequency_error", "oscillation frequency error (relative)", ""),
+          ("free_run.harmonic_error", "harmonic spectrum error (relative)", "")]
+
+
+def _error_table(j: dict, unit: str) -> str:
+    """Error before and after, each measure named with its unit."""
+    def get(d, key):
+        for k in key.split("."):
+            d = (d or {}).get(k)
+        return d
+
+    rows = []
+    for key, what, u in ERRORS:
+        b, a = get(j["before"], key), get(j.get("after"), key)
+        if b is None and a is None:
+            continue
+        if u == "%":
+            b, a = (None if x is None else 100 * x for x in (b, a))
+        u = unit if u == "data" else u
+        fmt = (lambda x: "" if x is None else f"{x:.1f}") if u in ("nats", "%") else _num
+        rows.append(f"<tr><td>{html.escape(what)}</td><td>{html.escape(u)}</td><td>{fmt(b)}</td>"
+                    f"<td>{fmt(a) if j.get('after') else '(nothing added)'}</td></tr>")
+    return ("<table><tr><th>measure</th><th>unit</th><th>before</th><th>after</th></tr>" + "".join(rows)
+            + "</table>")
+
+
+def _tests_table(j: dict, col: str) -> str:
+    """The whiteness, normality and spectral tests of the standardised innovations, before and after."""
+    b = (j.get("tests_before") or {}).get(col) or {}
+    a = (j.get("tests_after") or {}).get(col) or {}
+
+    def peaks(t):
+        p = t.get("spectral_peaks") or []
+        if not p:
+            return "none"
+        return ", ".join(f"{x['f']:.4g}" + (f" (harmonic {x['harmonic']})" if x.get("harmonic") else "")
+                         for x in p[:4]) + (f" and {len(p) - 4} more" if len(p) > 4 else "")
+
+    rows = [("Ljung-Box Q", lambda t: f"{_num(t.get('ljung_box'))} (p = {t.get('ljung_box_p', float('nan')):.2g}, "
+                                      f"{t.get('ljung_box_lags')} lags)"),
+            ("autocorrelations outside the 95 % band", lambda t: f"{100 * t.get('acf_outside', 0):.0f} %"),
+            ("Jarque-Bera (normality)", lambda t: f"{_num(t.get('jarque_bera'))} "
+                                                  f"(p = {t.get('jarque_bera_p', float('nan')):.2g})"),
+            ("skew / excess kurtosis", lambda t: f"{_num(t.get('skew'))} / {_num(t.get('excess_kurtosis'))}"),
+            ("spectral peaks above the background (frequency)", peaks)]
+    out = ["<table><tr><th>test of the innovations</th><th>before</th><th>after</th></tr>"]
+    for what, fmt in rows:
+        out.append(f"<tr><td>{html.escape(what)}</td><td>{html.escape(fmt(b)) if b else ''}</td>"
+                   f"<td>{html.escape(fmt(a)) if a else '(nothing added)'}</td></tr>")
+    out.append("</table><p class='note'>White innovations: Ljung-Box p above 0.01, about 5 % of the "
+               "autocorrelations outside the band, no spectral peak.</p>")
+    return "".join(out)
+
+
+def _fate(c: dict, added: set) -> str:
+    """What became of a confirmed candidate, in words."""
+    if (c["effect"], c["target"]) in added:
+        return "added"
+    if not c.get("kept_terms"):
+        return "rejected: ARD pruned its terms"
+    if c.get("adjusted_log_bayes_factor", c["log_bayes_factor"]) <= c.get("threshold", 0):
+        return f"rejected: ln BF below its threshold {c.get('threshold', 0):.1f} (3 + ln N)"
+    if not (c.get("stability") or {}).get("stable", True):
+        return "rejected: the two halves of the record disagree"
+    return "not added: another candidate explained it better"
+
+
+def _round_table(r: dict, k: int = 8) -> str:
+    """One round: every confirmed candidate (screened and confirmed ln BF, its fate, its coefficients with
+    their 99 % intervals) and the best of the rest as screened."""
+    adds = r.get("added") or []
+    adds = adds if isinstance(adds, list) else [adds]
+    added = {(a["effect"], a["target"]) for a in adds} | {(a["effect"], a["target"]) for a in r.get("added_with") or []}
+    out = [f"<h3>Round {r['round']} (model {html.escape(str(r.get('model', '')))})</h3><table><tr><th>candidate</th>"
+           "<th>equation</th><th>screened ln BF</th><th>confirmed ln BF</th><th>result</th><th>coefficient</th>"
+           "<th>mean</th><th>99 % interval</th></tr>"]
+    confirmed = sorted(r.get("confirmed") or [], key=lambda c: -c["log_bayes_factor"])
+    for c in confirmed:
+        post = {**(c.get("posterior") or {}), **(c.get("shape") or {})} or {"": {}}
+        for i, (name, q) in enumerate(post.items()):
+            lead = (f"<td>{html.escape(c['effect'])}</td><td>{html.escape(c['target'])}</td>"
+                    f"<td>{_num(c.get('screened_log_bayes_factor'))}</td><td>{_num(c['log_bayes_factor'])}</td>"
+                    f"<td>{html.escape(_fate(c, added))}</td>" if i == 0 else "<td></td>" * 5)
+            out.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
+                       f"<td>{'' if not q else '[' + _num(q.get('q005')) + ', ' + _num(q.get('q995')) + ']'}</td></tr>")
+    tried = {(c["effect"], c["target"]) for c in confirmed}
+    rest = [c for c in r.get("candidates") or [] if (c["effect"], c["target"]) not in tried][:max(0, k - len(tried))]
+    for c in rest:
+        out.append(f"<tr><td>{html.escape(c['effect'])}</td><td>{html.escape(c['target'])}</td>"
+                   f"<td>{_num(c.get('log_bayes_factor'))}</td><td></td><td>"
+                   f"{'screened only: below 3 nats' if c.get('log_bayes_factor', 0) < 3 else 'screened only: not among the best to confirm'}"
+                   "</td><td></td><td></td><td></td></tr>")
+    if not confirmed and not rest:
+        out.append("<tr><td colspan='8'>no candidate screened</td></tr>")
+    out.append("</table>")
+    if r.get("verdict"):
+        out.append(f"<p>{html.escape(r['verdict'])}</p>")
+    return "".join(out)
+
+
 def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Path, col: str = "y",
                     label=str) -> Path:
     """Write ``diagnosis.json``, the figures and ``diagnosis.html`` into ``out_dir``; returns the JSON path.
@@ -126,33 +249,17 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
     }
     path = out / "diagnosis.json"
     path.write_text(json.dumps(j, indent=2))
-    rows = []
-    for key in ("innovation_rms", "standardized_rms", "ljung_box", "log_evidence"):
-        b = j["before"].get(key)
-        a = (j.get("after") or {}).get(key)
-        rows.append((key, b, a))
-    for key, b in j["before"]["free_run"].items():
-        rows.append((f"free run: {key}", b, ((j.get("after") or {}).get("free_run") or {}).get(key)))
-
-    def f(x):
-        return "" if x is None else (f"{x:.4g}" if isinstance(x, float) else html.escape(str(x)))
+    m = re.search(r"\[(.+)\]$", label(col))
+    unit = m.group(1) if m else ""
+    def fig(name: str) -> str:
+        cap = figs[name][0]
+        return (f"<figure><img src='{name}' alt='{html.escape(cap)}'><figcaption>{html.escape(cap)}"
+                "</figcaption></figure>")
 
     body = [f"<h1>Diagnosis of {html.escape(str(j['model']))}</h1>",
             f"<p class='verdict'><b>Verdict.</b> {html.escape(j.get('headline') or j['verdict'])}</p>",
             f"<details><summary>The loop's account, step by step</summary><p>{html.escape(j['verdict'])}</p>"
-            "</details>",
-            "<h2>Error before and after</h2><table><tr><th>measure</th><th>before</th><th>after</th></tr>"]
-    body += [f"<tr><td>{html.escape(k)}</td><td>{f(b)}</td><td>{f(a)}</td></tr>" for k, b, a in rows]
-    body.append("</table>")
-    sim = j.get("simulation") or {}
-    if "factor" in sim:
-        held = ", ".join(f"x{k}: {v:.4g}" for k, v in sim["held_out_rms"].items())
-        body.append(f"<h2>Simulation fit</h2><p>The final structure fitted at {f(sim['factor'])} x its posterior "
-                    f"process noise ({html.escape(', '.join(sim['noise_parameters']))}), the factor that free-ran "
-                    f"best on the held-out last {sim['held_out_samples']} samples of the estimation record "
-                    f"({html.escape(held)}): free-run RMS error {f(sim['free_run']['rms_error'])}. A predictive "
-                    "choice for simulation, not the evidence's: the posterior, its intervals and the model "
-                    "selection above are unchanged.</p>")
+            "</details>"]
     if j.get("added"):
         # one row per coefficient: the effect, its term, the coefficient's posterior mean and 99 % interval
         body.append("<h2>Effects added</h2><table><tr><th>effect</th><th>equation</th><th>character</th>"
@@ -161,27 +268,34 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
             post = {**a.get("posterior", {}), **a.get("shape", {})} or {"-": {}}
             for i, (name, q) in enumerate(post.items()):
                 lead = (f"<td>{html.escape(a['effect'])}</td><td>{html.escape(a['target'])}</td>"
-                        f"<td>{html.escape(a.get('character') or '')}</td><td>{f(a['log_bayes_factor'])}</td>"
+                        f"<td>{html.escape(a.get('character') or '')}</td><td>{_num(a['log_bayes_factor'])}</td>"
                         if i == 0 else "<td></td>" * 4)
-                body.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{f(q.get('mean'))}</td>"
-                            f"<td>[{f(q.get('q005'))}, {f(q.get('q995'))}]</td></tr>")
+                body.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
+                            f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>")
         body.append("</table>")
     if j.get("replaced"):
         body.append("<h2>Declared terms replaced</h2><table><tr><th>declared term</th><th>equation</th>"
                     "<th>replaced by</th><th>ln BF for the model without it</th></tr>")
         body += [f"<tr><td>{html.escape(r['parameter'])}*({html.escape(r['term'])})</td><td>{r['target']}</td>"
-                 f"<td>{html.escape(r['by'])}</td><td>{f(r['log_bayes_factor'])}</td></tr>" for r in j["replaced"]]
+                 f"<td>{html.escape(r['by'])}</td><td>{_num(r['log_bayes_factor'])}</td></tr>" for r in j["replaced"]]
         body.append("</table>")
-    body.append("<h2>Candidates confirmed by evidence</h2><table><tr><th>effect</th><th>target</th>"
-                "<th>ln BF</th><th>ARD keeps</th><th>survives</th></tr>")
-    body += [f"<tr><td>{html.escape(c['effect'])}</td><td>{c['target']}</td><td>{f(c['log_bayes_factor'])}</td>"
-             f"<td>{html.escape(', '.join(c['kept_terms']))}</td><td>{c['survives']}</td></tr>" for c in j["confirmed"]]
-    body.append("</table>")
-    for name, (cap, _) in figs.items():
-        body.append(f"<figure><img src='{name}' alt='{html.escape(cap)}'><figcaption>{html.escape(cap)}"
-                    "</figcaption></figure>")
-    style = ("body{font-family:sans-serif;max-width:1100px;margin:auto}img{max-width:100%}"
-             "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px}")
+    body.append("<h2>Each round: the candidates and what became of them</h2>")
+    body += [_round_table(r) for r in j.get("rounds", [])]
+    body += ["<h2>Error before and after</h2>", _error_table(j, unit), fig("free_run.png")]
+    sim = j.get("simulation") or {}
+    if "factor" in sim:
+        held = ", ".join(f"x{k}: {v:.4g}" for k, v in sim["held_out_rms"].items())
+        body.append(f"<h3>Simulation fit</h3><p>The final structure fitted at {_num(sim['factor'])} x its "
+                    f"posterior process noise ({html.escape(', '.join(sim['noise_parameters']))}), the factor that "
+                    f"free-ran best on the held-out last {sim['held_out_samples']} samples of the estimation record "
+                    f"({html.escape(held)}): free-run RMS error {_num(sim['free_run']['rms_error'])} {unit}. A "
+                    "predictive choice for simulation, not the evidence's: the posterior, its intervals and the "
+                    "model selection above are unchanged.</p>")
+    body += ["<h2>Residual tests before and after</h2>", _tests_table(j, col), fig("tests.png"),
+             "<h2>Where the model needed help</h2>", fig("process_noise.png"), fig("candidates.png")]
+    style = ("body{font-family:sans-serif;font-size:15px;max-width:1100px;margin:auto}img{max-width:100%}"
+             "table{border-collapse:collapse;margin:.4em 0}td,th{border:1px solid #ccc;padding:2px 6px}"
+             ".verdict{font-size:1.1em}.note{color:#555;font-size:.9em}")
     (out / "diagnosis.html").write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>diagnosis</title>"
                                         f"<style>{style}</style></head><body>{''.join(body)}</body></html>")
     return path

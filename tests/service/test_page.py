@@ -101,21 +101,22 @@ def test_page_submit_watch_report(service, tmp_path):
         assert meta["spec"]["data"].get("dataset") and not meta["spec"]["data"].get("generator")
 
 
-def test_page_result_diagnosis_reports_and_delete(service, tmp_path):
-    """A finished study on the page: its result (best model, P(M|d), kept and pruned terms), a diagnosis
-    started from the page and watched to its report (served as HTML with its figures), the study report, and
-    delete; nothing on the way is raw JSON or an error page."""
-    from ardflow.service.client import Client
+def test_page_submit_done_diagnose_reports_delete(service, tmp_path):
+    """The whole job on the page: submit a spec and a CSV through the form, watch it to done, read its result
+    (best model, P(M|d), kept and pruned terms), start a diagnosis with its options (model, rounds, held-out
+    record) and watch it to its report, open both reports (served as HTML with their figures), delete; nothing
+    on the way is raw JSON or an error page."""
     from tests.ardcore.test_diagnose import duffing_free_decay, duffing_spec
 
     sync_api = pytest.importorskip("playwright.sync_api")
-    est = tmp_path / "est.csv"
-    duffing_free_decay(-4.0, 3).slice(0, 1000).to_csv(est)
+    rec = duffing_free_decay(-4.0, 3)
+    est, held = tmp_path / "est.csv", tmp_path / "held.csv"
+    rec.slice(0, 1000).to_csv(est)
+    rec.slice(1000, 1600).to_csv(held)
     spec = duffing_spec().model_dump(mode="json", exclude_none=True)
     spec.update(name="osc", data={})
-    with Client(service, token=TOKEN) as c:
-        sid = c.submit(spec, csv=est)
-        assert c.wait(sid, poll_s=0.3, timeout=300, progress=False)["status"] == "done"
+    spec_file = tmp_path / "osc.json"
+    spec_file.write_text(json.dumps(spec))
     errors: list[str] = []
     with sync_api.sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium_path(), headless=True, args=FLAGS)
@@ -127,11 +128,21 @@ def test_page_result_diagnosis_reports_and_delete(service, tmp_path):
             page.goto(service + "/")
             page.fill("#token", TOKEN)
             page.click("#signin button")
+            page.wait_for_selector("#main:not([hidden])")
+            page.set_input_files("#spec", str(spec_file))
+            page.set_input_files("#csv", str(est))
+            page.click("#submit button")
+            page.wait_for_selector("#msg:has-text('submitted')", timeout=60_000)
+            sid = page.inner_text("#msg").split("submitted: ")[1].strip()
             row = f"tr[data-id='{sid}']"
+            page.wait_for_selector(f"{row} td.status.done", timeout=300_000)
             page.wait_for_selector(f"{row} .result", timeout=30_000)
             result = page.inner_text(f"{row} .result")
             assert "best model" in result and "P(M|d)" in result and "kept:" in result, result
             assert "about" not in page.inner_text(f"{row} .model >> nth=0")  # no ETA once done
+            # the diagnosis's options: one round, the held-out part of the record for the free run
+            page.fill(f"{row} .diag-rounds", "1")
+            page.set_input_files(f"{row} .diag-test", str(held))
             page.click(f"{row} button.diagnose")
             page.wait_for_selector(f"{row} a.diagnosis-report", timeout=300_000)
             for link, must in ((f"{row} a.diagnosis-report", "Verdict"), (f"{row} a.report", "Convergence (ArviZ)")):
@@ -141,6 +152,7 @@ def test_page_result_diagnosis_reports_and_delete(service, tmp_path):
                 rep.wait_for_load_state("load")
                 text = rep.inner_text("body")
                 assert must in text and not text.lstrip().startswith("{"), text[:300]
+                assert "Internal Server Error" not in text and "Traceback" not in text
                 imgs = rep.eval_on_selector_all("img", "els => els.map(e => e.naturalWidth)")
                 assert imgs and all(w > 0 for w in imgs), imgs
                 rep.close()

@@ -1,0 +1,56 @@
+"""The diagnosis report explains itself: a verdict, each round's candidates and their fate, the error before and
+after in the data's units, the residual tests before and after, and its figures."""
+
+from __future__ import annotations
+
+import re
+
+from ardflow.ardcore.loop.config import DiagnoseConfig
+from ardflow.ardcore.loop.diagnose import diagnose
+from ardflow.ardcore.selection.spec import DataSpec
+from ardflow.service.diagnose_report import write_diagnosis
+from tests.ardcore.test_diagnose import duffing_free_decay, duffing_spec
+
+
+def _cells(html: str, heading: str) -> list[list[str]]:
+    """The rows of the first table after ``heading``, as cell texts."""
+    table = html.split(heading, 1)[1].split("</table>", 1)[0]
+    return [[re.sub("<[^>]+>", "", c) for c in re.findall(r"<t[dh][^>]*>(.*?)</t[dh]>", row)]
+            for row in re.findall(r"<tr>(.*?)</tr>", table)]
+
+
+def test_diagnosis_report_rounds_errors_in_units_and_tests(tmp_path):
+    data = duffing_free_decay(-4.0, 3)
+    d = diagnose(duffing_spec(), data.slice(0, 1000), test_data=data.slice(1000, None),
+                 config=DiagnoseConfig(top_k=2, max_rounds=2))
+    label = DataSpec(path="x.csv", units={"y": "mm", "t": "s"}, labels={"y": "displacement"}).axis_label
+    write_diagnosis(d, data.slice(0, 1000).t, tmp_path, "y", label)
+    html = (tmp_path / "diagnosis.html").read_text()
+    rep = d.to_json()
+    # the verdict first, at most three sentences
+    verdict = html.split("<b>Verdict.</b>", 1)[1].split("</p>", 1)[0]
+    assert 1 <= len(re.findall(r"[.!?](\s|$)", verdict.strip())) <= 3, verdict
+    # one table per round; the added effect says so, every confirmed candidate has a fate
+    assert html.count("<h3>Round ") == len(rep["rounds"]) == 2
+    r0 = _cells(html, "<h3>Round 0")
+    fates = {row[0]: row[4] for row in r0[1:] if row[0]}
+    assert fates["cubic_stiffness(y)"] == "added"
+    for c in rep["rounds"][0]["confirmed"]:
+        assert fates[c["effect"]], c["effect"]
+    # its coefficient with the 99 % interval that holds the truth
+    row = next(r for r in r0 if r[0] == "cubic_stiffness(y)")
+    lo, hi = map(float, row[7].strip("[]").split(","))
+    assert lo < -4.0 < hi
+    # the error table in the data's unit, before and after
+    err = {r[0]: r for r in _cells(html, "<h2>Error before and after</h2>")[1:]}
+    fr = err["free-run RMS error"]
+    assert fr[1] == "mm" and float(fr[3]) < 0.5 * float(fr[2])
+    assert float(err["share of the data inside the 90 % band of the draws"][2]) <= 100
+    # the residual tests before and after: white after, not before
+    tests = {r[0]: r for r in _cells(html, "<h2>Residual tests before and after</h2>")[1:]}
+    lb = tests["Ljung-Box Q"]
+    p = [float(re.search(r"p = ([0-9.e+-]+)", x).group(1)) for x in lb[1:3]]
+    assert p[0] < 0.01 < p[1], lb
+    # every figure the page links exists
+    for name in re.findall(r"<img src='([^']+)'", html):
+        assert (tmp_path / name).stat().st_size > 1000, name
