@@ -129,8 +129,9 @@ ERRORS = [("innovation_rms", "one-step prediction error (innovation RMS)", "data
           ("free_run.rms_error", "free-run RMS error", "data"),
           ("free_run.relative_rms_error", "free-run RMS error / RMS of the data", ""),
           ("free_run.draws_rms_error", "free-run RMS error, median over posterior draws", "data"),
-          ("free_run.band_coverage", "share of the data inside the 90 % band of the draws", "%"),
+          ("free_run.band_coverage", "share of the data inside the 90 % posterior predictive band", "%"),
           ("free_run.band_halfwidth_rms", "the 90 % band's half-width (RMS)", "data"),
+          ("free_run.band_factor", "process-noise scale of the band (calibrated on the estimation record's end)", ""),
           ("free_run.amplitude_error", "oscillation amplitude error (relative)", ""),
           ("free_run.frequency_error", "oscillation frequency error (relative)", ""),
           ("free_run.harmonic_error", "harmonic spectrum error (relative)", "")]
@@ -184,6 +185,15 @@ def _tests_table(j: dict, col: str) -> str:
     out.append("</table><p class='note'>White innovations: Ljung-Box p above 0.01, about 5 % of the "
                "autocorrelations outside the band, no spectral peak.</p>")
     return "".join(out)
+
+
+def _exponent_cell(r: dict) -> str:
+    """A fitted exponent with its 99 % interval, for a law replaced by its power."""
+    e = r.get("exponent")
+    if not e:
+        return ""
+    return (f"<br>{html.escape(e['name'])} = {_num(e['mean'])} [{_num(e.get('q005'))}, {_num(e.get('q995'))}]"
+            " (99 %)")
 
 
 def _fate(c: dict, added: set) -> str:
@@ -275,9 +285,10 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
         body.append("</table>")
     if j.get("replaced"):
         body.append("<h2>Declared terms replaced</h2><table><tr><th>declared term</th><th>equation</th>"
-                    "<th>replaced by</th><th>ln BF for the model without it</th></tr>")
+                    "<th>replaced by</th><th>ln BF of the replacement</th></tr>")
         body += [f"<tr><td>{html.escape(r['parameter'])}*({html.escape(r['term'])})</td><td>{r['target']}</td>"
-                 f"<td>{html.escape(r['by'])}</td><td>{_num(r['log_bayes_factor'])}</td></tr>" for r in j["replaced"]]
+                 f"<td>{html.escape(r['by'])}{_exponent_cell(r)}</td><td>{_num(r['log_bayes_factor'])}</td></tr>"
+                 for r in j["replaced"]]
         body.append("</table>")
     body.append("<h2>Each round: the candidates and what became of them</h2>")
     body += [_round_table(r) for r in j.get("rounds", [])]

@@ -66,7 +66,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
             f"<p>{html.escape(spec.description)}</p>",
             f"<p>Data: {html.escape(str(summary['data'].get('source')))}, {summary['data'].get('n')} points. "
             f"Best model: <b>{html.escape(best)}</b>. Wall time {summary['wall_s']:.0f} s.</p>",
-            "<h2>Model comparison (Table 10 analogue)</h2>", table10,
+            "<h2>Model comparison</h2>", table10,
             f"<h2>Posterior of {html.escape(best)}</h2>", post_table, _convergence_table(summary), paper,
             "<h2>Warnings</h2><ul>" + ("".join(warns) or "<li>none</li>") + "</ul>",
             "<h2>Figures</h2>"]
@@ -197,7 +197,10 @@ def _convergence_table(summary: dict) -> str:
 
 
 def _posterior_table(names, samples, truth: dict, ref_bounds) -> str:
-    """The best model's posterior: mean, sd, 99 % bounds, the true value and whether it is inside."""
+    """The best model's posterior: mean, sd, 99 % bounds; the true value and whether it is inside when the data
+    were generated, the paper's bounds for the paper's own models (columns shown only when they hold something)."""
+    known = [n for n in names if truth.get(n) is not None]
+    paper = [n for n in names if ref_bounds and ref_bounds.get(n) is not None]
     post_rows = []
     for i, n in enumerate(names):
         x = samples[..., i].ravel()
@@ -206,10 +209,13 @@ def _posterior_table(names, samples, truth: dict, ref_bounds) -> str:
         inside = "" if tv is None else ("yes" if lo <= tv <= hi else "<b class=warn>no</b>")
         pb = ref_bounds.get(n) if ref_bounds else None
         post_rows.append(f"<tr><td class=l>{n}</td><td>{_fmt(float(x.mean()), 4)}</td><td>{_fmt(float(x.std()), 4)}"
-                         f"</td><td>[{_fmt(float(lo), 4)}, {_fmt(float(hi), 4)}]</td><td>{_fmt(tv, 4)}</td>"
-                         f"<td>{inside}</td><td>{'-' if pb is None else f'[{pb[0]:g}, {pb[1]:g}]'}</td></tr>")
-    return ("<table><tr><th class=l>parameter</th><th>mean</th><th>sd</th><th>99 % bounds</th><th>true</th>"
-                  "<th>true inside</th><th>paper 99 %</th></tr>" + "".join(post_rows) + "</table>")
+                         f"</td><td>[{_fmt(float(lo), 4)}, {_fmt(float(hi), 4)}]</td>"
+                         + (f"<td>{_fmt(tv, 4)}</td><td>{inside}</td>" if known else "")
+                         + (f"<td>{'-' if pb is None else f'[{pb[0]:g}, {pb[1]:g}]'}</td>" if paper else "")
+                         + "</tr>")
+    return ("<table><tr><th class=l>parameter</th><th>mean</th><th>sd</th><th>99 % bounds</th>"
+            + ("<th>true</th><th>true inside</th>" if known else "") + ("<th>paper 99 %</th>" if paper else "")
+            + "</tr>" + "".join(post_rows) + "</table>")
 
 
 def _paper_section(summary: dict, spec) -> str:

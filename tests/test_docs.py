@@ -20,8 +20,25 @@ def test_readme_is_a_front_page():
 
 
 def test_readme_figures_are_what_the_generated_file_renders():
-    for held, rendered in readme_blocks():
-        assert held == rendered, "README's generated block is stale: run python -m tests.bench.figures"
+    for doc, held, rendered in readme_blocks():
+        assert held == rendered, f"{doc.name}'s generated block is stale: run python -m tests.bench.figures"
+
+
+# a measured result typed by hand: "0.35 -> 0.30", "ln BF 3327", "free run 0.114", "(ln BF 206)"
+MEASURED = re.compile(r"\d[\d.,]*(e-?\d+)?\s*(mV|rad|s|%)?\s*->\s*\**-?\d|ln BF [~=]?\s*\d|free-runs [\d.]+ ?(mV|rad)")
+
+
+def test_no_figure_in_the_readme_or_docs_is_typed_by_hand():
+    """Measured results live in generated blocks (from docs/figures.json) or in the tests that check them; what
+    the docs may type is a setting, a default or a threshold."""
+    offenders = []
+    for page in [ROOT / "README.md", *(ROOT / "docs").glob("*.md")]:
+        text = re.sub(r"<!-- (\w+):begin.*?<!-- \1:end -->", "", page.read_text(), flags=re.S)
+        text = re.sub(r"```.*?```", "", text, flags=re.S)  # commands and their sample output
+        for i, line in enumerate(text.splitlines(), 1):
+            if MEASURED.search(line):
+                offenders.append(f"{page.name}: {line.strip()[:100]}")
+    assert not offenders, "\n".join(offenders)
 
 
 def test_links_in_readme_and_docs_resolve():

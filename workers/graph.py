@@ -35,7 +35,7 @@ from ardflow.ardcore.events import ModelDone, ModelEvent
 from ardflow.ardcore.evidence.estimators import ChainEvidence, Evidence, chib_jeliazkov
 from ardflow.ardcore.sampling.chains import ChainState
 from ardflow.ardcore.sampling.config import SamplerResult
-from ardflow.ardcore.sampling.driver import continuation, continued, sample
+from ardflow.ardcore.sampling.driver import Runtime, Start, continuation, continued, sample
 from ardflow.ardcore.selection.fit import ModelFit
 from ardflow.ardcore.selection.spec import StudySpec
 from ardflow.ardcore.selection.study import compare, run_candidate
@@ -133,8 +133,9 @@ class StoredEvaluator(EvidenceEvaluator):
             store.write_checkpoint(model, iteration, {**d, "psi": to_jsonable(psi)})
 
         try:
-            res = sample(target, cfg, seed=seed, map_fn=dmap, warm=warm, progress=self.progress, cancel=self.cancel,
-                         pool_factory=factory, checkpoint=checkpoint, resume=ck)
+            res = sample(target, cfg, seed=seed, start=Start(warm=warm, resume=ck),
+                         runtime=Runtime(map_fn=dmap, progress=self.progress, cancel=self.cancel,
+                                         pool_factory=factory, checkpoint=checkpoint))
         finally:
             for p in pools:
                 p.close()

@@ -205,6 +205,10 @@ def _level_effects(s_: str, scales: dict[str, float], inputs: list[str],
             Effect(f"sqrt_outflow({s_})", "state", (f"sqrt(abs({s_}))*sign({s_})",),
                    f"outflow through an orifice, sqrt({s_})", code=f"qr{s_}"),
             Effect("offset", "offset", ("1",), "constant offset", code="off")]
+    # a power law of the level with its exponent fitted: an orifice (1/2), laminar flow (1), a weir (3/2), a
+    # turbulent pipe or a reaction order; sign-symmetric so that a level through zero stays smooth
+    out.append(Effect(f"power_law({s_})", "state", (f"abs({s_})**{{p}}*sign({s_})",),
+                      f"power law |{s_}|^p sign({s_}) with p = {{p}}", code=f"qp{s_}", shape=("p", 0.25, 3.0)))
     if sc and sc > 0:
         out.append(Effect(f"saturation({s_})", "state", (f"{s_} - {{xs}}*tanh({s_}/{{xs}})",),
                           f"{s_} saturating beyond ~{{xs}}", code=f"qs{s_}", shape=("xs", 0.2 * sc, 1.5 * sc),

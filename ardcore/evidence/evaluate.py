@@ -10,7 +10,7 @@ import numpy as np
 from .estimators import chib_jeliazkov, laplace
 from ..sampling.chains import Map, Step, serial_map
 from ..sampling.config import SamplerConfig, SamplerResult
-from ..sampling.driver import continuation, continued, sample
+from ..sampling.driver import Runtime, Start, continuation, continued, sample
 from ..sampling.starts import initial_scale
 from ..sampling.starts import new_parameter_start
 from ..likelihood.posterior import ModelPosterior
@@ -38,6 +38,7 @@ class EvidenceEvaluator:
         self.spec, self.essential, self.data = spec, essential, data
         self.sampler, self.method, self.substeps = sampler, method, substeps
         self.map_fn, self.progress, self.cancel = map_fn, progress, cancel
+        self.runtime = Runtime(map_fn=map_fn, progress=progress, cancel=cancel)
         # Laplace studies: "sample" draws the final posterior by MCMC, "laplace" takes the Gaussian N(MAP, H^-1)
         # that the evidence itself assumed (what a screen of many candidates can afford)
         self.final_posterior = final_posterior
@@ -66,21 +67,20 @@ class EvidenceEvaluator:
             if final and self.final_posterior == "laplace":
                 res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
             elif final:
-                res = sample(target, self.sampler, seed=seed, map_fn=self.map_fn,
-                             starts=_starts_around(xmap, C, self.sampler.n_chains, seed), progress=self.progress,
-                             cancel=self.cancel)
+                res = sample(target, self.sampler, seed=seed,
+                             start=Start(points=_starts_around(xmap, C, self.sampler.n_chains, seed)),
+                             runtime=self.runtime)
             else:
                 # draws of N(MAP, H^-1), which the Laplace evidence assumes: the maximiser reweights them for
                 # its line-search steps (only the ARD prior changes) instead of another Newton fit
                 res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
             return target, ev, res
         if extend:
-            res = sample(target, self.config(extend), seed=seed, map_fn=self.map_fn, resume=continuation(warm),
-                         progress=self.progress, cancel=self.cancel)
+            res = sample(target, self.config(extend), seed=seed, start=Start(resume=continuation(warm)),
+                         runtime=self.runtime)
             res = continued(res, warm)
         else:
-            res = sample(target, self.config(extend), seed=seed, map_fn=self.map_fn, warm=warm,
-                         progress=self.progress, cancel=self.cancel)
+            res = sample(target, self.config(extend), seed=seed, start=Start(warm=warm), runtime=self.runtime)
         ev = chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7,
                             proposal_se_ratio=self.sampler.proposal_se_ratio, map_fn=self.map_fn)
         ev.warnings = list(res.warnings) + ev.warnings

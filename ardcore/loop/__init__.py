@@ -1,10 +1,10 @@
 """The closed loop (`ardflow diagnose`): residuals and their tests, the free run, confirmation by ARD
-re-selection, the halves and backward checks, the simulation fit, the verdict and what the loop returns.
+re-selection, the halves and backward checks, law replacement, the simulation fit, the verdict and what the loop returns.
 
 The modules are the interface: import from them (``from ardflow.ardcore.loop.checks import ...``).
 """
 
 __all__ = [
-    "checks", "config", "confirm", "diagnose", "freerun", "initial", "residual_tests", "residuals", "result",
-    "simulation_fit", "verdict",
+    "checks", "config", "confirm", "diagnose", "freerun", "initial", "replace", "residual_tests", "residuals",
+    "result", "simulation_fit", "verdict",
 ]

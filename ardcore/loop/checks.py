@@ -235,37 +235,42 @@ def declared_rivals(spec: ModelSpec, added: list[tuple[Effect, str]], new_parame
     """The user's declared terms that an effect just added may replace.
 
     Forward selection can only add: when the declared law is wrong (a linear outflow where the physics is a
-    square root of the level, a linear spring where the restoring force saturates), the added effect carries
-    the right law and the declared term lingers beside it. A rival is a term of the target's drift that is
-    linear in a free parameter of the user's (not one an effect brought), depends on the states of the
-    effect's terms and on no input, and whose parameter appears nowhere else in the model (so fixing it to 0
-    removes exactly that term). The evidence of the model without it decides (:func:`diagnose`).
+    square root of the level, a linear spring where the restoring force saturates, a linear pipe between two
+    tanks where the flow follows a power of the level), the added effect carries the right law and the
+    declared term lingers beside it. A rival is a free parameter of the user's (not one an effect brought)
+    that appears only in the drifts the effect acts on (its target's; a flow's source and receiver), linearly,
+    its terms depending on the states of the effect's terms and on no input, and nowhere else in the model
+    (so fixing it to 0 removes exactly that law). The evidence of the model without it decides
+    (:func:`replace_laws`).
     """
     sm = symbolic(spec)
     index = {str(x): i for i, x in enumerate(sm.states)}
     inputs = {str(u) for u in sm.inputs}
-    elsewhere = list(sm.diffusion) + list(sm.obs) + list(sm.obs_std) + list(sm.init_mean) + list(sm.init_std)
+    elsewhere = [sp.sympify(e) for e in
+                 list(sm.diffusion) + list(sm.obs) + list(sm.obs_std) + list(sm.init_mean) + list(sm.init_std)]
     out = []
     for eff, target in added:
-        if eff.where != "drift" or target not in index:
+        acts_on = list(eff.between) if eff.where == "flow" else [target] if eff.where == "drift" else []
+        if not acts_on or any(s not in index for s in acts_on):
             continue
         states_of_effect = {x for x in index if any(re.search(rf"\b{re.escape(x)}\b", t) for t in eff.terms)}
-        drift = sm.drift[index[target]]
         for p in sm.params:
             name = str(p)
-            if name in new_parameters or p not in drift.free_symbols:
+            if name in new_parameters or p not in sm.drift[index[acts_on[0]]].free_symbols:
                 continue
-            if any(p in e.free_symbols for j, e in enumerate(sm.drift) if j != index[target]) or any(
-                    p in sp.sympify(e).free_symbols for e in elsewhere):
+            where = [j for j, e in enumerate(sm.drift) if p in e.free_symbols]
+            if any(j not in {index[s] for s in acts_on} for j in where) or any(p in e.free_symbols
+                                                                               for e in elsewhere):
                 continue
-            term = sp.diff(drift, p)
-            if p in term.free_symbols:
+            terms = [sp.diff(sm.drift[j], p) for j in where]
+            if any(p in t.free_symbols for t in terms):
                 continue  # not linear in p (a derivative free of p means drift = p * term + rest)
-            names = {str(x) for x in term.free_symbols}
+            names = set().union(*({str(x) for x in t.free_symbols} for t in terms))
             used = names & set(index)
             if names & inputs or not used or not used <= states_of_effect:
                 continue
-            out.append(Rival(name, str(-term if term.could_extract_minus_sign() else term), target, eff.name))
+            term = terms[0]
+            out.append(Rival(name, str(-term if term.could_extract_minus_sign() else term), acts_on[0], eff.name))
     return out
 
 
@@ -310,6 +315,12 @@ def worse_than_before(fit, before: float, config) -> str | None:
             f"(RMS error {before:.4g} -> {after:.4g})")
 
 
+def brought(rounds: list) -> set:
+    """The parameters the loop's effects brought (coefficients and shapes): never a declared law."""
+    return {n for r in rounds for x in r.added for n in x.params} | {
+        n for r in rounds for x in r.added for n in x.record.get("shape", {})}
+
+
 def replace_laws(spec, cand, row, bmr, data: Dataset, rounds: list, config, say, mapper):
     """Drop the declared terms this round's effects replace (:func:`declared_rivals`): each is refitted out
     (its parameter fixed at 0, side by side on the loop's pool); the one whose removal raises ln Z most is
@@ -317,8 +328,7 @@ def replace_laws(spec, cand, row, bmr, data: Dataset, rounds: list, config, say,
     prior odds) and free-runs no worse on the estimation record. Repeats while one goes. Recorded in the
     round as ``replaced``."""
     rnd = rounds[-1]
-    new_params = {n for r in rounds for x in r.added for n in x.params} | {
-        n for r in rounds for x in r.added for n in x.record.get("shape", {})}
+    new_params = brought(rounds)
     added = [(e, x.record["target"]) for e, x in zip(rnd.effects, rnd.added)]
     replaced = rnd.record.setdefault("replaced", [])
     while True:

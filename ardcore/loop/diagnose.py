@@ -40,14 +40,15 @@ from typing import Callable
 
 import numpy as np
 
-from .checks import (Added, backward_check, free_run_rms, joint_fit, no_worse, replace_laws, split_stability,
-                     worse_than_before)
-from .confirm import Confirmation, pool_mapper, trace_and_confirm
+from .checks import (Added, backward_check, brought, free_run_rms, joint_fit, no_worse, replace_laws,
+                     split_stability, worse_than_before)
+from .confirm import Confirmation, Fit, pool_mapper, trace_and_confirm
+from .replace import try_power_laws
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import FitError, SpecError
 from .result import Diagnosis, FittedModel, LoopRound
-from .freerun import fitted, free_run, posterior_draws
+from .freerun import Band, fitted, free_run, posterior_draws
 from .initial import data_informed_initial
 from .config import DiagnoseConfig
 from ..model.declaration import ModelSpec
@@ -68,14 +69,14 @@ def _measure(fspec, phi, cand, row, bmr, data, test, col, config, rnd) -> tuple[
     and the errors reported for both."""
     res = residuals(fspec, phi, data, config, substeps=cand.substeps)
     fr = free_run(fspec, phi, test, init_samples=config.init_samples, substeps=cand.substeps,
-                  draws=posterior_draws(bmr, fspec, config.band_draws, seed=rnd))
+                  band=Band(posterior_draws(bmr, fspec, config.band_draws, seed=rnd), calibration=data, seed=rnd))
     return res, fr, _errors(res, fr, row, col)
 
 
 def _errors(res: Residuals, fr: dict, row: ModelFit, col: str) -> dict:
     t = res.tests[col]
     keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error",
-            "band_coverage", "band_halfwidth_rms", "draws_rms_error", "n_draws")
+            "band_coverage", "band_halfwidth_rms", "draws_rms_error", "n_draws", "band_factor", "band_calibration")
     # the first innovations carry the initial-state uncertainty, not the model's error
     skip = min(10, max(0, res.raw_innovations.shape[0] // 10))
     return {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[skip:, 0] ** 2))),
@@ -149,6 +150,14 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 rounds[-1].record["after"] = err
             if rnd == config.max_rounds:
                 break
+            # a declared law through a fitted power first: a wrong law is replaced, not stacked upon
+            held, swapped = try_power_laws(spec, Fit(cand, row, bmr, cur_data), config, say, mapper,
+                                           brought(rounds))
+            if swapped:
+                rounds.append(LoopRound({"round": rnd, "model": cand.label, "ranking": [], "deferred": [],
+                                         "candidates": [], "confirmed": [], "added": None, "replaced": swapped}))
+                cand, row, bmr = held.cand, held.row, held.mr
+                continue
             rec, survivors = _trace_round(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
                                           extra_effects, say, mapper, rnd, _present(rounds))
             rounds.append(rec)
@@ -330,28 +339,29 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
            "rounds": rounds,
            "candidates": rounds[0]["candidates"] if rounds else [],
            "confirmed": rounds[0]["confirmed"] if rounds else [],
-           "added": added, "after": [r for r in rounds if r["added"]][-1]["after"] if added else None,
+           "added": added,
+           "after": [r for r in rounds if r["added"] or r.get("replaced")][-1]["after"] if added or replaced else None,
            "removed": removed, "replaced": replaced, "initial_state": notes, "tests_after": None,
            "final_fit": row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
     col = spec.models[0].model_spec().observed_columns[0]
     unit = (data.meta.get("units") or {}).get(col, "")
-    if not added:
+    if not added and not replaced:
         out["verdict"] = rounds[0]["verdict"] if rounds else "no rounds run"
         out["headline"] = headline(out, col, unit)
         return out
     a, b = out["after"], out["before"]
     out["tests_after"] = _strip(arrays["after"]["tests"])
     out["parameter_shifts"] = shifts = parameter_shifts(first["base_fit"], row)
-    out["verdict"] = ("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
-                                                 f"{x['log_bayes_factor']:.1f}"
-                                                 + (f", {x['character']}" if x.get("character") else "") + ")"
-                                                 for x in added)
+    out["verdict"] = (("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
+                                                  f"{x['log_bayes_factor']:.1f}"
+                                                  + (f", {x['character']}" if x.get("character") else "") + ")"
+                                                  for x in added) if added else "nothing added")
                       + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
                       f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
                       f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
-                      + "".join(f"; it replaces the declared term {x['parameter']}*({x['term']}) of the "
-                                f"{x['target']} equation (ln BF {x['log_bayes_factor']:.1f} without it)"
-                                for x in replaced)
+                      + "".join(f"; the declared term {x['parameter']}*({x['term']}) of the {x['target']} "
+                                f"equation is replaced by {x['by']}" + _exponent(x)
+                                + f" (ln BF {x['log_bayes_factor']:.1f})" for x in replaced)
                       + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
                                 f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
                       + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "
@@ -359,6 +369,12 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
                       + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
     out["headline"] = headline(out, col, unit)
     return out
+
+
+def _exponent(x: dict) -> str:
+    """``, e_a = 1.49 +- 0.02`` for a law replaced by its fitted power, else nothing."""
+    e = x.get("exponent")
+    return f", {e['name']} = {e['mean']:.3g} +- {e['sd']:.2g}" if e else ""
 
 
 SHIFT_Z = 3.0

@@ -21,12 +21,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import sympy as sp
 from scipy.optimize import minimize
 
 from ..data import Dataset
 from ..likelihood.ekf import compile_model
-from .freerun import free_run
+from .freerun import free_run, noise_parameters
 from ..sampling.starts import fd_derivatives
 from ..model.declaration import ModelSpec
 
@@ -47,22 +46,6 @@ class SimulationFit:
                 "held_out_rms": {f"{k:g}": v for k, v in self.held_out_rms.items()},
                 "fit_samples": self.fit_samples, "held_out_samples": self.held_out_samples,
                 "chosen_by": "held-out free run on the estimation record (a predictive choice, not the evidence)"}
-
-
-def noise_parameters(spec: ModelSpec) -> list[str]:
-    """Free parameters that scale the process noise: each diffusion expression is proportional to them
-    (sigma, 2*sigma: scaling the parameter scales the noise). Empty when a diffusion term depends on a
-    free parameter in another way (exp(s), s + 1), where scaling it would not scale the noise."""
-    sm = spec.sym  # parsed, with constants, fixed values and derived quantities substituted
-    out: list[str] = []
-    for e in sm.diffusion:
-        ps = [p for p in sm.params if p in e.free_symbols]
-        if not ps:
-            continue
-        if len(ps) != 1 or sp.simplify(e - ps[0] * sp.diff(e, ps[0])) != 0:
-            return []
-        out += [str(p) for p in ps if str(p) not in out]
-    return out
 
 
 def _whitening(lik, phi: dict, names: list[str]) -> np.ndarray:

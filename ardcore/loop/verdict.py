@@ -113,9 +113,14 @@ def headline(report: dict, col: str, unit: str = "") -> str:
     u = f" {unit}" if unit else ""
     added, replaced = report.get("added") or [], report.get("replaced") or []
     before, after = report["before"], report.get("after") or report["before"]
-    if added:
-        what = "Added " + ", ".join(f"{x['effect']} to the {x['target']} equation" for x in added)
-        what += "".join(f", replacing the declared {r['parameter']}*({r['term']})" for r in replaced) + "."
+    if added or replaced:
+        swaps = [f"the declared {r['parameter']}*({r['term']}) replaced by {r['by']}"
+                 + (f" ({r['exponent']['name']} = {r['exponent']['mean']:.3g})" if r.get("exponent") else "")
+                 for r in replaced]
+        what = ("Added " + ", ".join(f"{x['effect']} to the {x['target']} equation" for x in added)
+                + (", with " + ", ".join(swaps) if swaps else "") if added else
+                ("In the " + replaced[0]["target"] + " equation, " if len(replaced) == 1 else "") + "; ".join(swaps))
+        what = what[0].upper() + what[1:] + "."
         error = (f"Free-run RMS error {before['free_run']['rms_error']:.3g}{u} -> "
                  f"{after['free_run']['rms_error']:.3g}{u}; ln Z {before['log_evidence']:.1f} -> "
                  f"{after['log_evidence']:.1f}.")

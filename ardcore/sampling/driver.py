@@ -56,6 +56,31 @@ class RoundEvent:
     checkpoint: dict
 
 
+@dataclass(frozen=True)
+class Start:
+    """Where a run's chains start: fresh (the start optimisation), from explicit ``points`` (n_chains, d), warm
+    from an earlier result (positions mapped by parameter name, its proposal covariance), or ``resume``: a
+    checkpoint dict (:func:`sample`)."""
+
+    warm: SamplerResult | None = None
+    points: np.ndarray | None = None
+    resume: dict | None = None
+
+
+@dataclass(frozen=True)
+class Runtime:
+    """How a run executes and reports, each optional: ``map_fn`` runs a step's per-chain tasks (serial by
+    default; :data:`Map`), ``pool_factory(state_dict)`` makes the INCA coordinator (an orchestrator returns a
+    proxy to a remote actor), ``progress`` receives each round's reports, ``cancel`` is asked between rounds,
+    ``checkpoint`` receives each round's JSON-able state."""
+
+    map_fn: Map = serial_map
+    pool_factory: Callable[..., AdaptationPool] | None = None
+    progress: Callable[[ProgressEvent], None] | None = None
+    cancel: Callable[[], bool] | None = None
+    checkpoint: Callable[[dict], None] | None = None
+
+
 def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerConfig, map_fn: Map = serial_map,
                   counters: tuple = (0, 0, 0), dr_scale: float | None = None
                   ) -> Generator[RoundEvent, None, tuple[list, int, int, int]]:
@@ -101,10 +126,10 @@ STRIDE = 10_000_000
 a key with one of an earlier pass; the store's slot is the index modulo STRIDE)."""
 
 
-def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConfig, map_fn: Map = serial_map, *,
+def stationary_rounds(target, states: list, config: SamplerConfig, map_fn: Map = serial_map, *,
                       pool: AdaptationPool, counters: list, resume: dict | None = None) -> Generator:
     """The stationary stage: draws by Metropolis-Hastings with the fixed proposal (the random walk with
-    covariance ``cov`` mixed with the pool's independence proposal, :class:`~ardcore.sampling.chains.Jump`), one event
+    the pool's covariance mixed with the pool's independence proposal, :class:`~ardcore.sampling.chains.Jump`), one event
     per round, until the draws meet the quality target or the budget is spent.
 
     After ``config.n_stationary`` draws per chain (and after each extension) ArviZ's diagnostics are taken
@@ -138,7 +163,7 @@ def stationary_rounds(target, states: list, cov: np.ndarray, config: SamplerConf
     if done:
         samples[:, :done], lps[:, :done], lls[:, :done] = (resume["samples"][:, :done], resume["lp"][:, :done],
                                                            resume["ll"][:, :done])
-    jump = pool.jump(config.jump_weight, config.jump_df)
+    cov, jump = pool.cov, pool.jump(config.jump_weight, config.jump_df)
 
     def checkpoint() -> dict:
         return {"stage": "stationary", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
@@ -217,29 +242,30 @@ def _adapt_on(target, pool, states: list, samples: np.ndarray, lps: np.ndarray) 
     return states
 
 
-def _begin(target, config: SamplerConfig, seed: int, map_fn: Map, warm, starts, factory, resume):
+def _begin(target, config: SamplerConfig, seed: int, start: Start, runtime: Runtime):
     """Chain states, the INCA coordinator, the stage and the counters to start (or resume) from."""
+    factory = runtime.pool_factory or AdaptationPool.from_dict
+    resume = start.resume
     if resume is not None:
         return ([ChainState.from_dict(q) for q in resume["states"]], factory(resume["pool"]), resume["stage"],
                 list(resume.get("counters", [0, 0, 0])))
-    states, cov, n_start = initial_states(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts)
+    states, cov, n_start = initial_states(target, config, seed=seed, map_fn=runtime.map_fn, warm=start.warm,
+                                          starts=start.points)
     pool0 = AdaptationPool(config.n_chains, len(target.names), cov, inca=config.inca,
                            rhat_threshold=config.burnin_rhat, min_rounds=config.min_burnin_rounds,
                            outlier_nats=config.outlier_nats)
     return states, factory(pool0.to_dict()), "burnin", [0, 0, n_start]
 
 
-def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
-                warm: SamplerResult | None = None, starts: np.ndarray | None = None,
-                pool_factory: Callable[..., AdaptationPool] | None = None,
-                resume: dict | None = None) -> Generator[RoundEvent, None, SamplerResult]:
+def iter_sample(target, config: SamplerConfig, *, seed: int, start: Start = Start(),
+                runtime: Runtime = Runtime()) -> Generator[RoundEvent, None, SamplerResult]:
     """Parallel DRAM with INCA, then the fixed-proposal stationary stage, as a generator: one
     :class:`RoundEvent` per round (a fresh start first yields the state it starts from); its return value
     (``StopIteration.value``) is the :class:`SamplerResult`. Arguments as :func:`sample`."""
     names = list(target.names)
     warnings: list[str] = []
-    states, pool, stage, counters = _begin(target, config, seed, map_fn, warm, starts,
-                                           pool_factory or AdaptationPool.from_dict, resume)
+    states, pool, stage, counters = _begin(target, config, seed, start, runtime)
+    warm, resume, map_fn = start.warm, start.resume, runtime.map_fn
     # a warm start's first proposal is the previous posterior's covariance: no delayed rejection (SamplerConfig)
     dr = (config.dr_scale if warm is None or config.warm_dr else 0.0) if resume is None \
         else float(resume.get("dr_scale", config.dr_scale))
@@ -251,10 +277,10 @@ def iter_sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = seria
         states, b_acc, b_n, n_b = yield from burnin_rounds(target, states, pool, config, map_fn, tuple(counters), dr)
         counters = [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_b]
     b_acc, b_n, _ = counters
-    rounds, converged, r, cov = pool.rounds, pool.converged(), pool.rhat(), pool.cov
+    rounds, converged, r = pool.rounds, pool.converged(), pool.rhat()
     # ---- stationary stage: fixed proposal, plain RWM
     samples, lps, lls, states, s_acc, n_eval, diag = yield from stationary_rounds(
-        target, states, cov, config, map_fn, pool=pool, counters=counters, resume=resume)
+        target, states, config, map_fn, pool=pool, counters=counters, resume=resume)
     # the kernel of the pass that was kept (a redrawn stage refits the pool), which Chib-Jeliazkov needs
     cov, jump = pool.cov, pool.jump(config.jump_weight, config.jump_df)
     best = max(states, key=lambda q: q.best_lp)
@@ -304,15 +330,10 @@ def continued(res: SamplerResult, before: SamplerResult) -> SamplerResult:
     return replace(res, burnin_acceptance=before.burnin_acceptance)
 
 
-def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
-           warm: SamplerResult | None = None, starts: np.ndarray | None = None,
-           progress: Callable[[ProgressEvent], None] | None = None,
-           cancel: Callable[[], bool] | None = None,
-           pool_factory: Callable[..., AdaptationPool] | None = None,
-           checkpoint: Callable[[dict], None] | None = None,
-           resume: dict | None = None) -> SamplerResult:
+def sample(target, config: SamplerConfig, *, seed: int, start: Start = Start(),
+           runtime: Runtime = Runtime()) -> SamplerResult:
     """Run parallel DRAM with INCA, then the fixed-proposal stationary stage: :func:`iter_sample` driven
-    with callbacks.
+    with the runtime's hooks.
 
     Parameters
     ----------
@@ -321,31 +342,22 @@ def sample(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map
     config : SamplerConfig
     seed : int
         Every random number derives from it (chain c uses an independent stream).
-    map_fn : callable
-        Runs the per-chain tasks of a step (serial by default); see :data:`Map`.
-    warm : SamplerResult, optional
-        Warm start: chains continue from these states (positions mapped by parameter name; a parameter
-        now fixed conditions them, see :func:`~ardcore.sampling.starts.warm_positions`) with its proposal covariance.
-    starts : ndarray, optional
-        Explicit initial points (n_chains, d), skipping the start optimisation.
-    progress : callable, optional
-        Called with each of a round's reports (:mod:`ardcore.events`: a burn-in round's R-hat, best ln
-        posterior and acceptance; a stationary round's draws; a note).
-    cancel : callable, optional
-        Checked between rounds; when it returns True, :class:`Cancelled` is raised.
-    pool_factory : callable, optional
-        ``pool_factory(state_dict) -> pool`` for the INCA coordinator (default: an in-process
-        :class:`AdaptationPool` rebuilt from the dict); orchestrators return a proxy to a remote actor.
-    checkpoint : callable, optional
-        Called with each round's JSON-able state (stage, chain states, coordinator state, counters);
-        together with the stationary samples written so far it is enough to resume.
-    resume : dict, optional
-        A checkpoint dict to continue from; for the stationary stage it must also hold ``samples``, ``lp``
-        and ``ll`` arrays of the draws done so far.
+    start : Start
+        Where the chains start. ``warm``: chains continue from these states (positions mapped by parameter
+        name; a parameter now fixed conditions them, see :func:`~ardcore.sampling.starts.warm_positions`)
+        with its proposal covariance; ``points``: explicit initial points (n_chains, d), skipping the start
+        optimisation; ``resume``: a checkpoint dict to continue from (for the stationary stage it must also
+        hold ``samples``, ``lp`` and ``ll`` arrays of the draws done so far).
+    runtime : Runtime
+        ``map_fn`` runs the per-chain tasks of a step (:data:`Map`); ``pool_factory(state_dict) -> pool``
+        makes the INCA coordinator; ``progress`` is called with each of a round's reports
+        (:mod:`ardcore.events`); ``cancel`` is checked between rounds (True raises :class:`Cancelled`);
+        ``checkpoint`` is called with each round's JSON-able state (stage, chain states, coordinator state,
+        counters), which with the stationary samples written so far is enough to resume.
     """
-    rounds = iter_sample(target, config, seed=seed, map_fn=map_fn, warm=warm, starts=starts,
-                         pool_factory=pool_factory, resume=resume)
-    stage = resume["stage"] if resume is not None else "burnin"
+    rounds = iter_sample(target, config, seed=seed, start=start, runtime=runtime)
+    stage = start.resume["stage"] if start.resume is not None else "burnin"
+    progress, cancel, checkpoint = runtime.progress, runtime.cancel, runtime.checkpoint
     while True:
         if cancel is not None and cancel():
             rounds.close()

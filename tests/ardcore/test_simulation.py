@@ -9,7 +9,8 @@ from ardflow.ardcore.model.declaration import ModelSpec
 from ardflow.ardcore.likelihood.posterior import ModelPosterior
 from ardflow.ardcore.model.priors import LogNormal
 from ardflow.ardcore.likelihood.simulate import simulate_model
-from ardflow.ardcore.loop.simulation_fit import noise_parameters, simulation_fit
+from ardflow.ardcore.loop.freerun import noise_parameters
+from ardflow.ardcore.loop.simulation_fit import simulation_fit
 from ardflow.ardcore.loop.freerun import free_run
 
 

@@ -167,7 +167,7 @@ def bench_engine(tiny: bool = False) -> dict:
     from ardflow.ardcore.evidence.estimators import chib_jeliazkov
     from ardflow.ardcore.sampling.chains import ChainState, executor_map, run_round
     from ardflow.ardcore.sampling.config import SamplerConfig
-    from ardflow.ardcore.sampling.driver import sample
+    from ardflow.ardcore.sampling.driver import Runtime, sample
 
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": float("inf"), "a6": float("inf")}  # the paper's psi_opt
     target = _m2_target(psi)
@@ -177,7 +177,7 @@ def bench_engine(tiny: bool = False) -> dict:
         mf = executor_map(ex)
         for seed in range(2 if tiny else 5):
             t0 = time.perf_counter()
-            res = sample(target, cfg, seed=1000 + seed, map_fn=mf)
+            res = sample(target, cfg, seed=1000 + seed, runtime=Runtime(map_fn=mf))
             ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=2000 + seed, map_fn=mf)
             walls.append(time.perf_counter() - t0)
             vals.append(ev.log_evidence)
@@ -212,7 +212,7 @@ def bench_dask(tiny: bool = False) -> dict:
     from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
     from ardflow.ardcore.sampling.config import SamplerConfig
     from ardflow.ardcore.sampling.chains import executor_map
-    from ardflow.ardcore.sampling.driver import sample
+    from ardflow.ardcore.sampling.driver import Runtime, sample
     from ardflow.ardcore.likelihood.simulate import simulate_reference
     from ardflow.ardcore.selection.spec import load_spec
     from ardflow.workers.tasks import DaskMap
@@ -229,9 +229,9 @@ def bench_dask(tiny: bool = False) -> dict:
                 Client(cl) as c:
             sample(target, SamplerConfig(n_chains=4, round_size=50, n_stationary=50, n_proposal=50,
                                          min_burnin_rounds=1, max_burnin_rounds=1, max_stationary=50),
-                   seed=0, map_fn=DaskMap(c, f"warm{nw}"))
+                   seed=0, runtime=Runtime(map_fn=DaskMap(c, f"warm{nw}")))
             t0 = time.perf_counter()
-            res = sample(target, cfg, seed=1, map_fn=DaskMap(c, f"scale{nw}"))
+            res = sample(target, cfg, seed=1, runtime=Runtime(map_fn=DaskMap(c, f"scale{nw}")))
             n_chain_samples = cfg.n_chains * (res.burnin_rounds * cfg.round_size + res.samples.shape[1])
             rates[nw] = n_chain_samples / (time.perf_counter() - t0)
         print(f"  {nw} worker(s): {rates[nw]:.0f} samples/s", flush=True)
@@ -465,7 +465,7 @@ def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", 
     from ardflow.ardcore.evidence.evaluate import build_target
     from ardflow.ardcore.evidence.estimators import chib_jeliazkov
     from ardflow.ardcore.sampling.chains import executor_map
-    from ardflow.ardcore.sampling.driver import sample
+    from ardflow.ardcore.sampling.driver import Runtime, sample
     from ardflow.ardcore.selection.spec import StudySpec
 
     spec = StudySpec.model_validate(json.loads((ROOT / "examples" / "sec36.json").read_text()))
@@ -487,7 +487,7 @@ def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", 
             target = build_target(cand.model_spec(), dict(cand.priors), psi, data, cand.substeps)
             lz, se, epe = [], [], []
             for seed in range(seeds):
-                res = sample(target, spec.sampler, seed=100 + seed, map_fn=mf)
+                res = sample(target, spec.sampler, seed=100 + seed, runtime=Runtime(map_fn=mf))
                 ev = chib_jeliazkov(target, res, n_proposal=spec.sampler.n_proposal, seed=seed + 7, map_fn=mf,
                                     proposal_se_ratio=spec.sampler.proposal_se_ratio)
                 lz.append(ev.log_evidence)
@@ -504,7 +504,7 @@ def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", 
                 continue
             # the same target with the plain random walk of method.md (jump_weight 0), one seed
             rw = sample(target, spec.sampler.model_copy(update={"jump_weight": 0.0, "max_stationary": None}),
-                        seed=100, map_fn=mf)
+                        seed=100, runtime=Runtime(map_fn=mf))
             d = convergence(list(rw.names), rw.samples)
             out[f"posterior_{label}_ess_per_evaluation_random_walk"] = (
                 min(min(v["ess_bulk"], v["ess_tail"]) for v in d.values()) / rw.n_evaluations)
@@ -563,7 +563,10 @@ def bench_loop(tiny: bool = False) -> dict:
     posterior mean; ..._simulation_mv its simulation fit, ``ardcore.loop.simulation_fit``; ..._simulation_factor),
     ..._before_mv, loop_silverbox_s, loop_pendulum_rad (+ _before), loop_pendulum_s, loop_reference_s,
     loop_peer_{arx,narx,pysindy,sysidentpy}_{multisine,arrow}_mv, loop_peer_best_multisine_mv,
-    loop_peer_best_arrow_mv, loop_peer_narx_pendulum_rad, loop_silverbox_added, loop_pendulum_added.
+    loop_peer_best_arrow_mv, loop_peer_narx_pendulum_rad, loop_silverbox_added, loop_pendulum_added,
+    loop_silverbox_samples and loop_silverbox_rounds (the record's length and the rounds run in loop_silverbox_s),
+    loop_silverbox_multisine_band_coverage and loop_pendulum_band_coverage (the held-out data's share inside the
+    final model's 90 % posterior predictive band).
     """
     from ardflow.ardcore.data import SILVERBOX_SPLITS, load_pendulum, load_silverbox
     from ardflow.ardcore.loop.config import DiagnoseConfig
@@ -608,13 +611,20 @@ def bench_loop(tiny: bool = False) -> dict:
     spec = shrink(load_spec(ROOT / "examples" / "silverbox_diagnose.json"))
     t0 = time.perf_counter()
     # `ardflow diagnose`'s defaults: three rounds after the first, then the simulation fit
-    rep = diagnose(spec, cut(spec.data.load(ROOT / "examples"), 3000), test_data=seg["test_multisine"],
+    est = cut(spec.data.load(ROOT / "examples"), 3000)
+    rep = diagnose(spec, est, test_data=seg["test_multisine"],
                    config=DiagnoseConfig(max_rounds=rounds), progress=lambda m: print("  " + m, flush=True))
     out["loop_silverbox_s"] = time.perf_counter() - t0
+    # the long-record contract: this many samples through this many rounds in loop_silverbox_s
+    out["loop_silverbox_samples"] = len(est)
+    out["loop_silverbox_rounds"] = len(rep.report["rounds"])
     out["loop_silverbox_multisine_before_mv"] = 1e3 * rep.report["before"]["free_run"]["rms_error"]
     out["loop_silverbox_arrow_before_mv"] = 1e3 * rep.initial.free_run(seg["test_arrow"])["rms_error"]
     out.update({f"loop_silverbox_{k}_mv": v for k, v in _after_mv(rep, seg).items()})
     out["loop_silverbox_simulation_factor"] = (rep.report.get("simulation") or {}).get("factor")
+    # the share of the held-out data inside the final model's 90 % posterior predictive band
+    out["loop_silverbox_multisine_band_coverage"] = ((rep.report["after"] or rep.report["before"])["free_run"]
+                                                     .get("band_coverage"))
     out["loop_silverbox_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
     # -- the pendulum
     # the real record when $ARDFLOW_DATA holds it (it is not shipped), else the synthetic stand-in
@@ -633,6 +643,8 @@ def bench_loop(tiny: bool = False) -> dict:
     out["loop_pendulum_rad"] = (prep.report["after"] or prep.report["before"])["free_run"]["rms_error"]
     out["loop_pendulum_simulation_rad"] = (prep.simulation or prep.final).free_run(ptest)["rms_error"]
     out["loop_pendulum_simulation_factor"] = (prep.report.get("simulation") or {}).get("factor")
+    out["loop_pendulum_band_coverage"] = ((prep.report["after"] or prep.report["before"])["free_run"]
+                                          .get("band_coverage"))
     out["loop_pendulum_added"] = [a["effect"] + " -> " + a["target"] for a in prep.added]
     py = pdata.columns["y"]
     pn = peers.fit_narx(py, np.zeros_like(py))

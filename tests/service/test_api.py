@@ -102,7 +102,7 @@ def test_submit_watch_summary_posterior(service, tmp_path):
         page = c.report(sid, tmp_path / "report")
         text = page.read_text()
         imgs = re.findall(r"<img src='([^']+)'", text)
-        assert "Table 10 analogue" in text and len(imgs) >= 4
+        assert "Model comparison" in text and len(imgs) >= 4
         assert all((page.parent / f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for f in imgs)
         with pytest.raises(APIError) as e:
             c._check(c.http.get(f"/studies/{sid}/report/../meta.json"))

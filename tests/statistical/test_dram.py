@@ -10,7 +10,7 @@ from scipy import stats
 from ardflow.ardcore.sampling.chains import ChainState, run_round
 from ardflow.ardcore.sampling.config import SamplerConfig
 from ardflow.ardcore.sampling.adaptation import rhat
-from ardflow.ardcore.sampling.driver import sample
+from ardflow.ardcore.sampling.driver import Runtime, Start, sample
 from ardflow.ardcore.likelihood.posterior import FunctionTarget
 from ardflow.ardcore.model.priors import JointPrior, Normal
 
@@ -88,7 +88,7 @@ def burnin_rounds(inca, seed, d=10):
     # the random walk's own adaptation is what is compared: no independence proposal, no stop on quality
     cfg = SamplerConfig(n_chains=4, round_size=100, min_burnin_rounds=2, max_burnin_rounds=200, n_stationary=50,
                         n_proposal=50, inca=inca, jump_weight=0.0, min_ess=0.0, max_rhat=2.0)
-    return sample(target, cfg, seed=seed, starts=starts).burnin_rounds
+    return sample(target, cfg, seed=seed, start=Start(points=starts)).burnin_rounds
 
 
 def test_pooled_adaptation_shortens_burnin():
@@ -104,7 +104,7 @@ def test_sampler_rounds_as_events_and_resume_from_one():
     """iter_sample yields one typed event per round, each carrying the state to resume from; driven by hand
     it gives sample()'s result, and resuming from a stationary round's checkpoint (with the draws so far)
     gives the same draws as the run that was not interrupted."""
-    from ardflow.ardcore.sampling.driver import RoundEvent, iter_sample
+    from ardflow.ardcore.sampling.driver import RoundEvent, Start, iter_sample
 
     target, _, _ = gaussian_target()
     cfg = SamplerConfig(n_chains=3, round_size=100, min_burnin_rounds=2, max_burnin_rounds=30, n_stationary=300,
@@ -128,7 +128,7 @@ def test_sampler_rounds_as_events_and_resume_from_one():
     again = sample(target, cfg, seed=4)
     np.testing.assert_array_equal(again.samples, res.samples)
     mid = dict(events[-2].checkpoint, samples=res.samples, lp=res.lp, ll=res.ll)  # after 2 of 3 stationary rounds
-    resumed = sample(target, cfg, seed=4, resume=mid)
+    resumed = sample(target, cfg, seed=4, start=Start(resume=mid))
     np.testing.assert_array_equal(resumed.samples, res.samples)
     assert resumed.n_evaluations == res.n_evaluations
 
@@ -142,7 +142,8 @@ def far_start_run(restarts: int, notes: list | None = None):
                         n_proposal=50, stationary_restarts=restarts, jump_weight=0.0, max_stationary=100,
                         min_ess=0.0, max_rhat=1.1)
     progress = (lambda e: notes.append(e)) if notes is not None else None
-    return sample(target, cfg, seed=12, starts=starts, progress=progress), target, m, S, cfg, starts
+    res = sample(target, cfg, seed=12, start=Start(points=starts), runtime=Runtime(progress=progress))
+    return res, target, m, S, cfg, starts
 
 
 def test_stationary_draws_that_fail_rhat_are_drawn_again():
@@ -161,9 +162,9 @@ def test_stationary_draws_that_fail_rhat_are_drawn_again():
     # every evaluation is counted: redrawn passes included
     assert res.n_evaluations >= cfg.n_chains * cfg.n_stationary * (len(redraws) + 1)
     # resuming inside a redrawn pass gives the same draws
-    from ardflow.ardcore.sampling.driver import iter_sample
+    from ardflow.ardcore.sampling.driver import Start, iter_sample
 
-    gen = iter_sample(target, cfg, seed=12, starts=starts)
+    gen = iter_sample(target, cfg, seed=12, start=Start(points=starts))
     cks = []
     while True:
         try:
@@ -172,7 +173,7 @@ def test_stationary_draws_that_fail_rhat_are_drawn_again():
             break
     # (a checkpoint of the last pass: the draws it holds so far are the first slots of the final draws)
     mid = [c for c in cks if c["stage"] == "stationary" and c["pass"] == len(redraws) and 0 < c["done"] < 100][0]
-    resumed = sample(target, cfg, seed=12, resume=dict(mid, samples=res.samples, lp=res.lp, ll=res.ll))
+    resumed = sample(target, cfg, seed=12, start=Start(resume=dict(mid, samples=res.samples, lp=res.lp, ll=res.ll)))
     np.testing.assert_array_equal(resumed.samples, res.samples)
 
 
@@ -195,5 +196,5 @@ def test_evaluation_count_is_every_likelihood_call(dr_scale):
     counted = _Counting(target)
     cfg = SamplerConfig(n_chains=3, round_size=100, min_burnin_rounds=2, max_burnin_rounds=4, n_stationary=200,
                         n_proposal=50, start_maxfev=200, dr_scale=dr_scale)
-    res = sample(counted, cfg, seed=3, starts=np.array([m, m + 0.1, m - 0.1]))
+    res = sample(counted, cfg, seed=3, start=Start(points=np.array([m, m + 0.1, m - 0.1])))
     assert res.n_evaluations == counted.calls

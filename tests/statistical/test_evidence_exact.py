@@ -10,7 +10,7 @@ from ardflow.ardcore.data import Dataset
 from ardflow.ardcore.evidence.estimators import chib_jeliazkov, laplace
 from ardflow.ardcore.model.library import builtin
 from ardflow.ardcore.sampling.config import SamplerConfig
-from ardflow.ardcore.sampling.driver import sample
+from ardflow.ardcore.sampling.driver import Runtime, Start, sample
 from ardflow.ardcore.model.declaration import ModelSpec
 from ardflow.ardcore.likelihood.posterior import FunctionTarget, ModelPosterior
 from ardflow.ardcore.model.priors import JointPrior, Normal
@@ -178,7 +178,7 @@ def test_sampler_crosses_modes_with_pooled_covariance():
     target = FunctionTarget(names, JointPrior(names, {n: Normal(sd=100.0) for n in names}), TwoModes(sep=12.0))
     starts = np.array([[0.0, 0.0], [12.0, 0.0], [0.0, 0.0], [12.0, 0.0]])
     cfg = SamplerConfig(n_chains=4, round_size=500, max_burnin_rounds=40, n_stationary=4000, n_proposal=2000)
-    res = sample(target, cfg, seed=2, starts=starts)
+    res = sample(target, cfg, seed=2, start=Start(points=starts))
     frac = (res.samples[:, :, 0] > 6).mean()
     assert 0.1 < frac < 0.3  # true mass of the second mode: 0.2
 
@@ -194,7 +194,8 @@ def test_chain_stuck_in_a_minor_mode_is_moved_and_evidence_is_exact():
     starts = np.array([[0.0, 0.0], [40.0, 0.0], [0.3, 0.0], [0.0, 0.3]])
     cfg = SamplerConfig(n_chains=4, round_size=500, max_burnin_rounds=12, n_stationary=4000, n_proposal=4000)
     notes = []
-    res = sample(target, cfg, seed=5, starts=starts, progress=lambda p: notes.append(getattr(p, "message", None)))
+    res = sample(target, cfg, seed=5, start=Start(points=starts),
+                 runtime=Runtime(progress=lambda p: notes.append(getattr(p, "message", None))))
     assert "burn-in round 1: chains [1]" in " ".join(filter(None, notes)), notes
     assert res.converged and not res.warnings, res.warnings
     assert (res.samples[:, :, 0] > 20).mean() == 0.0

@@ -52,7 +52,7 @@ def test_sampler_resumes_exactly_from_any_checkpoint():
     import copy
 
     from ardflow.ardcore.sampling.config import SamplerConfig
-    from ardflow.ardcore.sampling.driver import sample
+    from ardflow.ardcore.sampling.driver import Runtime, Start, sample
     from ardflow.ardcore.likelihood.posterior import FunctionTarget
     from ardflow.ardcore.model.priors import JointPrior, Normal
 
@@ -64,14 +64,15 @@ def test_sampler_resumes_exactly_from_any_checkpoint():
                             GaussianLoglik(np.zeros(d), correlated_cov(d, 0, 1.0)))
     cfg = SamplerConfig(n_chains=3, round_size=100, n_stationary=400, n_proposal=50)
     cks = []
-    full = sample(target, cfg, seed=4, checkpoint=lambda ck: cks.append(copy.deepcopy(json.loads(json.dumps(ck)))))
+    full = sample(target, cfg, seed=4,
+                  runtime=Runtime(checkpoint=lambda ck: cks.append(copy.deepcopy(json.loads(json.dumps(ck))))))
     stages = [c["stage"] for c in cks]
     assert "burnin" in stages and "stationary" in stages
     for k in (1, stages.index("stationary") + 1):
         ck = dict(cks[k])
         if ck["stage"] == "stationary":
             ck.update(samples=full.samples, lp=full.lp, ll=full.ll)  # what the store holds (only :done is used)
-        again = sample(target, cfg, seed=4, resume=ck)
+        again = sample(target, cfg, seed=4, start=Start(resume=ck))
         assert np.array_equal(again.samples, full.samples)
         assert again.lp_star == full.lp_star and again.burnin_rounds == full.burnin_rounds
 

@@ -9,7 +9,7 @@ import pytest
 from ardflow.ardcore.sampling.diagnostics import convergence
 from ardflow.ardcore.evidence.estimators import chib_jeliazkov
 from ardflow.ardcore.sampling.config import SamplerConfig
-from ardflow.ardcore.sampling.driver import sample
+from ardflow.ardcore.sampling.driver import Runtime, Start, sample
 from ardflow.ardcore.likelihood.posterior import FunctionTarget
 from ardflow.ardcore.model.priors import JointPrior, LogNormal, Normal, Uniform
 from ardflow.ardcore.sampling.transform import Unconstrained
@@ -140,7 +140,8 @@ def test_the_result_carries_the_kernel_of_the_pass_it_kept():
     notes = []
     cfg = SamplerConfig(n_chains=4, round_size=20, min_burnin_rounds=2, max_burnin_rounds=2, n_stationary=500,
                         n_proposal=200, max_stationary=500)
-    res = sample(target, cfg, seed=12, starts=starts, map_fn=recording_map, progress=notes.append)
+    res = sample(target, cfg, seed=12, start=Start(points=starts),
+                 runtime=Runtime(map_fn=recording_map, progress=notes.append))
     assert any(isinstance(e, Note) and "drawn again" in e.message for e in notes)
     cov, jump = used[-1]
     np.testing.assert_array_equal(res.proposal_cov, cov)
@@ -173,7 +174,7 @@ def test_continued_chains_reach_the_target_and_keep_an_exact_evidence():
     first = sample(target, cfg.judged(), seed=4)
     assert not first.quality_met and first.samples.shape[1] == 100
     kept = first.samples.copy()
-    res = continued(sample(target, cfg, seed=99, resume=continuation(first)), first)
+    res = continued(sample(target, cfg, seed=99, start=Start(resume=continuation(first))), first)
     np.testing.assert_array_equal(first.samples, kept)  # the search trial's result is left as it was
     assert res.quality_met and res.samples.shape[1] > 100
     assert res.burnin_acceptance == first.burnin_acceptance and res.burnin_rounds == first.burnin_rounds
@@ -181,7 +182,7 @@ def test_continued_chains_reach_the_target_and_keep_an_exact_evidence():
     ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=5, proposal_se_ratio=0.5)
     assert abs(ev.log_evidence - exact) < 5 * ev.log_evidence_se + 0.03
     # the same chains again: the continuation is deterministic (its streams travel in the chain states)
-    again = sample(target, cfg, seed=1, resume=continuation(first))
+    again = sample(target, cfg, seed=1, start=Start(resume=continuation(first)))
     np.testing.assert_array_equal(again.samples, res.samples)
 
 

@@ -238,7 +238,7 @@ def test_report_for_any_study(tmp_path, thread_cluster):
     imgs = re.findall(r"<img src='([^']+)'", text)
     assert len(imgs) >= 6 and all((page.parent / f).stat().st_size > 1000 for f in imgs)
     assert "http" not in text  # no network assets
-    assert "Table 10 analogue" in text and "true inside" in text
+    assert "Model comparison" in text and "true inside" in text
     shown = load_page(page)  # headless Chromium, network cut off
     assert len(shown["images"]) == len(imgs)
     assert all(i["complete"] and i["width"] > 100 for i in shown["images"]), shown["images"]
@@ -277,7 +277,7 @@ def test_task_wall_clock_limit_is_the_backstop(thread_cluster):
 def test_redrawn_stationary_passes_write_the_store_and_never_share_a_task_key(tmp_path, thread_cluster):
     """A stationary stage drawn again (its R-hat failed) on Dask: every pass's tasks have their own keys (a
     later pass never gets an earlier pass's cached result) and the store holds the final draws."""
-    from ardflow.ardcore.sampling.driver import sample
+    from ardflow.ardcore.sampling.driver import Runtime, Start, sample
     from ardflow.workers.tasks import DaskMap
 
     from ..statistical.test_dram import far_start_run
@@ -286,7 +286,8 @@ def test_redrawn_stationary_passes_write_the_store_and_never_share_a_task_key(tm
     store = StudyStore.create(tmp_path / "st", {})
     store.create_trial("m", 0, list(target.names), cfg.n_chains, cfg.n_stationary, cfg.round_size, {})
     with get_task_stream(thread_cluster) as ts:
-        res = sample(target, cfg, seed=12, starts=starts, map_fn=DaskMap(thread_cluster, "redraw", store, "m", 0))
+        res = sample(target, cfg, seed=12, start=Start(points=starts),
+                     runtime=Runtime(map_fn=DaskMap(thread_cluster, "redraw", store, "m", 0)))
     np.testing.assert_array_equal(res.samples, local.samples)  # the same draws as in-process
     samples, lp, ll, _ = store.read_samples("m", 0)
     np.testing.assert_array_equal(samples, res.samples)
