@@ -91,7 +91,7 @@ def _plot_free_run(arrays: dict, out: Path, label=str) -> Path:
     a1.plot(t[:n], fr0["y_free"][:n], "C3", lw=0.8, label="free run, before")
     if "band" in fr0:
         a1.fill_between(t[:n], fr0["band"][0][:n], fr0["band"][1][:n], color="C3", alpha=0.15, lw=0,
-                        label=f"90 % band of posterior draws, before ({100 * fr0['band_coverage']:.0f} % of data inside)")
+                        label=f"90 % predictive band, before ({100 * fr0['band_coverage']:.0f} % of data inside)")
     if "after" in arrays:
         fr1 = arrays["after"]["free_run"]
         if "band" in fr1:
@@ -232,11 +232,24 @@ def _round_table(r: dict, k: int = 8) -> str:
     for c in rest:
         out.append(f"<tr><td>{html.escape(c['effect'])}</td><td>{html.escape(c['target'])}</td>"
                    f"<td>{_num(c.get('log_bayes_factor'))}</td><td></td><td>"
-                   f"{'screened only: below 3 nats' if c.get('log_bayes_factor', 0) < 3 else 'screened only: not among the best to confirm'}"
+                   + ("screened only: below 3 nats" if c.get("log_bayes_factor", 0) < 3
+                      else "screened only: not among the best to confirm") +
                    "</td><td></td><td></td><td></td></tr>")
     if not confirmed and not rest:
         out.append("<tr><td colspan='8'>no candidate screened</td></tr>")
     out.append("</table>")
+    for x in r.get("replaced") or []:
+        out.append(f"<p>This round replaced the declared {html.escape(x['parameter'])}*({html.escape(x['term'])}) "
+                   f"by {html.escape(x['by'])} (ln BF {_num(x['log_bayes_factor'])}), worth more than any "
+                   "addition above.</p>" if x.get("exponent") else
+                   f"<p>The declared {html.escape(x['parameter'])}*({html.escape(x['term'])}) was dropped: "
+                   f"{html.escape(x['by'])} replaces it (ln BF {_num(x['log_bayes_factor'])}).</p>")
+    par = r.get("parsimony")
+    if par:
+        out.append(f"<p>Parsimony: {html.escape(', '.join(par['instead_of']))} together free-run within "
+                   f"{100 * par.get('within', 0.05):g} % of "
+                   f"{html.escape(par['added'])} alone on the estimation record ({_num(par['free_run_together'])} "
+                   f"against {_num(par['free_run'])}), so {html.escape(par['added'])} alone was added.</p>")
     if r.get("verdict"):
         out.append(f"<p>{html.escape(r['verdict'])}</p>")
     return "".join(out)

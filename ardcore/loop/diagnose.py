@@ -43,7 +43,7 @@ import numpy as np
 from .checks import (Added, backward_check, brought, free_run_rms, joint_fit, no_worse, replace_laws,
                      split_stability, worse_than_before)
 from .confirm import Confirmation, Fit, pool_mapper, trace_and_confirm
-from .replace import try_power_laws
+from .replace import best_power_law, exponent_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import FitError, SpecError
@@ -150,17 +150,20 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 rounds[-1].record["after"] = err
             if rnd == config.max_rounds:
                 break
-            # a declared law through a fitted power first: a wrong law is replaced, not stacked upon
-            held, swapped = try_power_laws(spec, Fit(cand, row, bmr, cur_data), config, say, mapper,
-                                           brought(rounds))
-            if swapped:
-                rounds.append(LoopRound({"round": rnd, "model": cand.label, "ranking": [], "deferred": [],
-                                         "candidates": [], "confirmed": [], "added": None, "replaced": swapped}))
-                cand, row, bmr = held.cand, held.row, held.mr
-                continue
+            # a declared law through a fitted power competes with the round's additions: a wrong law is
+            # replaced, not stacked upon, unless an effect it lacks is worth more (an overflow beside it)
+            swap = best_power_law(spec, Fit(cand, row, bmr, cur_data), config, say, mapper, brought(rounds))
             rec, survivors = _trace_round(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
                                           extra_effects, say, mapper, rnd, _present(rounds))
             rounds.append(rec)
+            if swap is not None and (not survivors or swap[1]["log_bayes_factor"] >= survivors[0].log_bayes_factor):
+                rec.record["replaced"] = [swap[1]]
+                rec.record.pop("verdict", None)
+                cand, row, bmr = swap[0].cand, swap[0].row, swap[0].mr
+                continue
+            if swap is not None:
+                say(f"  adding {survivors[0].effect} (ln BF {survivors[0].log_bayes_factor:.1f}) is worth more "
+                    f"than {swap[1]['by']} (ln BF {swap[1]['log_bayes_factor']:.1f})")
             if not survivors:
                 break
             cand, row, bmr, cur_data = _adopt(spec, cand, row, survivors, fspec, phi, cur_data, config, say, rec)
@@ -301,11 +304,21 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rnd: LoopR
         # others make redundant; taken when it beats the best single effect by more than min_log_bf
         j = joint_fit(spec, cand, row, survivors, data, config, say)
         if j.row.log_evidence > best.log_evidence + config.min_log_bf:
-            why = worse_than_before(j, free_run_rms(best.fit, config), config)  # together they must free-run no worse than the best alone
-            if why is None:
-                chosen, fit = survivors, j
-            else:
+            alone = free_run_rms(best.fit, config)
+            why = worse_than_before(j, alone, config)  # together they must free-run no worse than the best alone
+            together = free_run_rms(j, config) if why is None else math.nan
+            if why is not None:
                 say(f"  the survivors together: not taken: {why}")
+            elif together > (1 - config.parsimony) * alone:
+                # the evidence prefers the stack, the simulation does not: the fewer effects are reported
+                rnd.record["parsimony"] = {"added": best.effect, "instead_of": [c.effect for c in survivors],
+                                           "within": config.parsimony,
+                                           "free_run": alone, "free_run_together": together,
+                                           "log_bayes_factor_together": j.row.log_evidence - row.log_evidence}
+                say(f"  the survivors together free-run within {100 * config.parsimony:g} % of {best.effect} "
+                    f"alone ({together:.4g} against {alone:.4g}): {best.effect} alone is added (fewer effects)")
+            else:
+                chosen, fit = survivors, j
     jrow = fit.row
     recs = []
     for c in chosen:
@@ -334,6 +347,9 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
     added = [a for a in records if not a.get("removed")]
     removed = [a for a in records if a.get("removed")]
     replaced = [x for r in rounds for x in r.get("replaced", [])]
+    for x in replaced:  # an exponent as the final model has it (later rounds refit it with what they add)
+        if x.get("exponent") and x["exponent"]["name"] in row.mean:
+            x["exponent"] = exponent_summary(row, x["exponent"]["name"])
     out = {"model": spec.models[0].label, "final_model": final_model,
            "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
            "rounds": rounds,

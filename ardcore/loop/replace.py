@@ -92,56 +92,54 @@ def exponent_prior():
     return LogNormal(median=1.0, cov=100.0 * math.sqrt(math.expm1(s * s)))
 
 
-def try_power_laws(spec, current: Fit, config, say, mapper, new_parameters: set = frozenset()) -> tuple[Fit, list]:
-    """Replace declared laws by their fitted powers while one is worth it (module docstring).
+def best_power_law(spec, current: Fit, config, say, mapper, new_parameters: set = frozenset()):
+    """The declared law (module docstring) whose fitted power is worth most, as ``(fit, record)``, or None.
 
-    Every candidate law is fitted side by side on the loop's pool; the best is taken when its ln Bayes factor
-    against the current model exceeds ``config.min_log_bf`` plus ln of the number of laws tried (their
-    multiplicity, as for additions) and its free run on the estimation record is no worse. Returns the model
-    then held and the records of what was replaced (parameter, term, target, by, exponent, ln BF)."""
+    Every candidate law is fitted side by side on the loop's pool; the best qualifies when its ln Bayes
+    factor against the current model exceeds ``config.min_log_bf`` plus ln of the number of laws tried (their
+    multiplicity, as for additions) and its free run on the estimation record is no worse. The record says
+    what was replaced (parameter, term, target, by, the exponent's posterior, ln BF); the caller weighs it
+    against the round's additions (:func:`~ardcore.loop.diagnose.diagnose`)."""
     from .checks import free_run_rms, worse_than_before
 
-    done = []
-    while True:
-        ms = current.cand.model_spec()
-        laws = [w for w in declared_laws(ms, new_parameters) if w.parameter not in {d["parameter"] for d in done}]
-        if not laws:
-            return current, done
-        priors, fixed = essential_from_row(current.cand, current.row)
-        tasks, specs = [], []
-        for w in laws:
-            e = f"e_{w.parameter}"[:32]
-            if e in ms.parameters:
-                continue
-            pspec = power_law_spec(ms, w, e)
-            cand = CandidateSpec(model=pspec, name=pspec.name, priors={**priors, e: exponent_prior()}, fixed=fixed,
-                                 substeps=current.cand.substeps)
-            warm = warm_with(current.mr.sampler, [e], [1.0]) if current.mr.sampler is not None else None
-            tasks.append((cand, current.data, spec, warm, config.posterior))
-            specs.append((w, e))
-        if not tasks:
-            return current, done
-        fits = mapper(fit_task, tasks)
-        gain = np.array([row.log_evidence - current.row.log_evidence for row, _ in fits], dtype=float)
-        need = config.min_log_bf + math.log(len(tasks))
-        k = int(np.nanargmax(np.where(np.isfinite(gain), gain, -np.inf))) if np.isfinite(gain).any() else 0
-        (w, e), (row, mr) = specs[k], fits[k]
-        post = {q: row.mean.get(e) for q in ("mean",)} | {"sd": row.sd.get(e), "q005": row.q005.get(e),
-                                                           "q995": row.q995.get(e)}
-        if not gain[k] > need:
-            say(f"  the declared {w.parameter}*({w.term}) is no worse than its power law "
-                f"(ln BF {gain[k]:.1f} at e = {post['mean']:.3g}, needs {need:.1f})")
-            return current, done
-        fit = Fit(tasks[k][0], row, mr, current.data)
-        why = worse_than_before(fit, free_run_rms(current, config), config)
-        if why is not None:
-            say(f"  the declared {w.parameter}*({w.term}) stays: with its power law {why}")
-            return current, done
-        target = next(iter(w.drifts))
-        by = f"{w.parameter}*|{w.term}|^{e}*sign({w.term})"
-        done.append({"parameter": w.parameter, "term": w.term, "target": target, "by": by,
-                     "exponent": {"name": e, **{q: float(v) for q, v in post.items()}},
-                     "log_bayes_factor": float(gain[k])})
-        say(f"  {w.parameter}*({w.term}) replaced by {by}, {e} = {post['mean']:.3g} +- {post['sd']:.2g} "
-            f"(ln BF {gain[k]:.1f})")
-        current = fit
+    ms = current.cand.model_spec()
+    laws = [w for w in declared_laws(ms, new_parameters) if f"e_{w.parameter}"[:32] not in ms.parameters]
+    if not laws:
+        return None
+    priors, fixed = essential_from_row(current.cand, current.row)
+    tasks = []
+    for w in laws:
+        e = f"e_{w.parameter}"[:32]
+        pspec = power_law_spec(ms, w, e)
+        cand = CandidateSpec(model=pspec, name=pspec.name, priors={**priors, e: exponent_prior()}, fixed=fixed,
+                             substeps=current.cand.substeps)
+        warm = warm_with(current.mr.sampler, [e], [1.0]) if current.mr.sampler is not None else None
+        tasks.append((cand, current.data, spec, warm, config.posterior))
+    fits = mapper(fit_task, tasks)
+    gain = np.array([row.log_evidence - current.row.log_evidence for row, _ in fits], dtype=float)
+    if not np.isfinite(gain).any():
+        return None
+    need = config.min_log_bf + math.log(len(tasks))
+    k = int(np.nanargmax(np.where(np.isfinite(gain), gain, -np.inf)))
+    w, (row, mr) = laws[k], fits[k]
+    e = f"e_{w.parameter}"[:32]
+    if not gain[k] > need:
+        say(f"  the declared {w.parameter}*({w.term}) is no worse than its power law "
+            f"(ln BF {gain[k]:.1f} at {e} = {row.mean.get(e, float('nan')):.3g}, needs {need:.1f})")
+        return None
+    fit = Fit(tasks[k][0], row, mr, current.data)
+    why = worse_than_before(fit, free_run_rms(current, config), config)
+    if why is not None:
+        say(f"  the declared {w.parameter}*({w.term}) stays: with its power law {why}")
+        return None
+    by = f"{w.parameter}*|{w.term}|^{e}*sign({w.term})"
+    say(f"  {w.parameter}*({w.term}) through a power: {by}, {e} = {row.mean[e]:.3g} +- {row.sd[e]:.2g} "
+        f"(ln BF {gain[k]:.1f})")
+    return fit, {"parameter": w.parameter, "term": w.term, "target": next(iter(w.drifts)), "by": by,
+                 "exponent": exponent_summary(row, e), "log_bayes_factor": float(gain[k])}
+
+
+def exponent_summary(row, name: str) -> dict:
+    """The exponent's posterior in a fit's summary row (mean, sd, 99 % interval)."""
+    return {"name": name, "mean": float(row.mean[name]), "sd": float(row.sd[name]),
+            "q005": float(row.q005[name]), "q995": float(row.q995[name])}
