@@ -187,9 +187,9 @@ def _tests_table(j: dict, col: str) -> str:
     return "".join(out)
 
 
-def _exponent_cell(r: dict) -> str:
-    """A fitted exponent with its 99 % interval, for a law replaced by its power."""
-    e = r.get("exponent")
+def _shape_cell(r: dict) -> str:
+    """A form's fitted shape (an exponent, a saturation, a knee) with its 99 % interval."""
+    e = r.get("shape")
     if not e:
         return ""
     return (f"<br>{html.escape(e['name'])} = {_num(e['mean'])} [{_num(e.get('q005'))}, {_num(e.get('q995'))}]"
@@ -241,7 +241,7 @@ def _round_table(r: dict, k: int = 8) -> str:
     for x in r.get("replaced") or []:
         out.append(f"<p>This round replaced the declared {html.escape(x['parameter'])}*({html.escape(x['term'])}) "
                    f"by {html.escape(x['by'])} (ln BF {_num(x['log_bayes_factor'])}), worth more than any "
-                   "addition above.</p>" if x.get("exponent") else
+                   "addition above.</p>" if x.get("shape") else
                    f"<p>The declared {html.escape(x['parameter'])}*({html.escape(x['term'])}) was dropped: "
                    f"{html.escape(x['by'])} replaces it (ln BF {_num(x['log_bayes_factor'])}).</p>")
     par = r.get("parsimony")
@@ -300,7 +300,7 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
         body.append("<h2>Declared terms replaced</h2><table><tr><th>declared term</th><th>equation</th>"
                     "<th>replaced by</th><th>ln BF of the replacement</th></tr>")
         body += [f"<tr><td>{html.escape(r['parameter'])}*({html.escape(r['term'])})</td><td>{r['target']}</td>"
-                 f"<td>{html.escape(r['by'])}{_exponent_cell(r)}</td><td>{_num(r['log_bayes_factor'])}</td></tr>"
+                 f"<td>{html.escape(r['by'])}{_shape_cell(r)}</td><td>{_num(r['log_bayes_factor'])}</td></tr>"
                  for r in j["replaced"]]
         body.append("</table>")
     body.append("<h2>Each round: the candidates and what became of them</h2>")

@@ -43,7 +43,7 @@ import numpy as np
 from .checks import (Added, backward_check, brought, free_run_rms, joint_fit, no_worse, replace_laws,
                      split_stability, worse_than_before)
 from .confirm import Confirmation, Fit, pool_mapper, trace_and_confirm
-from .replace import best_power_law, exponent_summary
+from .replace import best_law, shape_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import FitError, SpecError
@@ -152,7 +152,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 break
             # a declared law through a fitted power competes with the round's additions: a wrong law is
             # replaced, not stacked upon, unless an effect it lacks is worth more (an overflow beside it)
-            swap = best_power_law(spec, Fit(cand, row, bmr, cur_data), config, say, mapper, brought(rounds))
+            swap = best_law(spec, Fit(cand, row, bmr, cur_data), config, say, mapper, brought(rounds))
             rec, survivors = _trace_round(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
                                           extra_effects, say, mapper, rnd, _present(rounds))
             rounds.append(rec)
@@ -347,9 +347,9 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
     added = [a for a in records if not a.get("removed")]
     removed = [a for a in records if a.get("removed")]
     replaced = [x for r in rounds for x in r.get("replaced", [])]
-    for x in replaced:  # an exponent as the final model has it (later rounds refit it with what they add)
-        if x.get("exponent") and x["exponent"]["name"] in row.mean:
-            x["exponent"] = exponent_summary(row, x["exponent"]["name"])
+    for x in replaced:  # a form's shape as the final model has it (later rounds refit it with what they add)
+        if x.get("shape") and x["shape"]["name"] in row.mean:
+            x["shape"] = shape_summary(row, x["shape"]["name"])
     out = {"model": spec.models[0].label, "final_model": final_model,
            "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
            "rounds": rounds,
@@ -376,7 +376,7 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
                       f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
                       f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
                       + "".join(f"; the declared term {x['parameter']}*({x['term']}) of the {x['target']} "
-                                f"equation is replaced by {x['by']}" + _exponent(x)
+                                f"equation is replaced by {x['by']}" + _shape(x)
                                 + f" (ln BF {x['log_bayes_factor']:.1f})" for x in replaced)
                       + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
                                 f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
@@ -387,9 +387,9 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
     return out
 
 
-def _exponent(x: dict) -> str:
-    """``, e_a = 1.49 +- 0.02`` for a law replaced by its fitted power, else nothing."""
-    e = x.get("exponent")
+def _shape(x: dict) -> str:
+    """``, e_a = 1.49 +- 0.02`` for a law replaced by another form, else nothing."""
+    e = x.get("shape")
     return f", {e['name']} = {e['mean']:.3g} +- {e['sd']:.2g}" if e else ""
 
 

@@ -1,13 +1,21 @@
-"""Law replacement: a declared law of a first-order state replaced by the same law through a fitted power.
+"""Law replacement: a declared law of a first-order state replaced by the same law in another form.
 
 Forward selection adds terms beside what the user declared; when the declared law itself is wrong (a linear
-outflow where the flow goes over a weir, h^1.5, or through an orifice, h^0.5; a linear exchange where a
-reaction has another order) the added terms only approximate the right law around the recorded levels and
-stack up. This move proposes, for every declared law ``p * T`` of a first-order state (a term linear in a
-parameter of the user's, ``T`` in states only, ``p`` nowhere but in the drifts where ``T`` leaves or enters),
-the model with ``p * |T|^e sign(T)`` in its place, the exponent ``e`` a new parameter under a lognormal prior
-around 1 (the declared law itself). It is fitted like any candidate and judged by its evidence against the
-current model, with the same multiplicity and never-worse checks as an addition.
+outflow where the flow goes over a weir, h^1.5, or through an orifice, h^0.5; a flow that saturates; a flow
+that starts only above a crest) the added terms only approximate the right law around the recorded levels
+and stack up. This move proposes, for every declared law ``p * T`` of a first-order state (a term linear in
+a parameter of the user's, ``T`` in states only, ``p`` nowhere but in the drifts where ``T`` leaves or
+enters), the model with ``p * F(T)`` in its place, for each form F (:data:`FORMS`) with its shape a new
+parameter under a lognormal prior that holds the declared law at one end or in the middle:
+
+* ``power``: ``|T|^e sign(T)``, e around 1 (an orifice 0.5, laminar 1, a weir 1.5, turbulent 2);
+* ``saturation``: ``s tanh(T / s)``, a law that levels off beyond s (a pump, a valve at its stop);
+* ``knee``: ``max(T - c, 0)`` with its corner rounded, a law that starts only above c (a crest, a
+  threshold), for a term that stays positive (a level).
+
+Each is fitted like any candidate and judged by its evidence against the current model, with the same
+multiplicity and never-worse checks as an addition; the loop takes it when it is worth more than the round's
+best addition.
 """
 
 from __future__ import annotations
@@ -19,17 +27,19 @@ import numpy as np
 import sympy as sp
 
 from ..effects.base import oscillator_pairs
+from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec, symbolic
 from ..selection.spec import CandidateSpec
 from .confirm import Fit, essential_from_row, fit_task, warm_with
+from .freerun import fitted
 
 POWER_RANGE = (0.25, 4.0)
 """The exponents the prior of ``e`` spans at +-2 sd (an orifice 0.5, laminar 1, a weir 1.5, turbulent 2)."""
 
 
 class Law(NamedTuple):
-    """A declared law ``parameter * term`` and the drifts it is written in (state -> the term there, signed as
-    that drift has it: a flow leaves one level and enters another)."""
+    """A declared law ``parameter * term`` and the drifts it is written in (state -> +1 or -1, the term's sign
+    there: a flow leaves one level and enters another)."""
 
     parameter: str
     term: str
@@ -67,79 +77,146 @@ def declared_laws(spec: ModelSpec, new_parameters: set = frozenset()) -> list[La
         if any(sp.simplify(t - base) != 0 and sp.simplify(t + base) != 0 for t in terms):
             continue  # a different term in each drift: not one law
         lead = -base if base.could_extract_minus_sign() else base
-        out.append(Law(str(p), _text(lead), {names[j]: _text(t) for j, t in zip(where, terms)}))
+        out.append(Law(str(p), _text(lead), {names[j]: 1 if sp.simplify(t - lead) == 0 else -1
+                                              for j, t in zip(where, terms)}))
     return out
 
 
-def power_law_spec(spec: ModelSpec, law: Law, exponent: str) -> ModelSpec:
-    """``spec`` with the law ``p * T`` written ``p * |T|^e sign(T)`` in each of its drifts (``e`` the new
-    parameter ``exponent``); the declared term cancels exactly when the expression is parsed."""
-    drift = dict(spec.drift)
-    p = law.parameter
-    for state, t in law.drifts.items():
-        # the term with its sign in this drift: the odd power keeps the sign
-        drift[state] = f"({drift[state]}) - {p}*({t}) + {p}*(abs({t})**{exponent}*sign({t}))"
-    return spec.model_copy(update={"name": (spec.name + "_pw")[:32], "drift": drift,
-                                   "parameters": list(spec.parameters) + [exponent]}).revalidate()
+class Form(NamedTuple):
+    """One form a declared law may take: its name, the prefix of its shape parameter, ``text(T, shape)`` the
+    law in the model language, and ``prior(values of T)`` the shape's prior (None: not for these values)."""
+
+    name: str
+    prefix: str
+    text: object
+    prior: object
 
 
-def exponent_prior():
-    """Lognormal around 1 with :data:`POWER_RANGE` at +-2 sd of ln e."""
+def _lognormal(median: float, lo: float, hi: float):
+    """Lognormal at ``median`` whose +-2 sd of the log span ``lo``..``hi`` (the wider side)."""
     from ..model.priors import LogNormal
 
+    s = max(math.log(hi / median), math.log(median / lo)) / 2.0
+    return LogNormal(median=median, cov=100.0 * math.sqrt(math.expm1(s * s)))
+
+
+def _power_prior(values: np.ndarray):
     lo, hi = POWER_RANGE
-    s = math.log(hi / lo) / 4.0
-    return LogNormal(median=1.0, cov=100.0 * math.sqrt(math.expm1(s * s)))
+    return _lognormal(1.0, lo, hi)
 
 
-def best_power_law(spec, current: Fit, config, say, mapper, new_parameters: set = frozenset()):
-    """The declared law (module docstring) whose fitted power is worth most, as ``(fit, record)``, or None.
+def _saturation_prior(values: np.ndarray):
+    """Saturation from a fifth of the term's largest size to five times it (far out: the declared law)."""
+    top = float(np.nanmax(np.abs(values)))
+    return _lognormal(top, 0.2 * top, 5.0 * top) if top > 0 else None
 
-    Every candidate law is fitted side by side on the loop's pool; the best qualifies when its ln Bayes
-    factor against the current model exceeds ``config.min_log_bf`` plus ln of the number of laws tried (their
+
+def _knee_prior(values: np.ndarray):
+    """A knee inside the recorded values of a term that stays positive (a level): from 1 % of its median to
+    its 95th percentile."""
+    q05, q50, q95 = np.nanquantile(values, [0.05, 0.5, 0.95])
+    if not (q05 > 0 and q95 > q50 > 0):
+        return None
+    return _lognormal(math.sqrt(0.01 * q50 * q95), 0.01 * q50, float(q95))
+
+
+def _knee_text(t: str, c: str, width: float) -> str:
+    arg = f"({t}) - {c}"
+    return f"0.5*(({arg}) + sqrt(({arg})**2 + {width:.4g}**2))"
+
+
+FORMS = {
+    "power": Form("power", "e", lambda t, e, v: f"abs({t})**{e}*sign({t})", _power_prior),
+    "saturation": Form("saturation", "sat", lambda t, s_, v: f"{s_}*tanh(({t})/{s_})", _saturation_prior),
+    # the corner rounded over 1 % of the recorded range, as the library's ramps (smooth for the EKF's slope)
+    "knee": Form("knee", "knee", lambda t, c, v: _knee_text(t, c, 0.01 * float(np.nanmax(v) - np.nanmin(v))),
+                 _knee_prior),
+}
+"""The forms a declared law is offered in (module docstring)."""
+
+
+def law_spec(spec: ModelSpec, law: Law, form: Form, shape: str, values: np.ndarray) -> ModelSpec:
+    """``spec`` with the law ``p * T`` written ``p * F(T)`` in each of its drifts, with the sign the term has
+    there (``shape`` the form's new parameter); the declared term cancels exactly when the expression is
+    parsed."""
+    drift = dict(spec.drift)
+    p, t = law.parameter, law.term
+    law_text = form.text(t, shape, values)
+    for state, sign in law.drifts.items():
+        drift[state] = f"({drift[state]}) - {sign}*{p}*({t}) + {sign}*{p}*({law_text})"
+    return spec.model_copy(update={"name": (spec.name + "_" + form.prefix)[:32], "drift": drift,
+                                   "parameters": list(spec.parameters) + [shape]}).revalidate()
+
+
+def term_values(current: Fit, law: Law) -> np.ndarray:
+    """The declared term along the record: the filtered states at the posterior mean put into it."""
+    fspec, phi = fitted(current.cand, current.row)
+    fr = compile_model(fspec).filter(phi, current.data, current.cand.substeps)
+    names = list(fspec.states)
+    f = sp.lambdify([sp.Symbol(n, real=True) for n in names], sp.sympify(law.term.replace("abs(", "Abs(")),
+                    modules="numpy")
+    return np.asarray(f(*fr.filtered.T), dtype=float) * np.ones(len(current.data))
+
+
+def best_law(spec, current: Fit, config, say, mapper, new_parameters: set = frozenset()):
+    """The declared law and form (module docstring) worth most, as ``(fit, record)``, or None.
+
+    Every candidate is fitted side by side on the loop's pool; the best qualifies when its ln Bayes factor
+    against the current model exceeds ``config.min_log_bf`` plus ln of the number of candidates tried (their
     multiplicity, as for additions) and its free run on the estimation record is no worse. The record says
-    what was replaced (parameter, term, target, by, the exponent's posterior, ln BF); the caller weighs it
+    what was replaced (parameter, term, target, by, form, the shape's posterior, ln BF); the caller weighs it
     against the round's additions (:func:`~ardcore.loop.diagnose.diagnose`)."""
     from .checks import free_run_rms, worse_than_before
 
     ms = current.cand.model_spec()
-    laws = [w for w in declared_laws(ms, new_parameters) if f"e_{w.parameter}"[:32] not in ms.parameters]
-    if not laws:
-        return None
     priors, fixed = essential_from_row(current.cand, current.row)
-    tasks = []
-    for w in laws:
-        e = f"e_{w.parameter}"[:32]
-        pspec = power_law_spec(ms, w, e)
-        cand = CandidateSpec(model=pspec, name=pspec.name, priors={**priors, e: exponent_prior()}, fixed=fixed,
-                             substeps=current.cand.substeps)
-        warm = warm_with(current.mr.sampler, [e], [1.0]) if current.mr.sampler is not None else None
-        tasks.append((cand, current.data, spec, warm, config.posterior))
+    tasks, offered = [], []
+    for w in declared_laws(ms, new_parameters):
+        values = None
+        for form in FORMS.values():
+            shape = f"{form.prefix}_{w.parameter}"[:32]
+            if any(f"{f.prefix}_{w.parameter}"[:32] in ms.parameters for f in FORMS.values()):
+                break  # a law already in another form is not offered again
+            if values is None:
+                values = term_values(current, w)
+            prior = form.prior(values)
+            if prior is None:
+                continue
+            pspec = law_spec(ms, w, form, shape, values)
+            cand = CandidateSpec(model=pspec, name=pspec.name, priors={**priors, shape: prior}, fixed=fixed,
+                                 substeps=current.cand.substeps)
+            # started where the form is closest to the declared law (its prior's median)
+            warm = warm_with(current.mr.sampler, [shape], [prior.median]) if current.mr.sampler is not None else None
+            tasks.append((cand, current.data, spec, warm, config.posterior))
+            offered.append((w, form, shape))
+    if not tasks:
+        return None
     fits = mapper(fit_task, tasks)
     gain = np.array([row.log_evidence - current.row.log_evidence for row, _ in fits], dtype=float)
     if not np.isfinite(gain).any():
         return None
     need = config.min_log_bf + math.log(len(tasks))
     k = int(np.nanargmax(np.where(np.isfinite(gain), gain, -np.inf)))
-    w, (row, mr) = laws[k], fits[k]
-    e = f"e_{w.parameter}"[:32]
+    (w, form, shape), (row, mr) = offered[k], fits[k]
+    by = {"power": f"{w.parameter}*|{w.term}|^{shape}*sign({w.term})",
+          "saturation": f"{w.parameter}*{shape}*tanh({w.term}/{shape})",
+          "knee": f"{w.parameter}*max({w.term} - {shape}, 0)"}[form.name]
     if not gain[k] > need:
-        say(f"  the declared {w.parameter}*({w.term}) is no worse than its power law "
-            f"(ln BF {gain[k]:.1f} at {e} = {row.mean.get(e, float('nan')):.3g}, needs {need:.1f})")
+        say(f"  the declared {w.parameter}*({w.term}) is no worse than any other form (best: {form.name}, ln BF "
+            f"{gain[k]:.1f}, needs {need:.1f})")
         return None
     fit = Fit(tasks[k][0], row, mr, current.data)
     why = worse_than_before(fit, free_run_rms(current, config), config)
     if why is not None:
-        say(f"  the declared {w.parameter}*({w.term}) stays: with its power law {why}")
+        say(f"  the declared {w.parameter}*({w.term}) stays: as a {form.name} law {why}")
         return None
-    by = f"{w.parameter}*|{w.term}|^{e}*sign({w.term})"
-    say(f"  {w.parameter}*({w.term}) through a power: {by}, {e} = {row.mean[e]:.3g} +- {row.sd[e]:.2g} "
-        f"(ln BF {gain[k]:.1f})")
+    say(f"  {w.parameter}*({w.term}) as a {form.name} law: {by}, {shape} = {row.mean[shape]:.3g} +- "
+        f"{row.sd[shape]:.2g} (ln BF {gain[k]:.1f})")
     return fit, {"parameter": w.parameter, "term": w.term, "target": next(iter(w.drifts)), "by": by,
-                 "exponent": exponent_summary(row, e), "log_bayes_factor": float(gain[k])}
+                 "form": form.name, "shape": shape_summary(row, shape), "log_bayes_factor": float(gain[k])}
 
 
-def exponent_summary(row, name: str) -> dict:
-    """The exponent's posterior in a fit's summary row (mean, sd, 99 % interval)."""
+def shape_summary(row, name: str) -> dict:
+    """A form's shape parameter as a fit's summary row has it (mean, sd, 99 % interval)."""
     return {"name": name, "mean": float(row.mean[name]), "sd": float(row.sd[name]),
             "q005": float(row.q005[name]), "q995": float(row.q995[name])}

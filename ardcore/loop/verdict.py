@@ -115,7 +115,7 @@ def headline(report: dict, col: str, unit: str = "") -> str:
     before, after = report["before"], report.get("after") or report["before"]
     if added or replaced:
         swaps = [f"the declared {r['parameter']}*({r['term']}) replaced by {r['by']}"
-                 + (f" ({r['exponent']['name']} = {r['exponent']['mean']:.3g})" if r.get("exponent") else "")
+                 + (f" ({r['shape']['name']} = {r['shape']['mean']:.3g})" if r.get("shape") else "")
                  for r in replaced]
         what = ("Added " + ", ".join(f"{x['effect']} to the {x['target']} equation" for x in added)
                 + (", with " + ", ".join(swaps) if swaps else "") if added else

@@ -363,17 +363,20 @@ def test_headline_is_three_sentences_that_agree_with_the_tests():
     assert "0.2 -> 0.01" in text and "Structure remains" in text and "white" not in text  # never "adequate"
     # a replacement alone is a change too: said as such, with the error before and after
     swapped = dict(added, added=[], replaced=[{"parameter": "a", "term": "h", "target": "h", "by": "a*|h|^e_a",
-                                               "exponent": {"name": "e_a", "mean": 1.5}}])
+                                               "shape": {"name": "e_a", "mean": 1.5}}])
     text = headline(swapped, "y")
     assert text.startswith("In the h equation, the declared a*(h) replaced by a*|h|^e_a (e_a = 1.5).")
     assert "0.2 -> 0.01" in text and "Nothing was added" not in text
 
 
-@pytest.mark.parametrize("law, p", [("h**1.5", 1.5), ("sqrt(abs(h))*sign(h)", 0.5), ("abs(h)**0.7*sign(h)", 0.7)])
-def test_a_wrong_law_is_replaced_by_its_fitted_power(law, p):
-    """A tank that drains over a weir (flow ~ h^1.5), through an orifice (h^0.5) or by a law between the two
-    (h^0.7), declared linear: the loop replaces the declared a*h by a*|h|^e with the exponent fitted (its 99 %
-    interval holding the truth), reports it as a replacement and stacks nothing on top."""
+@pytest.mark.parametrize("law, form, p", [
+    ("h**1.5", "power", 1.5), ("sqrt(abs(h))*sign(h)", "power", 0.5), ("abs(h)**0.7*sign(h)", "power", 0.7),
+    ("0.6*tanh(h/0.6)", "saturation", 0.6), ("0.5*(h - 0.5 + sqrt((h - 0.5)**2 + 1e-4))", "knee", 0.5)])
+def test_a_wrong_law_is_replaced_by_its_true_form(law, form, p):
+    """A tank that drains over a weir (flow ~ h^1.5), through an orifice (h^0.5), by a law between the two
+    (h^0.7), through an outlet that saturates, or over a crest at h = 0.5, declared linear: the loop replaces
+    the declared a*h by the law in its true form with the shape fitted (its 99 % interval holding the truth),
+    reports it as a replacement and stacks nothing on top."""
     rng = np.random.default_rng(4)
     t = np.arange(3000) * 0.1
     u = 1.0 + 0.8 * np.sign(np.sin(2 * np.pi * t / 40)) + 0.1 * rng.standard_normal(t.size)
@@ -388,7 +391,7 @@ def test_a_wrong_law_is_replaced_by_its_fitted_power(law, p):
     rep = d.to_json()
     assert [a for a in rep["added"] if a["kind"] != "noise"] == [], rep["verdict"]
     (r,) = rep["replaced"]
-    assert (r["parameter"], r["term"]) == ("a", "h") and r["log_bayes_factor"] > 10, rep["verdict"]
-    assert r["exponent"]["q005"] < p < r["exponent"]["q995"], r
-    assert "replaced by a*|h|^e_a" in rep["headline"] and len(rep["headline"].split(". ")) <= 3
+    assert (r["parameter"], r["term"], r["form"]) == ("a", "h", form) and r["log_bayes_factor"] > 10, rep["verdict"]
+    assert r["shape"]["q005"] < p < r["shape"]["q995"], r
+    assert f"replaced by {r['by']}" in rep["headline"] and len(rep["headline"].split(". ")) <= 3
     assert rep["after"]["free_run"]["rms_error"] < 0.2 * rep["before"]["free_run"]["rms_error"]
