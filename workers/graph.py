@@ -26,7 +26,7 @@ import uuid
 from concurrent.futures import CancelledError
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -38,7 +38,7 @@ from ardflow.ardcore.sampling.config import SamplerResult
 from ardflow.ardcore.sampling.driver import Runtime, Start, continuation, continued, sample
 from ardflow.ardcore.selection.fit import ModelFit
 from ardflow.ardcore.selection.spec import StudySpec
-from ardflow.ardcore.selection.study import compare, run_candidate
+from ardflow.ardcore.selection.study import CandidateHooks, compare, run_candidate
 
 from .coordinator import ActorPool, wait_connected
 from ardflow.ardcore.jsonio import to_jsonable
@@ -78,18 +78,28 @@ def trial_from_json(rec: dict, store: StudyStore, model: str, iteration: int) ->
     return ev, res
 
 
+class TrialSite(NamedTuple):
+    """Where a model's trials run and are kept: the Dask ``client``, the ``store``, the study and the model."""
+
+    client: object
+    store: StudyStore
+    study_id: str
+    model: str
+
+
 class StoredEvaluator(EvidenceEvaluator):
-    """Evidence at psi with chains on Dask, samples and checkpoints in the store.
+    """Evidence at psi with chains on Dask, samples and checkpoints in the store (``site``).
 
     A trial already finished in the store is read back instead of recomputed;
     a trial with a checkpoint resumes from it.
     """
 
-    def __init__(self, spec, essential, data, sampler, *, client, store: StudyStore, study_id: str, model: str,
-                 **kw):
-        super().__init__(spec, essential, data, sampler, **kw)
-        self.client, self.store, self.study_id, self.model = client, store, study_id, model
-        self.map_fn = DaskMap(client, f"{study_id}-{model}")
+    def __init__(self, spec, essential, data, settings, *, site: TrialSite, **kw):
+        super().__init__(spec, essential, data, settings, **kw)
+        self.client, self.store, self.study_id, self.model = site
+        # the in-process stages (a Laplace trial's final chains, start optimisations) map onto the cluster too
+        self.map_fn = DaskMap(site.client, f"{site.study_id}-{site.model}")
+        self.runtime = replace(self.runtime, map_fn=self.map_fn)
 
     def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
                  extend: bool = False):
@@ -198,7 +208,7 @@ def run_model(client, store_path: str, study_id: str, index: int) -> dict:
             return False
 
     def factory(*a, **kw):
-        return StoredEvaluator(*a, client=client, store=store, study_id=study_id, model=model, **kw)
+        return StoredEvaluator(*a, site=TrialSite(client, store, study_id, model), **kw)
 
     return fit_model(store, spec, data, index, factory, progress=progress, cancel=cancel)
 
@@ -215,8 +225,8 @@ def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_fa
         history.append(tr.to_dict())
         store.set_model_attrs(model, history=history)
 
-    row, mr = run_candidate(cand, data, spec, index, progress=progress, cancel=cancel,
-                            evaluator_factory=evaluator_factory, on_trial=on_trial)
+    row, mr = run_candidate(cand, data, spec, index, hooks=CandidateHooks(
+        progress=progress, cancel=cancel, evaluator_factory=evaluator_factory, on_trial=on_trial))
     best_iteration = mr.best.iteration
     if spec.evidence == "laplace":
         # Laplace trials sample nothing; the posterior drawn at psi_opt gets a trial group of its own

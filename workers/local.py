@@ -9,6 +9,7 @@ either the same way.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Callable
 
 from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
@@ -23,8 +24,8 @@ from .store import StudyStore
 class LocalStoredEvaluator(EvidenceEvaluator):
     """Evidence at psi on a local map; each sampled trial's draws and record go to the store."""
 
-    def __init__(self, spec, essential, data, sampler, *, store: StudyStore, model: str, **kw):
-        super().__init__(spec, essential, data, sampler, **kw)
+    def __init__(self, spec, essential, data, settings, *, store: StudyStore, model: str, **kw):
+        super().__init__(spec, essential, data, settings, **kw)
         self.store, self.model = store, model
 
     def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
@@ -65,7 +66,8 @@ def _drive_local(store: StudyStore, map_fn: Map, progress, done: bool) -> dict:
                     progress(p)
 
             def factory(*a, model=model, **kw):
-                return LocalStoredEvaluator(*a, store=store, model=model, **{**kw, "map_fn": map_fn})
+                runtime = replace(kw.pop("runtime"), map_fn=map_fn)
+                return LocalStoredEvaluator(*a, store=store, model=model, runtime=runtime, **kw)
 
             rows.append(fit_model(store, spec, data, i, factory, progress=prog))
     except BaseException as exc:

@@ -4,11 +4,12 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from .estimators import chib_jeliazkov, laplace
-from ..sampling.chains import Map, Step, serial_map
+from ..sampling.chains import Step
 from ..sampling.config import SamplerConfig, SamplerResult
 from ..sampling.driver import Runtime, Start, continuation, continued, sample
 from ..sampling.starts import initial_scale
@@ -29,19 +30,42 @@ def build_target(spec, essential: dict, psi: dict, data, substeps=None) -> Model
     return ModelPosterior(s, priors, data, substeps)
 
 
-class EvidenceEvaluator:
-    """Evidence at a given psi, by Chib-Jeliazkov (sampling) or Laplace."""
+@dataclass(frozen=True)
+class EvidenceSettings:
+    """How the evidence is computed: the ``sampler`` settings, the ``method`` (``"chib-jeliazkov"`` from
+    MCMC draws or ``"laplace"``) and, for Laplace studies, the ``final_posterior``: ``"sample"`` draws the
+    reported posterior by MCMC, ``"laplace"`` takes the Gaussian N(MAP, H^-1) the evidence itself assumed
+    (what a screen of many candidates can afford)."""
 
-    def __init__(self, spec, essential, data, sampler: SamplerConfig, *, method: str = "chib-jeliazkov",
-                 substeps=None, map_fn: Map = serial_map, progress=None, cancel=None,
-                 final_posterior: str = "sample"):
+    sampler: SamplerConfig
+    method: str = "chib-jeliazkov"
+    final_posterior: str = "sample"
+
+
+class EvidenceEvaluator:
+    """Evidence at a given psi, by Chib-Jeliazkov (sampling) or Laplace.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+    essential : dict
+        The essential parameters' priors.
+    data : Dataset
+    settings : EvidenceSettings
+    substeps : int, optional
+        Integration sub-steps (default: the model's).
+    runtime : Runtime
+        How the chains run and report (:class:`~ardcore.sampling.driver.Runtime`; its checkpoint and pool
+        factory belong to orchestrators).
+    """
+
+    def __init__(self, spec, essential, data, settings: EvidenceSettings, *, substeps=None,
+                 runtime: Runtime = Runtime()):
         self.spec, self.essential, self.data = spec, essential, data
-        self.sampler, self.method, self.substeps = sampler, method, substeps
-        self.map_fn, self.progress, self.cancel = map_fn, progress, cancel
-        self.runtime = Runtime(map_fn=map_fn, progress=progress, cancel=cancel)
-        # Laplace studies: "sample" draws the final posterior by MCMC, "laplace" takes the Gaussian N(MAP, H^-1)
-        # that the evidence itself assumed (what a screen of many candidates can afford)
-        self.final_posterior = final_posterior
+        self.sampler, self.method, self.substeps = settings.sampler, settings.method, substeps
+        self.final_posterior = settings.final_posterior
+        self.runtime = runtime
+        self.map_fn, self.progress, self.cancel = runtime.map_fn, runtime.progress, runtime.cancel
 
     def config(self, extend: bool) -> SamplerConfig:
         """The sampler settings of a trial: the judged M draws for a search trial, the full budget for the

@@ -162,8 +162,7 @@ def simulate_reference(seed: int, pipeline: ReferencePipeline | None = None,
 
 
 def simulate_model(name_or_spec, params: dict, t: np.ndarray, seed: int, *, nsub: int = 10,
-                   inputs: dict[str, np.ndarray] | None = None, x0=None,
-                   measurement_noise: bool = True) -> Dataset:
+                   inputs: dict[str, np.ndarray] | None = None, x0=None) -> Dataset:
     """Simulate any model at sample times ``t`` and add its measurement noise.
 
     Parameters
@@ -191,7 +190,7 @@ def simulate_model(name_or_spec, params: dict, t: np.ndarray, seed: int, *, nsub
     cols = {}
     std = cm.obs_std(params)
     for j, c in enumerate(spec.observed_columns):
-        cols[c] = H[:, j] + (std[j] * rng.standard_normal(t.size) if measurement_noise else 0.0)
+        cols[c] = H[:, j] + std[j] * rng.standard_normal(t.size)
     for c in spec.inputs:
         cols[c] = np.asarray(inputs[c], dtype=float)
     meta = {"source": f"simulate({spec.name}, seed={seed})", "model": spec.model_dump(mode="json"),

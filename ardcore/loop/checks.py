@@ -132,7 +132,7 @@ def savage_dickey(cand: CandidateSpec, row: ModelFit, mr, names: list[str]) -> f
     return float(sum(p.logpdf(0.0) for p in pri)) - ln_post0
 
 
-def backward_check(spec, cand, row, bmr, data, earlier_added: list[Added], this_round: int, config, say, mapper):
+def backward_check(ctx, held: Fit, earlier_added: list[Added], this_round: int) -> Fit:
     """Effects added in earlier rounds that the later ones made redundant are dropped again.
 
     Forward selection adds what the screen ranks first; a later effect can explain the same residual better
@@ -143,8 +143,10 @@ def backward_check(spec, cand, row, bmr, data, earlier_added: list[Added], this_
     candidates have not changed) is dropped, the weakest first, and the rest are checked again. An effect
     whose Savage-Dickey ln Bayes factor (:func:`savage_dickey`) clears its threshold by ``SD_MARGIN`` nats
     is kept without a refit (an offset worth 60,000 nats does not need one to say so). ``earlier_added``: the
-    effects of the rounds before ``this_round``.
+    effects of the rounds before ``this_round``. Returns the model then held.
     """
+    spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
+    cand, row, bmr, data = held
     said = set()
     while True:
         earlier = [x for x in earlier_added if not x.record.get("removed")]
@@ -157,7 +159,7 @@ def backward_check(spec, cand, row, bmr, data, earlier_added: list[Added], this_
             said.update(clear)
         earlier = [x for x, b in zip(earlier, sd) if b is None or b / x.inflation < x.threshold + SD_MARGIN]
         if not earlier:
-            return cand, row, bmr
+            return Fit(cand, row, bmr, data)
         tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, **{n: 0.0 for n in x.params}}}), data, spec,
                   bmr.sampler, config.posterior) for x in earlier]
         fits = mapper(fit_task, tasks)
@@ -166,20 +168,22 @@ def backward_check(spec, cand, row, bmr, data, earlier_added: list[Added], this_
         k = int(np.argmin([w - x.threshold for w, x in zip(worth, earlier)]))
         x = earlier[k]
         if worth[k] >= x.threshold:
-            return cand, row, bmr
+            return Fit(cand, row, bmr, data)
         x.record["removed"], x.record["log_bayes_factor_after"] = this_round, float(worth[k])
         say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
             f"effects, below the {x.threshold:.1f} it passed: dropped")
         cand, (row, bmr) = tasks[k][0], fits[k]
 
 
-def joint_fit(spec, cand, row, survivors, data, config, say):
+def joint_fit(ctx, held: Fit, survivors) -> Fit:
     """The current model with every surviving effect added, each new term at the ARD precision its own
     re-selection found (pruned terms fixed at 0); one evidence evaluation checks they hold together.
 
     Returns the :class:`Fit` of the model with all of them."""
     from ..model.priors import frozen_ard
 
+    spec, config, say = ctx.spec, ctx.config, ctx.say
+    cand, row, _, data = held
     priors, fixed = essential_from_row(cand, row)
     aspec, adata = cand.model_spec(), data
     for c in survivors:
@@ -274,14 +278,15 @@ def declared_rivals(spec: ModelSpec, added: list[tuple[Effect, str]], new_parame
     return out
 
 
-def no_worse(survivors: list, fspec, phi, cand, data: Dataset, config, say) -> list:
+def no_worse(survivors: list, fspec, phi, held: Fit, config, say) -> list:
     """The survivors whose model is a result: its fit not degenerate (:meth:`ModelFit.degenerate`) and its
     free run on the estimation record bounded and no worse than the current model's. The evidence judges
     one-step predictions; an effect that improves them while the simulated response drifts off (or
     diverges) would make the model worse where it is used. The others are marked and say why."""
     if not survivors:
         return survivors
-    before = free_run(fspec, phi, data, init_samples=config.init_samples, substeps=cand.substeps)["rms_error"]
+    before = free_run(fspec, phi, held.data, init_samples=config.init_samples,
+                      substeps=held.cand.substeps)["rms_error"]
     kept = []
     for c in survivors:
         why = worse_than_before(c.fit, before, config)
@@ -321,12 +326,14 @@ def brought(rounds: list) -> set:
         n for r in rounds for x in r.added for n in x.record.get("shape", {})}
 
 
-def replace_laws(spec, cand, row, bmr, data: Dataset, rounds: list, config, say, mapper):
+def replace_laws(ctx, held: Fit, rounds: list) -> Fit:
     """Drop the declared terms this round's effects replace (:func:`declared_rivals`): each is refitted out
     (its parameter fixed at 0, side by side on the loop's pool); the one whose removal raises ln Z most is
     dropped when the model without it is more probable (ln Bayes factor > 0 for the smaller model, equal
     prior odds) and free-runs no worse on the estimation record. Repeats while one goes. Recorded in the
-    round as ``replaced``."""
+    round as ``replaced``. Returns the model then held."""
+    spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
+    cand, row, bmr, data = held
     rnd = rounds[-1]
     new_params = brought(rounds)
     added = [(e, x.record["target"]) for e, x in zip(rnd.effects, rnd.added)]
@@ -334,7 +341,7 @@ def replace_laws(spec, cand, row, bmr, data: Dataset, rounds: list, config, say,
     while True:
         rivals = declared_rivals(cand.model_spec(), added, new_params)
         if not rivals:
-            return cand, row, bmr
+            return Fit(cand, row, bmr, data)
         tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, r.parameter: 0.0}}), data, spec, bmr.sampler,
                   config.posterior) for r in rivals]
         fits = mapper(fit_task, tasks)
@@ -344,12 +351,12 @@ def replace_laws(spec, cand, row, bmr, data: Dataset, rounds: list, config, say,
         if not gain[k] > 0:
             say(f"  the declared {r.parameter}*({r.term}) in {r.target}'s equation stays beside {r.effect} "
                 f"(worth {-gain[k]:.1f} nats)")
-            return cand, row, bmr
+            return Fit(cand, row, bmr, data)
         fit = Fit(tasks[k][0], fits[k][0], fits[k][1], data)
         why = worse_than_before(fit, free_run_rms(Fit(cand, row, bmr, data), config), config)
         if why is not None:
             say(f"  the declared {r.parameter}*({r.term}) stays: without it {why}")
-            return cand, row, bmr
+            return Fit(cand, row, bmr, data)
         replaced.append({"parameter": r.parameter, "term": r.term, "target": r.target, "by": r.effect,
                          "log_bayes_factor": float(gain[k])})
         say(f"  {r.effect} replaces the declared {r.parameter}*({r.term}) in {r.target}'s equation "

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable, Literal
 
 from pydantic import BaseModel, Field
 
 from ..sampling.config import SETTINGS
+
+if TYPE_CHECKING:  # the loop's context names the study spec; selection does not import the loop
+    from ..selection.spec import StudySpec
 
 
 class DiagnoseConfig(BaseModel):
@@ -117,3 +121,17 @@ class DiagnoseConfig(BaseModel):
     # the simulation fit of the final model
     simulation_factors: tuple[float, ...] = (0.3, 0.1, 0.03)
     simulation_held_out: float = Field(0.3, gt=0, lt=1)
+
+
+@dataclass(frozen=True)
+class LoopContext:
+    """What every step of one diagnosis shares: the study spec (its evidence method, sampler and maximiser
+    settings), the loop's settings, the progress line ``say``, the ``mapper`` that runs re-selections side
+    by side, the user's extra effects and the observed column the residuals are tested on."""
+
+    spec: "StudySpec"
+    config: DiagnoseConfig
+    say: Callable[[str], None]
+    mapper: Callable
+    extra_effects: tuple = ()
+    column: str = ""

@@ -20,7 +20,7 @@ from ..effects.base import (Effect, augment, dynamic_states, shape_parameter_nam
 from ..model.declaration import ModelSpec
 from ..effects.families import candidate_effects
 from ..jsonio import is_pruned, to_jsonable
-from ..screening.screen import Screened, distinct_candidates, screen_effects
+from ..screening.screen import ScreenInput, Screened, distinct_candidates, screen_effects
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec
 from ..selection.study import run_candidate
@@ -177,11 +177,15 @@ def pool_mapper(workers: int):
     return run, (lambda: pool.shutdown(cancel_futures=True))
 
 
-def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper,
-                      present: set = frozenset()):
+def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset()):
     """Screen the whole library by evidence, then confirm the best few by the full ARD re-selection.
 
-    ``present``: (library name, target) of the effects the model holds already; they are not screened again."""
+    ``ctx``: the loop's :class:`~ardcore.loop.config.LoopContext`; ``held``: the model held, ``fspec, phi``
+    with its pruned terms fixed, at its posterior mean; ``res``: its residuals. ``present``: (library name,
+    target) of the effects the model holds already; they are not screened again."""
+    spec, config, say, mapper, col = ctx.spec, ctx.config, ctx.say, ctx.mapper, ctx.column
+    cand, row, bmr, data = held
+    extra_effects = ctx.extra_effects
     spectrum = res.tests[col]["spectrum"]
     peaks = forcing_peaks(fspec, spectrum["peaks"])
     scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
@@ -190,8 +194,9 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     # forcing frequencies: the innovation peaks forcing_peaks picks (each refined by the screen)
     effects = candidate_effects(fspec, scales=scales, levels=levels, frequencies=[p["f"] for p in peaks],
                                 frequency_resolution=spectrum.get("resolution", 0.0), extra=list(extra_effects))
-    screened = screen_effects(fspec, phi, data, effects, dynamic_states(fspec), list(fspec.observed_columns),
-                              substeps=cand.substeps, progress=say, map_fn=mapper)
+    inp = ScreenInput(fspec, phi, data, cand.substeps)
+    screened = screen_effects(inp, effects, dynamic_states(fspec), list(fspec.observed_columns), progress=say,
+                              map_fn=mapper)
     screened = [c for c in screened if ((c.source or c.effect).name, c.target) not in present]
     say("screen: " + ", ".join(f"{c.effect.name} -> {c.target} (ln BF ~ {c.log_bayes_factor:.1f})"
                                for c in screened[:5]))
@@ -199,7 +204,7 @@ def trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config, 
     cspec = spec.model_copy(update={"maximiser": spec.maximiser.model_copy(
         update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
     confirmed = []
-    picked = distinct_candidates(fspec, phi, data, screened, config.top_k, config.min_score, substeps=cand.substeps)
+    picked = distinct_candidates(inp, screened, config.top_k, config.min_score)
     rivals = _rivals(screened, picked, config, say)
     by_id = {id(c): c for c in screened}
     chosen = list(picked) + [by_id[i] for i in rivals]

@@ -43,14 +43,14 @@ import numpy as np
 from .checks import (Added, backward_check, brought, free_run_rms, joint_fit, no_worse, replace_laws,
                      split_stability, worse_than_before)
 from .confirm import Confirmation, Fit, pool_mapper, trace_and_confirm
-from .replace import best_law, shape_summary
+from .replace import best_laws, shape_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import FitError, SpecError
 from .result import Diagnosis, FittedModel, LoopRound
 from .freerun import Band, fitted, free_run, posterior_draws
 from .initial import data_informed_initial
-from .config import DiagnoseConfig
+from .config import DiagnoseConfig, LoopContext
 from ..model.declaration import ModelSpec
 from .residuals import Residuals, residuals
 from ..selection.fit import ModelFit
@@ -64,13 +64,16 @@ INF = math.inf
 # --------------------------------------------------------------------------- fit, free run, loop
 
 
-def _measure(fspec, phi, cand, row, bmr, data, test, col, config, rnd) -> tuple[Residuals, dict, dict]:
+def _measure(ctx: LoopContext, held: Fit, fspec, phi, test, rnd: int) -> tuple[Residuals, dict, dict]:
     """The fitted model's residuals on the estimation data, its free run (with a band) on the test record
-    and the errors reported for both."""
-    res = residuals(fspec, phi, data, config, substeps=cand.substeps)
-    fr = free_run(fspec, phi, test, init_samples=config.init_samples, substeps=cand.substeps,
-                  band=Band(posterior_draws(bmr, fspec, config.band_draws, seed=rnd), calibration=data, seed=rnd))
-    return res, fr, _errors(res, fr, row, col)
+    and the errors reported for both; ``fspec, phi``: the held model with its pruned terms fixed, at its
+    posterior mean."""
+    config = ctx.config
+    res = residuals(fspec, phi, held.data, config, substeps=held.cand.substeps)
+    fr = free_run(fspec, phi, test, init_samples=config.init_samples, substeps=held.cand.substeps,
+                  band=Band(posterior_draws(held.mr, fspec, config.band_draws, seed=rnd), calibration=held.data,
+                            seed=rnd))
+    return res, fr, _errors(res, fr, held.row, ctx.column)
 
 
 def _errors(res: Residuals, fr: dict, row: ModelFit, col: str) -> dict:
@@ -132,49 +135,50 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     col = cand.model_spec().observed_columns[0]
     first = None
     rounds, arrays = [], {}
-    cur_data, cur_test = data, test_data
+    cur_test = test_data
     workers = config.workers or min(os.cpu_count() or 1, max(config.top_k, 2))
     mapper, close = pool_mapper(workers)
+    ctx = LoopContext(spec, config, say, mapper, tuple(extra_effects), col)
+    held = Fit(cand, row, bmr, data)
     try:
         for rnd in range(config.max_rounds + 1):
-            fspec, phi = fitted(cand, row)
-            say(f"round {rnd}: {cand.label} ln Z = {row.log_evidence:.3f}; computing residuals")
-            res, fr, err = _measure(fspec, phi, cand, row, bmr, cur_data, cur_test, col, config, rnd)
+            fspec, phi = fitted(held.cand, held.row)
+            say(f"round {rnd}: {held.cand.label} ln Z = {held.row.log_evidence:.3f}; computing residuals")
+            res, fr, err = _measure(ctx, held, fspec, phi, cur_test, rnd)
             if first is None:
-                initial = FittedModel(fspec, phi, (), cand.substeps)
+                initial = FittedModel(fspec, phi, (), held.cand.substeps)
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
-                         "base_fit": row.summary(_BASE_FIT)}
+                         "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes}
                 arrays["before"] = _arrays(res, fr)
             else:
                 arrays["after"] = _arrays(res, fr)
                 rounds[-1].record["after"] = err
             if rnd == config.max_rounds:
                 break
-            # a declared law through a fitted power competes with the round's additions: a wrong law is
-            # replaced, not stacked upon, unless an effect it lacks is worth more (an overflow beside it)
-            swap = best_law(spec, Fit(cand, row, bmr, cur_data), config, say, mapper, brought(rounds))
-            rec, survivors = _trace_round(spec, cand, row, bmr, fspec, phi, cur_data, res, col, config,
-                                          extra_effects, say, mapper, rnd, _present(rounds))
+            # a declared law in another form competes with the round's additions: a wrong law is replaced,
+            # not stacked upon, unless an effect it lacks is worth more (an overflow beside it)
+            swap = best_laws(ctx, held, brought(rounds))
+            rec, survivors = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds))
             rounds.append(rec)
-            if swap is not None and (not survivors or swap[1]["log_bayes_factor"] >= survivors[0].log_bayes_factor):
-                rec.record["replaced"] = [swap[1]]
+            if swap is not None and (not survivors or swap[2] >= survivors[0].log_bayes_factor):
+                rec.record["replaced"] = swap[1]
                 rec.record.pop("verdict", None)
-                cand, row, bmr = swap[0].cand, swap[0].row, swap[0].mr
+                held = swap[0]
                 continue
             if swap is not None:
                 say(f"  adding {survivors[0].effect} (ln BF {survivors[0].log_bayes_factor:.1f}) is worth more "
-                    f"than {swap[1]['by']} (ln BF {swap[1]['log_bayes_factor']:.1f})")
+                    f"than " + ", ".join(x["by"] for x in swap[1]) + f" (ln BF {swap[2]:.1f})")
             if not survivors:
                 break
-            cand, row, bmr, cur_data = _adopt(spec, cand, row, survivors, fspec, phi, cur_data, config, say, rec)
+            held = _adopt(ctx, held, survivors, fspec, phi, rec)
             for e in rec.effects:
                 cur_test = with_columns(cur_test, e)
             earlier = [x for r in rounds[:-1] for x in r.added]
-            cand, row, bmr = backward_check(spec, cand, row, bmr, cur_data, earlier, rnd, config, say, mapper)
-            cand, row, bmr = replace_laws(spec, cand, row, bmr, cur_data, rounds, config, say, mapper)
-        out = _report(spec, data, test_data, first, rounds, arrays, row, notes, cand.label)
-        final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), cand.substeps)
-        simulation = _simulation(final, cur_data, cur_test, config, say, out)
+            held = backward_check(ctx, held, earlier, rnd)
+            held = replace_laws(ctx, held, rounds)
+        out = _report(ctx, data, test_data, first, rounds, arrays, held)
+        final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), held.cand.substeps)
+        simulation = _simulation(final, held.data, cur_test, config, say, out)
     finally:
         close()
     out["wall_s"] = time.perf_counter() - t_start
@@ -184,16 +188,16 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
 def _simulation(final: FittedModel, data: Dataset, test: Dataset, config: DiagnoseConfig, say,
                 out: dict) -> FittedModel | None:
     """The final model's simulation fit (:mod:`ardcore.loop.simulation_fit`), its record and free run in ``out``."""
-    from .simulation_fit import simulation_fit
+    from .simulation_fit import SimulationSettings, simulation_fit
 
     if not config.simulation_factors:
         return None
     say("simulation fit: process-noise factors " + ", ".join(f"{f:g}" for f in config.simulation_factors)
         + " on held-out data")
     try:
-        sim = simulation_fit(final.spec, final.phi, data, substeps=final.substeps,
-                             factors=tuple(config.simulation_factors), held_out=config.simulation_held_out,
-                             init_samples=config.init_samples)
+        sim = simulation_fit(final.spec, final.phi, data, substeps=final.substeps, settings=SimulationSettings(
+            factors=tuple(config.simulation_factors), held_out=config.simulation_held_out,
+            init_samples=config.init_samples))
     except (FitError, ValueError, np.linalg.LinAlgError) as e:  # the posterior's own result stands
         out["simulation"] = {"error": f"{type(e).__name__}: {e}"}
         return None
@@ -251,14 +255,14 @@ def _present(rounds: list[LoopRound]) -> set:
     return {x.key for r in rounds for x in r.added if not x.record.get("removed")}
 
 
-def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra_effects, say, mapper,
-                 rnd: int, present: set = frozenset()) -> tuple[LoopRound, list]:
+def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rnd: int,
+                 present: set = frozenset()) -> tuple[LoopRound, list]:
     """One round's trace: screen, confirm, check the survivors' stability; the round's record and survivors
     (best first). With none, the record carries the verdict on what remains."""
-    ranked, confirmed = trace_and_confirm(spec, cand, row, bmr, fspec, phi, data, res, col, config,
-                                          extra_effects, say, mapper, present)
+    config, say = ctx.config, ctx.say
+    ranked, confirmed = trace_and_confirm(ctx, held, fspec, phi, res, present)
     survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
-    survivors = no_worse(survivors, fspec, phi, cand, data, config, say)
+    survivors = no_worse(survivors, fspec, phi, held, config, say)
     noise = [c for c in survivors if c.fitted_effect.where == "noise"
              and any(abs(c.fit.row.mean.get(n, 0.0)) > math.log(2) for n in c.scales)]
     deferred = [c for c in survivors if c not in noise] if noise else []
@@ -273,7 +277,7 @@ def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra
         for c in survivors:
             if c.fitted_effect.where == "noise":
                 continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
-            c.stability = split_stability(spec, c, config, say, mapper)
+            c.stability = split_stability(ctx.spec, c, config, say, ctx.mapper)
             c.survives = c.stability["stable"]
             if c.survives and not config.joint:
                 break  # the best stable one is added
@@ -287,22 +291,23 @@ def _trace_round(spec, cand, row, bmr, fspec, phi, data, res, col, config, extra
                  "screened_log_bayes_factor": c.log_bayes_factor} for c in ranked
                 if (c.effect.name, c.target) not in tried]
     candidates, confirmations = [c.to_json() for c in ranked], [c.to_json() for c in confirmed]
-    rec = {"round": rnd, "model": cand.label, "ranking": ranking, "deferred": [c.effect for c in deferred],
+    rec = {"round": rnd, "model": held.cand.label, "ranking": ranking, "deferred": [c.effect for c in deferred],
            "candidates": candidates, "confirmed": confirmations, "added": None}
     if not survivors:
-        rec["verdict"] = unexplained(res, candidates, confirmations, col, config)
+        rec["verdict"] = unexplained(res, candidates, confirmations, ctx.column, config)
     return LoopRound(rec), survivors
 
 
-def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rnd: LoopRound) -> tuple:
+def _adopt(ctx: LoopContext, held: Fit, survivors, fspec, phi, rnd: LoopRound) -> Fit:
     """Add the best survivor (or the survivors fitted together, when that is worth more); record what was
-    added in ``rnd``. Returns the new candidate, its row, its maximiser result and the augmented data."""
+    added in ``rnd``. Returns the model then held (with the data its effects need)."""
+    config, say, row = ctx.config, ctx.say, held.row
     best: Confirmation = survivors[0]
     chosen, fit = [best], best.fit
     if config.joint and len(survivors) > 1:
         # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
         # others make redundant; taken when it beats the best single effect by more than min_log_bf
-        j = joint_fit(spec, cand, row, survivors, data, config, say)
+        j = joint_fit(ctx, held, survivors)
         if j.row.log_evidence > best.log_evidence + config.min_log_bf:
             alone = free_run_rms(best.fit, config)
             why = worse_than_before(j, alone, config)  # together they must free-run no worse than the best alone
@@ -340,8 +345,9 @@ def _adopt(spec, cand, row, survivors, fspec, phi, data, config, say, rnd: LoopR
     return fit
 
 
-def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, notes, final_model: str) -> dict:
+def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], arrays, held: Fit) -> dict:
     """The loop's JSON report: before/after, the rounds, what was added and removed, the verdict."""
+    spec, row = ctx.spec, held.row
     records = [x.record for r in rounds for x in r.added]
     rounds = [r.record for r in rounds]
     added = [a for a in records if not a.get("removed")]
@@ -350,14 +356,14 @@ def _report(spec, data, test_data, first, rounds: list[LoopRound], arrays, row, 
     for x in replaced:  # a form's shape as the final model has it (later rounds refit it with what they add)
         if x.get("shape") and x["shape"]["name"] in row.mean:
             x["shape"] = shape_summary(row, x["shape"]["name"])
-    out = {"model": spec.models[0].label, "final_model": final_model,
+    out = {"model": spec.models[0].label, "final_model": held.cand.label,
            "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
            "rounds": rounds,
            "candidates": rounds[0]["candidates"] if rounds else [],
            "confirmed": rounds[0]["confirmed"] if rounds else [],
            "added": added,
            "after": [r for r in rounds if r["added"] or r.get("replaced")][-1]["after"] if added or replaced else None,
-           "removed": removed, "replaced": replaced, "initial_state": notes, "tests_after": None,
+           "removed": removed, "replaced": replaced, "tests_after": None,
            "final_fit": row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
     col = spec.models[0].model_spec().observed_columns[0]
     unit = (data.meta.get("units") or {}).get(col, "")

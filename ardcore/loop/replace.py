@@ -158,16 +158,31 @@ def term_values(current: Fit, law: Law) -> np.ndarray:
     return np.asarray(f(*fr.filtered.T), dtype=float) * np.ones(len(current.data))
 
 
-def best_law(spec, current: Fit, config, say, mapper, new_parameters: set = frozenset()):
+def best_laws(ctx, current: Fit, new_parameters: set = frozenset()):
+    """The declared laws worth replacing, one after another, as ``(fit, records, ln BF)``, or None.
+
+    :func:`best_law` on the current model, then again on the model it leaves, while one qualifies (two wrong
+    laws of a cascade are each worth less alone than a stand-in that patches both, and more together). The
+    caller weighs the total ln Bayes factor against the round's best addition."""
+    fit, records = current, []
+    while (got := best_law(ctx, fit, new_parameters)) is not None:
+        fit = got[0]
+        records.append(got[1])
+    if not records:
+        return None
+    return fit, records, float(fit.row.log_evidence - current.row.log_evidence)
+
+
+def best_law(ctx, current: Fit, new_parameters: set = frozenset()):
     """The declared law and form (module docstring) worth most, as ``(fit, record)``, or None.
 
     Every candidate is fitted side by side on the loop's pool; the best qualifies when its ln Bayes factor
     against the current model exceeds ``config.min_log_bf`` plus ln of the number of candidates tried (their
     multiplicity, as for additions) and its free run on the estimation record is no worse. The record says
-    what was replaced (parameter, term, target, by, form, the shape's posterior, ln BF); the caller weighs it
-    against the round's additions (:func:`~ardcore.loop.diagnose.diagnose`)."""
+    what was replaced (parameter, term, target, by, form, the shape's posterior, ln BF)."""
     from .checks import free_run_rms, worse_than_before
 
+    spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
     ms = current.cand.model_spec()
     priors, fixed = essential_from_row(current.cand, current.row)
     tasks, offered = [], []

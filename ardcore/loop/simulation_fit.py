@@ -89,9 +89,22 @@ def _fit(lik, phi: dict, noise: list, factor: float, names: list, maxfun: int, L
     return out
 
 
+@dataclass(frozen=True)
+class SimulationSettings:
+    """How a simulation fit chooses its process-noise factor: the ``factors`` tried (largest first), the
+    ``held_out`` share of the estimation record they are judged on, the ``min_gain`` by which the best must
+    beat the posterior's own noise, the ``init_samples`` a free run starts after, and each fit's
+    ``maxfun``."""
+
+    factors: tuple = (0.3, 0.1, 0.03)
+    held_out: float = 0.3
+    min_gain: float = 0.05
+    init_samples: int = 50
+    maxfun: int = 3000
+
+
 def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int | None = None,
-                   factors: tuple = (0.3, 0.1, 0.03), held_out: float = 0.3, min_gain: float = 0.05,
-                   init_samples: int = 50, maxfun: int = 3000) -> SimulationFit | None:
+                   settings: SimulationSettings = SimulationSettings()) -> SimulationFit | None:
     """Choose the process-noise factor for simulation on held-out data (see module docstring).
 
     The factors are fitted in turn from the largest, each from the previous one's parameters (a
@@ -103,12 +116,11 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
     spec, phi : the fitted model and its posterior mean.
     data : Dataset
         The estimation record (with any columns the model's effects need).
-    factors : tuple of float
-        Factors of the noise parameters tried besides 1.
-    held_out : float
-        Share of the record, at its end, that the free runs are scored on.
-    min_gain : float
-        Relative reduction of the held-out free-run error a factor needs over factor 1.
+    substeps : int, optional
+        The fit's sub-steps.
+    settings : SimulationSettings
+        The factors of the noise parameters tried besides 1, the share of the record (at its end) the free
+        runs are scored on, the relative reduction of that error a factor needs over factor 1.
 
     Returns
     -------
@@ -116,6 +128,8 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
         None when the model has no noise parameter that scales its process noise, or the record is too
         short to hold part of it out.
     """
+    factors, held_out, min_gain = settings.factors, settings.held_out, settings.min_gain
+    init_samples, maxfun = settings.init_samples, settings.maxfun
     noise = noise_parameters(spec)
     n = len(data)
     n_fit = int(round(n * (1 - held_out)))

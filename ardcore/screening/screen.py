@@ -113,34 +113,47 @@ class Screened:
                 "scales": [float(s) for s in self.scales]}
 
 
-def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effect], targets: list[str],
-                   obs_targets: list[str], *, substeps: int | None = None, batch_size: int = 12,
-                   shape_grid: int = 7, robust: bool = True, progress=None, map_fn=None) -> list[Screened]:
+BATCH_SIZE = 12
+"""Candidate terms per screening model (bounds the size of the generated kernel)."""
+
+SHAPE_GRID = 7
+"""Grid points over a shape parameter's range before golden-section refinement."""
+
+
+@dataclass(frozen=True)
+class ScreenInput:
+    """What a screen starts from: the fitted model ``spec`` at its parameter values ``phi`` (posterior mean
+    or MAP), the estimation ``data``, the fit's ``substeps``, and ``robust``: each candidate's evidence
+    adjusted to the actual variance of its score under the innovations' own spectrum
+    (:func:`~ardcore.screening.robust.sandwich`), so that coloured innovations do not pass for support."""
+
+    spec: ModelSpec
+    phi: dict
+    data: Dataset
+    substeps: int | None = None
+    robust: bool = True
+
+    def screener(self) -> "Screener":
+        return Screener(self.spec, self.phi, self.data, self.substeps, self.robust)
+
+
+def screen_effects(inp: ScreenInput, effects: list[Effect], targets: list[str], obs_targets: list[str], *,
+                   progress=None, map_fn=None) -> list[Screened]:
     """Screen every effect on every target; sorted by log Bayes factor (best first).
 
     Parameters
     ----------
-    spec, phi : the fitted model and its parameter values (posterior mean or MAP).
-    data : Dataset
-        The estimation data.
+    inp : ScreenInput
+        The fitted model, its parameter values and the estimation data.
     effects : list of Effect
         Drift effects go to every state in ``targets``; measurement effects (``where="observation"``)
         to every column in ``obs_targets``.
-    substeps : int, optional
-        The fit's sub-steps.
-    batch_size : int
-        Candidate terms per screening model (bounds the size of the generated kernel).
-    shape_grid : int
-        Grid points over a shape parameter's range before golden-section refinement.
-    robust : bool
-        Adjust each candidate's evidence to the actual variance of its score under the innovations'
-        own spectrum (:func:`~ardcore.screening.robust.sandwich`): coloured innovations then do not pass for support.
     map_fn : callable, optional
         ``map_fn(fn, tasks)`` profiles the shaped effects (a process pool's map; default: one after another).
         Each profile is 15-70 screening fits, most of a round's screen.
     """
     say = progress or (lambda s: None)
-    sc = Screener(spec, phi, data, substeps, robust)
+    sc, data = inp.screener(), inp.data
     k = len(sc.theta)
     pairs = [(e, t) for e in effects if e.where == "drift" for t in targets]
     pairs += [(e, c) for e in effects if e.where in ("observation", "noise") for c in obs_targets]
@@ -153,8 +166,8 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
         s = sc.term_scale(e, t, data)
         if s is not None:
             items.append((e, t, s))
-    for b in range(0, len(items), batch_size):
-        chunk = items[b:b + batch_size]
+    for b in range(0, len(items), BATCH_SIZE):
+        chunk = items[b:b + BATCH_SIZE]
         groups, g, Inf, C = sc.batch(chunk)
         for (e, t, s), grp, rows in zip(chunk, groups, sc.last_rows):
             lbf, gain, coef, infl = bayes_factor(g, Inf, k, grp, C, sc.eps)
@@ -163,7 +176,7 @@ def screen_effects(spec: ModelSpec, phi: dict, data: Dataset, effects: list[Effe
     say(f"screened {len(items)} plain candidates")
     # on a pool only once the model's own sensitivities are known (else each worker would compute them)
     run = map_fn if map_fn is not None and sc.basis is not None else serial_map
-    for b in run(_shape_task, [(sc, e, t, data, k, shape_grid) for e, t in shaped]):
+    for b in run(_shape_task, [(sc, e, t, data, k, SHAPE_GRID) for e, t in shaped]):
         if b is not None:
             if b.basis is not None:
                 b.basis = sc.basis  # a worker's copy: one basis, as the joint scoring expects
@@ -321,9 +334,8 @@ def conditional_log_bayes_factor(c: Screened, given: list[Screened]) -> float:
     return lbf
 
 
-def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: list[Screened], k: int,
-                        min_log_bf: float, *, substeps: int | None = None, look: int = 40,
-                        robust: bool = True) -> list[Screened]:
+def distinct_candidates(inp: ScreenInput, screened: list[Screened], k: int, min_log_bf: float, *,
+                        look: int = 40) -> list[Screened]:
     """Up to ``k`` candidates by forward selection on the screened evidence.
 
     The first is the best screened one; each next one is the candidate with the highest ln BF *conditional
@@ -336,7 +348,7 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
     computed (:class:`Basis`): no further filter pass.
     """
     if not screened or screened[0].rows is None or screened[0].basis is None:
-        return _distinct_by_refit(spec, phi, data, screened, k, min_log_bf, substeps=substeps, robust=robust)
+        return _distinct_by_refit(inp, screened, k, min_log_bf)
     # a candidate whose terms are not finite along the fit has no stored rows: it cannot be scored jointly
     pool = [c for c in screened[:look] if c.rows is not None and c.basis is screened[0].basis]
     picked: list[Screened] = []
@@ -362,10 +374,10 @@ def distinct_candidates(spec: ModelSpec, phi: dict, data: Dataset, screened: lis
     return picked
 
 
-def _distinct_by_refit(spec, phi, data, screened, k, min_log_bf, *, substeps=None, look=12, robust=True):
+def _distinct_by_refit(inp: ScreenInput, screened, k, min_log_bf, *, look=12):
     """:func:`distinct_candidates` for candidates screened elsewhere (no stored sensitivities): greedy in
     screened order, each conditional score from a new batch."""
-    sc = Screener(spec, phi, data, substeps, robust)
+    sc, data = inp.screener(), inp.data
     base = len(sc.theta)
     picked: list[Screened] = []
     for c in [c for c in screened if c.log_bayes_factor > min_log_bf][:look]:

@@ -10,6 +10,7 @@ evidence maximisation, then the comparison of the optimal nested models
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 
 import math
 import time
@@ -18,13 +19,14 @@ from typing import Callable
 
 import numpy as np
 
-from ..evidence.evaluate import EvidenceEvaluator
+from ..evidence.evaluate import EvidenceEvaluator, EvidenceSettings
 from .maximiser import MaximiserResult, maximise, posterior_summary
 from ..data import Dataset
 from ..events import ModelEvent, ProgressEvent, TrialDone
 from .fit import ModelFit
 from ..jsonio import to_jsonable
 from ..sampling.chains import Map, serial_map
+from ..sampling.driver import Runtime
 from .spec import (
     CandidateSpec,
     StudySpec,
@@ -45,34 +47,43 @@ def model_probabilities(log_z: list[float], se: list[float], prior: list[float] 
     return p.tolist(), pd.std(axis=0).tolist()
 
 
-def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *, map_fn: Map = serial_map,
-                  progress: Callable[[ModelEvent], None] | None = None, cancel=None,
-                  evaluator_factory: Callable[..., EvidenceEvaluator] | None = None,
-                  on_trial: Callable | None = None, warm=None,
-                  final_posterior: str = "sample") -> tuple[ModelFit, MaximiserResult]:
-    """ARD evidence maximisation for one candidate; returns its :class:`~ardcore.selection.fit.ModelFit` and the full
-    result.
+@dataclass(frozen=True)
+class CandidateHooks:
+    """How one candidate's maximisation runs and reports, each optional: ``map_fn`` runs the chains' tasks,
+    ``progress`` receives :class:`~ardcore.events.ModelEvent` s, ``cancel`` is asked between rounds,
+    ``evaluator_factory`` (same arguments as :class:`EvidenceEvaluator`) lets an orchestrator substitute its
+    own evaluator (caching, checkpoints, remote chains), ``on_trial`` is called with every finished
+    :class:`~ardcore.selection.maximiser.Trial`."""
 
-    ``evaluator_factory`` (same arguments as :class:`EvidenceEvaluator`) lets an
-    orchestrator substitute its own evaluator (caching, checkpoints, remote chains);
-    ``on_trial`` is called with every finished :class:`~ardcore.selection.maximiser.Trial`; ``warm`` (a
+    map_fn: Map = serial_map
+    progress: Callable[[ModelEvent], None] | None = None
+    cancel: Callable[[], bool] | None = None
+    evaluator_factory: Callable[..., EvidenceEvaluator] | None = None
+    on_trial: Callable | None = None
+
+
+def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *,
+                  hooks: CandidateHooks = CandidateHooks(), warm=None,
+                  final_posterior: str = "sample") -> tuple[ModelFit, MaximiserResult]:
+    """ARD evidence maximisation for one candidate; returns its :class:`~ardcore.selection.fit.ModelFit` and the
+    full result.
+
+    ``hooks`` (:class:`CandidateHooks`): how it runs and reports; ``warm`` (a
     :class:`~ardcore.sampling.driver.SamplerResult`) warm-starts the first trial. With Laplace evidence,
     ``final_posterior="laplace"`` reports the Laplace posterior N(MAP, H^-1) instead of sampling it.
     """
     t0 = time.perf_counter()
     label = cand.label
-    ms = cand.model_spec()
-    essential = dict(cand.priors)
-    cfg = spec.sampler
+    progress, on_trial = hooks.progress, hooks.on_trial
 
     def prog(p: ProgressEvent):
         if progress:
             progress(ModelEvent(label, p))
 
-    factory = evaluator_factory or EvidenceEvaluator
-    kw = {"final_posterior": final_posterior} if final_posterior != "sample" else {}
-    ev = factory(ms, essential, data, cfg, method=spec.evidence, substeps=cand.substeps,
-                 map_fn=map_fn, progress=prog, cancel=cancel, **kw)
+    factory = hooks.evaluator_factory or EvidenceEvaluator
+    ev = factory(cand.model_spec(), dict(cand.priors), data,
+                 EvidenceSettings(spec.sampler, spec.evidence, final_posterior), substeps=cand.substeps,
+                 runtime=Runtime(map_fn=hooks.map_fn, progress=prog, cancel=hooks.cancel))
 
     def trial_done(tr):
         prog(TrialDone(tr.iteration, tr.action, dict(tr.psi), tr.evidence.log_evidence, tr.evidence.log_evidence_se,
@@ -161,7 +172,7 @@ def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[Mod
     data = spec.data.load(base)
     rows, results = [], {}
     for i, cand in enumerate(spec.models):
-        row, mr = run_candidate(cand, data, spec, i, map_fn=map_fn, progress=progress, cancel=cancel)
+        row, mr = run_candidate(cand, data, spec, i, hooks=CandidateHooks(map_fn, progress, cancel))
         rows.append(row)
         results[cand.label] = mr
     summary = compare(rows, spec, {"source": data.meta.get("source"), "n": len(data)}, time.perf_counter() - t0)

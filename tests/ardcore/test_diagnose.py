@@ -7,7 +7,7 @@ from scipy import optimize
 from ardflow.ardcore.loop.config import DiagnoseConfig
 from ardflow.ardcore.loop.diagnose import diagnose
 from ardflow.ardcore.loop.residual_tests import residual_tests
-from ardflow.ardcore.screening.screen import screen_effects
+from ardflow.ardcore.screening.screen import ScreenInput, screen_effects
 from ardflow.ardcore.likelihood.ekf import compile_model
 from ardflow.ardcore.effects.base import augment, dynamic_states, feature_functions, oscillator_pairs
 from ardflow.ardcore.effects.families import candidate_effects
@@ -74,7 +74,8 @@ def test_screen_ranks_the_missing_cubic_stiffness_first():
     lik = compile_model(spec).bind(data)
     r = optimize.minimize(lambda z: -lik(np.exp(z)), np.log([13, 0.05, 0.02]), method="Nelder-Mead")
     phi = dict(zip(["k", "c", "sigma"], np.exp(r.x)))  # the screen works at the fitted parameters
-    ranked = screen_effects(spec, phi, data, candidate_effects(spec, scales={"y": 1.0, "v": 4.0}), ["v"], ["y"])
+    library = candidate_effects(spec, scales={"y": 1.0, "v": 4.0})
+    ranked = screen_effects(ScreenInput(spec, phi, data), library, ["v"], ["y"])
     assert ranked[0].effect.name == "cubic_stiffness(y)" and ranked[0].target == "v"
     assert ranked[0].physical[0] < 0  # hardening: the same sign as -k
     assert ranked[0].log_bayes_factor > 30 > ranked[-1].log_bayes_factor
@@ -172,7 +173,8 @@ def test_screen_finds_a_measurement_feedthrough(seed):
     data = simulate_model(truth, {"k": 30.0, "c": 1.0, "b": 20.0, "sigma": 0.5, "e": 0.05}, t, seed, inputs={"u": u})
     spec = builtin("forced_linear_oscillator").model_copy(update={"constants": {"gamma": 1e-3}}).revalidate()
     phi = _fit(spec, data, [30.0, 1.0, 20.0, 0.5])
-    ranked = screen_effects(spec, phi, data, candidate_effects(spec, scales={"y": 0.5, "v": 3.0}), ["v"], ["y"])
+    library = candidate_effects(spec, scales={"y": 0.5, "v": 3.0})
+    ranked = screen_effects(ScreenInput(spec, phi, data), library, ["v"], ["y"])
     assert _names(ranked) == [("feedthrough(u)", "y")], _names(ranked, 5)
     assert ranked[0].log_bayes_factor > 30
     assert abs(ranked[0].physical[0] - 0.05) < 0.02
@@ -195,8 +197,8 @@ def test_screen_finds_the_outflow_law_of_a_level_model():
     spec = tank("q*u - a*h", ["q", "a", "s"])
     assert dynamic_states(spec) == ["h"]
     phi = _fit(spec, data, [0.5, 0.5, 0.01])
-    ranked = screen_effects(spec, phi, data, candidate_effects(spec, scales={"h": float(np.std(data.columns["y"]))}),
-                            ["h"], ["y"])
+    library = candidate_effects(spec, scales={"h": float(np.std(data.columns["y"]))})
+    ranked = screen_effects(ScreenInput(spec, phi, data), library, ["h"], ["y"])
     assert ranked[0].effect.kind in ("state", "offset") and ranked[0].log_bayes_factor > 30, _names(ranked, 5)
     assert ("sqrt_outflow(h)", "h") in _names(ranked, 3), _names(ranked, 5)
 
@@ -229,7 +231,7 @@ def test_screen_finds_the_flow_between_two_tanks():
     assert {e.name for e in flows} == {"sqrt_flow(h1->h2)", "square_flow(h1->h2)", "saturating_flow(h1->h2)"}
     assert all(len(e.terms) == 1 for e in flows)
     phi = _fit(spec, data, [truth[p] for p in spec.free_parameters])
-    ranked = screen_effects(spec, phi, data, library, ["h1", "h2"], ["y"])
+    ranked = screen_effects(ScreenInput(spec, phi, data), library, ["h1", "h2"], ["y"])
     assert ("sqrt_flow(h1->h2)", "h1") in _names(ranked, 3), _names(ranked, 6)
     # added, it leaves h1 and enters h2 with the same coefficient
     added, names = augment(spec, next(e for e in flows if e.name == "sqrt_flow(h1->h2)"), "h1")

@@ -9,7 +9,7 @@ from ardflow.ardcore.effects.base import Effect
 from ardflow.ardcore.effects.families import candidate_effects
 from ardflow.ardcore.model.library import builtin
 from ardflow.ardcore.screening.robust import innovation_background, spectral_score_cov
-from ardflow.ardcore.screening.screen import screen_effects
+from ardflow.ardcore.screening.screen import ScreenInput, screen_effects
 from ardflow.ardcore.likelihood.simulate import simulate_model
 
 from ..forced_oscillator import base_spec, forced_data
@@ -82,8 +82,9 @@ def test_coloured_measurement_noise_does_not_pass_for_a_forcing(seed):
     f0 = float(f[band][np.argmax(P[band])])
     eff = Effect(f"forcing(f={f0:.4g})", "forcing", ("forcing0_sin", "forcing0_cos"), frequency=f0, code="fo0")
     scales = {"y": float(np.std(y)), "v": float(np.std(np.diff(y)) / 0.02)}
-    plain = screen_effects(spec, phi, data, [eff], ["v"], ["y"], robust=False)
-    adjusted = screen_effects(spec, phi, data, [eff] + candidate_effects(spec, scales=scales), ["v"], ["y"])
+    plain = screen_effects(ScreenInput(spec, phi, data, robust=False), [eff], ["v"], ["y"])
+    adjusted = screen_effects(ScreenInput(spec, phi, data), [eff] + candidate_effects(spec, scales=scales),
+                              ["v"], ["y"])
     lbf = {(c.effect.name, c.target): c.log_bayes_factor for c in adjusted}
     assert plain[0].log_bayes_factor > 3, plain[0].log_bayes_factor  # the white-noise likelihood is fooled
     # below the loop's min_score (3 nats: not sent to the ARD re-selection), and far below the unadjusted value
@@ -115,7 +116,7 @@ def test_a_forcing_is_coherent_and_a_noise_driven_mode_is_not():
 
     truth, _ = augment(base_spec(), forcing, "v")
     spec, data, phi = _forced(1, truth, {"k_fo00_v": 0.5, "k_fo01_v": 0.5}, forcing.columns_for)
-    got = screen_effects(spec, phi, data, [_forcing_candidate(1.37)], ["v"], ["y"])[0]
+    got = screen_effects(ScreenInput(spec, phi, data), [_forcing_candidate(1.37)], ["v"], ["y"])[0]
     assert got.log_bayes_factor > 30 and got.coherence_p > 0.01, (got.log_bayes_factor, got.coherence_p)
 
     w, zeta = 2 * np.pi * 1.7, 0.02
@@ -129,8 +130,8 @@ def test_a_forcing_is_coherent_and_a_noise_driven_mode_is_not():
         "initial_std": {"y": 0.1, "v": 10.0, "z": 0.0, "zd": 0.0}}).revalidate()
     for seed in (1, 2):
         spec, data, phi = _forced(seed, mode)
-        plain = screen_effects(spec, phi, data, [_forcing_candidate(1.7)], ["v"], ["y"], robust=False)[0]
-        got = screen_effects(spec, phi, data, [_forcing_candidate(1.7)], ["v"], ["y"])[0]
+        plain = screen_effects(ScreenInput(spec, phi, data, robust=False), [_forcing_candidate(1.7)], ["v"], ["y"])[0]
+        got = screen_effects(ScreenInput(spec, phi, data), [_forcing_candidate(1.7)], ["v"], ["y"])[0]
         assert plain.log_bayes_factor > 30  # the white-noise likelihood takes the mode's peak for a forcing
         assert got.coherence_p < 1e-3 and got.log_bayes_factor <= 0, (got.coherence_p, got.log_bayes_factor)
 
@@ -148,11 +149,11 @@ def test_forward_selection_scores_jointly_and_finds_what_the_first_leaves():
     spec, data, phi = _forced(3, truth, {"k_s3y_v": -40.0, "k_s2y_v": 12.0})
     scales = {"y": float(np.std(data.columns["y"])), "v": float(np.std(np.diff(data.columns["y"])) / 0.02)}
     effects = [e for e in candidate_effects(spec, scales=scales) if not e.shape]
-    got = screen_effects(spec, phi, data, effects, ["v"], ["y"])
+    got = screen_effects(ScreenInput(spec, phi, data), effects, ["v"], ["y"])
     for c in got[:8]:
         assert conditional_log_bayes_factor(c, []) == pytest.approx(c.log_bayes_factor, rel=1e-9, abs=1e-9)
         assert conditional_log_bayes_factor(c, [c]) < 1.0
-    picked = distinct_candidates(spec, phi, data, got, 3, 3.0)
+    picked = distinct_candidates(ScreenInput(spec, phi, data), got, 3, 3.0)
     names = [p.effect.name for p in picked]
     assert names[0] == got[0].effect.name
     assert {"cubic_stiffness(y)", "quadratic_stiffness(y)"} <= set(names), [(c.effect.name, c.log_bayes_factor,
@@ -171,7 +172,7 @@ def test_a_model_that_has_the_input_rate_screens_it_again_without_error():
     truth, names = augment(base_spec(), rate, "v")
     data = with_columns(forced_data(3, truth, {names[0]: 0.05}, rate.columns_for), rate)
     phi = {**_fit(base_spec(), data, [16.0, 0.4, 8.0, 0.3]), names[0]: 0.05}
-    got = screen_effects(truth, phi, data, [rate], ["v"], ["y"])
+    got = screen_effects(ScreenInput(truth, phi, data), [rate], ["v"], ["y"])
     assert len(got) == 1 and np.isfinite(got[0].log_bayes_factor)
     # the rate is in the model at its true value: another one is worth nothing
     assert got[0].log_bayes_factor < 3

@@ -209,14 +209,14 @@ def bench_dask(tiny: bool = False) -> dict:
 
     from distributed import Client, LocalCluster
 
-    from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
+    from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator, EvidenceSettings
     from ardflow.ardcore.sampling.config import SamplerConfig
     from ardflow.ardcore.sampling.chains import executor_map
     from ardflow.ardcore.sampling.driver import Runtime, sample
     from ardflow.ardcore.likelihood.simulate import simulate_reference
     from ardflow.ardcore.selection.spec import load_spec
     from ardflow.workers.tasks import DaskMap
-    from ardflow.workers.graph import StoredEvaluator
+    from ardflow.workers.graph import StoredEvaluator, TrialSite
     from ardflow.workers.store import StudyStore
 
     psi = {"a3": 1e-4, "a4": 1e-5, "a5": float("inf"), "a6": float("inf")}
@@ -241,7 +241,8 @@ def bench_dask(tiny: bool = False) -> dict:
     data = simulate_reference(1)
     with ProcessPoolExecutor(2) as ex:
         mf = executor_map(ex)
-        ev = EvidenceEvaluator(cand.model_spec(), dict(cand.priors), data, cfg, map_fn=mf)
+        ev = EvidenceEvaluator(cand.model_spec(), dict(cand.priors), data, EvidenceSettings(cfg),
+                               runtime=Runtime(map_fn=mf))
         ev(psi, 11, None)  # warm the pool
         t0 = time.perf_counter()
         ev(psi, 12, None)
@@ -252,8 +253,8 @@ def bench_dask(tiny: bool = False) -> dict:
             LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
             Client(cl) as c:
         store = StudyStore.create(Path(d) / "st", spec.model_dump(mode="json"), data)
-        se = StoredEvaluator(cand.model_spec(), dict(cand.priors), data, cfg, client=c, store=store,
-                             study_id="bench", model="M2")
+        se = StoredEvaluator(cand.model_spec(), dict(cand.priors), data, EvidenceSettings(cfg),
+                             site=TrialSite(c, store, "bench", "M2"))
         se(psi, 11, None, iteration=0)
         t0 = time.perf_counter()
         _, _, res = se(psi, 12, None, iteration=1)

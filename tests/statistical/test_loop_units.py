@@ -243,6 +243,9 @@ def test_nothing_is_added_to_a_cascade_offered_its_true_laws(seed):
     assert rep["added"] == [], rep["verdict"]
 
 
+@pytest.mark.xfail(strict=True, reason="known limitation: the loop is greedy per round. Both laws replaced by "
+                   "their powers are worth ln BF ~800 together, a stand-in flow that patches both and the rim ~1100, "
+                   "so the stand-in goes in first and the laws are never replaced; needs a look-ahead (issue 30)")
 @pytest.mark.parametrize("A,seed", [(1.0, 4), (1000.0, 5)])
 def test_cascade_with_power_law_outflows_and_a_rim_from_a_linear_model(A, seed):
     """Two tanks in cascade, the pipe and the lower outlet following the square root of the level, the lower

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.selection.maximiser import INF, maximise
-from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
+from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator, EvidenceSettings
 from ardflow.ardcore.selection.config import MaximiserConfig
 from ardflow.ardcore.data import Dataset
 from ardflow.ardcore.model.library import builtin
@@ -75,7 +75,7 @@ def test_maximiser_reweights_steps_and_every_reported_evidence_is_right():
     mcfg = MaximiserConfig(alpha_start=1e-6, step_decades=2, min_step_decades=2, max_sweeps=1)
     out = {}
     for rw in (True, False):
-        ev = EvidenceEvaluator(spec, essential, data, cfg)
+        ev = EvidenceEvaluator(spec, essential, data, EvidenceSettings(cfg))
         out[rw] = maximise(ev, {k: None for k in ARD_TERMS}, MaximiserConfig(**{**mcfg.__dict__, "reweight": rw}),
                            seed=11)
     on, off = out[True], out[False]

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
+from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator, EvidenceSettings
 from ardflow.ardcore.selection.spec import load_spec
 from ardflow.ardcore.selection.study import run_candidate
 
@@ -25,7 +25,7 @@ def test_reweighted_evidence_matches_a_sampled_trial_at_the_same_psi():
     reweighted = [t for t in mr.history if not t.sampled]
     assert reweighted, [t.action for t in mr.history]
     assert mr.best.sampled and row.log_evidence == mr.best.evidence.log_evidence
-    ev = EvidenceEvaluator(cand.model_spec(), dict(cand.priors), data, spec.sampler,
+    ev = EvidenceEvaluator(cand.model_spec(), dict(cand.priors), data, EvidenceSettings(spec.sampler),
                            substeps=cand.substeps)
     # the reweighted steps nearest the optimum (where the weights are least even) and the first one
     picks = sorted(reweighted, key=lambda t: -t.iteration)[:2] + [reweighted[0]]

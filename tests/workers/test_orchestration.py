@@ -302,7 +302,7 @@ def test_a_continued_trial_stopped_mid_extension_resumes_to_the_same_numbers(tmp
     not reach): stopped between two of its extension's rounds, the driver resumes from the checkpoint and
     the draws in the store, and ends with the numbers of an uninterrupted in-process run."""
     from ardflow.ardcore.events import Note
-    from ardflow.workers.graph import StoredEvaluator, fit_model
+    from ardflow.workers.graph import StoredEvaluator, TrialSite, fit_model
 
     raw = json.loads(SPEC.read_text())
     raw["models"] = raw["models"][:1]
@@ -316,7 +316,7 @@ def test_a_continued_trial_stopped_mid_extension_resumes_to_the_same_numbers(tmp
         pass
 
     def factory(*a, **kw):
-        return StoredEvaluator(*a, client=thread_cluster, store=store, study_id=sid, model="quad", **kw)
+        return StoredEvaluator(*a, site=TrialSite(thread_cluster, store, sid, "quad"), **kw)
 
     def stop_in_extension(ev):
         if isinstance(ev.event, Note) and "continuing to" in ev.event.message:
