@@ -114,15 +114,16 @@ class Client:
 
         return _until(poll, poll_s, timeout, lambda: f"study {sid} still running after {timeout} s")
 
-    def diagnose(self, sid: str, model: str | None = None, *, top_k: int = 3, max_rounds: int = 3,
-                 test_csv: str | Path | None = None, wait: bool = True, poll_s: float = 2.0,
-                 timeout: float | None = None) -> dict:
+    def diagnose(self, sid: str, model: str | None = None, *, test_csv: str | Path | None = None,
+                 wait: bool = True, poll_s: float = 2.0, timeout: float | None = None, **settings) -> dict:
         """Close the loop on a model of a finished study; with ``wait`` returns the finished diagnosis.
 
-        The diagnosis (``report``: residual tests before/after, ranked candidates, effects added,
-        errors before/after) is also available later from :meth:`diagnosis`.
+        ``settings``: the loop's settings the service accepts (``top_k``, ``max_rounds``; default 3 each, see
+        :class:`~ardflow.service.schemas.DiagnoseRequest`). The diagnosis (``report``: residual tests
+        before/after, ranked candidates, effects added, errors before/after) is also available later from
+        :meth:`diagnosis`.
         """
-        body = {"top_k": top_k, "max_rounds": max_rounds}
+        body = {"top_k": 3, "max_rounds": 3, **settings}
         if model:
             body["model"] = model
         if test_csv:

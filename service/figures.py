@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import io
 
-from .report import plot_data_and_psd, plot_evidence_history
+from .report import Labels, plot_data_and_psd, plot_evidence_history
 
 
 def _data(store) -> bytes:
     ds = store.load_data()
     col = "y" if "y" in ds.columns else next(iter(ds.columns))
     buf = io.BytesIO()
-    plot_data_and_psd(ds.t, ds.columns[col], buf, title=f"data: {col}", time_label="time", tau_seconds=None)
+    plot_data_and_psd(ds.t, ds.columns[col], buf, labels=Labels(f"data: {col}", "time", col), tau_seconds=None)
     return buf.getvalue()
 
 

@@ -13,7 +13,7 @@ from ardflow.ardcore.sampling.diagnostics import Quality
 
 from .paper import FIG15_M2OPT_BOUNDS, TABLE10, TABLE10_OFFSET
 from .report import (
-    TAU_SECONDS, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint, plot_marginals,
+    TAU_SECONDS, Labels, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint, plot_marginals,
     plot_model_probabilities, plot_prediction,
 )
 
@@ -54,9 +54,8 @@ def write_report(store, out: str | Path | None = None) -> Path:
     best = summary["best_model"]
     it, _ = store.model_result(best)
     samples, _, _, names = store.read_samples(best, it)
-    truth = dict(spec.true_values)
-    ref_bounds = FIG15_M2OPT_BOUNDS if (reference and best == "M2") else None
-    figs = _report_figures(store, spec, summary, names, samples, truth, ref_bounds, out)
+    truth, ref_bounds = _truth(spec, best)
+    figs = _report_figures(store, spec, summary, (names, samples), out)
     table10 = _comparison_table(summary)
     post_table = _posterior_table(names, samples, truth, ref_bounds)
     paper = _paper_section(summary, spec) if reference and {r["name"] for r in summary["models"]} <= set(TABLE10) \
@@ -83,27 +82,35 @@ def write_report(store, out: str | Path | None = None) -> Path:
     return path
 
 
-def _report_figures(store, spec, summary, names, samples, truth, ref_bounds, out: Path) -> list[tuple[str, str]]:
-    """The report's figures, written to ``out``: (caption, file) each."""
+def _truth(spec, best: str) -> tuple[dict, dict | None]:
+    """The true values a generated data set declares, and the paper's 99 % bounds for its own model M2."""
+    reference = spec.data.generator == "reference"
+    return dict(spec.true_values), (FIG15_M2OPT_BOUNDS if (reference and best == "M2") else None)
+
+
+def _report_figures(store, spec, summary, draws: tuple, out: Path) -> list[tuple[str, str]]:
+    """The report's figures, written to ``out``: (caption, file) each; ``draws``: the best model's parameter
+    names and posterior samples."""
     reference = spec.data.generator == "reference"
     best = summary["best_model"]
+    names, samples = draws
+    truth, ref_bounds = _truth(spec, best)
     data = store.load_data()
     figs: list[tuple[str, str]] = []
     col = "y" if "y" in data.columns else next(iter(data.columns))
     # names and units as the spec declares them (data.units, data.labels)
     seconds = spec.data.units.get("t") == "s"
-    plot_data_and_psd(data.t, data.columns[col], out / "data_psd.png",
-                      cutoff=0.2295 if reference else None, tau_seconds=TAU_SECONDS if reference else None,
-                      title=f"{spec.name}: {spec.data.axis_label(col)}", time_label=spec.data.axis_label("t"),
-                      y_label=spec.data.axis_label(col), frequency_unit="Hz" if seconds else "cycles per time unit")
+    labels = Labels(f"{spec.name}: {spec.data.axis_label(col)}", spec.data.axis_label("t"), spec.data.axis_label(col),
+                    "Hz" if seconds else "cycles per time unit")
+    plot_data_and_psd(data.t, data.columns[col], out / "data_psd.png", labels=labels,
+                      cutoff=0.2295 if reference else None, tau_seconds=TAU_SECONDS if reference else None)
     figs.append(("Data and its power spectral density (Figs. 2-3)", "data_psd.png"))
 
     plot_model_probabilities(summary["models"], out / "probabilities.png")
     figs.append(("Posterior probability of each candidate model (Eq. 7), with its ln evidence", "probabilities.png"))
     try:
         plot_prediction(data.t, data.columns[col], *_best_innovations(spec, summary, data, col),
-                        out / "prediction.png", model=best, y_label=spec.data.axis_label(col),
-                        time_label=spec.data.axis_label("t"))
+                        out / "prediction.png", model=best, labels=labels)
         figs.append((f"Data against {best}'s one-step prediction, and the standardised residuals", "prediction.png"))
     except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not cost the report
         figs.append((f"(the prediction of {best} could not be drawn: {type(exc).__name__})", ""))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 from pathlib import Path
 
 import numpy as np
@@ -20,10 +22,19 @@ def pyplot():
     return plt
 
 
-def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: np.ndarray | None = None,
-                      cutoff: float | None = None, title: str = "Reference data",
-                      time_label: str = "non-dimensional time tau", tau_seconds: float | None = TAU_SECONDS,
-                      y_label: str = "pitch angle theta [rad]", frequency_unit: str = "cycles per time unit") -> Path:
+class Labels(NamedTuple):
+    """A figure's names: its ``title``, the ``time`` axis, the measured channel ``y`` (with its unit) and the
+    spectrum's ``frequency_unit`` (the defaults are the reference problem's)."""
+
+    title: str = "Reference data"
+    time: str = "non-dimensional time tau"
+    y: str = "pitch angle theta [rad]"
+    frequency_unit: str = "cycles per time unit"
+
+
+def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, labels: Labels = Labels(),
+                      clean: np.ndarray | None = None, cutoff: float | None = None,
+                      tau_seconds: float | None = TAU_SECONDS) -> Path:
     """The measured signal (paper Fig. 2) and its power spectral density (Fig. 3).
 
     Parameters
@@ -38,8 +49,8 @@ def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: n
         Low-pass cut-off (cycles per time unit), marked on the spectrum.
     tau_seconds : float, optional
         When given, the spectrum's top axis is also labelled in Hz.
-    y_label, frequency_unit : str
-        The measured channel's axis label (with its unit) and the spectrum's frequency unit.
+    labels : Labels
+        The title, the axes' labels (with units) and the spectrum's frequency unit.
     """
     from scipy.signal import welch
 
@@ -49,9 +60,9 @@ def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: n
     if clean is not None:
         a0.plot(t, clean, color="0.7", lw=2.0, label="noise-free")
     a0.plot(t, y, lw=0.7, color="C0", label="measured")
-    a0.set_xlabel(time_label)
-    a0.set_ylabel(y_label)
-    a0.set_title(title)
+    a0.set_xlabel(labels.time)
+    a0.set_ylabel(labels.y)
+    a0.set_title(labels.title)
     if clean is not None:
         a0.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     f, pxx = welch(y - np.mean(y), fs=fs, nperseg=min(len(y), 2048))
@@ -59,7 +70,7 @@ def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, clean: n
     if cutoff:
         a1.axvline(cutoff, color="C3", ls="--", lw=1, label=f"low-pass cut-off {cutoff:g}")
         a1.legend(fontsize=8)
-    a1.set_xlabel(f"frequency [{frequency_unit}]")
+    a1.set_xlabel(f"frequency [{labels.frequency_unit}]")
     a1.set_ylabel("PSD")
     a1.set_xlim(0, min(fs / 2, 5 * cutoff) if cutoff else fs / 2)
     if tau_seconds:
@@ -184,7 +195,7 @@ def plot_joint(names: list[str], samples: np.ndarray, out, true_values: dict | N
 
 
 def plot_prediction(t: np.ndarray, y: np.ndarray, innovations: np.ndarray, innovation_var: np.ndarray,
-                    out: str | Path, *, model: str, y_label: str, time_label: str) -> Path:
+                    out: str | Path, *, model: str, labels: Labels) -> Path:
     """The data against the model's one-step prediction (the EKF forecast, with its 95 % band), and the
     standardised residuals below it (white noise of unit variance when the model carries the data)."""
     plt = pyplot()
@@ -196,12 +207,12 @@ def plot_prediction(t: np.ndarray, y: np.ndarray, innovations: np.ndarray, innov
                     label="95 % prediction band")
     a0.plot(t[:n], y[:n], "k.", ms=2, label="data")
     a0.plot(t[:n], pred[:n], "C1", lw=0.9, label=f"{model}: one-step prediction")
-    a0.set(ylabel=y_label, title=f"data against the prediction of {model} (posterior mean)")
+    a0.set(ylabel=labels.y, title=f"data against the prediction of {model} (posterior mean)")
     a0.legend(fontsize=9, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     z = innovations / sd
     a1.plot(t[:n], z[:n], "C0", lw=0.6)
     a1.axhspan(-1.96, 1.96, color="0.9", zorder=0)
-    a1.set(xlabel=time_label, ylabel="standardised residual", title="residuals (grey: 95 % of white noise)")
+    a1.set(xlabel=labels.time, ylabel="standardised residual", title="residuals (grey: 95 % of white noise)")
     return save_figure(fig, out)
 
 
