@@ -75,7 +75,7 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
     factor, calibration = 1.0, None
     if band.calibration is not None:
         factor, calibration = calibrated_factor(spec, band, init_samples, substeps)
-    ys = _predictive(spec, band.draws, data, out["start"], substeps, factor, band.seed)
+    ys = _predictive(spec, _scaled(band.draws, noise_parameters(spec), factor), data, out["start"], substeps, band.seed)
     if len(ys) >= 5:
         lo, hi = np.quantile(ys, [0.05, 0.95], axis=0)
         y = out["y"]
@@ -104,12 +104,12 @@ def calibrated_factor(spec: ModelSpec, band: Band, init_samples: int, substeps: 
         return 1.0, None
     part = data.slice(start, None)
     pspec, _ = recentred(spec, part)
-    k0 = _free_run_one(pspec, band.draws[0], part, init_samples=init_samples, substeps=substeps, full=False)["start"]
+    k0 = _start(pspec, part, init_samples)
     y = part.columns[spec.observed_columns[0]][k0:]
     ok = np.isfinite(y)
     cover = {}
     for f in BAND_FACTORS:
-        ys = _predictive(pspec, band.draws, part, k0, substeps, f, band.seed + 1)
+        ys = _predictive(pspec, _scaled(band.draws, noise, f), part, k0, substeps, band.seed + 1)
         if len(ys) >= 5:
             lo, hi = np.quantile(ys, [0.05, 0.95], axis=0)
             cover[f] = float(np.mean((y[ok] >= lo[ok]) & (y[ok] <= hi[ok])))
@@ -119,16 +119,21 @@ def calibrated_factor(spec: ModelSpec, band: Band, init_samples: int, substeps: 
     return best, {"held_out_samples": int(n - start), "coverage": {f"{f:g}": c for f, c in cover.items()}}
 
 
-def _predictive(spec: ModelSpec, draws: list, data: Dataset, k0: int, substeps: int | None, factor: float,
+def _scaled(draws: list, noise: list, factor: float) -> list:
+    """The posterior draws with their process-noise parameters ``noise`` (:func:`noise_parameters`) scaled by
+    ``factor``."""
+    if factor == 1.0:
+        return draws
+    return [{k: (v * factor if k in noise else v) for k, v in d.items()} for d in draws]
+
+
+def _predictive(spec: ModelSpec, draws: list, data: Dataset, k0: int, substeps: int | None,
                 seed: int) -> np.ndarray:
-    """Posterior predictive draws from sample ``k0`` on (:func:`_predictive_one`), the process noise scaled by
-    ``factor``; the finite ones, stacked."""
-    noise = noise_parameters(spec)
+    """Posterior predictive draws from sample ``k0`` on (:func:`_predictive_one`); the finite ones, stacked."""
     rng = np.random.default_rng(seed)
     out = []
     for d in draws:
-        q = {k: (v * factor if k in noise else v) for k, v in d.items()}
-        y = _predictive_one(spec, q, data, k0, substeps, rng)
+        y = _predictive_one(spec, d, data, k0, substeps, rng)
         if np.all(np.isfinite(y)):
             out.append(y)
     return np.array(out)
@@ -168,18 +173,25 @@ def _predictive_one(spec: ModelSpec, phi: dict, data: Dataset, k0: int, substeps
     return H[:, 0] + (std[0] if std.size else 0.0) * rng.standard_normal(H.shape[0])
 
 
-def _free_run_one(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
-                  substeps: int | None = None, full: bool = True) -> dict:
-    cm = compile_model(spec)
-    col = spec.observed_columns[0]
+def _start(spec: ModelSpec, data: Dataset, init_samples: int) -> int:
+    """The sample a free run starts from: after ``init_samples`` samples of filtering, and for a model without
+    inputs not before the record reaches half its largest amplitude."""
     k0 = min(max(1, init_samples), len(data) - 2)
     if not user_inputs(spec):
         # a self-excited oscillation may start at rest (friction-locked until noise breaks it): the free
         # run then starts at the first sample where the record reaches half its largest amplitude
-        y = data.columns[col]
+        y = data.columns[spec.observed_columns[0]]
         a = np.abs(y - np.nanmedian(y))
         k0 = max(k0, int(np.argmax(a > 0.5 * np.nanmax(a))))
         k0 = min(k0, len(data) - 2)
+    return k0
+
+
+def _free_run_one(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
+                  substeps: int | None = None, full: bool = True) -> dict:
+    cm = compile_model(spec)
+    col = spec.observed_columns[0]
+    k0 = _start(spec, data, init_samples)
     fr = cm.filter(phi, data.slice(0, k0 + 1), substeps)
     x0 = fr.filtered[-1]
     rest = data.slice(k0, None)

@@ -26,6 +26,18 @@ def service(tmp_path):
         p.wait()
 
 
+def _sign_in_and_submit(page, spec, csv) -> str:
+    """Sign in with the token, submit ``spec`` and ``csv`` through the page's form; the new study's id."""
+    page.fill("#token", TOKEN)
+    page.click("#signin button")
+    page.wait_for_selector("#main:not([hidden])")
+    page.set_input_files("#spec", str(spec))
+    page.set_input_files("#csv", str(csv))
+    page.click("#submit button")
+    page.wait_for_selector("#msg:has-text('submitted')", timeout=60_000)
+    return page.inner_text("#msg").split("submitted: ")[1].strip()
+
+
 def test_page_headers_and_session(service):
     r = httpx.get(service + "/")
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
@@ -66,14 +78,7 @@ def test_page_submit_watch_report(service, tmp_path):
             page.fill("#token", "wrong")
             page.click("#signin button")
             page.wait_for_selector("#signin-msg:has-text('401')")
-            page.fill("#token", TOKEN)
-            page.click("#signin button")
-            page.wait_for_selector("#main:not([hidden])")
-            page.set_input_files("#spec", str(spec))
-            page.set_input_files("#csv", str(csv))
-            page.click("#submit button")
-            page.wait_for_selector("#msg:has-text('submitted')", timeout=60_000)
-            sid = page.inner_text("#msg").split("submitted: ")[1].strip()
+            sid = _sign_in_and_submit(page, spec, csv)
             row = f"tr[data-id='{sid}']"
             # live progress: per-model lines appear while it runs, then the status reaches done
             page.wait_for_selector(f"{row} .model", timeout=180_000)
@@ -126,14 +131,7 @@ def test_page_submit_done_diagnose_reports_delete(service, tmp_path):
             page.on("dialog", lambda d: d.accept())  # the delete confirmation
             page.route("**/*", lambda r: r.continue_() if r.request.url.startswith(service) else r.abort())
             page.goto(service + "/")
-            page.fill("#token", TOKEN)
-            page.click("#signin button")
-            page.wait_for_selector("#main:not([hidden])")
-            page.set_input_files("#spec", str(spec_file))
-            page.set_input_files("#csv", str(est))
-            page.click("#submit button")
-            page.wait_for_selector("#msg:has-text('submitted')", timeout=60_000)
-            sid = page.inner_text("#msg").split("submitted: ")[1].strip()
+            sid = _sign_in_and_submit(page, spec_file, est)
             row = f"tr[data-id='{sid}']"
             page.wait_for_selector(f"{row} td.status.done", timeout=300_000)
             page.wait_for_selector(f"{row} .result", timeout=30_000)
