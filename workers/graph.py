@@ -98,8 +98,7 @@ class StoredEvaluator(EvidenceEvaluator):
         super().__init__(spec, essential, data, settings, **kw)
         self.client, self.store, self.study_id, self.model = site
         # the in-process stages (a Laplace trial's final chains, start optimisations) map onto the cluster too
-        self.map_fn = DaskMap(site.client, f"{site.study_id}-{site.model}")
-        self.runtime = replace(self.runtime, map_fn=self.map_fn)
+        self.runtime = replace(self.runtime, map_fn=DaskMap(site.client, f"{site.study_id}-{site.model}"))
 
     def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
                  extend: bool = False):

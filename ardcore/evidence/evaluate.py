@@ -65,7 +65,11 @@ class EvidenceEvaluator:
         self.sampler, self.method, self.substeps = settings.sampler, settings.method, substeps
         self.final_posterior = settings.final_posterior
         self.runtime = runtime
-        self.map_fn, self.progress, self.cancel = runtime.map_fn, runtime.progress, runtime.cancel
+
+    # read from the runtime, the one place they are set (an orchestrator replaces the runtime's map)
+    map_fn = property(lambda self: self.runtime.map_fn)
+    progress = property(lambda self: self.runtime.progress)
+    cancel = property(lambda self: self.runtime.cancel)
 
     def config(self, extend: bool) -> SamplerConfig:
         """The sampler settings of a trial: the judged M draws for a search trial, the full budget for the

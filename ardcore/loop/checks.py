@@ -14,15 +14,15 @@ import re
 from typing import NamedTuple
 
 import numpy as np
-import sympy as sp
 
 from .confirm import Confirmation, Fit, fit_task, essential_from_row, warm_with
 from ..effects.base import Effect, augment, with_columns
 from ..jsonio import is_pruned
-from ..model.declaration import ModelSpec, symbolic
+from ..model.declaration import ModelSpec
 from ..data import Dataset
 from ..errors import FitError
 from .freerun import fitted, free_run
+from .replace import linear_terms
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec, StudySpec
 from ..selection.study import run_candidate
@@ -247,34 +247,23 @@ def declared_rivals(spec: ModelSpec, added: list[tuple[Effect, str]], new_parame
     (so fixing it to 0 removes exactly that law). The evidence of the model without it decides
     (:func:`replace_laws`).
     """
-    sm = symbolic(spec)
-    index = {str(x): i for i, x in enumerate(sm.states)}
-    inputs = {str(u) for u in sm.inputs}
-    elsewhere = [sp.sympify(e) for e in
-                 list(sm.diffusion) + list(sm.obs) + list(sm.obs_std) + list(sm.init_mean) + list(sm.init_std)]
+    states, inputs = set(spec.states), set(spec.inputs)
+    laws = linear_terms(spec, new_parameters)
     out = []
     for eff, target in added:
         acts_on = list(eff.between) if eff.where == "flow" else [target] if eff.where == "drift" else []
-        if not acts_on or any(s not in index for s in acts_on):
+        if not acts_on or any(s not in states for s in acts_on):
             continue
-        states_of_effect = {x for x in index if any(re.search(rf"\b{re.escape(x)}\b", t) for t in eff.terms)}
-        for p in sm.params:
-            name = str(p)
-            if name in new_parameters or p not in sm.drift[index[acts_on[0]]].free_symbols:
+        states_of_effect = {x for x in states if any(re.search(rf"\b{re.escape(x)}\b", t) for t in eff.terms)}
+        for lt in laws:
+            if acts_on[0] not in lt.terms or any(s not in acts_on for s in lt.terms):
                 continue
-            where = [j for j, e in enumerate(sm.drift) if p in e.free_symbols]
-            if any(j not in {index[s] for s in acts_on} for j in where) or any(p in e.free_symbols
-                                                                               for e in elsewhere):
+            used = lt.names & states
+            if lt.names & inputs or not used or not used <= states_of_effect:
                 continue
-            terms = [sp.diff(sm.drift[j], p) for j in where]
-            if any(p in t.free_symbols for t in terms):
-                continue  # not linear in p (a derivative free of p means drift = p * term + rest)
-            names = set().union(*({str(x) for x in t.free_symbols} for t in terms))
-            used = names & set(index)
-            if names & inputs or not used or not used <= states_of_effect:
-                continue
-            term = terms[0]
-            out.append(Rival(name, str(-term if term.could_extract_minus_sign() else term), acts_on[0], eff.name))
+            term = next(iter(lt.terms.values()))
+            out.append(Rival(lt.parameter, str(-term if term.could_extract_minus_sign() else term), acts_on[0],
+                             eff.name))
     return out
 
 

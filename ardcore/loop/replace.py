@@ -51,14 +51,22 @@ def _text(e: sp.Expr) -> str:
     return str(e).replace("Abs(", "abs(")
 
 
-def declared_laws(spec: ModelSpec, new_parameters: set = frozenset()) -> list[Law]:
-    """The declared laws of first-order states a power may replace (module docstring): not an oscillator's
-    position or velocity (a spring or a damper is the loop's additions' business), no input in the term, the
-    parameter in no diffusion, observation or initial state, and linear wherever it appears."""
+class LinearTerm(NamedTuple):
+    """A free parameter of the user's that multiplies a term linearly wherever it appears: ``terms`` maps each
+    drift it appears in (in the model's state order) to that term, ``names`` every symbol the terms use."""
+
+    parameter: str
+    terms: dict
+    names: set
+
+
+def linear_terms(spec: ModelSpec, new_parameters: set = frozenset()) -> list[LinearTerm]:
+    """The parameters of the user's (not in ``new_parameters``) that appear in no diffusion, observation or
+    initial state and linearly in every drift they appear in: fixing one to 0 removes exactly its terms. What
+    law replacement (:func:`declared_laws`) and the drop move (:func:`~ardcore.loop.checks.declared_rivals`)
+    start from."""
     sm = symbolic(spec)
     names = [str(x) for x in sm.states]
-    osc = {s for pair in oscillator_pairs(spec) for s in pair}
-    inputs = {str(u) for u in sm.inputs}
     elsewhere = [sp.sympify(e) for e in
                  list(sm.diffusion) + list(sm.obs) + list(sm.obs_std) + list(sm.init_mean) + list(sm.init_std)]
     out = []
@@ -66,19 +74,32 @@ def declared_laws(spec: ModelSpec, new_parameters: set = frozenset()) -> list[La
         if str(p) in new_parameters or any(p in e.free_symbols for e in elsewhere):
             continue
         where = [j for j, f in enumerate(sm.drift) if p in f.free_symbols]
-        terms = [sp.diff(sm.drift[j], p) for j in where]
-        if not terms or any(p in t.free_symbols for t in terms):
-            continue  # absent, or not linear in p
-        used = set().union(*({str(x) for x in t.free_symbols} for t in terms))
-        states = used & set(names)
-        if not states or used & inputs or used - states or states & osc or any(names[j] in osc for j in where):
+        terms = {names[j]: sp.diff(sm.drift[j], p) for j in where}
+        if not terms or any(p in t.free_symbols for t in terms.values()):
+            continue  # absent, or not linear in p (a derivative free of p means drift = p * term + rest)
+        out.append(LinearTerm(str(p), terms, set().union(*({str(x) for x in t.free_symbols}
+                                                           for t in terms.values()))))
+    return out
+
+
+def declared_laws(spec: ModelSpec, new_parameters: set = frozenset()) -> list[Law]:
+    """The declared laws of first-order states another form may replace (module docstring): not an
+    oscillator's position or velocity (a spring or a damper is the loop's additions' business), no input in
+    the term, the parameter in no diffusion, observation or initial state, and linear wherever it appears."""
+    states = set(spec.states)
+    osc = {s for pair in oscillator_pairs(spec) for s in pair}
+    inputs = set(spec.inputs)
+    out = []
+    for lt in linear_terms(spec, new_parameters):
+        used = lt.names & states
+        if not used or lt.names & inputs or lt.names - used or used & osc or set(lt.terms) & osc:
             continue
-        base = terms[0]
-        if any(sp.simplify(t - base) != 0 and sp.simplify(t + base) != 0 for t in terms):
+        base = next(iter(lt.terms.values()))
+        if any(sp.simplify(t - base) != 0 and sp.simplify(t + base) != 0 for t in lt.terms.values()):
             continue  # a different term in each drift: not one law
         lead = -base if base.could_extract_minus_sign() else base
-        out.append(Law(str(p), _text(lead), {names[j]: 1 if sp.simplify(t - lead) == 0 else -1
-                                              for j, t in zip(where, terms)}))
+        out.append(Law(lt.parameter, _text(lead), {s: 1 if sp.simplify(t - lead) == 0 else -1
+                                                   for s, t in lt.terms.items()}))
     return out
 
 
