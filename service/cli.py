@@ -13,11 +13,11 @@ import sys
 
 from ardflow.ardcore.loop.config import DiagnoseConfig
 
-from .cmd_local import (
+from ardflow.service.commands.local import (
     cmd_data, cmd_example, cmd_loglik, cmd_models, cmd_settings, cmd_simulate,
 )
-from .cmd_remote import cmd_fetch, cmd_serve, cmd_status, cmd_submit
-from .cmd_study import cmd_demo, cmd_diagnose, cmd_loo, cmd_resume, cmd_select
+from ardflow.service.commands.remote import cmd_fetch, cmd_serve, cmd_status, cmd_submit
+from ardflow.service.commands.study import cmd_demo, cmd_diagnose, cmd_loo, cmd_resume, cmd_select
 
 
 def build_parser() -> argparse.ArgumentParser:

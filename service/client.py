@@ -19,7 +19,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from .schemas import FINAL
+from ardflow.service.api.schemas import FINAL
 
 
 class APIError(Exception):
@@ -119,7 +119,7 @@ class Client:
         """Close the loop on a model of a finished study; with ``wait`` returns the finished diagnosis.
 
         ``settings``: the loop's settings the service accepts (``top_k``, ``max_rounds``; default 3 each, see
-        :class:`~ardflow.service.schemas.DiagnoseRequest`). The diagnosis (``report``: residual tests
+        :class:`~ardflow.service.api.schemas.DiagnoseRequest`). The diagnosis (``report``: residual tests
         before/after, ranked candidates, effects added, errors before/after) is also available later from
         :meth:`diagnosis`.
         """

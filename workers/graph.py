@@ -1,8 +1,9 @@
 """A study as Dask tasks.
 
-* one **maximiser** per candidate model, a driver thread that reacts to the
-  evidence of each trial (the decision logic is cheap; the work is in the
-  chain tasks it submits, so a lost worker never takes a maximiser with it);
+* one **maximiser** per candidate model, a sans-IO generator advanced by the
+  driver's one event loop as its tasks finish (the decision logic is cheap; the
+  work is in the chain tasks it submits, so a lost worker never takes a
+  maximiser with it);
 * per trial psi, **chain tasks** for every step: start optimisation, each
   burn-in round (which reports to the trial's coordinator actor), each
   stationary round (which writes its samples to the zarr store), and the
@@ -25,25 +26,26 @@ import time
 import uuid
 from concurrent.futures import CancelledError
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import Callable, NamedTuple
 
-import numpy as np
 
 from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator, build_target
 from ardflow.ardcore.events import ModelDone, ModelEvent
-from ardflow.ardcore.evidence.estimators import ChainEvidence, Evidence, chib_jeliazkov
-from ardflow.ardcore.sampling.chains import ChainState
+from ardflow.ardcore.evidence.estimators import Evidence, iter_chib_jeliazkov
 from ardflow.ardcore.sampling.config import SamplerResult
-from ardflow.ardcore.sampling.driver import Runtime, Start, continuation, continued, sample
+from ardflow.ardcore.sampling.chains import run
+from ardflow.ardcore.sampling.driver import Runtime, Start, continuation, continued, sample_batches
 from ardflow.ardcore.selection.fit import ModelFit
+from ardflow.ardcore.selection.maximiser import MaximiserResult, Trial
 from ardflow.ardcore.selection.spec import StudySpec
-from ardflow.ardcore.selection.study import CandidateHooks, compare, run_candidate
+from ardflow.ardcore.selection.study import CandidateHooks, compare, iter_candidate
 
 from .coordinator import ActorPool, wait_connected
-from ardflow.ardcore.jsonio import to_jsonable
+from ardflow.ardcore.jsonio import decode_alpha, to_jsonable
 from .store import StudyStore
-from .tasks import DaskMap, StoppableTarget, cancel_event_name
+from .tasks import DaskMap, StoppableTarget, Submitted, cancel_event_name
 
 log = logging.getLogger("ardflow.workers")
 
@@ -51,31 +53,15 @@ log = logging.getLogger("ardflow.workers")
 
 
 def trial_json(psi: dict, ev: Evidence, res: SamplerResult) -> dict:
-    return to_jsonable({
-        "psi": psi, "evidence": ev.to_dict(), "names": res.names, "phi_star": res.phi_star, "lp_star": res.lp_star,
-        "ll_star": res.ll_star, "proposal_cov": res.proposal_cov, "states": [s.to_dict() for s in res.states],
-        "rhat": res.rhat, "rhat_history": res.rhat_history, "burnin_rounds": res.burnin_rounds,
-        "converged": res.converged, "acceptance": res.acceptance, "burnin_acceptance": res.burnin_acceptance,
-        "n_evaluations": res.n_evaluations, "warnings": res.warnings, "jump": res.jump,
-        "diagnostics": res.diagnostics, "quality_met": res.quality_met, "adaptation": res.adaptation,
-    })
+    """A finished trial's record in the store: psi, its evidence and its sampler result without the draws
+    (each type writes its own JSON)."""
+    return to_jsonable({"psi": psi, "evidence": ev.to_dict(), **res.to_json()})
 
 
 def trial_from_json(rec: dict, store: StudyStore, model: str, iteration: int) -> tuple[Evidence, SamplerResult]:
-    e = rec["evidence"]
-    ev = Evidence(e["log_evidence"], e["log_evidence_se"], e["goodness_of_fit"], e["information_gain"], e["method"],
-                  [ChainEvidence(**c) for c in e["per_chain"]], list(e["warnings"]), e.get("n_evaluations", 0))
-    samples, lp, ll, names = store.read_samples(model, iteration)
-    res = SamplerResult(
-        names=list(rec["names"]), samples=samples, lp=lp, ll=ll, phi_star=np.array(rec["phi_star"]),
-        lp_star=rec["lp_star"], ll_star=rec["ll_star"], proposal_cov=np.array(rec["proposal_cov"]),
-        states=[ChainState.from_dict(s) for s in rec["states"]], rhat=np.array(rec["rhat"]),
-        rhat_history=rec["rhat_history"], burnin_rounds=rec["burnin_rounds"], converged=rec["converged"],
-        acceptance=rec["acceptance"], burnin_acceptance=rec["burnin_acceptance"],
-        n_evaluations=rec["n_evaluations"], warnings=list(rec["warnings"]), jump=rec.get("jump"),
-        diagnostics=rec.get("diagnostics", {}), quality_met=rec.get("quality_met", True),
-        adaptation=rec.get("adaptation"))
-    return ev, res
+    """The evidence and sampler result of a finished trial, its draws read from ``store``."""
+    samples, lp, ll, _ = store.read_samples(model, iteration)
+    return Evidence.from_dict(rec["evidence"]), SamplerResult.from_json(rec, samples, lp, ll)
 
 
 class TrialSite(NamedTuple):
@@ -100,10 +86,14 @@ class StoredEvaluator(EvidenceEvaluator):
         # the in-process stages (a Laplace trial's final chains, start optimisations) map onto the cluster too
         self.runtime = replace(self.runtime, map_fn=DaskMap(site.client, f"{site.study_id}-{site.model}"))
 
-    def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
-                 extend: bool = False):
+    def trial(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
+              extend: bool = False):
+        """:meth:`EvidenceEvaluator.trial` with its chain tasks submitted to the cluster: it yields each
+        batch as :class:`~workers.tasks.Submitted` futures (an event loop advances it when they finish;
+        called directly, it waits)."""
         if self.method == "laplace" or iteration is None:
-            return super().__call__(psi, seed, warm, final=final, iteration=iteration, extend=extend)
+            return (yield from submitted(super().trial(psi, seed, warm, final=final, iteration=iteration,
+                                                       extend=extend), self.runtime.map_fn))
         model, store = self.model, self.store
         target = StoppableTarget(build_target(self.spec, self.essential, psi, self.data, self.substeps),
                                  self.study_id, max_task_s=float(os.environ.get("ARDFLOW_MAX_TASK_S", 21600)))
@@ -142,17 +132,18 @@ class StoredEvaluator(EvidenceEvaluator):
             store.write_checkpoint(model, iteration, {**d, "psi": to_jsonable(psi)})
 
         try:
-            res = sample(target, cfg, seed=seed, start=Start(warm=warm, resume=ck),
-                         runtime=Runtime(map_fn=dmap, progress=self.progress, cancel=self.cancel,
-                                         pool_factory=factory, checkpoint=checkpoint))
+            res = yield from submitted(sample_batches(
+                target, cfg, seed=seed, start=Start(warm=warm, resume=ck),
+                runtime=Runtime(progress=self.progress, cancel=self.cancel, pool_factory=factory,
+                                checkpoint=checkpoint)), dmap)
         finally:
             for p in pools:
                 p.close()
         if extend:
             res = continued(res, warm)
         store.resize_draws(model, iteration, res.samples.shape[1])  # exactly the draws kept
-        ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=seed + 7,
-                            proposal_se_ratio=cfg.proposal_se_ratio, map_fn=dmap)
+        ev = yield from submitted(iter_chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=seed + 7,
+                                                      proposal_se_ratio=cfg.proposal_se_ratio), dmap)
         ev.warnings = list(res.warnings) + ev.warnings
         if pools and pools[0].restarts:
             ev.warnings.append(f"coordinator actor restored {pools[0].restarts} time(s) after a lost worker")
@@ -160,11 +151,27 @@ class StoredEvaluator(EvidenceEvaluator):
         return target, ev, res
 
 
-def stored_fit(store: StudyStore, model: str):
-    """The finished fit of ``model`` in ``store``: its summary row and a result whose ``sampler`` warm-starts
-    refits (the best trial's chains), or None when the model is not finished (or was fitted by Laplace)."""
-    from types import SimpleNamespace
+def submitted(steps, dmap: DaskMap):
+    """The sans-IO generator ``steps`` with each :class:`~ardcore.sampling.chains.Batch` it yields
+    submitted through ``dmap``: this yields the :class:`~workers.tasks.Submitted` futures instead and sends
+    their results (or raises their error) back into ``steps``."""
+    reply, error = None, None
+    while True:
+        try:
+            batch = steps.throw(error) if error is not None else steps.send(reply)
+        except StopIteration as done:
+            return done.value
+        reply, error = None, None
+        try:
+            reply = yield dmap.submit(batch)
+        except Exception as exc:  # noqa: BLE001 - a task's error, raised where ``steps`` waits for it
+            error = exc
 
+
+def stored_fit(store: StudyStore, model: str) -> tuple[ModelFit, MaximiserResult] | None:
+    """The finished fit of ``model`` in ``store``: its summary row and its maximisation's result (the best
+    trial, whose chains warm-start refits; the trial history stays in the store), or None when the model is
+    not finished (or was fitted by Laplace)."""
     try:
         it, row = store.model_result(model)
     except Exception:  # noqa: BLE001 - no such model
@@ -172,8 +179,13 @@ def stored_fit(store: StudyStore, model: str):
     rec = store.trial_record(model, it) if it is not None else None
     if not row or rec is None or "states" not in rec:
         return None
-    _, res = trial_from_json(rec, store, model, it)
-    return row, SimpleNamespace(sampler=res)
+    ev, res = trial_from_json(rec, store, model, it)
+    spec = StudySpec.model_validate(store.meta["spec"])
+    cand = next(c for c in spec.models if c.label == model)
+    psi = {k: decode_alpha(v) for k, v in rec["psi"].items()}
+    target = build_target(cand.model_spec(), dict(cand.priors), psi, store.load_data(), cand.substeps)
+    best = Trial(it, psi, ev, True, "stored", 0.0, {}, {})
+    return row, MaximiserResult(psi, best, res, target)
 
 
 # --------------------------------------------------------------------------- study tasks
@@ -189,33 +201,17 @@ def progress_writer(store: StudyStore, model: str) -> Callable[[ModelEvent], Non
     return write
 
 
-def run_model(client, store_path: str, study_id: str, index: int) -> dict:
-    """The ARD evidence maximisation of one candidate, chains on ``client``."""
-    from distributed import Event
-
-    store = StudyStore(store_path)
-    spec = StudySpec.model_validate(store.meta["spec"])
-    data = store.load_data()
-    model = spec.models[index].label
-    progress = progress_writer(store, model)
-    ev = Event(cancel_event_name(study_id), client=client)
-
-    def cancel() -> bool:
-        try:
-            return ev.is_set()
-        except Exception:  # a dropped scheduler connection is not a cancellation
-            return False
-
-    def factory(*a, **kw):
-        return StoredEvaluator(*a, site=TrialSite(client, store, study_id, model), **kw)
-
-    return fit_model(store, spec, data, index, factory, progress=progress, cancel=cancel)
+def fit_model(store: StudyStore, spec: StudySpec, data, index: int, hooks: CandidateHooks) -> ModelFit:
+    """One candidate's ARD evidence maximisation with its trials recorded in ``store``: :func:`iter_fit` with
+    the chain tasks on ``hooks.map_fn`` (batches an evaluator submitted itself are waited for)."""
+    return run(iter_fit(store, spec, data, index, hooks), hooks.map_fn)
 
 
-def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_factory, *,
-              progress: Callable[[ModelEvent], None], cancel=None) -> dict:
-    """One candidate's ARD evidence maximisation with its trials recorded in ``store`` (the history as each
-    trial finishes, the result and best iteration at the end): the same layout whatever runs the chains."""
+def iter_fit(store: StudyStore, spec: StudySpec, data, index: int, hooks: CandidateHooks):
+    """One candidate's ARD evidence maximisation (:func:`~ardcore.selection.study.iter_candidate`, the same
+    generator of chain tasks) with its trials recorded in ``store``: the history as each trial finishes, the
+    result and best iteration at the end; the same layout whatever runs the chains. Returns its
+    :class:`ModelFit`."""
     cand = spec.models[index]
     model = cand.label
     history: list[dict] = []
@@ -224,8 +220,7 @@ def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_fa
         history.append(tr.to_dict())
         store.set_model_attrs(model, history=history)
 
-    row, mr = run_candidate(cand, data, spec, index, hooks=CandidateHooks(
-        progress=progress, cancel=cancel, evaluator_factory=evaluator_factory, on_trial=on_trial))
+    row, mr = yield from iter_candidate(cand, data, spec, index, hooks=replace(hooks, on_trial=on_trial))
     best_iteration = mr.best.iteration
     if spec.evidence == "laplace":
         # Laplace trials sample nothing; the posterior drawn at psi_opt gets a trial group of its own
@@ -238,7 +233,8 @@ def fit_model(store: StudyStore, spec: StudySpec, data, index: int, evaluator_fa
         store.finish_trial(model, best_iteration, {"psi": to_jsonable(mr.psi_opt), "final_laplace_posterior": True})
     store.set_model_attrs(model, result=row, history=[t.to_dict() for t in mr.history],
                           best_iteration=best_iteration)
-    progress(ModelEvent(cand.label, ModelDone(row.log_evidence)))
+    if hooks.progress:
+        hooks.progress(ModelEvent(cand.label, ModelDone(row.log_evidence)))
     return row
 
 
@@ -273,48 +269,6 @@ def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None 
     return store
 
 
-def start_study(client, store: StudyStore, *, done: bool = True):
-    """Start one maximiser thread per model and the comparison task that depends on them (``done``: it
-    marks the study done; see :meth:`StudyStore.write_summary`).
-
-    Returns the comparison future (as a ``concurrent.futures.Future`` resolving to the summary).
-    """
-    from concurrent.futures import Future, ThreadPoolExecutor
-
-    meta = store.meta
-    study_id = meta["study_id"]
-    spec = StudySpec.model_validate(meta["spec"])
-    start = meta.get("started") or time.time()
-    store.update_meta(status="running", started=start)
-    pool = ThreadPoolExecutor(max_workers=len(spec.models), thread_name_prefix=f"maximise-{study_id}")
-    rows = [pool.submit(run_model, client, str(store), study_id, i) for i in range(len(spec.models))]
-    out: Future = Future()
-
-    def finish():
-        try:
-            results = [f.result() for f in rows]
-            for attempt in range(3):
-                wait_connected(client)
-                comp = client.submit(compare_task, str(store), start, *results, done=done,
-                                     key=f"compare-{study_id}" + (f"-a{attempt}" if attempt else ""))
-                try:
-                    out.set_result(comp.result())
-                    break
-                except CancelledError:
-                    continue
-            else:
-                raise RuntimeError("the comparison task was cancelled three times (scheduler connection lost)")
-        except BaseException as exc:  # noqa: BLE001 - handed to the waiting caller
-            out.set_exception(exc)
-        finally:
-            pool.shutdown(wait=False)
-
-    import threading
-
-    threading.Thread(target=finish, name=f"compare-{study_id}", daemon=True).start()
-    return out
-
-
 def read_progress(store: StudyStore, offsets: dict[str, int]) -> list[ModelEvent]:
     """New progress events since ``offsets`` (updated in place)."""
     out = []
@@ -339,27 +293,96 @@ def run_study(client, store: StudyStore, *, progress: Callable[[ModelEvent], Non
     ``done`` False the caller marks the study done (after its report). One driver per store: a second one
     is refused (:meth:`StudyStore.driver_lock`)."""
     with store.driver_lock():
-        return _drive(client, store, progress, poll_s, done)
+        try:
+            return _drive(client, store, progress, poll_s, done)
+        except BaseException as exc:
+            from ardflow.ardcore.sampling.driver import Cancelled
+
+            store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
+            raise
 
 
 def _drive(client, store: StudyStore, progress, poll_s: float, done: bool) -> dict:
-    comp = start_study(client, store, done=done)
+    """The study as one loop over events (no thread): every model's maximisation is a generator of chain
+    batches (:func:`iter_fit`); the loop submits each batch, waits for the first of all submitted tasks to
+    finish, streams the progress, sends every finished batch's results back to its model (which decides its
+    next batch: a round, a trial, the next psi) and, when every model is done, submits the comparison."""
+    from distributed import Event, wait
+
+    meta = store.meta
+    study_id = meta["study_id"]
+    spec = StudySpec.model_validate(meta["spec"])
+    start = meta.get("started") or time.time()
+    store.update_meta(status="running", started=start)
+    data = store.load_data()
+    flag = Event(cancel_event_name(study_id), client=client)
+
+    def cancel() -> bool:
+        try:
+            return flag.is_set()
+        except Exception:  # noqa: BLE001 - a dropped scheduler connection is not a cancellation
+            return False
+
+    models = [c.label for c in spec.models]
+    fits = {m: iter_fit(store, spec, data, i, CandidateHooks(
+        progress=progress_writer(store, m), cancel=cancel,
+        evaluator_factory=partial(StoredEvaluator, site=TrialSite(client, store, study_id, m))))
+        for i, m in enumerate(models)}
+    waiting: dict[str, Submitted] = {}
+    rows: dict[str, ModelFit] = {}
     offsets: dict[str, int] = {}
-    while not comp.done():
+
+    def advance(model: str, reply=None, error: BaseException | None = None) -> None:
+        try:
+            gen = fits[model]
+            waiting[model] = gen.throw(error) if error is not None else gen.send(reply)
+        except StopIteration as finished:
+            rows[model] = finished.value
+
+    def stream() -> None:
         for ev in read_progress(store, offsets):
             if progress:
                 progress(ev)
-        time.sleep(poll_s)
-    for ev in read_progress(store, offsets):
-        if progress:
-            progress(ev)
-    exc = comp.exception()
-    if exc is not None:
-        from ardflow.ardcore.sampling.driver import Cancelled
 
-        store.update_meta(status="cancelled" if isinstance(exc, Cancelled) else "failed", error=str(exc))
-        raise exc
-    return comp.result()
+    try:
+        for m in models:
+            advance(m)
+        while waiting:
+            futures = [f for sub in waiting.values() for f in sub.futures if not f.done()]
+            if futures:
+                try:
+                    wait(futures, timeout=poll_s, return_when="FIRST_COMPLETED")
+                except (TimeoutError, CancelledError):
+                    pass  # nothing finished yet, or a dropped connection (each batch recovers below)
+            stream()
+            for m, sub in list(waiting.items()):
+                if sub.done():
+                    try:
+                        out = sub.gather()
+                    except Exception as exc:  # noqa: BLE001 - a task's error, raised in the model that waits
+                        del waiting[m]
+                        advance(m, error=exc)
+                        continue
+                    if out is not None:
+                        del waiting[m]
+                        advance(m, out)
+                        continue
+                if sub.stalled():
+                    sub.recover()
+    finally:
+        for gen in fits.values():
+            gen.close()
+    stream()
+    results = [rows[m] for m in models]
+    for attempt in range(3):
+        wait_connected(client)
+        comp = client.submit(compare_task, str(store), start, *results, done=done,
+                             key=f"compare-{study_id}" + (f"-a{attempt}" if attempt else ""))
+        try:
+            return comp.result()
+        except CancelledError:
+            continue
+    raise RuntimeError("the comparison task was cancelled three times (scheduler connection lost)")
 
 
 def cancel_study(client, study_id: str) -> None:

@@ -9,13 +9,14 @@ either the same way.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from functools import partial
 from typing import Callable
 
 from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator
 from ardflow.ardcore.events import ModelEvent
 from ardflow.ardcore.sampling.chains import Map
 from ardflow.ardcore.selection.spec import StudySpec
+from ardflow.ardcore.selection.study import CandidateHooks
 
 from .graph import compare_task, fit_model, progress_writer, trial_json
 from .store import StudyStore
@@ -28,9 +29,9 @@ class LocalStoredEvaluator(EvidenceEvaluator):
         super().__init__(spec, essential, data, settings, **kw)
         self.store, self.model = store, model
 
-    def __call__(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
-                 extend: bool = False):
-        target, ev, res = super().__call__(psi, seed, warm, final=final, iteration=iteration, extend=extend)
+    def trial(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
+              extend: bool = False):
+        target, ev, res = yield from super().trial(psi, seed, warm, final=final, iteration=iteration, extend=extend)
         if self.method == "laplace" or iteration is None or res is None or not res.samples.size:
             return target, ev, res
         nc, M, _ = res.samples.shape
@@ -65,11 +66,9 @@ def _drive_local(store: StudyStore, map_fn: Map, progress, done: bool) -> dict:
                 if progress:
                     progress(p)
 
-            def factory(*a, model=model, **kw):
-                runtime = replace(kw.pop("runtime"), map_fn=map_fn)
-                return LocalStoredEvaluator(*a, store=store, model=model, runtime=runtime, **kw)
-
-            rows.append(fit_model(store, spec, data, i, factory, progress=prog))
+            rows.append(fit_model(store, spec, data, i, CandidateHooks(
+                map_fn=map_fn, progress=prog,
+                evaluator_factory=partial(LocalStoredEvaluator, store=store, model=model))))
     except BaseException as exc:
         from ardflow.ardcore.sampling.driver import Cancelled
 

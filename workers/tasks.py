@@ -7,7 +7,7 @@ import logging
 import time
 from concurrent.futures import CancelledError
 
-from ardflow.ardcore.sampling.chains import Step, round_task
+from ardflow.ardcore.sampling.chains import Batch, Step, round_task
 
 from .coordinator import actor_variable_name, wait_connected
 from .store import StudyStore
@@ -132,9 +132,9 @@ class DaskMap:
         rest = f"-{step.index}" if step is not None and step.index is not None else ""
         return c.submit(func, it, key=f"{name}-{self.prefix}{rest}-c{ch}{sfx}")
 
-    def __call__(self, func, items, step: Step | None = None):
-        from distributed import wait
-
+    def submit(self, batch: Batch) -> "Submitted":
+        """The batch's tasks submitted (the stationary rounds' store made room for first); nothing waits."""
+        step, items = batch.step, batch.items
         if step is not None and step.kind == "stationary" and self.store is not None and items:
             from ardflow.ardcore.sampling.driver import STRIDE
 
@@ -142,30 +142,69 @@ class DaskMap:
             # (item[3] is the round's length, the same for every chain)
             self.store.resize_draws(self.model, self.iteration, step.index % STRIDE + int(items[0][3]),
                                     grow_only=True)
+        return Submitted(self, batch)
 
-        futs = [self._submit(func, it, ch, step, 0) for ch, it in enumerate(items)]
-        attempts = [0] * len(futs)
+    def __call__(self, func, items, step: Step | None = None):
+        return self.submit(Batch(func, items, step)).result()
+
+
+class Submitted:
+    """One batch's tasks on the cluster, as an event loop tracks them: ``futures``, :meth:`done` when every
+    task has finished (or failed), :meth:`result` the results in chain order. A task the scheduler lost
+    (a worker killed at the wrong moment, a dropped scheduler connection) is submitted again under a new key
+    (suffix ``-a<attempt>``) by :meth:`recover`, which the loop calls when nothing has moved for
+    ``DaskMap.stall_s``."""
+
+    def __init__(self, dmap: DaskMap, batch: Batch):
+        self.dmap, self.batch = dmap, batch
+        self.futures = [dmap._submit(batch.func, it, ch, batch.step, 0) for ch, it in enumerate(batch.items)]
+        self.attempts = [0] * len(self.futures)
+        self.since = time.monotonic()
+
+    def done(self) -> bool:
+        return all(f.status in ("finished", "error") for f in self.futures)
+
+    def stalled(self) -> bool:
+        return time.monotonic() - self.since > self.dmap.stall_s
+
+    def gather(self) -> list | None:
+        """The results when every task is done (a task's error is raised), None when the connection
+        dropped under them (:meth:`recover` resubmits)."""
+        if not self.done():
+            return None
+        try:
+            return self.dmap.client.gather(self.futures)
+        except CancelledError:
+            return None
+
+    def recover(self) -> None:
+        """Submit again what the scheduler no longer knows (after waiting for a dropped connection to
+        come back)."""
+        d = self.dmap
+        self.since = time.monotonic()
+        wait_connected(d.client)
+        pending = [f for f in self.futures if f.status not in ("finished", "error")]
+        known = d.client.run_on_scheduler(_known_keys, keys=[f.key for f in pending])
+        for i, f in enumerate(self.futures):
+            if f.status in ("lost", "cancelled") or (f.status == "pending" and not known.get(f.key, False)):
+                self.attempts[i] += 1
+                log.warning("task %s was lost (%s); submitting it again", f.key, f.status)
+                self.futures[i] = d._submit(self.batch.func, self.batch.items[i], i, self.batch.step,
+                                            self.attempts[i])
+
+    def result(self) -> list:
+        """Block until every task is done: the results in chain order."""
+        from distributed import wait
+
         while True:
             try:
-                wait(futs, timeout=self.stall_s, return_when="ALL_COMPLETED")
+                wait(self.futures, timeout=self.dmap.stall_s, return_when="ALL_COMPLETED")
             except (TimeoutError, CancelledError):
                 pass  # a stall or a dropped scheduler connection: both handled below
-            if all(f.status in ("finished", "error") for f in futs):
-                try:
-                    return self.client.gather(futs)
-                except CancelledError:
-                    pass  # the connection dropped between the wait and the gather: resubmit below
-            wait_connected(self.client)
-            # A worker killed at the wrong moment can leave the scheduler without a key this client
-            # still waits for, and a dropped scheduler connection cancels every future of the client;
-            # such a task is submitted again under a new key (suffix -a<attempt>).
-            pending = [f for f in futs if f.status not in ("finished", "error")]
-            known = self.client.run_on_scheduler(_known_keys, keys=[f.key for f in pending])
-            for i, f in enumerate(futs):
-                if f.status in ("lost", "cancelled") or (f.status == "pending" and not known.get(f.key, False)):
-                    attempts[i] += 1
-                    log.warning("task %s was lost (%s); submitting it again", f.key, f.status)
-                    futs[i] = self._submit(func, items[i], i, step, attempts[i])
+            out = self.gather()
+            if out is not None:
+                return out
+            self.recover()
 
 
 def _known_keys(dask_scheduler=None, keys=()):

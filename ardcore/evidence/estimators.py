@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Generator
 
 import numpy as np
 from scipy.special import logsumexp
@@ -16,7 +17,7 @@ from scipy.stats import chi2
 from scipy.stats import f as f_dist
 
 from ..sampling.chains import Jump, MixedProposal
-from ..sampling.chains import Map, SamplerError, Step, serial_map
+from ..sampling.chains import Batch, Map, SamplerError, Step, run, serial_map
 from ..sampling.config import SamplerResult
 from ..sampling.starts import fd_hessian, local_mode
 from ..sampling.starts import fd_derivatives
@@ -64,6 +65,13 @@ class Evidence:
             "method": self.method, "warnings": list(self.warnings),
             "per_chain": [c.__dict__ for c in self.per_chain], "n_evaluations": self.n_evaluations,
         }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Evidence":
+        """The estimate :meth:`to_dict` wrote."""
+        return cls(d["log_evidence"], d["log_evidence_se"], d["goodness_of_fit"], d["information_gain"],
+                   d["method"], [ChainEvidence(**c) for c in d["per_chain"]], list(d["warnings"]),
+                   d.get("n_evaluations", 0))
 
 
 BATCHES = 10
@@ -154,7 +162,16 @@ def _cj_chain(args):
 
 def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
                    map_fn: Map = serial_map, proposal_se_ratio: float = 0.0) -> Evidence:
-    """Chib-Jeliazkov evidence per chain at phi* (Eq. 10-12); mean and standard error over chains.
+    """Chib-Jeliazkov evidence per chain at phi* (Eq. 10-12); mean and standard error over chains: the
+    per-chain ordinates of :func:`iter_chib_jeliazkov` on ``map_fn``."""
+    return run(iter_chib_jeliazkov(target, res, n_proposal=n_proposal, seed=seed,
+                                   proposal_se_ratio=proposal_se_ratio), map_fn)
+
+
+def iter_chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
+                        proposal_se_ratio: float = 0.0) -> Generator[Batch, list, Evidence]:
+    """Chib-Jeliazkov evidence per chain at phi* (Eq. 10-12) as a generator: each chain's ordinate is one
+    task of the :class:`~ardcore.sampling.chains.Batch` it yields.
 
     Parameters
     ----------
@@ -183,7 +200,7 @@ def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
     for attempt in range(2):
         tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
                   proposal_se_ratio, int(seeds[c]), res.jump) for c in range(nc)]
-        out = map_fn(_cj_chain, tasks, step=Step("cj"))
+        out = yield Batch(_cj_chain, tasks, Step("cj"))
         n_eval += sum(j for _, _, j in out)
         per = [ChainEvidence(lp_star - o, se, o) for o, se, _ in out]
         valid = [p for p in per if math.isfinite(p.log_evidence) and p.log_evidence <= bound]

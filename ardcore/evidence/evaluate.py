@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Generator
 
 import numpy as np
 
-from .estimators import chib_jeliazkov, laplace
-from ..sampling.chains import Step
+from .estimators import iter_chib_jeliazkov, laplace
+from ..sampling.chains import Batch, Step, run
 from ..sampling.config import SamplerConfig, SamplerResult
-from ..sampling.driver import Runtime, Start, continuation, continued, sample
+from ..sampling.driver import Runtime, Start, continuation, continued, sample_batches
 from ..sampling.starts import initial_scale
 from ..sampling.starts import new_parameter_start
 from ..likelihood.posterior import ModelPosterior
@@ -83,40 +84,50 @@ class EvidenceEvaluator:
 
     def __call__(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False,
                  iteration: int | None = None, extend: bool = False):
-        """(target, evidence, sampler result) at ``psi``: chains warm-started from ``warm`` drawing the
-        judged M per chain (:meth:`SamplerConfig.judged`), or with ``extend`` the chains of ``warm``
-        continued to the quality target (:func:`~ardcore.sampling.driver.continuation`)."""
+        """(target, evidence, sampler result) at ``psi``: :meth:`trial` with its chain tasks on the runtime's
+        map."""
+        return run(self.trial(psi, seed, warm, final=final, iteration=iteration, extend=extend), self.map_fn)
+
+    def trial(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False,
+              iteration: int | None = None, extend: bool = False) -> Generator:
+        """The trial at ``psi`` as a generator of the chain tasks it waits for (each a
+        :class:`~ardcore.sampling.chains.Batch`; :func:`~ardcore.sampling.chains.run` drives it) returning
+        (target, evidence, sampler result): chains warm-started from ``warm`` drawing the judged M per chain
+        (:meth:`SamplerConfig.judged`), or with ``extend`` the chains of ``warm`` continued to the quality
+        target (:func:`~ardcore.sampling.driver.continuation`). ``iteration`` numbers the trial for
+        orchestrators that keep it."""
         target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
         if self.method == "laplace":
-            x0 = warm_point(target, warm) if warm is not None else self._cold_start(target, seed)
+            x0 = warm_point(target, warm) if warm is not None else (yield from self._cold_start(target, seed))
             ev, xmap, C = laplace(target, x0, initial_scale(target.prior) if warm is None else None,
                                   warm=warm is not None)
             res = None
             if final and self.final_posterior == "laplace":
                 res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
             elif final:
-                res = sample(target, self.sampler, seed=seed,
-                             start=Start(points=_starts_around(xmap, C, self.sampler.n_chains, seed)),
-                             runtime=self.runtime)
+                res = yield from sample_batches(
+                    target, self.sampler, seed=seed,
+                    start=Start(points=_starts_around(xmap, C, self.sampler.n_chains, seed)), runtime=self.runtime)
             else:
                 # draws of N(MAP, H^-1), which the Laplace evidence assumes: the maximiser reweights them for
                 # its line-search steps (only the ARD prior changes) instead of another Newton fit
                 res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)
             return target, ev, res
         if extend:
-            res = sample(target, self.config(extend), seed=seed, start=Start(resume=continuation(warm)),
-                         runtime=self.runtime)
+            res = yield from sample_batches(target, self.config(extend), seed=seed,
+                                            start=Start(resume=continuation(warm)), runtime=self.runtime)
             res = continued(res, warm)
         else:
-            res = sample(target, self.config(extend), seed=seed, start=Start(warm=warm), runtime=self.runtime)
-        ev = chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7,
-                            proposal_se_ratio=self.sampler.proposal_se_ratio, map_fn=self.map_fn)
+            res = yield from sample_batches(target, self.config(extend), seed=seed, start=Start(warm=warm),
+                                            runtime=self.runtime)
+        ev = yield from iter_chib_jeliazkov(target, res, n_proposal=self.sampler.n_proposal, seed=seed + 7,
+                                            proposal_se_ratio=self.sampler.proposal_se_ratio)
         ev.warnings = list(res.warnings) + ev.warnings
         return target, ev, res
 
-
-    def _cold_start(self, target, seed: int) -> np.ndarray:
-        """Best of local searches from the prior medians and n_chains - 1 dispersed prior points.
+    def _cold_start(self, target, seed: int) -> Generator:
+        """Best of local searches from the prior medians and n_chains - 1 dispersed prior points (a generator:
+        the searches are one batch).
 
         One local search from the medians can stop in a poor local mode of a rugged likelihood;
         a Laplace evidence taken there would be wrong by many nats.
@@ -127,7 +138,7 @@ class EvidenceEvaluator:
         pts = [warm_point(target, None)]
         pts += list(initial_points(target.prior, max(self.sampler.n_chains - 1, 0), np.random.default_rng(seed)))
         tasks = [(target, np.asarray(p, dtype=float), scale, self.sampler.start_maxfev) for p in pts]
-        found = self.map_fn(_local_mode_task, tasks, step=Step("start"))
+        found = yield Batch(_local_mode_task, tasks, Step("start"))
         return max(found, key=lambda r: r[1])[0]
 
 

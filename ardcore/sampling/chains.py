@@ -39,6 +39,35 @@ def serial_map(func, items, step: Step | None = None):
     return [func(it) for it in items]
 
 
+@dataclass(frozen=True)
+class Batch:
+    """Per-chain tasks a sans-IO generator waits for: ``func`` over ``items`` (item ``c`` belongs to chain
+    ``c``) at ``step``. The generator yields it and is sent the list of results; whoever drives it decides
+    where the tasks run (:func:`run` with a :data:`Map`, or an orchestrator's event loop)."""
+
+    func: Callable
+    items: list
+    step: Step | None = None
+
+
+def run(steps, map_fn: Map = serial_map):
+    """Drive the generator ``steps`` to its return value: a :class:`Batch` it yields is answered with
+    ``map_fn``; anything else it yields (a batch an orchestrator has already submitted) with its
+    ``result()``, which blocks until the tasks are done. A task's error is raised inside ``steps`` where
+    it waits, as a direct call would raise it."""
+    reply, error = None, None
+    while True:
+        try:
+            item = steps.throw(error) if error is not None else steps.send(reply)
+        except StopIteration as done:
+            return done.value
+        reply, error = None, None
+        try:
+            reply = map_fn(item.func, item.items, step=item.step) if isinstance(item, Batch) else item.result()
+        except Exception as exc:  # noqa: BLE001 - handed to the generator
+            error = exc
+
+
 def executor_map(executor) -> Map:
     """Adapt a ``concurrent.futures`` executor to :data:`Map`."""
     return lambda func, items, step=None: list(executor.map(func, items))

@@ -160,3 +160,31 @@ class SamplerResult:
     adaptation: dict | None = None
     """The INCA coordinator's final state (:meth:`~ardcore.sampling.adaptation.AdaptationPool.to_dict`): with
     ``states`` and the draws, what continuing these chains needs (:func:`~ardcore.sampling.driver.continuation`)."""
+
+    # what a trial record keeps beside the draws (which a store keeps in arrays of their own)
+    _RECORD = ("names", "phi_star", "lp_star", "ll_star", "proposal_cov", "rhat", "rhat_history", "burnin_rounds",
+               "converged", "acceptance", "burnin_acceptance", "n_evaluations", "warnings", "jump", "diagnostics",
+               "quality_met", "adaptation")
+
+    def to_json(self) -> dict:
+        """Everything but the draws (``samples``, ``lp``, ``ll``), as JSON values: with the draws,
+        :meth:`from_json` gives this result back."""
+        from ..jsonio import to_jsonable
+
+        return to_jsonable({**{k: getattr(self, k) for k in self._RECORD},
+                            "states": [s.to_dict() for s in self.states]})
+
+    @classmethod
+    def from_json(cls, rec: dict, samples: np.ndarray, lp: np.ndarray, ll: np.ndarray) -> "SamplerResult":
+        """The result :meth:`to_json` wrote, with its draws."""
+        from .chains import ChainState
+
+        return cls(
+            names=list(rec["names"]), samples=samples, lp=lp, ll=ll, phi_star=np.array(rec["phi_star"]),
+            lp_star=rec["lp_star"], ll_star=rec["ll_star"], proposal_cov=np.array(rec["proposal_cov"]),
+            states=[ChainState.from_dict(s) for s in rec["states"]], rhat=np.array(rec["rhat"]),
+            rhat_history=rec["rhat_history"], burnin_rounds=rec["burnin_rounds"], converged=rec["converged"],
+            acceptance=rec["acceptance"], burnin_acceptance=rec["burnin_acceptance"],
+            n_evaluations=rec["n_evaluations"], warnings=list(rec["warnings"]), jump=rec.get("jump"),
+            diagnostics=rec.get("diagnostics", {}), quality_met=rec.get("quality_met", True),
+            adaptation=rec.get("adaptation"))

@@ -30,7 +30,9 @@ from .chains import (
     RoundStats,
     SamplerError,
     Step,
+    Batch,
     round_task,
+    run,
     serial_map,
 )
 from ..errors import ArdflowError
@@ -38,9 +40,7 @@ from .diagnostics import Quality, convergence
 from ..events import BurninRound, Note, ProgressEvent, StationaryRound
 from .config import SamplerConfig, SamplerResult
 from .transform import free_coordinates
-from .starts import (
-    initial_states,
-)
+from .starts import iter_initial_states
 
 
 @dataclass(frozen=True)
@@ -81,10 +81,10 @@ class Runtime:
     checkpoint: Callable[[dict], None] | None = None
 
 
-def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerConfig, map_fn: Map = serial_map,
-                  counters: tuple = (0, 0, 0), dr_scale: float | None = None
-                  ) -> Generator[RoundEvent, None, tuple[list, int, int, int]]:
-    """Burn-in rounds until R-hat is below the threshold or the round budget is spent, one event each.
+def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerConfig, counters: tuple = (0, 0, 0),
+                  dr_scale: float | None = None) -> Generator[Batch | RoundEvent, list, tuple[list, int, int, int]]:
+    """Burn-in rounds until R-hat is below the threshold or the round budget is spent: each round's chain
+    tasks as one :class:`~.chains.Batch`, then its event.
 
     Returns the chain states, accepted and proposed counts, and likelihood evaluations (``counters``: those
     of the stages before, for the checkpoints). ``dr_scale`` (default ``config.dr_scale``; 0 for a warm
@@ -97,8 +97,8 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
         rnd = pool.rounds + 1
         dr_r = dr if rnd <= config.dr_rounds else 0.0
         jump = pool.jump(config.jump_weight, config.jump_df) if dr_r == 0 else None
-        results = map_fn(round_task, [(target, s, pool.proposal(c), config.round_size, True, dr_r, jump)
-                                       for c, s in enumerate(states)], step=Step("burnin", rnd))
+        results = yield Batch(round_task, [(target, s, pool.proposal(c), config.round_size, True, dr_r, jump)
+                                           for c, s in enumerate(states)], Step("burnin", rnd))
         states = [q.state for q in results]
         for c, q in enumerate(results):
             pool.report(c, rnd, q.halves, q.best)
@@ -126,11 +126,12 @@ STRIDE = 10_000_000
 a key with one of an earlier pass; the store's slot is the index modulo STRIDE)."""
 
 
-def stationary_rounds(target, states: list, config: SamplerConfig, map_fn: Map = serial_map, *,
-                      pool: AdaptationPool, counters: list, resume: dict | None = None) -> Generator:
+def stationary_rounds(target, states: list, config: SamplerConfig, *, pool: AdaptationPool, counters: list,
+                      resume: dict | None = None) -> Generator:
     """The stationary stage: draws by Metropolis-Hastings with the fixed proposal (the random walk with
-    the pool's covariance mixed with the pool's independence proposal, :class:`~ardcore.sampling.chains.Jump`), one event
-    per round, until the draws meet the quality target or the budget is spent.
+    the pool's covariance mixed with the pool's independence proposal, :class:`~ardcore.sampling.chains.Jump`), one
+    :class:`~.chains.Batch` and one event per round, until the draws meet the quality target or the budget is
+    spent.
 
     After ``config.n_stationary`` draws per chain (and after each extension) ArviZ's diagnostics are taken
     (:mod:`.diagnostics`). When the rank R-hat of some parameter exceeds ``config.rhat_threshold`` the chains
@@ -173,8 +174,8 @@ def stationary_rounds(target, states: list, config: SamplerConfig, map_fn: Map =
     while True:
         while done < goal:
             n = min(config.round_size, goal - done)
-            results = map_fn(round_task, [(target, s, cov, n, False, 0.0, jump) for s in states],
-                             step=Step("stationary", passes * STRIDE + done))
+            results = yield Batch(round_task, [(target, s, cov, n, False, 0.0, jump) for s in states],
+                                  Step("stationary", passes * STRIDE + done))
             states = [q.state for q in results]
             n_eval += sum(q.evaluations for q in results)
             for c, q in enumerate(results):
@@ -243,29 +244,32 @@ def _adapt_on(target, pool, states: list, samples: np.ndarray, lps: np.ndarray) 
 
 
 def _begin(target, config: SamplerConfig, seed: int, start: Start, runtime: Runtime):
-    """Chain states, the INCA coordinator, the stage and the counters to start (or resume) from."""
+    """Chain states, the INCA coordinator, the stage and the counters to start (or resume) from (a
+    generator: a cold start's optimisations are a :class:`~.chains.Batch`)."""
     factory = runtime.pool_factory or AdaptationPool.from_dict
     resume = start.resume
     if resume is not None:
         return ([ChainState.from_dict(q) for q in resume["states"]], factory(resume["pool"]), resume["stage"],
                 list(resume.get("counters", [0, 0, 0])))
-    states, cov, n_start = initial_states(target, config, seed=seed, map_fn=runtime.map_fn, warm=start.warm,
-                                          starts=start.points)
+    states, cov, n_start = yield from iter_initial_states(target, config, seed=seed, warm=start.warm,
+                                                          starts=start.points)
     pool0 = AdaptationPool(config.n_chains, len(target.names), cov, inca=config.inca,
                            rhat_threshold=config.burnin_rhat, min_rounds=config.min_burnin_rounds,
                            outlier_nats=config.outlier_nats)
     return states, factory(pool0.to_dict()), "burnin", [0, 0, n_start]
 
 
-def iter_sample(target, config: SamplerConfig, *, seed: int, start: Start = Start(),
-                runtime: Runtime = Runtime()) -> Generator[RoundEvent, None, SamplerResult]:
-    """Parallel DRAM with INCA, then the fixed-proposal stationary stage, as a generator: one
-    :class:`RoundEvent` per round (a fresh start first yields the state it starts from); its return value
-    (``StopIteration.value``) is the :class:`SamplerResult`. Arguments as :func:`sample`."""
+def sampler_steps(target, config: SamplerConfig, *, seed: int, start: Start = Start(),
+                  runtime: Runtime = Runtime()) -> Generator[Batch | RoundEvent, list, SamplerResult]:
+    """Parallel DRAM with INCA, then the fixed-proposal stationary stage, sans IO: every step's chain tasks
+    are a :class:`~.chains.Batch` the generator yields and is sent the results of, and every round ends with
+    a :class:`RoundEvent` (a fresh start first yields the state it starts from); its return value
+    (``StopIteration.value``) is the :class:`SamplerResult`. Of ``runtime`` only the pool factory is used:
+    whoever drives it runs the batches and handles the events (:func:`iter_sample`, :func:`sample_batches`)."""
     names = list(target.names)
     warnings: list[str] = []
-    states, pool, stage, counters = _begin(target, config, seed, start, runtime)
-    warm, resume, map_fn = start.warm, start.resume, runtime.map_fn
+    states, pool, stage, counters = yield from _begin(target, config, seed, start, runtime)
+    warm, resume = start.warm, start.resume
     # a warm start's first proposal is the previous posterior's covariance: no delayed rejection (SamplerConfig)
     dr = (config.dr_scale if warm is None or config.warm_dr else 0.0) if resume is None \
         else float(resume.get("dr_scale", config.dr_scale))
@@ -274,13 +278,13 @@ def iter_sample(target, config: SamplerConfig, *, seed: int, start: Start = Star
                                            "pool": pool.to_dict(), "counters": list(counters), "dr_scale": dr})
     # ---- burn-in: DRAM rounds, the pool is the INCA coordinator
     if stage == "burnin":
-        states, b_acc, b_n, n_b = yield from burnin_rounds(target, states, pool, config, map_fn, tuple(counters), dr)
+        states, b_acc, b_n, n_b = yield from burnin_rounds(target, states, pool, config, tuple(counters), dr)
         counters = [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_b]
     b_acc, b_n, _ = counters
     rounds, converged, r = pool.rounds, pool.converged(), pool.rhat()
     # ---- stationary stage: fixed proposal, plain RWM
     samples, lps, lls, states, s_acc, n_eval, diag = yield from stationary_rounds(
-        target, states, config, map_fn, pool=pool, counters=counters, resume=resume)
+        target, states, config, pool=pool, counters=counters, resume=resume)
     # the kernel of the pass that was kept (a redrawn stage refits the pool), which Chib-Jeliazkov needs
     cov, jump = pool.cov, pool.jump(config.jump_weight, config.jump_df)
     best = max(states, key=lambda q: q.best_lp)
@@ -330,10 +334,59 @@ def continued(res: SamplerResult, before: SamplerResult) -> SamplerResult:
     return replace(res, burnin_acceptance=before.burnin_acceptance)
 
 
+def iter_sample(target, config: SamplerConfig, *, seed: int, start: Start = Start(),
+                runtime: Runtime = Runtime()) -> Generator[RoundEvent, None, SamplerResult]:
+    """:func:`sampler_steps` with its batches run on ``runtime.map_fn``: one :class:`RoundEvent` per round;
+    the return value (``StopIteration.value``) is the :class:`SamplerResult`. Arguments as :func:`sample`."""
+    steps = sampler_steps(target, config, seed=seed, start=start, runtime=runtime)
+    reply = None
+    while True:
+        try:
+            item = steps.send(reply)
+        except StopIteration as done:
+            return done.value
+        if isinstance(item, Batch):
+            reply = runtime.map_fn(item.func, item.items, step=item.step)
+        else:
+            reply = None
+            yield item
+
+
+def sample_batches(target, config: SamplerConfig, *, seed: int, start: Start = Start(),
+                   runtime: Runtime = Runtime()) -> Generator[Batch, list, SamplerResult]:
+    """:func:`sampler_steps` with its events handled by the runtime's hooks (``cancel`` asked before every
+    step, ``progress`` and ``checkpoint`` given every round's reports and state): what is left to yield are
+    the batches, for an event loop to run wherever it likes. Arguments as :func:`sample`."""
+    steps = sampler_steps(target, config, seed=seed, start=start, runtime=runtime)
+    stage = start.resume["stage"] if start.resume is not None else "burnin"
+    progress, cancel, checkpoint = runtime.progress, runtime.cancel, runtime.checkpoint
+    reply, error = None, None
+    while True:
+        if cancel is not None and cancel():
+            steps.close()
+            raise Cancelled("cancelled during " + ("burn-in" if stage == "burnin" else "stationary sampling"))
+        try:
+            item = steps.throw(error) if error is not None else steps.send(reply)
+        except StopIteration as done:
+            return done.value
+        reply, error = None, None
+        if isinstance(item, Batch):
+            try:
+                reply = yield item
+            except Exception as exc:  # noqa: BLE001 - a task's error, raised where the sampler waits for it
+                error = exc
+            continue
+        stage = item.stage
+        for rep in item.reports if progress else ():
+            progress(rep)
+        if checkpoint:
+            checkpoint(item.checkpoint)
+
+
 def sample(target, config: SamplerConfig, *, seed: int, start: Start = Start(),
            runtime: Runtime = Runtime()) -> SamplerResult:
-    """Run parallel DRAM with INCA, then the fixed-proposal stationary stage: :func:`iter_sample` driven
-    with the runtime's hooks.
+    """Run parallel DRAM with INCA, then the fixed-proposal stationary stage: :func:`sample_batches` with its
+    batches run on ``runtime.map_fn``.
 
     Parameters
     ----------
@@ -355,22 +408,7 @@ def sample(target, config: SamplerConfig, *, seed: int, start: Start = Start(),
         ``checkpoint`` is called with each round's JSON-able state (stage, chain states, coordinator state,
         counters), which with the stationary samples written so far is enough to resume.
     """
-    rounds = iter_sample(target, config, seed=seed, start=start, runtime=runtime)
-    stage = start.resume["stage"] if start.resume is not None else "burnin"
-    progress, cancel, checkpoint = runtime.progress, runtime.cancel, runtime.checkpoint
-    while True:
-        if cancel is not None and cancel():
-            rounds.close()
-            raise Cancelled("cancelled during " + ("burn-in" if stage == "burnin" else "stationary sampling"))
-        try:
-            ev = next(rounds)
-        except StopIteration as done:
-            return done.value
-        stage = ev.stage
-        for rep in ev.reports if progress else ():
-            progress(rep)
-        if checkpoint:
-            checkpoint(ev.checkpoint)
+    return run(sample_batches(target, config, seed=seed, start=start, runtime=runtime), runtime.map_fn)
 
 
 class Cancelled(ArdflowError):

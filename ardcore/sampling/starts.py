@@ -4,11 +4,11 @@ a first proposal covariance from the finite-difference Hessian, or a warm start 
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, Generator
 
 import numpy as np
 
-from .chains import ChainState, Map, SamplerError, Step, safe_cholesky, serial_map
+from .chains import Batch, ChainState, Map, SamplerError, Step, run, safe_cholesky, serial_map
 from .config import SamplerConfig, SamplerResult
 from .transform import free_coordinates
 
@@ -211,7 +211,14 @@ def warm_positions(target, warm: SamplerResult, scale: np.ndarray) -> tuple[list
 def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = serial_map,
                    warm: SamplerResult | None = None, starts: np.ndarray | None = None) -> tuple[list, np.ndarray, int]:
     """Chain states, the first proposal covariance (cold, warm or explicit starts) and the likelihood
-    evaluations that took."""
+    evaluations that took: :func:`iter_initial_states` with the start optimisations on ``map_fn``."""
+    return run(iter_initial_states(target, config, seed=seed, warm=warm, starts=starts), map_fn)
+
+
+def iter_initial_states(target, config: SamplerConfig, *, seed: int, warm: SamplerResult | None = None,
+                        starts: np.ndarray | None = None) -> Generator[Batch, list, tuple[list, np.ndarray, int]]:
+    """:func:`initial_states` as a generator: a cold start yields its start optimisations as one
+    :class:`~.chains.Batch`."""
     names = list(target.names)
     d = len(names)
     nc = config.n_chains
@@ -233,7 +240,7 @@ def initial_states(target, config: SamplerConfig, *, seed: int, map_fn: Map = se
         pts = initial_points(target.prior, nc, np.random.default_rng(child[nc]))
         tasks = [(target, pts[c], scale, config.start_maxfev, child[c].generate_state(1)[0] + c,
                   config.overdispersion) for c in range(nc)]
-        res = map_fn(_start_task, tasks, step=Step("start"))
+        res = yield Batch(_start_task, tasks, Step("start"))
         n_eval = sum(int(r[6]) for r in res)
         free = free_coordinates(target)
         cov = (2.38**2 / d) * np.mean([free.cov_to_free(r[5], r[3]) for r in res], axis=0)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Generator
 
 import numpy as np
 
@@ -27,6 +27,7 @@ from ..evidence.evaluate import (
 )
 from ..evidence.estimators import Evidence
 from ..jsonio import encode_alpha
+from ..sampling.chains import run
 from ..sampling.config import SamplerResult
 from ..likelihood.posterior import ModelPosterior
 from ..evidence.reweight import resample_states, reweight, weighted_summary
@@ -107,15 +108,32 @@ def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: 
     warm : SamplerResult, optional
         Warm start of the first trial (e.g. the fit of a nested model; parameters it lacks start at 0).
     """
-    # an evaluator without chains to continue (a closed-form evidence) has no budget: nothing is continued
-    m = Maximiser(ard, config, seed=seed, warm=warm, on_trial=on_trial,
-                  budget=getattr(evaluate, "stationary_budget", 0))
+    return run(iter_maximise(_immediate(evaluate), ard, config, seed=seed, on_trial=on_trial, warm=warm,
+                             budget=getattr(evaluate, "stationary_budget", 0)))
+
+
+def iter_maximise(trial, ard: dict[str, float | None], config: MaximiserConfig, *, seed: int,
+                  on_trial: Callable[[Trial], None] | None = None, warm: SamplerResult | None = None,
+                  budget: int = 0) -> Generator:
+    """:func:`maximise` as a generator: :class:`Maximiser` driven by ``trial``, a generator function with the
+    arguments of :meth:`EvidenceEvaluator.trial` (whatever its trials yield, this yields: the chain tasks
+    they wait for); returns the :class:`MaximiserResult`. ``budget``: the stationary draws per chain the
+    reported trial may continue to (0, a closed-form evidence: nothing is continued)."""
+    m = Maximiser(ard, config, seed=seed, warm=warm, on_trial=on_trial, budget=budget)
     while (req := m.next()) is not None:
         t0 = time.perf_counter()
         more = {"extend": True} if req.extend else {}
-        target, ev, res = evaluate(req.psi, req.seed, req.warm, iteration=req.iteration, **more)
+        target, ev, res = yield from trial(req.psi, req.seed, req.warm, iteration=req.iteration, **more)
         m.observe(req, target, ev, res, time.perf_counter() - t0)
     return m.result()
+
+
+def _immediate(evaluate):
+    """A callable evaluator as a trial generator that waits for nothing."""
+    def trial(*args, **kw):
+        return evaluate(*args, **kw)
+        yield  # unreachable: makes this a generator function
+    return trial
 
 
 @dataclass(frozen=True)

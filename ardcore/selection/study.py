@@ -15,17 +15,17 @@ from dataclasses import dataclass
 import math
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Generator
 
 import numpy as np
 
 from ..evidence.evaluate import EvidenceEvaluator, EvidenceSettings
-from .maximiser import MaximiserResult, maximise, posterior_summary
+from .maximiser import MaximiserResult, iter_maximise, posterior_summary
 from ..data import Dataset
 from ..events import ModelEvent, ProgressEvent, TrialDone
 from .fit import ModelFit
 from ..jsonio import to_jsonable
-from ..sampling.chains import Map, serial_map
+from ..sampling.chains import Map, run, serial_map
 from ..sampling.driver import Runtime
 from .spec import (
     CandidateSpec,
@@ -66,12 +66,22 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
                   hooks: CandidateHooks = CandidateHooks(), warm=None,
                   final_posterior: str = "sample") -> tuple[ModelFit, MaximiserResult]:
     """ARD evidence maximisation for one candidate; returns its :class:`~ardcore.selection.fit.ModelFit` and the
-    full result.
+    full result: :func:`iter_candidate` with the chain tasks on ``hooks.map_fn``.
 
     ``hooks`` (:class:`CandidateHooks`): how it runs and reports; ``warm`` (a
     :class:`~ardcore.sampling.driver.SamplerResult`) warm-starts the first trial. With Laplace evidence,
     ``final_posterior="laplace"`` reports the Laplace posterior N(MAP, H^-1) instead of sampling it.
     """
+    return run(iter_candidate(cand, data, spec, index, hooks=hooks, warm=warm, final_posterior=final_posterior),
+               hooks.map_fn)
+
+
+def iter_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *,
+                   hooks: CandidateHooks = CandidateHooks(), warm=None,
+                   final_posterior: str = "sample") -> Generator:
+    """:func:`run_candidate` as a generator of the chain tasks its trials wait for (what the evaluator's
+    :meth:`~ardcore.evidence.evaluate.EvidenceEvaluator.trial` yields): an event loop advances many
+    candidates at once, each as its tasks finish. Returns (:class:`ModelFit`, :class:`MaximiserResult`)."""
     t0 = time.perf_counter()
     label = cand.label
     progress, on_trial = hooks.progress, hooks.on_trial
@@ -92,10 +102,11 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
             on_trial(tr)
 
     seed = spec.seed * 1_000_003 + 7919 * index
-    mr = maximise(ev, cand.thresholds(), spec.maximiser, seed=seed, on_trial=trial_done, warm=warm)
+    mr = yield from iter_maximise(ev.trial, cand.thresholds(), spec.maximiser, seed=seed, on_trial=trial_done,
+                                  warm=warm, budget=ev.stationary_budget)
     res, target = mr.sampler, mr.target
     if spec.evidence == "laplace":
-        target, _, res = ev(mr.psi_opt, seed + 99991, mr.sampler, final=True)
+        target, _, res = yield from ev.trial(mr.psi_opt, seed + 99991, mr.sampler, final=True)
         mr.sampler = res
     flat = res.samples.reshape(-1, len(res.names))
     post = posterior_summary(res.names, flat)

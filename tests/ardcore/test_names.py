@@ -31,7 +31,7 @@ def test_mistyped_spec_key_suggests_the_field(tmp_path):
 
 
 def test_unknown_example_suggests_the_closest():
-    from ardflow.service.cmd_local import cmd_example
+    from ardflow.service.commands.local import cmd_example
 
     with pytest.raises(SystemExit, match="did you mean 'sec33'"):
         cmd_example(types.SimpleNamespace(name="sec333", out=None))

@@ -401,7 +401,7 @@ def _study(args: list[str], out: Path) -> dict:
     """Run an ardflow command that writes a Section 3.6 study to ``out`` (fresh); wall time and results."""
     import shutil
 
-    from ardflow.service.paper import reference_checks
+    from ardflow.service.reports.paper import reference_checks
 
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
@@ -471,7 +471,7 @@ def bench_posterior(tiny: bool = False, seeds: int = 10, models: tuple = ("M2", 
 
     spec = StudySpec.model_validate(json.loads((ROOT / "examples" / "sec36.json").read_text()))
     if full:
-        from ardflow.service.cmd_study import full_settings
+        from ardflow.service.commands.study import full_settings
 
         spec = full_settings(spec)
     if tiny:

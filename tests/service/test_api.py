@@ -18,8 +18,8 @@ import uvicorn
 from distributed import Client as DaskClient
 from distributed import LocalCluster
 
-from ardflow.service.schemas import Settings
-from ardflow.service.app import create_app
+from ardflow.service.api.schemas import Settings
+from ardflow.service.api.app import create_app
 from ardflow.service.client import APIError, Client
 
 ROOT = Path(__file__).resolve().parents[2]

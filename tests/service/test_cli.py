@@ -104,7 +104,7 @@ def test_live_progress_bars_and_plain_lines(capsys):
     """On an interactive terminal each model gets a bar that advances per trial and completes at model_done;
     in logs and CI the same events are plain lines."""
     from ardflow.ardcore.events import ModelEvent
-    from ardflow.service.progress import LiveProgress
+    from ardflow.service.commands.progress import LiveProgress
 
     lines = [{"model": "M1", "stage": "burnin", "round": 1, "rhat": [1.5, "inf"], "best_lp": 1.0, "acceptance": 0.3},
               {"model": "M1", "stage": "trial", "iteration": 0, "action": "start", "log_evidence": 10.0,
@@ -175,8 +175,8 @@ def test_full_settings_are_the_engines_defaults():
     """`--full` (select, demo) sets the paper-scale sampler sizes: the defaults of the one declaration."""
     from ardflow.ardcore.sampling.config import SamplerConfig
     from ardflow.ardcore.selection.spec import load_spec
-    from ardflow.service.cmd_study import full_settings
-    from ardflow.service.cmd_local import EXAMPLES
+    from ardflow.service.commands.study import full_settings
+    from ardflow.service.commands.local import EXAMPLES
 
     demo = load_spec(EXAMPLES / "sec36.json")
     full = full_settings(demo)

@@ -8,7 +8,7 @@ import re
 from ardflow.ardcore.loop.config import DiagnoseConfig
 from ardflow.ardcore.loop.diagnose import diagnose
 from ardflow.ardcore.selection.spec import DataSpec
-from ardflow.service.diagnose_report import write_diagnosis
+from ardflow.service.reports.diagnosis import write_diagnosis
 from tests.ardcore.test_diagnose import duffing_free_decay, duffing_spec
 
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from ardflow.service.schemas import Settings
-from ardflow.service.app import create_app
+from ardflow.service.api.schemas import Settings
+from ardflow.service.api.app import create_app
 
 from .test_api import ROOT, SPEC, TOKEN, Server, ServiceProcess, free_port, served
 

@@ -69,7 +69,7 @@ def test_wheel_installs_one_namespace(fresh):
     for generic in ("service", "workers", "ardcore"):
         r = _run(fresh, py, "-c", f"import {generic}")
         assert r.returncode != 0 and "ModuleNotFoundError" in r.stderr, (generic, r.stdout, r.stderr)
-    r = _run(fresh, py, "-c", "import ardflow.service.cmd_local as c, ardflow.workers.graph, ardflow.ardcore.likelihood.ekf;"
+    r = _run(fresh, py, "-c", "import ardflow.service.commands.local as c, ardflow.workers.graph, ardflow.ardcore.likelihood.ekf;"
                               "print(c.__file__); print(c.EXAMPLES)")
     assert r.returncode == 0, r.stderr
     where, examples = r.stdout.split()

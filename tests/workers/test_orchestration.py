@@ -228,7 +228,7 @@ def test_fsspec_url_store(thread_cluster, reference_summary):
 def test_report_for_any_study(tmp_path, thread_cluster):
     import re
 
-    from ardflow.service.html_report import write_report
+    from ardflow.service.reports.study import write_report
 
     spec = load_spec(SPEC).model_copy(update={"true_values": {"a0": 3.0, "a1": 5.0, "gamma": 0.3}})
     store = prepare_store(spec, tmp_path / "st")
@@ -302,6 +302,9 @@ def test_a_continued_trial_stopped_mid_extension_resumes_to_the_same_numbers(tmp
     not reach): stopped between two of its extension's rounds, the driver resumes from the checkpoint and
     the draws in the store, and ends with the numbers of an uninterrupted in-process run."""
     from ardflow.ardcore.events import Note
+    from functools import partial
+
+    from ardflow.ardcore.selection.study import CandidateHooks
     from ardflow.workers.graph import StoredEvaluator, TrialSite, fit_model
 
     raw = json.loads(SPEC.read_text())
@@ -315,19 +318,18 @@ def test_a_continued_trial_stopped_mid_extension_resumes_to_the_same_numbers(tmp
     class Stop(Exception):
         pass
 
-    def factory(*a, **kw):
-        return StoredEvaluator(*a, site=TrialSite(thread_cluster, store, sid, "quad"), **kw)
+    factory = partial(StoredEvaluator, site=TrialSite(thread_cluster, store, sid, "quad"))
 
     def stop_in_extension(ev):
         if isinstance(ev.event, Note) and "continuing to" in ev.event.message:
             raise Stop
 
     with pytest.raises(Stop):
-        fit_model(store, spec, data, 0, factory, progress=stop_in_extension)
+        fit_model(store, spec, data, 0, CandidateHooks(progress=stop_in_extension, evaluator_factory=factory))
     it = max(int(k) for k in store.group("r")["models/quad/trials"].group_keys())
     ck = store.read_checkpoint("quad", it)
     assert ck["stage"] == "stationary" and store.trial_record("quad", it) is None  # stopped inside it
-    row = fit_model(store, spec, data, 0, factory, progress=lambda ev: None)
+    row = fit_model(store, spec, data, 0, CandidateHooks(progress=lambda ev: None, evaluator_factory=factory))
     assert row.log_evidence == pytest.approx(ref["log_evidence"], abs=1e-9)
     assert row.diagnostics == ref["diagnostics"]
     samples, _, _, _ = store.read_samples("quad", it)

@@ -11,9 +11,9 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import JSONResponse, Response
 
-from .auth import StudyAccess
-from .registry import Registry
-from .schemas import API_VERSION, ID_RE, finite_or_none
+from ardflow.service.api.auth import StudyAccess
+from ardflow.service.api.registry import Registry
+from ardflow.service.api.schemas import API_VERSION, ID_RE, finite_or_none
 
 _render_lock = threading.Lock()  # matplotlib (mathtext, font cache) is not thread-safe
 MAX_POINTWISE_DRAWS = 4000  # EKF passes one request may ask for
@@ -109,7 +109,7 @@ def _figures(reg: Registry, access: StudyAccess) -> APIRouter:
              responses={200: {"content": {"image/png": {}}}})
     def figure(sid: str, name: str):
         reg.readable(sid)
-        from .figures import FIGURES, render
+        from ardflow.service.reports.figures import FIGURES, render
 
         if name not in FIGURES:
             raise HTTPException(404, f"no figure {name!r} (available: {sorted(FIGURES)})")

@@ -16,8 +16,8 @@ from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel, Field
 
-from .auth import COOKIE, TokenAuth
-from .schemas import API_VERSION
+from ardflow.service.api.auth import COOKIE, TokenAuth
+from ardflow.service.api.schemas import API_VERSION
 
 PAGE = Path(__file__).with_name("page.html")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import io
 
-from .report import Labels, plot_data_and_psd, plot_evidence_history
+from ardflow.service.reports.plots import Labels, plot_data_and_psd, plot_evidence_history
 
 
 def _data(store) -> bytes:

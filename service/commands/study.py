@@ -8,8 +8,8 @@ from pathlib import Path
 
 from ardflow.workers.cluster import ClusterClient
 
-from .cmd_local import EXAMPLES, parse_assignments
-from .progress import LiveProgress, print_table
+from ardflow.service.commands.local import EXAMPLES, parse_assignments
+from ardflow.service.commands.progress import LiveProgress, print_table
 
 
 def full_settings(spec):
@@ -42,7 +42,7 @@ def _run_on_dask(a, store) -> dict:
 
 def _report_and_finish(store) -> None:
     """The report, then the study's status ``done`` (the service reports done when all of it is written)."""
-    from .html_report import write_report
+    from ardflow.service.reports.study import write_report
 
     print(f"[ardflow] report: {write_report(store).resolve()}", flush=True)
     store.update_meta(status="done")
@@ -83,7 +83,7 @@ def cmd_demo(a) -> int:
         _run_on_dask(a, store)
     summary = json.loads(store.read_text("summary.json"))
     print_table(summary)
-    from .paper import check_label, reference_checks
+    from ardflow.service.reports.paper import check_label, reference_checks
 
     print("\n[demo] checks against the paper (issue 'Main job'):")
     for c in reference_checks(summary, spec.true_values):
@@ -171,7 +171,7 @@ def cmd_diagnose(a) -> int:
     from ardflow.ardcore.errors import SpecError
     from ardflow.ardcore.selection.spec import StudySpec, load_spec
 
-    from .diagnose_report import write_diagnosis
+    from ardflow.service.reports.diagnosis import write_diagnosis
 
     src = Path(a.spec)
     if src.is_dir():

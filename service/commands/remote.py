@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from ardflow.workers.cluster import ClusterClient
 
-from .progress import print_table
+from ardflow.service.commands.progress import print_table
 
 
 def _is_loopback(host: str) -> bool:
@@ -31,9 +31,9 @@ def cmd_serve(a) -> int:
     import uvicorn
     from ardflow.ardcore.errors import SpecError
 
-    from .schemas import Settings
-    from .app import create_app
-    from .deadline import with_header_deadline
+    from ardflow.service.api.schemas import Settings
+    from ardflow.service.api.app import create_app
+    from ardflow.service.commands.deadline import with_header_deadline
 
     # everything under the root (studies, uploads, logs, reports) is the service user's alone: 0700/0600 at
     # creation, in this process and in the drivers it starts
@@ -79,7 +79,7 @@ def cmd_serve(a) -> int:
 def _client(a):
     import os
 
-    from .client import Client
+    from ardflow.service.client import Client
 
     a.url = a.url or os.environ.get("ARDFLOW_URL") or "http://127.0.0.1:8000"
     token = a.token or os.environ.get("ARDFLOW_TOKEN")
@@ -90,7 +90,7 @@ def _client(a):
 
 
 def cmd_submit(a) -> int:
-    from .client import APIError
+    from ardflow.service.client import APIError
 
     with _client(a) as c:
         try:
@@ -106,7 +106,7 @@ def cmd_submit(a) -> int:
 
 
 def cmd_status(a) -> int:
-    from .client import APIError
+    from ardflow.service.client import APIError
 
     with _client(a) as c:
         try:
@@ -151,7 +151,7 @@ def status_table(rows: list[dict], best: dict, now: float) -> str:
 
 
 def cmd_fetch(a) -> int:
-    from .client import APIError
+    from ardflow.service.client import APIError
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

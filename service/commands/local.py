@@ -149,7 +149,7 @@ def cmd_models(a) -> int:
 
 
 # the examples folder: beside the source folders in a checkout, package data (ardflow/examples) in a wheel
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
 
 def cmd_example(a) -> int:

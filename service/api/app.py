@@ -29,15 +29,15 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from ardflow.ardcore.errors import ArdflowError
 from ardflow.ardcore.selection.spec import StudySpec
 
-from .auth import StudyAccess, TokenAuth
-from .guard import RequestGuard
-from .page import page_router
-from .results import results_router
-from .validate import Rejected, check_budget, check_models
-from .schemas import (
+from ardflow.service.api.auth import StudyAccess, TokenAuth
+from ardflow.service.api.guard import RequestGuard
+from ardflow.service.api.page import page_router
+from ardflow.service.api.results import results_router
+from ardflow.service.api.validate import Rejected, check_budget, check_models
+from ardflow.service.api.schemas import (
     API_VERSION, FINAL, DashboardLink, DatasetInfo, DiagnoseRequest, DiagnosisStatus, Health, Settings, StudyCreated, StudyStatus,
 )
-from .registry import ProgressCache, Registry, Runner
+from ardflow.service.api.registry import ProgressCache, Registry, Runner
 
 log = logging.getLogger("ardflow.service")
 COLUMN_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")

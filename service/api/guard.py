@@ -42,7 +42,7 @@ STATE_CHANGES = ("POST", "PUT", "PATCH", "DELETE")
 
 def _cookie_only(headers: dict) -> bool:
     """Authenticated (if at all) by the sign-in cookie alone: no token header a cross-site page could not set."""
-    from .auth import COOKIE
+    from ardflow.service.api.auth import COOKIE
 
     if "x-api-token" in headers or headers.get("authorization", "").lower().startswith("bearer "):
         return False

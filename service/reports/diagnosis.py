@@ -11,7 +11,7 @@ import numpy as np
 
 from ardflow.ardcore.loop.result import Diagnosis
 
-from .report import pyplot, save_figure
+from ardflow.service.reports.plots import pyplot, save_figure
 
 
 def _plot_tests(arrays: dict, col: str, out: Path) -> Path:

@@ -17,7 +17,7 @@ from fastapi import HTTPException
 from ardflow.ardcore.events import BurninRound, ModelDone, Note, TrialDone
 from ardflow.ardcore.jsonio import to_jsonable
 
-from .schemas import ID_RE, DiagnoseRequest, Progress, finite_or_none
+from ardflow.service.api.schemas import ID_RE, DiagnoseRequest, Progress, finite_or_none
 
 log = logging.getLogger("ardflow.service")
 

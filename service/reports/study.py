@@ -11,8 +11,8 @@ import numpy as np
 
 from ardflow.ardcore.sampling.diagnostics import Quality
 
-from .paper import FIG15_M2OPT_BOUNDS, TABLE10, TABLE10_OFFSET
-from .report import (
+from ardflow.service.reports.paper import FIG15_M2OPT_BOUNDS, TABLE10, TABLE10_OFFSET
+from ardflow.service.reports.plots import (
     TAU_SECONDS, Labels, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint, plot_marginals,
     plot_model_probabilities, plot_prediction,
 )
@@ -249,7 +249,7 @@ def _paper_section(summary: dict, spec) -> str:
              "<th>GoF paper</th><th>GoF here</th><th>EIG paper</th><th>EIG here</th><th>P paper</th>"
              "<th>P here</th><th class=l>pruned paper</th><th class=l>pruned here</th></tr>" + "".join(prow)
              + "</table>")
-    from .paper import check_label, reference_checks
+    from ardflow.service.reports.paper import check_label, reference_checks
 
     checks = reference_checks(summary, spec.true_values)
     paper += ("<h3>Checks</h3><table><tr><th class=l>check</th><th>result</th><th class=l>detail</th></tr>"
