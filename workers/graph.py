@@ -339,10 +339,15 @@ def _drive(client, store: StudyStore, progress, poll_s: float, done: bool) -> di
         except StopIteration as finished:
             rows[model] = finished.value
 
-    def stream() -> None:
-        for ev in read_progress(store, offsets):
-            if progress:
-                progress(ev)
+    streamed = [0.0]
+
+    def stream(force: bool = False) -> None:
+        # the progress files are read at most every poll_s (tasks finish far more often)
+        if force or time.monotonic() - streamed[0] >= poll_s:
+            streamed[0] = time.monotonic()
+            for ev in read_progress(store, offsets):
+                if progress:
+                    progress(ev)
 
     try:
         for m in models:
@@ -372,7 +377,7 @@ def _drive(client, store: StudyStore, progress, poll_s: float, done: bool) -> di
     finally:
         for gen in fits.values():
             gen.close()
-    stream()
+    stream(force=True)
     results = [rows[m] for m in models]
     for attempt in range(3):
         wait_connected(client)

@@ -176,40 +176,64 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             earlier = [x for r in rounds[:-1] for x in r.added]
             held = backward_check(ctx, held, earlier, rnd)
             held = replace_laws(ctx, held, rounds)
-        out = _report(ctx, data, test_data, first, rounds, arrays, held)
         final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), held.cand.substeps)
-        simulation = _simulation(final, held.data, cur_test, config, say, out)
+        first["model"], reported = _reported(ctx, final, held, cur_test, rounds, arrays)
+        out = _report(ctx, data, test_data, first, rounds, arrays, held)
     finally:
         close()
     out["wall_s"] = time.perf_counter() - t_start
-    return Diagnosis(out, arrays, initial, final, simulation)
+    return Diagnosis(out, arrays, initial, reported, final)
 
 
-def _simulation(final: FittedModel, data: Dataset, test: Dataset, config: DiagnoseConfig, say,
-                out: dict) -> FittedModel | None:
-    """The final model's simulation fit (:mod:`ardcore.loop.simulation_fit`), its record and free run in ``out``."""
+def _reported(ctx: LoopContext, final: FittedModel, held: Fit, test: Dataset, rounds: list[LoopRound],
+              arrays: dict) -> tuple[dict, FittedModel]:
+    """The one model the loop reports, and its record: the final structure at the process-noise level whose
+    free run is best on the held-out end of the estimation record (:mod:`.simulation_fit`: factor 1, the
+    posterior's own noise, unless another is better by its ``min_gain``).
+
+    At factor 1 it is the posterior (its mean, its MCMC draws) and the loop's last measure stands. At another
+    factor it is the structure refitted at that noise, with the posterior's spread moved to it
+    (:meth:`~.simulation_fit.SimulationFit.draws`): its free run and band replace the posterior mean's as
+    the final error (the last round's ``after`` and the figure's arrays), and the posterior mean's free run
+    is kept beside it as ``posterior_mean_free_run``.
+    """
     from .simulation_fit import SimulationSettings, simulation_fit
 
+    config, say = ctx.config, ctx.say
+    rec = {"structure": held.cand.label, "noise_factor": 1.0,
+           "parameters": {k: {q: getattr(held.row, q)[k] for q in ("mean", "sd", "q005", "q995")}
+                          for k in held.row.mean}}
+    last = next((r.record for r in reversed(rounds) if r.record.get("added") or r.record.get("replaced")), None)
+    measured = (last["after"] if last is not None else {}).get("free_run") or arrays["before"]["free_run"]
+    keep = ("rms_error", "relative_rms_error", "band_coverage", "band_halfwidth_rms", "n")
+    rec["free_run"] = {k: measured[k] for k in keep if k in measured}
     if not config.simulation_factors:
-        return None
-    say("simulation fit: process-noise factors " + ", ".join(f"{f:g}" for f in config.simulation_factors)
-        + " on held-out data")
+        return {**rec, "chosen_by": "the posterior (no other noise level tried)"}, final
+    say("reported model: process-noise factors " + ", ".join(f"{f:g}" for f in config.simulation_factors)
+        + " judged on held-out data")
     try:
-        sim = simulation_fit(final.spec, final.phi, data, substeps=final.substeps, settings=SimulationSettings(
+        sim = simulation_fit(final.spec, final.phi, held.data, substeps=final.substeps, settings=SimulationSettings(
             factors=tuple(config.simulation_factors), held_out=config.simulation_held_out,
             init_samples=config.init_samples))
     except (FitError, ValueError, np.linalg.LinAlgError) as e:  # the posterior's own result stands
-        out["simulation"] = {"error": f"{type(e).__name__}: {e}"}
-        return None
-    if sim is None:
-        return None
+        return {**rec, "chosen_by": f"the posterior (the other noise levels failed: {type(e).__name__}: {e})"}, final
+    if sim is None or sim.factor == 1.0:
+        say("reported model: the posterior (no smaller process noise free-runs both held-out ends better)")
+        return {**rec, **(sim.to_json() if sim else {"chosen_by": "the posterior (too short to hold part out)"})}, final
     model = FittedModel(final.spec, sim.phi, final.effects, final.substeps)
-    fr = free_run(final.spec, sim.phi, test, init_samples=config.init_samples, substeps=final.substeps)
-    out["simulation"] = {**sim.to_json(), "free_run": {k: fr[k] for k in ("rms_error", "relative_rms_error", "n")}}
-    say(f"simulation fit: factor {sim.factor:g} (held-out free run "
+    draws = sim.draws(posterior_draws(held.mr, final.spec, config.band_draws, seed=len(rounds)), final.phi)
+    fr = free_run(final.spec, sim.phi, test, init_samples=config.init_samples, substeps=final.substeps,
+                  band=Band(draws, calibration=held.data, seed=len(rounds)))
+    rec.update(sim.to_json(), parameters=sim.parameters(rec["parameters"]), free_run={k: fr[k] for k in keep if k in fr},
+               posterior_mean_free_run=rec["free_run"])
+    if last is not None:
+        last["after"]["free_run"] = {**{k: v for k, v in fr.items() if k in last["after"]["free_run"]},
+                                     "noise_factor": sim.factor}
+        arrays["after"]["free_run"] = fr
+    say(f"reported model: the structure at {sim.factor:g} x its posterior process noise (held-out free run "
         + ", ".join(f"x{k:g} {v:.4g}" for k, v in sim.held_out_rms.items())
-        + f"); free-run RMS error {fr['rms_error']:.4g}")
-    return model
+        + f"); free-run RMS error {fr['rms_error']:.4g} (posterior mean {measured['rms_error']:.4g})")
+    return rec, model
 
 
 _BASE_FIT = ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean", "sd")

@@ -92,9 +92,9 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
 
 
 def calibrated_factor(spec: ModelSpec, band: Band, init_samples: int, substeps: int | None) -> tuple[float, dict]:
-    """The process-noise scale of the band: of :data:`BAND_FACTORS`, the one whose 90 % band on the last
-    ``band.held_out`` of the estimation record (free-run from the filter there, as on a test record) holds the
-    share of the data nearest 90 %; the largest of equals (an honest band errs wide). Returns it and each
+    """The process-noise scale of the band: of :data:`BAND_FACTORS`, the smallest whose 90 % band on the last
+    ``band.held_out`` of the estimation record (free-run from the filter there, as on a test record) holds at
+    least 90 % of the data (the largest when none does: an honest band errs wide). Returns it and each
     factor's coverage there."""
     data = band.calibration
     n = len(data)
@@ -115,7 +115,9 @@ def calibrated_factor(spec: ModelSpec, band: Band, init_samples: int, substeps: 
             cover[f] = float(np.mean((y[ok] >= lo[ok]) & (y[ok] <= hi[ok])))
     if not cover:
         return 1.0, None
-    best = min(cover, key=lambda f: (round(abs(cover[f] - 0.9), 2), -f))
+    # the narrowest band that holds 90 % there (as a conformal calibration would): an honest band errs wide
+    reach = [f for f, c in cover.items() if c >= 0.9]
+    best = min(reach) if reach else max(cover)
     return best, {"held_out_samples": int(n - start), "coverage": {f"{f:g}": c for f, c in cover.items()}}
 
 

@@ -57,17 +57,18 @@ class Diagnosis:
     arrays : dict
         ``before``/``after``: residual tests with spectra, innovations, injected process noise, free run.
     initial, final : FittedModel
-        The model as given (fitted) and as the loop left it (its posterior mean).
-    simulation : FittedModel or None
-        The final structure's simulation fit (:mod:`ardcore.loop.simulation_fit`: fitted at the process-noise level
-        that free-runs best on held-out data; None when not made).
+        The model as given (at its posterior mean) and the one model the loop reports (``report["model"]``):
+        the final structure at the process-noise level that free-runs best on the held-out end of the
+        estimation record (:mod:`ardcore.loop.simulation_fit`), its posterior mean at that level.
     """
 
     report: dict
     arrays: dict
     initial: FittedModel
     final: FittedModel
-    simulation: FittedModel | None = None
+    posterior: FittedModel | None = None
+    """The final structure at its posterior mean (``final`` itself when the chosen noise factor is 1): what
+    the reported model is compared with (``report["model"]["posterior_mean_free_run"]``)."""
 
     @property
     def verdict(self) -> str:

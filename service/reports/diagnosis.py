@@ -209,6 +209,36 @@ def _fate(c: dict, added: set) -> str:
     return "not added: another candidate explained it better"
 
 
+def _model_section(m: dict, unit: str) -> list[str]:
+    """The one model the report stands for: its noise level and why, its free run and band, its parameters."""
+    if not m:
+        return []
+    fr = m.get("free_run") or {}
+    f = m.get("noise_factor", 1.0)
+    cover = (f"; {100 * fr['band_coverage']:.0f} % of the held-out data inside its 90 % band"
+             if isinstance(fr.get("band_coverage"), (int, float)) else "")
+    if f == 1.0:
+        how = ("the posterior as sampled (its mean, its draws), at the process noise the evidence fitted"
+               + (f"; {html.escape(m['chosen_by'])}" if "the posterior" in str(m.get("chosen_by", "")) else
+                  ": no smaller process noise free-ran both held-out ends of the estimation record better"))
+    else:
+        held = ", ".join(f"x{k}: {v:.4g}" for k, v in (m.get("held_out_rms") or {}).items())
+        pm = (m.get("posterior_mean_free_run") or {}).get("rms_error")
+        how = (f"the final structure at {_num(f)} x its posterior process noise "
+               f"({html.escape(', '.join(m.get('noise_parameters', [])))}), the level whose free run was best on the "
+               f"held-out last {m.get('held_out_samples')} samples of the estimation record ({html.escape(held)}), "
+               "refitted on the whole record there, with the Laplace approximation of its posterior"
+               + (f"; at the posterior mean the same structure free-runs at {_num(pm)} {unit}" if pm is not None
+                  else ""))
+    rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{_num(q.get('mean'))}</td><td>{_num(q.get('sd'))}</td>"
+                   f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>"
+                   for k, q in (m.get("parameters") or {}).items())
+    return [f"<h3>The model reported</h3><p>One model: {how}. Its free-run RMS error is "
+            f"{_num(fr.get('rms_error'))} {unit}{cover}.</p>",
+            "<details><summary>Its parameters</summary><table><tr><th>parameter</th><th>mean</th><th>sd</th>"
+            f"<th>99 % interval</th></tr>{rows}</table></details>"]
+
+
 def _round_table(r: dict, k: int = 8) -> str:
     """One round: every confirmed candidate (screened and confirmed ln BF, its fate, its coefficients with
     their 99 % intervals) and the best of the rest as screened."""
@@ -306,15 +336,7 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
     body.append("<h2>Each round: the candidates and what became of them</h2>")
     body += [_round_table(r) for r in j.get("rounds", [])]
     body += ["<h2>Error before and after</h2>", _error_table(j, unit), fig("free_run.png")]
-    sim = j.get("simulation") or {}
-    if "factor" in sim:
-        held = ", ".join(f"x{k}: {v:.4g}" for k, v in sim["held_out_rms"].items())
-        body.append(f"<h3>Simulation fit</h3><p>The final structure fitted at {_num(sim['factor'])} x its "
-                    f"posterior process noise ({html.escape(', '.join(sim['noise_parameters']))}), the factor that "
-                    f"free-ran best on the held-out last {sim['held_out_samples']} samples of the estimation record "
-                    f"({html.escape(held)}): free-run RMS error {_num(sim['free_run']['rms_error'])} {unit}. A "
-                    "predictive choice for simulation, not the evidence's: the posterior, its intervals and the "
-                    "model selection above are unchanged.</p>")
+    body += _model_section(j.get("model") or {}, unit)
     body += ["<h2>Residual tests before and after</h2>", _tests_table(j, col), fig("tests.png"),
              "<h2>Where the model needed help</h2>", fig("process_noise.png"), fig("candidates.png")]
     style = ("body{font-family:sans-serif;font-size:15px;max-width:1100px;margin:auto}img{max-width:100%}"

@@ -60,7 +60,10 @@ def publish(results: dict, command: str, machine: dict, path: Path = FIGURES) ->
     ekf = {k: v for k, v in results.items() if k.startswith("ekf_") and (k.endswith("_table") or k.endswith("_ms"))}
     if "ekf_m2_substep_table" in ekf:
         figs["ekf_table"] = entry(ekf)
-    loop = {k: v for k, v in results.items() if k.startswith(LOOP_PREFIX)}
+    val = {k: v for k, v in results.items() if _validation_key(k)}
+    if "validation_records" in val:  # the validation group ran this time
+        figs["validation_table"] = entry(val)
+    loop = {k: v for k, v in results.items() if k.startswith(LOOP_PREFIX) and not _validation_key(k)}
     if "loop_silverbox_s" in loop:  # the group ran this time: its figures replace the earlier run's together
         figs["loop_table"] = entry(loop)
     for key, *_ in HEADLINE:
@@ -70,6 +73,17 @@ def publish(results: dict, command: str, machine: dict, path: Path = FIGURES) ->
         if key == "loop_pendulum_rad" and "loop_pendulum_record" in results and key in figs:
             figs[key]["record"] = results["loop_pendulum_record"]
     path.write_text(json.dumps(figs, indent=1, sort_keys=True) + "\n")
+
+
+VALIDATION = ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis", "none")
+"""The validation set's records (:mod:`tests.bench.validation`), in the table's order."""
+DESIGN = {"cascade", "duffing"}
+"""The records of a class the loop's families were designed on; the rest are checks."""
+
+
+def _validation_key(k: str) -> bool:
+    return k.startswith("validation_") or any(k.startswith(f"loop_{r}_") or k.startswith("peer_") and
+                                              k.endswith(f"_{r}") for r in VALIDATION)
 
 
 def render(figs: dict) -> list[str]:
@@ -126,21 +140,26 @@ def _cover(c) -> str:
     return f" ({100 * c:.0f} % in its 90 % band)" if isinstance(c, (int, float)) else ""
 
 
+def _factor(f) -> str:
+    """`` (reported at 0.1 x its process noise)`` when the reported model's noise factor is not 1."""
+    return f" (reported at {f:g} x its process noise)" if isinstance(f, (int, float)) and f != 1 else ""
+
+
 def render_loop(figs: dict) -> list[str]:
     """docs/loop.md's table: the loop on the real records beside the peers of the same run and split."""
     f = figs.get("loop_table")
     if f is None:
         return ["(not measured yet: `python -m tests.bench.run --only loop`)"]
     v = f["value"]
-    rows = ["| record, free-run RMS error on the test segment | ardflow: start -> after the loop (posterior mean) "
-            "| ardflow simulation fit | linear ARX | polynomial NARX | SysIdentPy | PySINDy | effects added | "
-            "loop wall time |", "|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| record, free-run RMS error on the test segment | ardflow: start -> the model it reports "
+            "| (that structure at its posterior mean) | linear ARX | polynomial NARX | SysIdentPy | PySINDy | "
+            "effects added | loop wall time |", "|---|---|---|---|---|---|---|---|---|"]
     for seg in ("multisine", "arrow"):
         rows.append(
             f"| Silverbox, {seg} test | {_mv(v.get(f'loop_silverbox_{seg}_before_mv'), 'mV')} -> "
             f"{_mv(v.get(f'loop_silverbox_{seg}_mv'), 'mV')}{_cover(v.get(f'loop_silverbox_{seg}_band_coverage'))} | "
-            f"{_mv(v.get(f'loop_silverbox_{seg}_simulation_mv'), 'mV')}"
-            f" (x{v.get('loop_silverbox_simulation_factor', '')}) | "
+            f"{_mv(v.get(f'loop_silverbox_{seg}_posterior_mean_mv'), 'mV')}"
+            f"{_factor(v.get('loop_silverbox_noise_factor'))} | "
             + " | ".join(_mv(v.get(f"loop_peer_{p}_{seg}_mv"), "mV") for p in ("arx", "narx", "sysidentpy", "pysindy"))
             + f" | {', '.join(v.get('loop_silverbox_added') or []) if seg == 'multisine' else ''} | "
             + (f"{v['loop_silverbox_s']:.0f} s" + (f" ({v['loop_silverbox_samples']:,} samples, "
@@ -150,8 +169,8 @@ def render_loop(figs: dict) -> list[str]:
     rec = "synthetic stand-in" if v.get("loop_pendulum_record") == "stand-in" else "real record"
     rows.append(f"| pendulum ({rec}), free run 40-120 s | {_mv(v.get('loop_pendulum_before_rad'), 'rad')} -> "
                 f"{_mv(v.get('loop_pendulum_rad'), 'rad')}{_cover(v.get('loop_pendulum_band_coverage'))} | "
-                f"{_mv(v.get('loop_pendulum_simulation_rad'), 'rad')} "
-                f"(x{v.get('loop_pendulum_simulation_factor', '')}) |  | "
+                f"{_mv(v.get('loop_pendulum_posterior_mean_rad'), 'rad')}"
+                f"{_factor(v.get('loop_pendulum_noise_factor'))} |  | "
                 f"{_mv(v.get('loop_peer_narx_pendulum_rad'), 'rad')} (NAR) |  |  | "
                 f"{', '.join(v.get('loop_pendulum_added') or [])} | {_mv(v.get('loop_pendulum_s'), 's')} |")
     if "loop_reference_s" in v:
@@ -199,10 +218,45 @@ def render_ekf(figs: dict) -> list[str]:
     return rows + _provenance(f)
 
 
+VAL_BEGIN = "<!-- validation:begin (generated by python -m tests.bench.figures) -->"
+VAL_END = "<!-- validation:end -->"
+
+
+def render_validation(figs: dict) -> list[str]:
+    """docs/loop.md's validation table: each record from its plain user model, the loop beside the peers."""
+    f = figs.get("validation_table")
+    if f is None:
+        return ["(not measured yet: `python -m tests.bench.run --only validation`)"]
+    v = f["value"]
+
+    def num(x) -> str:
+        return "" if not isinstance(x, (int, float)) else ("diverged" if not math.isfinite(x) else f"{x:.3g}")
+
+    rows = ["| record (class) | user's model | the loop's reported model | what the loop did | linear ARX | "
+            "polynomial NARX | SysIdentPy | PySINDy | loop <= best peer | loop wall time |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in VALIDATION:
+        if f"loop_{r}_free_run" not in v:
+            continue
+        did = [*v.get(f"loop_{r}_replaced", []), *v.get(f"loop_{r}_added", [])]
+        loop, best = v[f"loop_{r}_free_run"], v.get(f"peer_best_{r}")
+        rows.append(f"| {r} ({'design' if r in DESIGN else 'check'}) | {num(v.get(f'loop_{r}_before'))} | "
+                    f"{num(loop)}{_cover(v.get(f'loop_{r}_band_coverage'))} | {', '.join(did) or 'nothing'} | "
+                    + " | ".join(num(v.get(f"peer_{p}_{r}")) for p in ("arx", "narx", "sysidentpy", "pysindy"))
+                    + f" | {'yes' if isinstance(best, (int, float)) and loop <= best else 'no'} | "
+                      f"{num(v.get(f'loop_{r}_s'))} s |")
+    rows += ["", f"The loop's free run is at or below the best peer's on {v.get('validation_loop_at_or_below_best_peer')}"
+                 f" of {v.get('validation_records')} records; on the record without an effect it changed "
+                 f"{v.get('validation_added_on_clean')} terms. Free-run RMS errors on the held-out second half of "
+                 "each record, in the record's units."]
+    return rows + _provenance(f)
+
+
 def _blocks(figs: dict) -> dict:
     """Each generated file: its blocks (begin, end) -> the lines the figures file renders."""
     return {ROOT / "README.md": {(BEGIN, END): render(figs), (DEMO_BEGIN, DEMO_END): render_demo(figs)},
-            ROOT / "docs" / "loop.md": {(LOOP_BEGIN, LOOP_END): render_loop(figs)},
+            ROOT / "docs" / "loop.md": {(LOOP_BEGIN, LOOP_END): render_loop(figs),
+                                        (VAL_BEGIN, VAL_END): render_validation(figs)},
             ROOT / "docs" / "models.md": {(EKF_BEGIN, EKF_END): render_ekf(figs)}}
 
 

@@ -545,12 +545,12 @@ def bench_study(tiny: bool = False) -> dict:
 
 
 def _after_mv(rep, seg: dict) -> dict:
-    """Free-run RMS errors (mV) of the loop's final model on the Silverbox test segments: its posterior mean
-    (``<segment>``) and its simulation fit (``<segment>_simulation``, ``ardcore.loop.simulation_fit``)."""
+    """Free-run RMS errors (mV) on the Silverbox test segments of the one model the loop reports
+    (``<segment>``) and of its structure at the posterior mean (``<segment>_posterior_mean``)."""
     out = {}
     for k in ("multisine", "arrow"):
         out[k] = 1e3 * rep.final.free_run(seg[f"test_{k}"])["rms_error"]
-        out[f"{k}_simulation"] = 1e3 * (rep.simulation or rep.final).free_run(seg[f"test_{k}"])["rms_error"]
+        out[f"{k}_posterior_mean"] = 1e3 * (rep.posterior or rep.final).free_run(seg[f"test_{k}"])["rms_error"]
     return out
 
 
@@ -560,8 +560,9 @@ def bench_loop(tiny: bool = False) -> dict:
     Silverbox: fit on the estimation segment, free run on the multisine and arrow test segments (first 50
     samples initialise). Pendulum: fit 2-40 s, free run 40-120 s. Reference data: the loop on the 5000-point
     record (M2's data-generating form, one round). The pendulum is the real record when ``$ARDFLOW_DATA`` holds it,
-    else the synthetic stand-in (``loop_pendulum_record`` says which). Keys: loop_silverbox_{multisine,arrow}_mv (after the loop: its
-    posterior mean; ..._simulation_mv its simulation fit, ``ardcore.loop.simulation_fit``; ..._simulation_factor),
+    else the synthetic stand-in (``loop_pendulum_record`` says which). Keys: loop_silverbox_{multisine,arrow}_mv (after the loop: the one
+    model it reports; ..._posterior_mean_mv its structure at the posterior mean; loop_silverbox_noise_factor, the
+    process-noise factor of the reported model, ``ardcore.loop.simulation_fit``),
     ..._before_mv, loop_silverbox_s, loop_pendulum_rad (+ _before), loop_pendulum_s, loop_reference_s,
     loop_peer_{arx,narx,pysindy,sysidentpy}_{multisine,arrow}_mv, loop_peer_best_multisine_mv,
     loop_peer_best_arrow_mv, loop_peer_narx_pendulum_rad, loop_silverbox_added, loop_pendulum_added,
@@ -622,10 +623,9 @@ def bench_loop(tiny: bool = False) -> dict:
     out["loop_silverbox_multisine_before_mv"] = 1e3 * rep.report["before"]["free_run"]["rms_error"]
     out["loop_silverbox_arrow_before_mv"] = 1e3 * rep.initial.free_run(seg["test_arrow"])["rms_error"]
     out.update({f"loop_silverbox_{k}_mv": v for k, v in _after_mv(rep, seg).items()})
-    out["loop_silverbox_simulation_factor"] = (rep.report.get("simulation") or {}).get("factor")
+    out["loop_silverbox_noise_factor"] = rep.report["model"]["noise_factor"]
     # the share of the held-out data inside the final model's 90 % posterior predictive band
-    out["loop_silverbox_multisine_band_coverage"] = ((rep.report["after"] or rep.report["before"])["free_run"]
-                                                     .get("band_coverage"))
+    out["loop_silverbox_multisine_band_coverage"] = rep.report["model"]["free_run"].get("band_coverage")
     out["loop_silverbox_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
     # -- the pendulum
     # the real record when $ARDFLOW_DATA holds it (it is not shipped), else the synthetic stand-in
@@ -641,11 +641,10 @@ def bench_loop(tiny: bool = False) -> dict:
                     progress=lambda m: print("  " + m, flush=True))
     out["loop_pendulum_s"] = time.perf_counter() - t0
     out["loop_pendulum_before_rad"] = prep.report["before"]["free_run"]["rms_error"]
-    out["loop_pendulum_rad"] = (prep.report["after"] or prep.report["before"])["free_run"]["rms_error"]
-    out["loop_pendulum_simulation_rad"] = (prep.simulation or prep.final).free_run(ptest)["rms_error"]
-    out["loop_pendulum_simulation_factor"] = (prep.report.get("simulation") or {}).get("factor")
-    out["loop_pendulum_band_coverage"] = ((prep.report["after"] or prep.report["before"])["free_run"]
-                                          .get("band_coverage"))
+    out["loop_pendulum_rad"] = prep.report["model"]["free_run"]["rms_error"]
+    out["loop_pendulum_posterior_mean_rad"] = (prep.posterior or prep.final).free_run(ptest)["rms_error"]
+    out["loop_pendulum_noise_factor"] = prep.report["model"]["noise_factor"]
+    out["loop_pendulum_band_coverage"] = prep.report["model"]["free_run"].get("band_coverage")
     out["loop_pendulum_added"] = [a["effect"] + " -> " + a["target"] for a in prep.added]
     py = pdata.columns["y"]
     pn = peers.fit_narx(py, np.zeros_like(py))
@@ -704,6 +703,61 @@ def bench_fresh(tiny: bool = False) -> dict:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def bench_validation(tiny: bool = False) -> dict:
+    """The loop on the validation set (:mod:`tests.bench.validation`): each record from its plain user model,
+    and the peers on the same split, in one run.
+
+    Keys per record ``<r>``: ``loop_<r>_free_run`` (the reported model's free-run RMS error on the test
+    record), ``loop_<r>_before`` (the user's model's), ``loop_<r>_band_coverage`` (the test data's share
+    inside the reported model's 90 % band), ``loop_<r>_s`` (the loop's wall time), ``loop_<r>_added`` and
+    ``loop_<r>_replaced`` (what it did), ``peer_<p>_<r>`` for the linear ARX, the polynomial NARX with its
+    simulation-error refit, SysIdentPy and PySINDy, ``peer_best_<r>`` the best of them; and the summary
+    ``validation_loop_at_or_below_best_peer`` (records where the loop's free run is at or below the best
+    peer's), ``validation_records``, ``validation_added_on_clean`` (effects added where the truth has none).
+    """
+    from ardflow.ardcore.loop.config import DiagnoseConfig
+    from ardflow.ardcore.loop.diagnose import diagnose
+
+    from . import peers
+    from .validation import RECORDS
+
+    out: dict = {}
+    wins = clean_added = 0
+    for name, make in RECORDS.items():
+        rec = make(n=600) if tiny else make()
+        spec = _tiny_spec(rec.spec) if tiny else rec.spec
+        print(f"  [{name}] {rec.physics}", flush=True)
+        t0 = time.perf_counter()
+        rep = diagnose(spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=1 if tiny else 3),
+                       progress=lambda m: print("    " + m, flush=True))
+        out[f"loop_{name}_s"] = time.perf_counter() - t0
+        r = rep.report
+        out[f"loop_{name}_free_run"] = r["model"]["free_run"]["rms_error"]
+        out[f"loop_{name}_before"] = r["before"]["free_run"]["rms_error"]
+        out[f"loop_{name}_band_coverage"] = r["model"]["free_run"].get("band_coverage")
+        out[f"loop_{name}_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
+        out[f"loop_{name}_replaced"] = [x["parameter"] + "*" + x["term"] + " -> " + x["by"] for x in r["replaced"]]
+        y, u = rec.est.columns["y"], rec.est.columns["u"]
+        test = {"test": (rec.test.columns["y"], rec.test.columns["u"])}
+        peer = {"arx": peers.free_run_rms(peers.fit_narx(y, u, polynomial=False), *test["test"]),
+                "narx": peers.free_run_rms(peers.fit_narx(y, u), *test["test"])}
+        for p, fn in (("pysindy", peers.pysindy_free_run), ("sysidentpy", peers.sysidentpy_free_run)):
+            got = fn(y, u, test)
+            if got is not None:
+                peer[p] = got["test"]
+        for p, v in peer.items():
+            out[f"peer_{p}_{name}"] = v
+        out[f"peer_best_{name}"] = min(peer.values())
+        wins += out[f"loop_{name}_free_run"] <= out[f"peer_best_{name}"]
+        if not rec.has_effect:
+            clean_added += len(rep.added) + len(r["replaced"])
+        _save_partial(out)
+    out["validation_records"] = len(RECORDS)
+    out["validation_loop_at_or_below_best_peer"] = wins
+    out["validation_added_on_clean"] = clean_added
+    return out
+
+
 def _save_partial(res: dict) -> None:
     """Merge figures measured so far into .bench/results.json (a long group must not lose them on a crash)."""
     path = ROOT / ".bench" / "results.json"
@@ -715,7 +769,7 @@ def _save_partial(res: dict) -> None:
 
 BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "study": bench_study,
            "posterior": bench_posterior, "posterior_full": bench_posterior_full,
-           "loop": bench_loop, "fresh": bench_fresh}
+           "loop": bench_loop, "validation": bench_validation, "fresh": bench_fresh}
 
 
 CONTRACT = {
@@ -732,6 +786,9 @@ CONTRACT = {
     "loop": ["loop_silverbox_multisine_mv", "loop_silverbox_arrow_mv", "loop_pendulum_rad",
              "loop_peer_best_multisine_mv", "loop_peer_pysindy_multisine_mv", "loop_peer_sysidentpy_multisine_mv",
              "loop_peer_narx_pendulum_rad"],
+    "validation": ["validation_records", "validation_loop_at_or_below_best_peer", "validation_added_on_clean",
+                   *[k.format(r) for r in ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis",
+                                           "none") for k in ("loop_{}_free_run", "peer_best_{}", "loop_{}_s")]],
     "fresh": ["fresh_demo_s", "fresh_demo_evaluations"],
 }
 """Keys each group must write (named in issues and the README: a contract); the smoke test checks them."""

@@ -1,0 +1,211 @@
+"""The loop's validation set: records of classes it was not designed on, each simulated here from physics
+written down below, run through ``diagnose`` from a deliberately plain user model and, in the same bench
+run, through the peers on the same split (``tests.bench.run``, group ``validation``).
+
+Every record is the truth's stochastic ODE simulated by :func:`ardflow.ardcore.likelihood.simulate.simulate_model`
+(process noise on the forced states, measurement noise on the one measured output), split in time: the first
+``EST`` share estimates, the rest is the held-out test record the free runs are scored on. The user's model is
+the plain one an engineer would start from: a linear oscillator for the mechanical and electrical records, a
+linear level model for the tanks. ``design`` says whether the loop's families were tuned on a record of that
+class (the Duffing circuit and the tank cascade) or not (every other record is a check).
+
+Records (the physics each one holds; ``sigma`` process noise, ``gamma`` measurement noise):
+
+* ``cascade``: two tanks, a pump filling the upper one; the pipe between them and the lower tank's orifice
+  follow sqrt(h) (Torricelli), the lower tank spills over a rim above 3.5 (a flow that leaves the system);
+  only the lower level measured. User model: both laws linear.
+* ``duffing``: a hardening Duffing circuit y'' = -k y - c y' - k3 y^3 + b u under a swept sine (chirp), where
+  the design record (Silverbox) had a multisine. User model: linear.
+* ``friction``: a mass on a spring with viscous and Coulomb friction, Fc sign(v) (smoothed over 2 % of the
+  velocity's spread, so it sticks near rest), driven by a pulse train and decaying between pulses. User model:
+  linear.
+* ``saturation``: a linear oscillator whose actuator saturates, b umax tanh(u/umax), under an input that
+  drives it well into saturation. User model: linear in u.
+* ``backlash``: a load driven through a gear with backlash: the coupling force k dz(u - y), dz a dead zone of
+  half-width delta (no force while the gap is open). User model: a linear coupling k (u - y).
+* ``hysteresis``: a Bouc-Wen element beside a linear spring: y'' = -k y - c y' - a z + b u,
+  z' = v - beta |v| z - gamma_bw v |z| (a hidden hysteretic state). User model: linear.
+* ``none``: the user's linear oscillator is the truth: the loop must add nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+EST = 0.5
+"""Share of each record that estimates; the rest is the held-out test record."""
+
+
+@dataclass(frozen=True)
+class Record:
+    """One validation record: the plain user study (``spec``: one model, its priors), the estimation and test
+    records, whether the truth holds an effect the user model lacks, and whether its class was a design
+    record."""
+
+    name: str
+    spec: object
+    est: object
+    test: object
+    has_effect: bool
+    design: bool
+    physics: str
+
+
+SAMPLER = {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600}
+
+
+def _oscillator_study(name: str, model: dict, priors: dict, seed: int = 2):
+    from ardflow.ardcore.selection.spec import StudySpec
+
+    return StudySpec.model_validate({"name": name, "data": {"generator": "appendix_a"}, "evidence": "laplace",
+                                     "models": [{"model": model, "priors": priors}], "sampler": SAMPLER,
+                                     "seed": seed})
+
+
+def _linear_oscillator(gamma: float, extra_constants: dict | None = None) -> dict:
+    from ardflow.ardcore.model.library import builtin
+
+    m = builtin("forced_linear_oscillator").model_dump(mode="json")
+    m["constants"] = {"gamma": gamma, **(extra_constants or {})}
+    return m
+
+
+def _truth(drift_v: str, params: list, gamma: float, states=("y", "v"), drift_extra: dict | None = None,
+           diffusion_extra: dict | None = None):
+    from ardflow.ardcore.model.declaration import ModelSpec
+
+    drift = {"y": "v", "v": drift_v, **(drift_extra or {})}
+    return ModelSpec(name="truth", states=list(states), inputs=["u"], drift=drift,
+                     diffusion={"v": "sigma", **(diffusion_extra or {})},
+                     observations=[{"column": "y", "expr": "y", "noise_std": "gamma"}], parameters=params,
+                     constants={"gamma": gamma}, initial_std={s: 0.1 for s in states}, substeps=10)
+
+
+def _simulate(truth, params: dict, t: np.ndarray, u: np.ndarray, seed: int, n_states: int):
+    from ardflow.ardcore.data import Dataset
+    from ardflow.ardcore.likelihood.simulate import simulate_model
+
+    d = simulate_model(truth, params, t, seed, inputs={"u": u}, x0=[0.0] * n_states)
+    return Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": f"validation:{truth.name}"})
+
+
+def _split(name, spec, data, has_effect, design, physics, n_est=None) -> Record:
+    n = len(data)
+    k = n_est or int(round(EST * n))
+    return Record(name, spec, data.slice(0, k), data.slice(k, None), has_effect, design, physics)
+
+
+OSC_PRIORS = {"k": {"kind": "lognormal", "median": 15.0, "cov": 100},
+              "c": {"kind": "lognormal", "median": 0.3, "cov": 200},
+              "b": {"kind": "lognormal", "median": 5.0, "cov": 200},
+              "sigma": {"kind": "lognormal", "median": 0.3, "cov": 200}}
+
+
+def _noise_input(rng, n: int, width: int = 8) -> np.ndarray:
+    """Band-limited noise (a moving average of white noise), unit-ish spread."""
+    return np.convolve(rng.standard_normal(n + 2 * width), np.ones(width) / np.sqrt(width), mode="same")[width:-width]
+
+
+def duffing(n: int = 4000, seed: int = 11) -> Record:
+    t = np.arange(n) * 0.02
+    f = 0.3 + (1.2 - 0.3) * t / t[-1]  # a swept sine, 0.3 -> 1.2 Hz (the linear resonance is near 0.64 Hz)
+    u = 1.5 * np.sin(2 * np.pi * np.cumsum(f) * 0.02)
+    truth = _truth("-k*y - c*v - k3*y**3 + b*u", ["k", "c", "k3", "b", "sigma"], 2e-3)
+    data = _simulate(truth, {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}, t, u, seed, 2)
+    spec = _oscillator_study("duffing", _linear_oscillator(2e-3), OSC_PRIORS)
+    return _split("duffing", spec, data, True, True, "hardening cubic stiffness under a swept sine")
+
+
+def friction(n: int = 4000, seed: int = 12) -> Record:
+    t = np.arange(n) * 0.02
+    rng = np.random.default_rng(seed)
+    u = np.zeros(n)
+    for k0 in range(0, n, 400):  # a pulse every 8 s, of random height and sign
+        u[k0:k0 + 25] = rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 4.0)
+    truth = _truth("-k*y - c*v - Fc*tanh(v/0.02) + b*u", ["k", "c", "Fc", "b", "sigma"], 2e-3)
+    data = _simulate(truth, {"k": 16.0, "c": 0.2, "Fc": 0.8, "b": 8.0, "sigma": 0.05}, t, u, seed, 2)
+    spec = _oscillator_study("friction", _linear_oscillator(2e-3), OSC_PRIORS)
+    return _split("friction", spec, data, True, False, "viscous and Coulomb friction, decaying to rest")
+
+
+def saturation(n: int = 4000, seed: int = 13) -> Record:
+    t = np.arange(n) * 0.02
+    u = 2.5 * _noise_input(np.random.default_rng(seed), n)
+    truth = _truth("-k*y - c*v + b*0.8*tanh(u/0.8)", ["k", "c", "b", "sigma"], 2e-3)
+    data = _simulate(truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, t, u, seed, 2)
+    spec = _oscillator_study("saturation", _linear_oscillator(2e-3), OSC_PRIORS)
+    return _split("saturation", spec, data, True, False, "an actuator saturating at 0.8")
+
+
+def backlash(n: int = 4000, seed: int = 14) -> Record:
+    t = np.arange(n) * 0.02
+    u = 0.6 * _noise_input(np.random.default_rng(seed), n, 25)  # the driving gear's position
+    gap = "0.5*((u - y) - 0.1*sign(u - y))*(1 + sign(abs(u - y) - 0.1))"  # dead zone of half-width 0.1
+    truth = _truth(f"-c*v + k*{gap}", ["k", "c", "sigma"], 1e-3)
+    data = _simulate(truth, {"k": 16.0, "c": 0.6, "sigma": 0.2}, t, u, seed, 2)
+    user = _linear_oscillator(1e-3)
+    user["drift"] = {"y": "v", "v": "-c*v + k*(u - y)"}
+    user["parameters"] = ["k", "c", "sigma"]
+    spec = _oscillator_study("backlash", user, {p: OSC_PRIORS[p] for p in ("k", "c", "sigma")})
+    return _split("backlash", spec, data, True, False, "a gear with backlash of half-width 0.1")
+
+
+def hysteresis(n: int = 4000, seed: int = 15) -> Record:
+    t = np.arange(n) * 0.02
+    u = 1.2 * _noise_input(np.random.default_rng(seed), n, 12)
+    truth = _truth("-k*y - c*v - a*z + b*u", ["k", "c", "a", "b", "sigma"], 2e-3, states=("y", "v", "z"),
+                   drift_extra={"z": "v - 2.0*abs(v)*z - 1.0*v*abs(z)"}, diffusion_extra={})
+    data = _simulate(truth, {"k": 10.0, "c": 0.3, "a": 8.0, "b": 8.0, "sigma": 0.3}, t, u, seed, 3)
+    spec = _oscillator_study("hysteresis", _linear_oscillator(2e-3), OSC_PRIORS)
+    return _split("hysteresis", spec, data, True, False, "a Bouc-Wen hysteretic element")
+
+
+def none(n: int = 4000, seed: int = 16) -> Record:
+    t = np.arange(n) * 0.02
+    u = _noise_input(np.random.default_rng(seed), n)
+    truth = _truth("-k*y - c*v + b*u", ["k", "c", "b", "sigma"], 2e-3)
+    data = _simulate(truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, t, u, seed, 2)
+    spec = _oscillator_study("none", _linear_oscillator(2e-3), OSC_PRIORS)
+    return _split("none", spec, data, False, False, "the user's linear oscillator is the truth")
+
+
+def cascade(n: int = 3000, seed: int = 17) -> Record:
+    from ardflow.ardcore.model.declaration import ModelSpec
+    from ardflow.ardcore.selection.spec import StudySpec
+
+    root = "sqrt(abs({0}))*sign({0})".format
+    rim = " - 1.0*0.5*(h2 - 3.5)*(1 + sign(h2 - 3.5))"
+
+    def tanks(pipe: str, out: str, spill: str = "") -> ModelSpec:
+        return ModelSpec(name="tanks", description="two tanks in cascade", states=["h1", "h2"], inputs=["u"],
+                         drift={"h1": f"q*u - a*{pipe}", "h2": f"a*{pipe} - c*{out}" + spill},
+                         diffusion={"h1": "s", "h2": "s"},
+                         observations=[{"column": "y", "expr": "h2", "noise_std": "gamma"}],
+                         constants={"gamma": 0.003}, parameters=["a", "c", "q", "s"],
+                         initial_mean={"h1": 1.0, "h2": 1.0}, initial_std={"h1": 0.1, "h2": 0.1})
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.2
+    u = 1.1 + 0.9 * np.sign(np.sin(2 * np.pi * t / 60)) + 0.1 * rng.standard_normal(n)
+    from ardflow.ardcore.data import Dataset
+    from ardflow.ardcore.likelihood.simulate import simulate_model
+
+    d = simulate_model(tanks(root("h1"), root("h2"), rim), {"q": 0.5, "a": 0.5, "c": 0.4, "s": 0.005}, t, seed,
+                       inputs={"u": u}, x0=[1.0, 1.0])
+    data = Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": "validation:cascade"})
+    spec = StudySpec.model_validate({
+        "name": "cascade", "data": {"generator": "appendix_a"}, "evidence": "laplace",
+        "models": [{"model": tanks("h1", "h2").model_dump(mode="json"),
+                    "priors": {"a": {"kind": "lognormal", "median": 0.3, "cov": 200},
+                               "c": {"kind": "lognormal", "median": 0.3, "cov": 200},
+                               "q": {"kind": "lognormal", "median": 0.3, "cov": 200},
+                               "s": {"kind": "lognormal", "median": 0.01, "cov": 200}}}],
+        "sampler": SAMPLER, "seed": 2})
+    return _split("cascade", spec, data, True, True, "sqrt(h) pipe and orifice, a rim on the lower tank")
+
+
+RECORDS = {"cascade": cascade, "duffing": duffing, "friction": friction, "saturation": saturation,
+           "backlash": backlash, "hysteresis": hysteresis, "none": none}
+"""Every validation record by name (each a function of the record length and seed)."""
