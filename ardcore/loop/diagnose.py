@@ -177,7 +177,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             held = backward_check(ctx, held, earlier, rnd)
             held = replace_laws(ctx, held, rounds)
         final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), held.cand.substeps)
-        first["model"], reported = _reported(ctx, final, held, cur_test, rounds, arrays)
+        first["reported"], reported = _reported(ctx, final, held, cur_test, rounds, arrays)
         out = _report(ctx, data, test_data, first, rounds, arrays, held)
     finally:
         close()

@@ -57,7 +57,7 @@ class Diagnosis:
     arrays : dict
         ``before``/``after``: residual tests with spectra, innovations, injected process noise, free run.
     initial, final : FittedModel
-        The model as given (at its posterior mean) and the one model the loop reports (``report["model"]``):
+        The model as given (at its posterior mean) and the one model the loop reports (``report["reported"]``):
         the final structure at the process-noise level that free-runs best on the held-out end of the
         estimation record (:mod:`ardcore.loop.simulation_fit`), its posterior mean at that level.
     """
@@ -68,7 +68,7 @@ class Diagnosis:
     final: FittedModel
     posterior: FittedModel | None = None
     """The final structure at its posterior mean (``final`` itself when the chosen noise factor is 1): what
-    the reported model is compared with (``report["model"]["posterior_mean_free_run"]``)."""
+    the reported model is compared with (``report["reported"]["posterior_mean_free_run"]``)."""
 
     @property
     def verdict(self) -> str:

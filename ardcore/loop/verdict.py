@@ -127,7 +127,7 @@ def headline(report: dict, col: str, unit: str = "") -> str:
     else:
         what = "Nothing was added: no effect of the library is supported by the evidence."
         # the reported model: the declared structure, at the noise level chosen for it
-        reported = (report.get("model") or {}).get("free_run") or before["free_run"]
+        reported = (report.get("reported") or {}).get("free_run") or before["free_run"]
         error = f"Free-run RMS error {reported['rms_error']:.3g}{u}."
     p = ((report.get("tests_after") or report.get("tests_before") or {}).get(col) or {}).get("ljung_box_p")
     if p is None:

@@ -336,7 +336,7 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
     body.append("<h2>Each round: the candidates and what became of them</h2>")
     body += [_round_table(r) for r in j.get("rounds", [])]
     body += ["<h2>Error before and after</h2>", _error_table(j, unit), fig("free_run.png")]
-    body += _model_section(j.get("model") or {}, unit)
+    body += _model_section(j.get("reported") or {}, unit)
     body += ["<h2>Residual tests before and after</h2>", _tests_table(j, col), fig("tests.png"),
              "<h2>Where the model needed help</h2>", fig("process_noise.png"), fig("candidates.png")]
     style = ("body{font-family:sans-serif;font-size:15px;max-width:1100px;margin:auto}img{max-width:100%}"

@@ -144,9 +144,17 @@ def test_declared_rivals_are_the_linear_terms_of_the_effects_states_alone():
 @pytest.mark.parametrize("seed", [11, 12])
 def test_loop_adds_nothing_to_a_correct_model(seed):
     data = duffing_free_decay(0.0, seed)
-    rep = diagnose(duffing_spec(), data, config=DiagnoseConfig(top_k=2, max_rounds=1)).to_json()
+    diag = diagnose(duffing_spec(), data, config=DiagnoseConfig(top_k=2, max_rounds=1))
+    rep = diag.to_json()
     assert rep["added"] == [], rep["verdict"]
     assert "no evidence of a missing effect" in rep["verdict"] or "NOT explained" in rep["verdict"]
+    # one model reported: the one whose free run the report quotes (the headline's figure is its figure)
+    reported = rep["reported"]
+    assert rep["model"] == duffing_spec().models[0].label and reported["structure"] == rep["final_model"]
+    fr = diag.final.free_run(data)["rms_error"]
+    assert reported["free_run"]["rms_error"] == pytest.approx(fr, rel=1e-9)
+    assert f"{fr:.3g}" in rep["headline"]
+    assert set(reported["parameters"]) == set(rep["final_fit"]["mean"])
 
 
 def _fit(spec, data, x0):

@@ -27,6 +27,11 @@ def test_diagnosis_report_rounds_errors_in_units_and_tests(tmp_path):
     write_diagnosis(d, data.slice(0, 1000).t, tmp_path, "y", label)
     html = (tmp_path / "diagnosis.html").read_text()
     rep = d.to_json()
+    # the diagnosed model's name heads the page, and one reported model is described with its free run
+    assert f"<h1>Diagnosis of {rep['model']}</h1>" in html
+    model = html.split("<h3>The model reported</h3>", 1)[1].split("</details>", 1)[0]
+    assert model.startswith("<p>One model:") and f"{rep['reported']['free_run']['rms_error']:.4g}" in model
+    assert "<th>99 % interval</th>" in model
     # the verdict first, at most three sentences
     verdict = html.split("<b>Verdict.</b>", 1)[1].split("</p>", 1)[0]
     assert 1 <= len(re.findall(r"[.!?](\s|$)", verdict.strip())) <= 3, verdict

@@ -85,8 +85,10 @@ def test_conjugate_regression_laplace_exact_and_cj():
     assert ev.goodness_of_fit - ev.log_evidence == pytest.approx(ev.information_gain)
 
 
-def augmented_kalman_evidence(t, y, u, a, q, r, nsub, prior_mean, prior_sd, x_sd):
-    """Exact ln p(d): Kalman filter on [x, b1, b2, c] with the parameters as static states."""
+def augmented_kalman_evidence(t, y, u, system, prior_mean, prior_sd, x_sd):
+    """Exact ln p(d): Kalman filter on [x, b1, b2, c] with the parameters as static states; ``system`` is
+    (a, q, r, nsub): the decay rate, process and measurement noise, and the Euler sub-steps."""
+    a, q, r, nsub = system
     m = np.concatenate([[0.0], prior_mean])
     P = np.diag(np.concatenate([[x_sd**2], np.asarray(prior_sd) ** 2]))
     H = np.array([1.0, 0.0, 0.0, 1.0])
@@ -131,7 +133,7 @@ def test_linear_gaussian_state_space_cj_within_015_nats():
     prior_mean, prior_sd = np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.0, 1.0])
     priors = {k: Normal(mean=m, sd=s) for k, m, s in zip(["b1", "b2", "c"], prior_mean, prior_sd)}
     target = ModelPosterior(spec, priors, ds)
-    exact = augmented_kalman_evidence(t, ds.columns["y"], u, a, q, r, nsub, prior_mean, prior_sd, 1.0)
+    exact = augmented_kalman_evidence(t, ds.columns["y"], u, (a, q, r, nsub), prior_mean, prior_sd, 1.0)
     lap, _, _ = laplace(target, np.zeros(3), np.ones(3))
     assert lap.log_evidence == pytest.approx(exact, abs=1e-5)
     res = sample(target, CFG, seed=13)

@@ -42,9 +42,11 @@ def fp(delta):
     return f"0.5*(y - {delta}*sign(y))*(1 + sign(abs(y) - {delta}))"
 
 
-def planted(name, kind, expr, code, value, accepted=None, shape=None, **kw):
+def planted(name, kind, expr, code, value, *truth, **kw):
     """(planted effect, target, coefficient, accepted kinds or names, true shape or None) of one family; the
-    target is the acceleration ``v`` unless the effect acts on the observation (then ``y``)."""
+    target is the acceleration ``v`` unless the effect acts on the observation (then ``y``). ``truth``: the
+    accepted kinds or names (default: the effect's name) and the true shape, when they are given."""
+    accepted, shape = (*truth, None, None)[:2]
     eff = Effect(name, kind, expr if isinstance(expr, tuple) else (expr,), code=code, **kw)
     return eff, "y" if kw.get("where") == "observation" else "v", value, accepted or {name}, shape
 
