@@ -239,17 +239,17 @@ def iter_fit(store: StudyStore, spec: StudySpec, data, index: int, hooks: Candid
 
 
 def compare_task(store_path: str, wall_start: float, *rows: ModelFit, done: bool = True) -> dict:
-    """Comparison of the optimal nested models; writes the summary to the store (``done``: and marks the
-    study done)."""
+    """Comparison of the optimal nested models; writes the :class:`StudySummary` to the store (``done``: and
+    marks the study done) and returns its JSON."""
     store = StudyStore(store_path)
     spec = StudySpec.model_validate(store.meta["spec"])
     meta = store.meta
-    summary = compare(list(rows), spec, meta.get("data", {}), time.time() - wall_start)
-    summary["study_id"] = meta.get("study_id")
+    summary = compare(list(rows), spec, meta.get("data", {}), time.time() - wall_start).with_study_id(
+        meta.get("study_id"))
     history = store.histories([r.name for r in rows])
     store.write_text("history.json", json.dumps(to_jsonable(history), indent=2))
     store.write_summary(summary, done=done)
-    return summary
+    return summary.to_json()
 
 
 # --------------------------------------------------------------------------- driver side

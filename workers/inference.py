@@ -225,9 +225,9 @@ def loo_beside_evidence(store, *, max_draws: int = MAX_POINTWISE_DRAWS) -> list[
     to the best model by LOO and its standard error from the pointwise differences. Needs arviz.
     """
     store = store if isinstance(store, StudyStore) else StudyStore(store)
-    summary = json.loads(store.read_text("summary.json") or "{}")
+    summary = store.read_summary()
     rows = []
-    for r in summary.get("models", []):
+    for r in (summary.to_json()["models"] if summary is not None else []):
         dt = to_inference_data(store, r["name"], log_likelihood=True, max_draws=max_draws)
         rows.append({"model": r["name"], "log_evidence": r["log_evidence"], "probability": r.get("probability"),
                      **psis_loo(dt)})

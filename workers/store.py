@@ -31,6 +31,7 @@ import numpy as np
 import zarr
 from ardflow.ardcore.errors import ArdflowError
 from ardflow.ardcore.selection.fit import ModelFit
+from ardflow.ardcore.selection.summary import StudySummary
 from ardflow.ardcore.jsonio import atomic_write_text, to_jsonable
 
 STORE_VERSION = 1
@@ -193,12 +194,18 @@ class StudyStore:
         cols = {k: np.asarray(dg[k][:]) for k in dg.array_keys() if k != "t"}
         return Dataset(np.asarray(dg["t"][:]), cols, {"source": f"{self.url}/data"})
 
-    def write_summary(self, summary: dict, *, done: bool = True) -> None:
+    def write_summary(self, summary: StudySummary, *, done: bool = True) -> None:
         """Write the summary; with ``done`` the study's status becomes ``done`` (a driver that renders a
         report afterwards marks it done itself once the report is written: done means all of it)."""
-        self.write_text("summary.json", json.dumps(to_jsonable(summary), indent=2))
-        self.update_meta(**({"status": "done"} if done else {}),
-                         summary=to_jsonable({k: v for k, v in summary.items() if k != "spec"}))
+        js = summary.to_json()
+        self.write_text("summary.json", json.dumps(js, indent=2))
+        self.update_meta(**({"status": "done"} if done else {}), summary={k: v for k, v in js.items() if k != "spec"})
+
+    def read_summary(self) -> StudySummary | None:
+        """The study's :class:`StudySummary` (None before the comparison ran); a summary written by a newer
+        ardflow raises :class:`~ardcore.errors.DataError`."""
+        text = self.read_text("summary.json")
+        return StudySummary.from_json(json.loads(text)) if text else None
 
     # ---------------------------------------------------------------- trials
     def trial_path(self, model: str, iteration: int) -> str:

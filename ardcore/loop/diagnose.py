@@ -157,7 +157,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 break
             # a declared law in another form competes with the round's additions: a wrong law is replaced,
             # not stacked upon, unless an effect it lacks is worth more (an overflow beside it)
-            swap = best_laws(ctx, held, brought(rounds))
+            swap = best_laws(ctx, held, brought(rounds), [x for r in rounds for x in r.record.get("replaced", [])
+                                                          if x.get("form")])
             rec, survivors = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds))
             rounds.append(rec)
             if swap is not None and (not survivors or swap[2] >= survivors[0].log_bayes_factor):
@@ -376,7 +377,7 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
     rounds = [r.record for r in rounds]
     added = [a for a in records if not a.get("removed")]
     removed = [a for a in records if a.get("removed")]
-    replaced = [x for r in rounds for x in r.get("replaced", [])]
+    replaced = _latest_forms([x for r in rounds for x in r.get("replaced", [])])
     for x in replaced:  # a form's shape as the final model has it (later rounds refit it with what they add)
         if x.get("shape") and x["shape"]["name"] in row.mean:
             x["shape"] = shape_summary(row, x["shape"]["name"])
@@ -415,6 +416,18 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
                       + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else ""))
     out["headline"] = headline(out, col, unit)
     return out
+
+
+def _latest_forms(replaced: list) -> list:
+    """The laws replaced, each once in the form the final model holds (a law whose form changed again in a
+    later round says which forms it took before, ``earlier``)."""
+    latest: dict = {}
+    for x in replaced:
+        key = (x["parameter"], x["term"])
+        if key in latest and x.get("form") and latest[key].get("form"):
+            x = {**x, "earlier": [*latest[key].get("earlier", []), latest[key]["form"]]}
+        latest[key] = x
+    return list(latest.values())
 
 
 def _shape(x: dict) -> str:

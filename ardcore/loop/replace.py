@@ -179,14 +179,15 @@ def term_values(current: Fit, law: Law) -> np.ndarray:
     return np.asarray(f(*fr.filtered.T), dtype=float) * np.ones(len(current.data))
 
 
-def best_laws(ctx, current: Fit, new_parameters: set = frozenset()):
+def best_laws(ctx, current: Fit, new_parameters: set = frozenset(), replaced: list = ()):
     """The declared laws worth replacing, one after another, as ``(fit, records, ln BF)``, or None.
 
     :func:`best_law` on the current model, then again on the model it leaves, while one qualifies (two wrong
     laws of a cascade are each worth less alone than a stand-in that patches both, and more together). The
-    caller weighs the total ln Bayes factor against the round's best addition."""
+    caller weighs the total ln Bayes factor against the round's best addition. ``replaced``: the records of
+    the laws replaced in earlier rounds, which may change form again (:func:`best_law`)."""
     fit, records = current, []
-    while (got := best_law(ctx, fit, new_parameters)) is not None:
+    while (got := best_law(ctx, fit, new_parameters, [*replaced, *records])) is not None:
         fit = got[0]
         records.append(got[1])
     if not records:
@@ -194,8 +195,47 @@ def best_laws(ctx, current: Fit, new_parameters: set = frozenset()):
     return fit, records, float(fit.row.log_evidence - current.row.log_evidence)
 
 
-def best_law(ctx, current: Fit, new_parameters: set = frozenset()):
+def _reforms(current: Fit, replaced: list) -> list:
+    """(law, its form now, its shape now, the law's text now) of every law an earlier round replaced and the
+    model still holds in that form (the latest record of each law)."""
+    params = set(current.cand.model_spec().parameters)
+    out, seen = [], set()
+    for x in reversed(replaced):
+        key = (x.get("parameter"), x.get("term"))
+        if key in seen or not x.get("law_text") or x.get("shape", {}).get("name") not in params:
+            continue
+        seen.add(key)
+        out.append((Law(x["parameter"], x["term"], dict(x["drifts"])), FORMS[x["form"]], x["shape"]["name"],
+                    x["law_text"]))
+    return out
+
+
+def reform_spec(spec: ModelSpec, law: Law, now: tuple, form: Form, shape: str, values: np.ndarray) -> ModelSpec:
+    """``spec`` with a law already replaced (``now``: its shape and its text in the model) written in another
+    ``form`` (``shape`` its new parameter): the law's text cancels exactly when the expression is parsed, and
+    the old shape leaves the parameters."""
+    from ..model.expr import parse_expression
+
+    old_shape, old_text = now
+    drift = dict(spec.drift)
+    names = {*spec.states, *spec.inputs, *spec.parameters, *spec.constants, *spec.derived, shape}
+    p = parse_expression(law.parameter, names)
+    old, new = parse_expression(old_text, names), parse_expression(form.text(law.term, shape, values), names)
+    for state, sign in law.drifts.items():
+        # in sympy, not as text: the old shape must be gone from the text the model is validated from
+        drift[state] = _text(parse_expression(drift[state], names) - sign * p * old + sign * p * new)
+    params = [q for q in spec.parameters if q != old_shape] + [shape]
+    return spec.model_copy(update={"name": (spec.name + "_" + form.prefix)[:32], "drift": drift,
+                                   "parameters": params}).revalidate()
+
+
+def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: list = ()):
     """The declared law and form (module docstring) worth most, as ``(fit, record)``, or None.
+
+    A law an earlier round replaced (``replaced``: their records) is offered in its other forms too: which
+    form a wrong law takes first depends on what else the model lacks then (a pipe's square root looks like
+    a saturation while the overflow it feeds is missing), and once that is in, the law may be worth more in
+    another form.
 
     Every candidate is fitted side by side on the loop's pool; the best qualifies when its ln Bayes factor
     against the current model exceeds ``config.min_log_bf`` plus ln of the number of candidates tried (their
@@ -225,6 +265,21 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset()):
             warm = warm_with(current.mr.sampler, [shape], [prior.median]) if current.mr.sampler is not None else None
             tasks.append((cand, current.data, spec, warm, config.posterior))
             offered.append((w, form, shape))
+    for w, now_form, now_shape, now_text in _reforms(current, replaced):
+        values = term_values(current, w)
+        for form in FORMS.values():
+            shape = f"{form.prefix}_{w.parameter}"[:32]
+            prior = form.prior(values)
+            if form.name == now_form.name or prior is None or shape in ms.parameters:
+                continue
+            pspec = reform_spec(ms, w, (now_shape, now_text), form, shape, values)
+            cpriors = {k: v for k, v in priors.items() if k != now_shape}
+            cfixed = {k: v for k, v in fixed.items() if k != now_shape}
+            cand = CandidateSpec(model=pspec, name=pspec.name, priors={**cpriors, shape: prior}, fixed=cfixed,
+                                 substeps=current.cand.substeps)
+            warm = warm_with(current.mr.sampler, [shape], [prior.median]) if current.mr.sampler is not None else None
+            tasks.append((cand, current.data, spec, warm, config.posterior))
+            offered.append((w, form, shape))
     if not tasks:
         return None
     fits = mapper(fit_task, tasks)
@@ -249,7 +304,8 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset()):
     say(f"  {w.parameter}*({w.term}) as a {form.name} law: {by}, {shape} = {row.mean[shape]:.3g} +- "
         f"{row.sd[shape]:.2g} (ln BF {gain[k]:.1f})")
     return fit, {"parameter": w.parameter, "term": w.term, "target": next(iter(w.drifts)), "by": by,
-                 "form": form.name, "shape": shape_summary(row, shape), "log_bayes_factor": float(gain[k])}
+                 "form": form.name, "shape": shape_summary(row, shape), "log_bayes_factor": float(gain[k]),
+                 "drifts": dict(w.drifts), "law_text": form.text(w.term, shape, term_values(current, w))}
 
 
 def shape_summary(row, name: str) -> dict:

@@ -5,5 +5,5 @@ The modules are the interface: import from them (``from ardflow.ardcore.selectio
 """
 
 __all__ = [
-    "config", "fit", "maximiser", "spec", "study", "validation",
+    "config", "fit", "maximiser", "spec", "study", "summary", "validation",
 ]

@@ -24,6 +24,7 @@ from .maximiser import MaximiserResult, iter_maximise, posterior_summary
 from ..data import Dataset
 from ..events import ModelEvent, ProgressEvent, TrialDone
 from .fit import ModelFit
+from .summary import ComparedModel, StudySummary
 from ..jsonio import to_jsonable
 from ..sampling.chains import Map, run, serial_map
 from ..sampling.driver import Runtime
@@ -155,20 +156,12 @@ def _diagnostics(res) -> dict:
     return {}
 
 
-def compare(fits: list[ModelFit], spec: StudySpec, data_meta: dict, wall_s: float) -> dict:
-    """The comparison of the optimal nested models (Eq. 7) and the study summary."""
+def compare(fits: list[ModelFit], spec: StudySpec, data_meta: dict, wall_s: float) -> StudySummary:
+    """The comparison of the optimal nested models (Eq. 7): the study's :class:`StudySummary`."""
     probs, psd = model_probabilities([f.log_evidence for f in fits], [f.log_evidence_se for f in fits],
                                      seed=spec.seed)
-    rows = [{**f.to_json(), "probability": p, "probability_sd": s} for f, p, s in zip(fits, probs, psd)]
-    return to_jsonable({
-        "study": spec.name,
-        "data": data_meta,
-        "models": rows,
-        "best_model": max(fits, key=lambda f: f.log_evidence).name,
-        "seed": spec.seed,
-        "wall_s": wall_s,
-        "spec": spec.model_dump(mode="json"),
-    })
+    return StudySummary(spec.name, dict(data_meta), tuple(ComparedModel(f, p, s) for f, p, s in zip(fits, probs, psd)),
+                        max(fits, key=lambda f: f.log_evidence).name, spec.seed, wall_s, spec.model_dump(mode="json"))
 
 
 def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[ModelEvent], None] | None = None,
@@ -186,6 +179,7 @@ def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[Mod
         row, mr = run_candidate(cand, data, spec, i, hooks=CandidateHooks(map_fn, progress, cancel))
         rows.append(row)
         results[cand.label] = mr
-    summary = compare(rows, spec, {"source": data.meta.get("source"), "n": len(data)}, time.perf_counter() - t0)
+    summary = compare(rows, spec, {"source": data.meta.get("source"), "n": len(data)},
+                      time.perf_counter() - t0).to_json()
     summary["_history"] = to_jsonable({k: [t.to_dict() for t in mr.history] for k, mr in results.items()})
     return summary

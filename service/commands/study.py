@@ -81,7 +81,7 @@ def cmd_demo(a) -> int:
               "M1, M2, M3 with ARD priors on a3..a6, on an embedded Dask cluster", flush=True)
         store = prepare_store(spec, out, base=spec_path.parent)
         _run_on_dask(a, store)
-    summary = json.loads(store.read_text("summary.json"))
+    summary = store.read_summary().to_json()
     print_table(summary)
     from ardflow.service.reports.paper import check_label, reference_checks
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import html
 import math
-import json
 from pathlib import Path
 
 import numpy as np
@@ -44,9 +43,10 @@ def write_report(store, out: str | Path | None = None) -> Path:
     """
     from ardflow.ardcore.selection.spec import StudySpec
 
-    summary = json.loads(store.read_text("summary.json") or "null")
-    if summary is None:
+    typed = store.read_summary()
+    if typed is None:
         raise LookupError("the study has no summary yet")
+    summary = typed.to_json()
     out = Path(out) if out is not None else Path(store.path) / "report"
     out.mkdir(parents=True, exist_ok=True)
     spec = StudySpec.model_validate(store.meta["spec"])
