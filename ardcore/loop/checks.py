@@ -293,9 +293,16 @@ def free_run_rms(fit, config) -> float:
     return free_run(fs, ph, fit.data, init_samples=config.init_samples, substeps=fit.cand.substeps)["rms_error"]
 
 
+FREE_RUN_TOLERANCE = 0.01
+"""How much worse (relative) a free run on the estimation record may be and still count as no worse: a
+measurement-noise level or a term the data barely pin moves the posterior mean, and with it the free run, by
+less than this, which is no sign of a worse model."""
+
+
 def worse_than_before(fit, before: float, config) -> str | None:
     """Why the model of ``fit`` (a re-selection with an effect) is no improvement on one whose free run on
-    the estimation record has RMS error ``before``, or None."""
+    the estimation record has RMS error ``before``, or None: it diverges, or its error exceeds ``before`` by
+    more than :data:`FREE_RUN_TOLERANCE`."""
     why = fit.row.degenerate()
     if why is not None:
         return why
@@ -303,7 +310,7 @@ def worse_than_before(fit, before: float, config) -> str | None:
         after = free_run_rms(fit, config)
     except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
         return f"its free run failed ({type(exc).__name__})"
-    if math.isfinite(after) and after <= before * (1 + 1e-9):
+    if math.isfinite(after) and after <= before * (1 + FREE_RUN_TOLERANCE):
         return None
     return (f"its free run on the estimation record {'diverges' if not math.isfinite(after) else 'is worse'} "
             f"(RMS error {before:.4g} -> {after:.4g})")

@@ -164,7 +164,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             if swap is not None and (not survivors or swap[2] >= survivors[0].log_bayes_factor):
                 rec.record["replaced"] = swap[1]
                 rec.record.pop("verdict", None)
-                held = swap[0]
+                # what earlier rounds added stood in beside the wrong law: each must still earn its place
+                held = backward_check(ctx, swap[0], [x for r in rounds[:-1] for x in r.added], rnd)
                 continue
             if swap is not None:
                 say(f"  adding {survivors[0].effect} (ln BF {survivors[0].log_bayes_factor:.1f}) is worth more "
