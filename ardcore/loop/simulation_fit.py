@@ -42,7 +42,8 @@ class SimulationFit:
     fit_samples: int = 0
     held_out_samples: int = 0
     held_out_start: dict = field(default_factory=dict)
-    """The free-run error of each factor on the record's first ``held_out_samples``, fitted on the rest."""
+    """The free-run error on the record's first ``held_out_samples``, fitted on the rest, of factor 1 and the
+    factor the end chose (empty when the end chose factor 1)."""
 
     def to_json(self) -> dict:
         return {"noise_factor": self.factor, "noise_parameters": self.noise_parameters,
@@ -170,36 +171,37 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
     # two held-out blocks: the record's end and its start, each free-run from the filter at its first samples
     # by a fit to the rest; a factor is chosen only when it free-runs better in both (what helps where the
     # record ends, a decay's small amplitudes, need not carry to the rest of the record or beyond it)
-    blocks = {"end": (data.slice(0, n_fit), data.slice(n_fit, None)),
-              "start": (data.slice(n - n_fit, None), data.slice(0, n - n_fit))}
-    L = None
-    fitted_end, per_block = {}, {}
-    for b, (fit_part, test_part) in blocks.items():
-        lik = model.bind(fit_part, substeps)
-        L = _whitening(lik, phi, names) if L is None else L
-        fitted, start = {}, dict(phi)
-        for f in sorted({1.0, *factors}, reverse=True):
-            q = _fit(lik, start, noise, f, names, maxfun, L)
-            fitted[f] = q
-            start = {**q, **{p: phi[p] for p in noise}}  # the next factor scales phi's noise, not this one's
-        rms = {}
-        for f, q in fitted.items():
-            r = free_run(spec, q, test_part, init_samples=init_samples, substeps=substeps)["rms_error"]
-            rms[f] = float(r) if np.isfinite(r) else float("inf")
-        per_block[b] = rms
-        if b == "end":
-            fitted_end = fitted
-    rms = per_block["end"]
-    # each factor's worst ratio to factor 1 over the blocks
-    worst = {f: max(per_block[b][f] / per_block[b][1.0] if per_block[b][1.0] > 0 else float("inf")
-                    for b in per_block) for f in rms}
-    best = min(worst, key=worst.get)
-    if best == 1.0 or not worst[best] < 1 - min_gain:
-        return SimulationFit(1.0, dict(phi), noise, rms, n_fit, n - n_fit, held_out_start=per_block["start"])
+    lik = model.bind(data.slice(0, n_fit), substeps)
+    L = _whitening(lik, phi, names)
+    fitted, start = {}, dict(phi)
+    for f in sorted({1.0, *factors}, reverse=True):
+        q = _fit(lik, start, noise, f, names, maxfun, L)
+        fitted[f] = q
+        start = {**q, **{p: phi[p] for p in noise}}  # the next factor scales phi's noise, not this one's
+    rms = _held_out_rms(spec, fitted, data.slice(n_fit, None), init_samples, substeps)
+    best = min(rms, key=rms.get)
+    if best == 1.0 or not rms[best] < (1 - min_gain) * rms[1.0]:
+        return SimulationFit(1.0, dict(phi), noise, rms, n_fit, n - n_fit)
+    # the start block only for the two contenders, each fitted from its end-block fit (near its optimum)
+    lik = model.bind(data.slice(n - n_fit, None), substeps)
+    other = {f: _fit(lik, {**fitted[f], **{p: phi[p] for p in noise}}, noise, f, names, maxfun, L)
+             for f in (1.0, best)}
+    start_rms = _held_out_rms(spec, other, data.slice(0, n - n_fit), init_samples, substeps)
+    if not start_rms[best] < (1 - min_gain) * start_rms[1.0]:
+        return SimulationFit(1.0, dict(phi), noise, rms, n_fit, n - n_fit, held_out_start=start_rms)
     # the whole record at the chosen factor, from the held-out fit (its noise parameters back at 1 x phi's)
-    q = refit(spec, {**fitted_end[best], **{p: phi[p] for p in noise}}, data, best, substeps=substeps,
+    q = refit(spec, {**fitted[best], **{p: phi[p] for p in noise}}, data, best, substeps=substeps,
               maxfun=maxfun, whitening=L)
-    return SimulationFit(best, q, noise, rms, n_fit, n - n_fit, per_block["start"])
+    return SimulationFit(best, q, noise, rms, n_fit, n - n_fit, start_rms)
+
+
+def _held_out_rms(spec: ModelSpec, fitted: dict, part: Dataset, init_samples: int, substeps) -> dict:
+    """Each factor's free-run RMS error on ``part`` (infinite when it diverges)."""
+    out = {}
+    for f, q in fitted.items():
+        r = free_run(spec, q, part, init_samples=init_samples, substeps=substeps)["rms_error"]
+        out[f] = float(r) if np.isfinite(r) else float("inf")
+    return out
 
 
 def refit(spec: ModelSpec, phi: dict, data: Dataset, factor: float, *, substeps: int | None = None,
