@@ -384,7 +384,9 @@ def test_headline_is_three_sentences_that_agree_with_the_tests():
     # the orifice law also runs in the slow cascade tests, in two unit systems
     pytest.param("sqrt(abs(h))*sign(h)", "power", 0.5, marks=pytest.mark.slow),
     pytest.param("abs(h)**0.7*sign(h)", "power", 0.7, marks=pytest.mark.slow),
-    ("0.6*tanh(h/0.6)", "saturation", 0.6), ("0.5*(h - 0.5 + sqrt((h - 0.5)**2 + 1e-4))", "knee", 0.5)])
+    # the saturating and the knee forms run in the slow suite (make test stays under 15 min)
+    pytest.param("0.6*tanh(h/0.6)", "saturation", 0.6, marks=pytest.mark.slow),
+    pytest.param("0.5*(h - 0.5 + sqrt((h - 0.5)**2 + 1e-4))", "knee", 0.5, marks=pytest.mark.slow)])
 def test_a_wrong_law_is_replaced_by_its_true_form(law, form, p):
     """A tank that drains over a weir (flow ~ h^1.5), through an orifice (h^0.5), by a law between the two
     (h^0.7), through an outlet that saturates, or over a crest at h = 0.5, declared linear: the loop replaces

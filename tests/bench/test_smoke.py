@@ -18,7 +18,9 @@ def test_every_group_has_a_contract():
     assert set(CONTRACT) == set(BENCHES)
 
 
-@pytest.mark.parametrize("group", sorted(BENCHES))
+# `fresh` builds a venv and installs into it in a clean clone (as test_wheel does in the default suite): slow
+@pytest.mark.parametrize("group", [pytest.param(g, marks=pytest.mark.slow) if g == "fresh" else g
+                                   for g in sorted(BENCHES)])
 def test_bench_group_runs_at_tiny_size(group, tmp_path):
     out = tmp_path / "results.json"
     r = subprocess.run([sys.executable, "-m", "tests.bench.run", "--tiny", "--only", group, "--out", str(out)],
