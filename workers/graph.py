@@ -35,7 +35,7 @@ from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator, build_target
 from ardflow.ardcore.events import ModelDone, ModelEvent
 from ardflow.ardcore.evidence.estimators import Evidence, iter_chib_jeliazkov
 from ardflow.ardcore.sampling.config import SamplerResult
-from ardflow.ardcore.sampling.chains import run
+from ardflow.ardcore.sampling.chains import relay, run
 from ardflow.ardcore.sampling.driver import Runtime, Start, continuation, continued, sample_batches
 from ardflow.ardcore.selection.fit import ModelFit
 from ardflow.ardcore.selection.maximiser import MaximiserResult, Trial
@@ -155,17 +155,7 @@ def submitted(steps, dmap: DaskMap):
     """The sans-IO generator ``steps`` with each :class:`~ardcore.sampling.chains.Batch` it yields
     submitted through ``dmap``: this yields the :class:`~workers.tasks.Submitted` futures instead and sends
     their results (or raises their error) back into ``steps``."""
-    reply, error = None, None
-    while True:
-        try:
-            batch = steps.throw(error) if error is not None else steps.send(reply)
-        except StopIteration as done:
-            return done.value
-        reply, error = None, None
-        try:
-            reply = yield dmap.submit(batch)
-        except Exception as exc:  # noqa: BLE001 - a task's error, raised where ``steps`` waits for it
-            error = exc
+    return relay(steps, dmap.submit)
 
 
 def stored_fit(store: StudyStore, model: str) -> tuple[ModelFit, MaximiserResult] | None:

@@ -55,6 +55,21 @@ def run(steps, map_fn: Map = serial_map):
     ``map_fn``; anything else it yields (a batch an orchestrator has already submitted) with its
     ``result()``, which blocks until the tasks are done. A task's error is raised inside ``steps`` where
     it waits, as a direct call would raise it."""
+    answered = relay(steps, lambda item: map_fn(item.func, item.items, step=item.step) if isinstance(item, Batch)
+                     else item.result())
+    reply = None
+    while True:
+        try:
+            reply = answered.send(reply)  # each answer goes straight back
+        except StopIteration as done:
+            return done.value
+
+
+def relay(steps, answer):
+    """A generator that yields ``answer(item)`` for each item the generator ``steps`` yields and sends
+    ``steps`` what it is sent back (an error thrown into it is raised inside ``steps`` where it waits);
+    returns what ``steps`` returns. How an orchestrator puts its own handle (e.g. submitted futures) in place
+    of each :class:`Batch`."""
     reply, error = None, None
     while True:
         try:
@@ -63,8 +78,8 @@ def run(steps, map_fn: Map = serial_map):
             return done.value
         reply, error = None, None
         try:
-            reply = map_fn(item.func, item.items, step=item.step) if isinstance(item, Batch) else item.result()
-        except Exception as exc:  # noqa: BLE001 - handed to the generator
+            reply = yield answer(item)
+        except Exception as exc:  # noqa: BLE001 - raised inside ``steps`` where it waits
             error = exc
 
 
