@@ -64,3 +64,42 @@ def test_the_study_driver_starts_no_thread():
                 mods = [a.name for a in node.names] + [getattr(node, "module", None) or ""]
                 assert not any(m.split(".")[0] == "threading" or "ThreadPool" in m or "Executor" in m
                                for m in mods), f"{p.relative_to(ROOT)}:{node.lineno}"
+
+
+def _module(p: Path) -> str:
+    parts = list(p.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def test_no_import_runs_in_a_circle():
+    """docs/architecture.md: no import runs back up, none runs in a circle (imports inside functions count:
+    a circle hidden in a function is still one)."""
+    graph: dict[str, set] = {}
+    for p, tree in sources():
+        me = _module(p)
+        pkg = me.split(".") if p.name == "__init__.py" else me.split(".")[:-1]
+        deps = graph.setdefault(me, set())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = ".".join(pkg[:len(pkg) - node.level + 1] + ([node.module] if node.module else []))
+                else:
+                    base = (node.module or "").removeprefix("ardflow.")
+                names = [f"{base}.{a.name}" for a in node.names] + [base]
+                deps.update(n for n in names if n.split(".")[0] in PACKAGES)
+    modules = set(graph)
+    graph = {m: {d for d in ds if d in modules and d != m} for m, ds in graph.items()}
+    state: dict[str, int] = {}
+
+    def visit(m, path):
+        state[m] = 1
+        for d in graph[m]:
+            if state.get(d) == 1:
+                raise AssertionError("import circle: " + " -> ".join(path[path.index(d):] + [d]))
+            if d not in state:
+                visit(d, path + [d])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])

@@ -4,7 +4,7 @@ and, after each round, whether effects of earlier rounds are
 still worth their place beside the later ones (:func:`backward_check`, with the Savage-Dickey shortcut
 :func:`savage_dickey` for effects far above their threshold), and which of the user's declared terms an added
 effect may replace (:func:`declared_rivals`, :func:`replace_laws`); and that nothing added makes the free run
-worse (:func:`no_worse`, :func:`worse_than_before`).
+worse (:func:`no_worse`, over :func:`~.freerun.worse_than_before`).
 """
 
 from __future__ import annotations
@@ -20,8 +20,7 @@ from ..effects.base import Effect, augment, with_columns
 from ..jsonio import is_pruned
 from ..model.declaration import ModelSpec
 from ..data import Dataset
-from ..errors import FitError
-from .freerun import fitted, free_run
+from .freerun import free_run, free_run_rms, worse_than_before
 from .replace import linear_terms
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec, StudySpec
@@ -285,35 +284,6 @@ def no_worse(survivors: list, fspec, phi, held: Fit, config, say) -> list:
         c.survives, c.rejected = False, why
         say(f"  {c.effect}: not added: {why}")
     return kept
-
-
-def free_run_rms(fit, config) -> float:
-    """RMS error of the free run of ``fit``'s model (posterior mean) on its estimation record."""
-    fs, ph = fitted(fit.cand, fit.row)
-    return free_run(fs, ph, fit.data, init_samples=config.init_samples, substeps=fit.cand.substeps)["rms_error"]
-
-
-FREE_RUN_TOLERANCE = 0.01
-"""How much worse (relative) a free run on the estimation record may be and still count as no worse: a
-measurement-noise level or a term the data barely pin moves the posterior mean, and with it the free run, by
-less than this, which is no sign of a worse model."""
-
-
-def worse_than_before(fit, before: float, config) -> str | None:
-    """Why the model of ``fit`` (a re-selection with an effect) is no improvement on one whose free run on
-    the estimation record has RMS error ``before``, or None: it diverges, or its error exceeds ``before`` by
-    more than :data:`FREE_RUN_TOLERANCE`."""
-    why = fit.row.degenerate()
-    if why is not None:
-        return why
-    try:
-        after = free_run_rms(fit, config)
-    except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-        return f"its free run failed ({type(exc).__name__})"
-    if math.isfinite(after) and after <= before * (1 + FREE_RUN_TOLERANCE):
-        return None
-    return (f"its free run on the estimation record {'diverges' if not math.isfinite(after) else 'is worse'} "
-            f"(RMS error {before:.4g} -> {after:.4g})")
 
 
 def brought(rounds: list) -> set:

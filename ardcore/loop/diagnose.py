@@ -40,15 +40,14 @@ from typing import Callable
 
 import numpy as np
 
-from .checks import (Added, backward_check, brought, free_run_rms, joint_fit, no_worse, replace_laws,
-                     split_stability, worse_than_before)
+from .checks import Added, backward_check, brought, joint_fit, no_worse, replace_laws, split_stability
 from .confirm import Confirmation, Fit, pool_mapper, trace_and_confirm
 from .replace import best_laws, shape_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import FitError, SpecError
 from .result import Diagnosis, FittedModel, LoopRound
-from .freerun import Band, fitted, free_run, posterior_draws
+from .freerun import Band, fitted, free_run, free_run_rms, posterior_draws, worse_than_before
 from .initial import data_informed_initial
 from .config import DiagnoseConfig, LoopContext
 from ..model.declaration import ModelSpec

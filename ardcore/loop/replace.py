@@ -31,7 +31,7 @@ from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec, symbolic
 from ..selection.spec import CandidateSpec
 from .confirm import Fit, essential_from_row, fit_task, warm_with
-from .freerun import fitted
+from .freerun import fitted, free_run_rms, worse_than_before
 
 POWER_RANGE = (0.25, 4.0)
 """The exponents the prior of ``e`` spans at +-2 sd (an orifice 0.5, laminar 1, a weir 1.5, turbulent 2)."""
@@ -241,7 +241,6 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
     against the current model exceeds ``config.min_log_bf`` plus ln of the number of candidates tried (their
     multiplicity, as for additions) and its free run on the estimation record is no worse. The record says
     what was replaced (parameter, term, target, by, form, the shape's posterior, ln BF)."""
-    from .checks import free_run_rms, worse_than_before
 
     spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
     ms = current.cand.model_spec()

@@ -331,7 +331,7 @@ def test_an_effect_is_added_only_if_its_model_free_runs_no_worse_and_its_fit_mov
     import math
 
     from ardflow.ardcore.loop.confirm import Fit
-    from ardflow.ardcore.loop.checks import worse_than_before
+    from ardflow.ardcore.loop.freerun import worse_than_before
     from ardflow.ardcore.loop.diagnose import check_fitted
     from ardflow.ardcore.errors import FitError
     from ardflow.ardcore.selection.study import run_candidate
