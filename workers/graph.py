@@ -351,18 +351,16 @@ def _drive(client, store: StudyStore, progress, poll_s: float, done: bool) -> di
                     pass  # nothing finished yet, or a dropped connection (each batch recovers below)
             stream()
             for m, sub in list(waiting.items()):
-                if sub.done():
-                    try:
-                        out = sub.gather()
-                    except Exception as exc:  # noqa: BLE001 - a task's error, raised in the model that waits
-                        del waiting[m]
-                        advance(m, error=exc)
-                        continue
-                    if out is not None:
-                        del waiting[m]
-                        advance(m, out)
-                        continue
-                if sub.stalled():
+                try:
+                    out = sub.gather()  # None while running (or when a dropped connection cancelled it)
+                except Exception as exc:  # noqa: BLE001 - a task's error, raised in the model that waits
+                    del waiting[m]
+                    advance(m, error=exc)
+                    continue
+                if out is not None:
+                    del waiting[m]
+                    advance(m, out)
+                elif sub.stalled():
                     sub.recover()
     finally:
         for gen in fits.values():
