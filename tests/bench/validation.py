@@ -91,10 +91,16 @@ def _simulate(truth, params: dict, t: np.ndarray, u: np.ndarray, seed: int, n_st
     return Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": f"validation:{truth.name}"})
 
 
-def _split(name, spec, data, has_effect, design, physics, n_est=None) -> Record:
-    n = len(data)
-    k = n_est or int(round(EST * n))
+def _split(name, spec, data, has_effect, design, physics) -> Record:
+    k = int(round(EST * len(data)))
     return Record(name, spec, data.slice(0, k), data.slice(k, None), has_effect, design, physics)
+
+
+def _against_linear(name: str, truth, values: dict, u: np.ndarray, seed: int):
+    """The user's linear oscillator (its study) and the record of ``truth`` at ``values`` under the input
+    ``u``, sampled at 50 Hz."""
+    data = _simulate(truth, values, np.arange(u.size) * 0.02, u, seed, len(truth.states))
+    return _oscillator_study(name, _linear_oscillator(2e-3), OSC_PRIORS), data
 
 
 OSC_PRIORS = {"k": {"kind": "lognormal", "median": 15.0, "cov": 100},
@@ -113,29 +119,24 @@ def duffing(n: int = 4000, seed: int = 11) -> Record:
     f = 0.3 + (1.2 - 0.3) * t / t[-1]  # a swept sine, 0.3 -> 1.2 Hz (the linear resonance is near 0.64 Hz)
     u = 1.5 * np.sin(2 * np.pi * np.cumsum(f) * 0.02)
     truth = _truth("-k*y - c*v - k3*y**3 + b*u", ["k", "c", "k3", "b", "sigma"], 2e-3)
-    data = _simulate(truth, {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}, t, u, seed, 2)
-    spec = _oscillator_study("duffing", _linear_oscillator(2e-3), OSC_PRIORS)
+    spec, data = _against_linear("duffing", truth, {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}, u, seed)
     return _split("duffing", spec, data, True, True, "hardening cubic stiffness under a swept sine")
 
 
 def friction(n: int = 4000, seed: int = 12) -> Record:
-    t = np.arange(n) * 0.02
     rng = np.random.default_rng(seed)
     u = np.zeros(n)
     for k0 in range(0, n, 400):  # a pulse every 8 s, of random height and sign
         u[k0:k0 + 25] = rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 4.0)
     truth = _truth("-k*y - c*v - Fc*tanh(v/0.02) + b*u", ["k", "c", "Fc", "b", "sigma"], 2e-3)
-    data = _simulate(truth, {"k": 16.0, "c": 0.2, "Fc": 0.8, "b": 8.0, "sigma": 0.05}, t, u, seed, 2)
-    spec = _oscillator_study("friction", _linear_oscillator(2e-3), OSC_PRIORS)
+    spec, data = _against_linear("friction", truth, {"k": 16.0, "c": 0.2, "Fc": 0.8, "b": 8.0, "sigma": 0.05}, u, seed)
     return _split("friction", spec, data, True, False, "viscous and Coulomb friction, decaying to rest")
 
 
 def saturation(n: int = 4000, seed: int = 13) -> Record:
-    t = np.arange(n) * 0.02
     u = 2.5 * _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*0.8*tanh(u/0.8)", ["k", "c", "b", "sigma"], 2e-3)
-    data = _simulate(truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, t, u, seed, 2)
-    spec = _oscillator_study("saturation", _linear_oscillator(2e-3), OSC_PRIORS)
+    spec, data = _against_linear("saturation", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
     return _split("saturation", spec, data, True, False, "an actuator saturating at 0.8")
 
 
@@ -153,21 +154,17 @@ def backlash(n: int = 4000, seed: int = 14) -> Record:
 
 
 def hysteresis(n: int = 4000, seed: int = 15) -> Record:
-    t = np.arange(n) * 0.02
     u = 1.2 * _noise_input(np.random.default_rng(seed), n, 12)
     truth = _truth("-k*y - c*v - a*z + b*u", ["k", "c", "a", "b", "sigma"], 2e-3, states=("y", "v", "z"),
-                   drift_extra={"z": "v - 2.0*abs(v)*z - 1.0*v*abs(z)"}, diffusion_extra={})
-    data = _simulate(truth, {"k": 10.0, "c": 0.3, "a": 8.0, "b": 8.0, "sigma": 0.3}, t, u, seed, 3)
-    spec = _oscillator_study("hysteresis", _linear_oscillator(2e-3), OSC_PRIORS)
+                   drift_extra={"z": "v - 2.0*abs(v)*z - 1.0*v*abs(z)"})
+    spec, data = _against_linear("hysteresis", truth, {"k": 10.0, "c": 0.3, "a": 8.0, "b": 8.0, "sigma": 0.3}, u, seed)
     return _split("hysteresis", spec, data, True, False, "a Bouc-Wen hysteretic element")
 
 
 def none(n: int = 4000, seed: int = 16) -> Record:
-    t = np.arange(n) * 0.02
     u = _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*u", ["k", "c", "b", "sigma"], 2e-3)
-    data = _simulate(truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, t, u, seed, 2)
-    spec = _oscillator_study("none", _linear_oscillator(2e-3), OSC_PRIORS)
+    spec, data = _against_linear("none", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
     return _split("none", spec, data, False, False, "the user's linear oscillator is the truth")
 
 
