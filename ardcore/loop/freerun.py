@@ -34,21 +34,23 @@ def fitted(cand: CandidateSpec, row: ModelFit) -> tuple[ModelSpec, dict]:
     return spec, row.point(spec.free_parameters)
 
 
-BAND_FACTORS = (1.0, 0.5, 0.25, 0.1, 0.03, 0.0)
-"""Scales of the process noise a band may be calibrated at (:func:`calibrated_factor`), largest first."""
+BAND_FACTORS = (8.0, 5.66, 4.0, 2.83, 2.0, 1.41, 1.0, 0.71, 0.5, 0.35, 0.25, 0.1, 0.03, 0.0)
+"""Scales of the process noise a band may be calibrated at (:func:`calibrated_out_of_sample`), largest first: above 1
+for a model that still lacks something its posterior's noise does not cover."""
 
 
 @dataclass(frozen=True)
 class Band:
     """How a free run's 90 % posterior predictive band is made: the posterior ``draws`` (dicts over the free
-    parameters), the ``calibration`` record (the estimation data: its last ``held_out`` share calibrates the
-    process noise the band simulates, :func:`calibrated_factor`; None: the posterior's noise as it is) and
-    the ``seed`` of its random numbers."""
+    parameters), the ``seed`` of its random numbers and, to calibrate the process noise it simulates
+    (:func:`calibrated_out_of_sample`), the estimation record (``calibration``) with blocks of it each left out
+    of a refit of the structure (``refits``: ``(first, stop, the parameters fitted without it)``,
+    :meth:`~.simulation_fit.HeldOut.refits`). Without them the band simulates the posterior's own noise."""
 
     draws: list
     calibration: Dataset | None = None
-    held_out: float = 0.3
     seed: int = 0
+    refits: tuple = ()
 
 
 def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
@@ -63,8 +65,9 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
     samples, the model is simulated with its process noise and the measurement noise is added, so
     the band carries parameter, initial-state, process and measurement uncertainty together. The
     process noise the filter fitted also stands in for what the model lacks, which makes a band over
-    a long horizon too wide; with ``band.calibration`` its scale is calibrated on the end of the
-    estimation record (:func:`calibrated_factor`, ``band_factor``), never on ``data``.
+    a long horizon too wide or, where the record holds larger motions than those fitted, too narrow; with
+    ``band.calibration`` and ``band.refits`` its scale is calibrated out of sample on blocks of the
+    estimation record (:func:`calibrated_out_of_sample`, ``band_factor``), never on ``data``.
     ``band`` holds the pointwise 5 % and 95 % quantiles, ``band_coverage`` the share of data inside
     it, ``draws_rms_error`` the median RMS error of the draws' deterministic free runs.
     """
@@ -76,8 +79,8 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
     sims = [_free_run_one(spec, d, data, init_samples=init_samples, substeps=substeps, full=False)
             for d in band.draws]
     factor, calibration = 1.0, None
-    if band.calibration is not None:
-        factor, calibration = calibrated_factor(spec, band, init_samples, substeps)
+    if band.calibration is not None and band.refits:
+        factor, calibration = calibrated_out_of_sample(spec, phi, band, init_samples, substeps)
     ys = _predictive(spec, _scaled(band.draws, noise_parameters(spec), factor), data, out["start"], substeps, band.seed)
     if len(ys) >= 5:
         lo, hi = np.quantile(ys, [0.05, 0.95], axis=0)
@@ -94,34 +97,55 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
     return out
 
 
-def calibrated_factor(spec: ModelSpec, band: Band, init_samples: int, substeps: int | None) -> tuple[float, dict]:
-    """The process-noise scale of the band: of :data:`BAND_FACTORS`, the smallest whose 90 % band on the last
-    ``band.held_out`` of the estimation record (free-run from the filter there, as on a test record) holds at
-    least 90 % of the data (the largest when none does: an honest band errs wide). Returns it and each
-    factor's coverage there."""
-    data = band.calibration
-    n = len(data)
-    start = int(round(n * (1 - band.held_out)))
+def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_samples: int,
+                             substeps: int | None) -> tuple[float, dict | None]:
+    """The process-noise scale of the band, calibrated on blocks the parameters did not see (``band.refits``):
+    on each block the posterior draws, moved from the posterior mean ``phi`` to the fit without that block
+    (:func:`moved_draws`, their spread widened as the refit saw less of the record), make the band from the
+    block's start on. The coverage of the blocks together rises with the scale; the scale is where it reaches
+    90 %, interpolated between the two neighbouring :data:`BAND_FACTORS` (the largest when none reaches it: an
+    honest band errs wide). Returns it and the coverage at the factors tried."""
     noise = noise_parameters(spec)
-    if not noise or n - start < 4 * max(init_samples, 1):
+    if not noise:
         return 1.0, None
-    part = data.slice(start, None)
-    pspec, _ = recentred(spec, part)
-    k0 = _start(pspec, part, init_samples)
-    y = part.columns[spec.observed_columns[0]][k0:]
-    ok = np.isfinite(y)
-    cover = {}
-    for f in BAND_FACTORS:
-        ys = _predictive(pspec, _scaled(band.draws, noise, f), part, k0, substeps, band.seed + 1)
-        if len(ys) >= 5:
+    parts = []
+    n = len(band.calibration)
+    for a, b, q in band.refits:
+        part = band.calibration.slice(a, b)
+        pspec, _ = recentred(spec, part)
+        k0 = _start(pspec, part, init_samples)
+        y = part.columns[spec.observed_columns[0]][k0:]
+        spread = math.sqrt(n / max(n - (b - a), 1))  # the refit saw the rest of the record only
+        parts.append((pspec, part, k0, y, np.isfinite(y), moved_draws(band.draws, phi, q, noise, spread)))
+    cover: dict = {}
+    chosen, below = max(BAND_FACTORS), None
+    for f in sorted(BAND_FACTORS):  # from the narrowest, until the band holds 90 %
+        inside, seen = 0, 0
+        for pspec, part, k0, y, ok, draws in parts:
+            ys = _predictive(pspec, _scaled(draws, noise, f), part, k0, substeps, band.seed + 1)
+            if len(ys) < 5:
+                break
             lo, hi = np.quantile(ys, [0.05, 0.95], axis=0)
-            cover[f] = float(np.mean((y[ok] >= lo[ok]) & (y[ok] <= hi[ok])))
+            inside += int(np.sum((y[ok] >= lo[ok]) & (y[ok] <= hi[ok])))
+            seen += int(np.sum(ok))
+        else:
+            c = cover[f] = inside / max(seen, 1)
+            if c >= 0.9:
+                chosen = f if below is None else below[0] + (0.9 - below[1]) / (c - below[1]) * (f - below[0])
+                break
+            below = (f, c)
     if not cover:
         return 1.0, None
-    # the narrowest band that holds 90 % there (as a conformal calibration would): an honest band errs wide
-    reach = [f for f, c in cover.items() if c >= 0.9]
-    best = min(reach) if reach else max(cover)
-    return best, {"held_out_samples": int(n - start), "coverage": {f"{f:g}": c for f, c in cover.items()}}
+    return float(chosen), {"held_out_blocks": [[int(a), int(b)] for a, b, _ in band.refits],
+                           "coverage": {f"{f:g}": c for f, c in cover.items()}, "out_of_sample": True}
+
+
+def moved_draws(draws: list, mean: dict, point: dict, noise: list, spread: float = 1.0) -> list:
+    """Posterior ``draws`` moved from their ``mean`` to another ``point`` (a fit without part of the record, a
+    fit at another noise level): each keeps its offset from the mean, times ``spread`` (a fit to a share s of
+    the record is 1/sqrt(s) times as uncertain), and its own ``noise`` parameters."""
+    moved = [p for p in point if p not in noise and p in mean]
+    return [{**d, **{p: point[p] + spread * (d[p] - mean[p]) for p in moved if p in d}} for d in draws]
 
 
 def _scaled(draws: list, noise: list, factor: float) -> list:

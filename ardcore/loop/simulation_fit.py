@@ -25,7 +25,7 @@ from scipy.optimize import minimize
 
 from ..data import Dataset
 from ..likelihood.ekf import compile_model
-from .freerun import free_run, noise_parameters
+from .freerun import free_run, moved_draws, noise_parameters
 from ..sampling.starts import fd_derivatives
 from ..model.declaration import ModelSpec
 
@@ -60,10 +60,9 @@ class SimulationFit:
         The location is this predictive fit's; the spread is the evidence's posterior, the uncertainty the
         data leave in the parameters (a fit at a smaller noise than the data show would claim intervals as
         much too narrow as its noise is small). A predictive band made from them has the posterior's
-        process noise as its widest scale (:func:`~ardcore.loop.freerun.calibrated_factor` scales it down).
+        process noise at scale 1 (:func:`~ardcore.loop.freerun.calibrated_out_of_sample` calibrates it).
         """
-        moved = {p: self.phi[p] - mean[p] for p in self.phi if p not in self.noise_parameters and p in mean}
-        return [{**d, **{p: d[p] + m for p, m in moved.items() if p in d}} for d in posterior]
+        return moved_draws(posterior, mean, self.phi, self.noise_parameters)
 
     def parameters(self, posterior: dict) -> dict:
         """Per parameter: this fit's value as the mean and the posterior's sd and 99 % interval moved with it
@@ -193,6 +192,66 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
     q = refit(spec, {**fitted[best], **{p: phi[p] for p in noise}}, data, best, substeps=substeps,
               maxfun=maxfun, whitening=L)
     return SimulationFit(best, q, noise, rms, n_fit, n - n_fit, start_rms)
+
+
+HELD_OUT_BLOCKS = ("start", "end", "loudest")
+"""The blocks of the estimation record a structure is judged on (:func:`held_out_free_runs`): its start, its end
+and the stretch where the output is largest (where a stand-in fitted on smaller motions must extrapolate)."""
+
+
+def held_out_blocks(data: Dataset, column: str, share: float) -> dict[str, tuple[int, int]]:
+    """``(first, stop)`` of each of :data:`HELD_OUT_BLOCKS`: ``share`` of the record at its start, at its end, and
+    where the output's power about its mean over that many samples is largest."""
+    n = len(data)
+    m = int(round(n * share))
+    y = np.nan_to_num(data.columns[column] - np.nanmean(data.columns[column]))
+    power = np.convolve(y ** 2, np.ones(m), mode="valid")
+    k = int(np.argmax(power))
+    return {"start": (0, m), "end": (n - m, n), "loudest": (k, k + m)}
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """A structure judged on held-out blocks (:func:`held_out_free_runs`): per block its ``(first, stop)`` in the
+    record, the parameters fitted without it and the free-run RMS error on it."""
+
+    blocks: dict
+    fits: dict
+    errors: dict
+
+    def refits(self, *names: str) -> tuple:
+        """``(first, stop, parameters)`` of each block (of those ``names``, default all): what a band is
+        calibrated on out of sample (:class:`~.freerun.Band`)."""
+        return tuple((*self.blocks[b], self.fits[b]) for b in (names or self.blocks))
+
+
+def held_out_free_runs(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int | None = None,
+                       settings: SimulationSettings = SimulationSettings()) -> HeldOut | None:
+    """The free-run RMS error of the structure ``spec`` on each block of :func:`held_out_blocks` (each the
+    ``settings.held_out`` share of ``data``), fitted on the rest of the record: maximum likelihood at the
+    posterior's process noise from its mean ``phi``, the block's observations left out (the filter predicts
+    across them). How the model predicts where its parameters did not see the data, which an in-sample free run
+    cannot say: a flexible stand-in bends to the record it was fitted on and extrapolates badly beyond the
+    motions it saw. Infinite where the free run diverges; None when the record is too short to hold a block
+    out."""
+    n = len(data)
+    m = int(round(n * settings.held_out))
+    if m < 4 * settings.init_samples or n - m < 4 * settings.init_samples:
+        return None
+    noise = noise_parameters(spec)
+    names = [p for p in spec.free_parameters if p not in noise]
+    model = compile_model(spec)
+    L = _whitening(model.bind(data, substeps), phi, names)  # one search metric for every block
+    blocks = held_out_blocks(data, spec.observed_columns[0], settings.held_out)
+    fits, errors = {}, {}
+    for name, (a, b) in blocks.items():
+        cols = {k: (v.copy() if k in spec.observed_columns else v) for k, v in data.columns.items()}
+        for o in spec.observed_columns:
+            cols[o][a:b] = np.nan
+        fits[name] = _fit(model.bind(Dataset(data.t, cols, data.meta), substeps), phi, noise, 1.0, names,
+                          settings.maxfun, L)
+        errors[name] = _held_out_rms(spec, {1.0: fits[name]}, data.slice(a, b), settings.init_samples, substeps)[1.0]
+    return HeldOut(blocks, fits, errors)
 
 
 def _held_out_rms(spec: ModelSpec, fitted: dict, part: Dataset, init_samples: int, substeps) -> dict:

@@ -120,12 +120,13 @@ def headline(report: dict, col: str, unit: str = "") -> str:
         what = ("Added " + ", ".join(f"{x['effect']} to the {x['target']} equation" for x in added)
                 + (", with " + ", ".join(swaps) if swaps else "") if added else
                 ("In the " + replaced[0]["target"] + " equation, " if len(replaced) == 1 else "") + "; ".join(swaps))
-        what = what[0].upper() + what[1:] + "."
+        what = what[0].upper() + what[1:] + (f"; {_not_kept(report)}." if report.get("withheld") else ".")
         error = (f"Free-run RMS error {before['free_run']['rms_error']:.3g}{u} -> "
                  f"{after['free_run']['rms_error']:.3g}{u}; ln Z {before['log_evidence']:.1f} -> "
                  f"{after['log_evidence']:.1f}.")
     else:
-        what = "Nothing was added: no effect of the library is supported by the evidence."
+        what = (f"Nothing was added: {_not_kept(report)}." if report.get("withheld") else
+                "Nothing was added: no effect of the library is supported by the evidence.")
         # the reported model: the declared structure, at the noise level chosen for it
         reported = (report.get("reported") or {}).get("free_run") or before["free_run"]
         error = f"Free-run RMS error {reported['rms_error']:.3g}{u}."
@@ -138,3 +139,10 @@ def headline(report: dict, col: str, unit: str = "") -> str:
     else:
         left = f" The innovations left are white (Ljung-Box p = {p:.2f})."
     return f"{what} {error}{left}"
+
+
+def _not_kept(report: dict) -> str:
+    """What the evidence supported but the reported model leaves out, in a clause."""
+    names = [x["effect"] for x in report["withheld"]]
+    return (", ".join(names) + (" was" if len(names) == 1 else " were") + " supported by the evidence but not kept "
+            "(the model without free-runs better on held-out data)")

@@ -11,7 +11,7 @@ from ardflow.ardcore.likelihood.posterior import ModelPosterior
 from ardflow.ardcore.model.priors import LogNormal
 from ardflow.ardcore.likelihood.simulate import simulate_model
 from ardflow.ardcore.loop.freerun import noise_parameters
-from ardflow.ardcore.loop.simulation_fit import SimulationFit, refit, simulation_fit
+from ardflow.ardcore.loop.simulation_fit import SimulationFit, held_out_free_runs, refit, simulation_fit
 from ardflow.ardcore.loop.freerun import Band, free_run
 
 
@@ -88,8 +88,9 @@ def test_a_model_refitted_at_a_smaller_noise_keeps_honest_intervals_and_a_calibr
     pars = sim.parameters(summary)
     for p in ("k", "c", "b"):
         assert pars[p]["mean"] == q[p] and pars[p]["q005"] < params[p] < pars[p]["q995"], (p, pars[p])
+    blocks = held_out_free_runs(model, phi, est)  # the band is calibrated on blocks each refit left out
     for what, at, draws in (("refit", q, sim.draws(posterior, phi)), ("posterior", phi, posterior)):
-        fr = free_run(model, at, fresh, band=Band(draws, calibration=est, seed=1))
+        fr = free_run(model, at, fresh, band=Band(draws, calibration=est, seed=1, refits=blocks.refits()))
         print(f"\n{what}: band coverage on the fresh record {fr['band_coverage']:.3f} "
               f"(scale {fr.get('band_factor')})")
         assert 0.8 <= fr["band_coverage"] <= 0.97

@@ -50,8 +50,12 @@ def test_diagnosis_report_rounds_errors_in_units_and_tests(tmp_path):
     err = {r[0]: r for r in _cells(html, "<h2>Error before and after</h2>")[1:]}
     fr = err["free-run RMS error"]
     assert fr[1] == "mm" and float(fr[3]) < 0.5 * float(fr[2])
-    # the posterior predictive band of the final model holds about 90 % of the held-out data
-    assert 75 <= float(err["share of the data inside the 90 % posterior predictive band"][3]) <= 99
+    # the posterior predictive band of the final model, calibrated out of sample on the estimation record's end,
+    # holds at least about 90 % of the held-out data (a decay's quiet tail is easier than that end block, so it
+    # errs wide) and is not wider than a few free-run errors
+    assert 75 <= float(err["share of the data inside the 90 % posterior predictive band"][3])
+    band = rep["reported"]["free_run"]
+    assert band["band_halfwidth_rms"] < 4 * band["rms_error"], band
     # the residual tests before and after: white after, not before
     tests = {r[0]: r for r in _cells(html, "<h2>Residual tests before and after</h2>")[1:]}
     lb = tests["Ljung-Box Q"]
