@@ -1,4 +1,4 @@
-"""Law replacement: a declared law of a first-order state replaced by the same law in another form.
+"""Law replacement: a declared law replaced by the same law in another form.
 
 Forward selection adds terms beside what the user declared; when the declared law itself is wrong (a linear
 outflow where the flow goes over a weir, h^1.5, or through an orifice, h^0.5; a flow that saturates; a flow
@@ -12,6 +12,12 @@ parameter under a lognormal prior that holds the declared law at one end or in t
 * ``saturation``: ``s tanh(T / s)``, a law that levels off beyond s (a pump, a valve at its stop);
 * ``knee``: ``max(T - c, 0)`` with its corner rounded, a law that starts only above c (a crest, a
   threshold), for a term that stays positive (a level).
+
+A declared **coupling** to an input (``k * (u - y)``: a load driven through a gear or a linkage, in any state's
+drift, an oscillator's too) is offered in the forms of :data:`COUPLING_FORMS`, the first of them:
+
+* ``dead_zone``: ``sign(T) max(|T| - d, 0)`` with its corners rounded, slack of half-width d (a backlash, a
+  free-play in the drive).
 
 Each is fitted like any candidate and judged by its evidence against the current model, with the same
 multiplicity and never-worse checks as an addition; the loop takes it when it is worth more than the round's
@@ -39,11 +45,17 @@ POWER_RANGE = (0.25, 4.0)
 
 class Law(NamedTuple):
     """A declared law ``parameter * term`` and the drifts it is written in (state -> +1 or -1, the term's sign
-    there: a flow leaves one level and enters another)."""
+    there: a flow leaves one level and enters another), and the names of the :data:`FORMS` it is offered in."""
 
     parameter: str
     term: str
     drifts: dict
+    forms: tuple = ("power", "saturation", "knee")
+
+
+COUPLING_FORMS = ("dead_zone", "saturation", "power")
+"""The forms of a coupling to an input (a drive through a gear or a linkage, ``k * (u - y)``): slack in it (a
+backlash, a free-play), a limit on what it transmits (a slipping clutch), or a power law."""
 
 
 def _text(e: sp.Expr) -> str:
@@ -83,15 +95,26 @@ def linear_terms(spec: ModelSpec, new_parameters: set = frozenset()) -> list[Lin
 
 
 def declared_laws(spec: ModelSpec, new_parameters: set = frozenset()) -> list[Law]:
-    """The declared laws of first-order states another form may replace (module docstring): not an
-    oscillator's position or velocity (a spring or a damper is the loop's additions' business), no input in
-    the term, the parameter in no diffusion, observation or initial state, and linear wherever it appears."""
+    """The declared laws another form may replace (module docstring), the parameter in no diffusion,
+    observation or initial state and linear wherever it appears:
+
+    * a law of first-order states: its term in states only, none an oscillator's position or velocity (a
+      spring or a damper is the loop's additions' business);
+    * a **coupling** to an input: a term in one drift that holds both inputs and states (a drive through a
+      gear, ``k * (u - y)``), offered in :data:`COUPLING_FORMS`; the additions act on a state or an input
+      alone and cannot put slack between the two."""
     states = set(spec.states)
     osc = {s for pair in oscillator_pairs(spec) for s in pair}
     inputs = set(spec.inputs)
     out = []
     for lt in linear_terms(spec, new_parameters):
         used = lt.names & states
+        if used and lt.names & inputs and len(lt.terms) == 1 and not lt.names - used - inputs:
+            term, = lt.terms.values()
+            lead = -term if term.could_extract_minus_sign() else term
+            out.append(Law(lt.parameter, _text(lead), {s: 1 if sp.simplify(t - lead) == 0 else -1
+                                                       for s, t in lt.terms.items()}, COUPLING_FORMS))
+            continue
         if not used or lt.names & inputs or lt.names - used or used & osc or set(lt.terms) & osc:
             continue
         base = next(iter(lt.terms.values()))
@@ -141,6 +164,22 @@ def _knee_prior(values: np.ndarray):
     return _lognormal(math.sqrt(0.01 * q50 * q95), 0.01 * q50, float(q95))
 
 
+def _dead_zone_prior(values: np.ndarray):
+    """A half-width of the slack from 1 % of the term's median size to its 95th percentile."""
+    q50, q95 = np.nanquantile(np.abs(values), [0.5, 0.95])
+    if not q95 > q50 > 0:
+        return None
+    return _lognormal(math.sqrt(0.01 * q50 * q95), 0.01 * q50, float(q95))
+
+
+def _dead_zone_text(t: str, d: str, width: float) -> str:
+    """``sign(T) max(|T| - d, 0)``, its corners rounded over ``width``: zero inside the slack, the declared law
+    shifted by the slack outside it."""
+    w = f"{width:.4g}"
+    return (f"0.5*((({t}) - {d}) + sqrt((({t}) - {d})**2 + {w}**2)) "
+            f"+ 0.5*((({t}) + {d}) - sqrt((({t}) + {d})**2 + {w}**2))")
+
+
 def _knee_text(t: str, c: str, width: float) -> str:
     arg = f"({t}) - {c}"
     return f"0.5*(({arg}) + sqrt(({arg})**2 + {width:.4g}**2))"
@@ -152,6 +191,8 @@ FORMS = {
     # the corner rounded over 1 % of the recorded range, as the library's ramps (smooth for the EKF's slope)
     "knee": Form("knee", "knee", lambda t, c, v: _knee_text(t, c, 0.01 * float(np.nanmax(v) - np.nanmin(v))),
                  _knee_prior),
+    "dead_zone": Form("dead_zone", "gap", lambda t, d, v: _dead_zone_text(
+        t, d, 0.01 * float(np.nanmax(v) - np.nanmin(v))), _dead_zone_prior),
 }
 """The forms a declared law is offered in (module docstring)."""
 
@@ -173,10 +214,11 @@ def term_values(current: Fit, law: Law) -> np.ndarray:
     """The declared term along the record: the filtered states at the posterior mean put into it."""
     fspec, phi = fitted(current.cand, current.row)
     fr = compile_model(fspec).filter(phi, current.data, current.cand.substeps)
-    names = list(fspec.states)
+    names = list(fspec.states) + list(fspec.inputs)
     f = sp.lambdify([sp.Symbol(n, real=True) for n in names], sp.sympify(law.term.replace("abs(", "Abs(")),
                     modules="numpy")
-    return np.asarray(f(*fr.filtered.T), dtype=float) * np.ones(len(current.data))
+    cols = [current.data.columns[u] for u in fspec.inputs]
+    return np.asarray(f(*fr.filtered.T, *cols), dtype=float) * np.ones(len(current.data))
 
 
 def best_laws(ctx, current: Fit, new_parameters: set = frozenset(), replaced: list = ()):
@@ -205,8 +247,8 @@ def _reforms(current: Fit, replaced: list) -> list:
         if key in seen or not x.get("law_text") or x.get("shape", {}).get("name") not in params:
             continue
         seen.add(key)
-        out.append((Law(x["parameter"], x["term"], dict(x["drifts"])), FORMS[x["form"]], x["shape"]["name"],
-                    x["law_text"]))
+        out.append((Law(x["parameter"], x["term"], dict(x["drifts"]), tuple(x.get("forms", ()))),
+                    FORMS[x["form"]], x["shape"]["name"], x["law_text"]))
     return out
 
 
@@ -248,7 +290,7 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
     tasks, offered = [], []
     for w in declared_laws(ms, new_parameters):
         values = None
-        for form in FORMS.values():
+        for form in (FORMS[f] for f in w.forms):
             shape = f"{form.prefix}_{w.parameter}"[:32]
             if any(f"{f.prefix}_{w.parameter}"[:32] in ms.parameters for f in FORMS.values()):
                 break  # a law already in another form is not offered again
@@ -266,7 +308,7 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
             offered.append((w, form, shape))
     for w, now_form, now_shape, now_text in _reforms(current, replaced):
         values = term_values(current, w)
-        for form in FORMS.values():
+        for form in (FORMS[f] for f in w.forms):
             shape = f"{form.prefix}_{w.parameter}"[:32]
             prior = form.prior(values)
             if form.name == now_form.name or prior is None or shape in ms.parameters:
@@ -290,7 +332,8 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
     (w, form, shape), (row, mr) = offered[k], fits[k]
     by = {"power": f"{w.parameter}*|{w.term}|^{shape}*sign({w.term})",
           "saturation": f"{w.parameter}*{shape}*tanh({w.term}/{shape})",
-          "knee": f"{w.parameter}*max({w.term} - {shape}, 0)"}[form.name]
+          "knee": f"{w.parameter}*max({w.term} - {shape}, 0)",
+          "dead_zone": f"{w.parameter}*sign({w.term})*max(|{w.term}| - {shape}, 0)"}[form.name]
     if not gain[k] > need:
         say(f"  the declared {w.parameter}*({w.term}) is no worse than any other form (best: {form.name}, ln BF "
             f"{gain[k]:.1f}, needs {need:.1f})")
@@ -304,7 +347,8 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
         f"{row.sd[shape]:.2g} (ln BF {gain[k]:.1f})")
     return fit, {"parameter": w.parameter, "term": w.term, "target": next(iter(w.drifts)), "by": by,
                  "form": form.name, "shape": shape_summary(row, shape), "log_bayes_factor": float(gain[k]),
-                 "drifts": dict(w.drifts), "law_text": form.text(w.term, shape, term_values(current, w))}
+                 "drifts": dict(w.drifts), "forms": list(w.forms),
+                 "law_text": form.text(w.term, shape, term_values(current, w))}
 
 
 def shape_summary(row, name: str) -> dict:

@@ -254,7 +254,8 @@ def _round_table(r: dict, k: int = 8) -> str:
         for i, (name, q) in enumerate(post.items()):
             lead = (f"<td>{html.escape(c['effect'])}</td><td>{html.escape(c['target'])}</td>"
                     f"<td>{_num(c.get('screened_log_bayes_factor'))}</td><td>{_num(c['log_bayes_factor'])}</td>"
-                    f"<td>{html.escape(_fate(c, added))}</td>" if i == 0 else "<td></td>" * 5)
+                    f"<td>{html.escape(_fate(c, added) + (', then not kept' if r.get('withheld') and (c['effect'], c['target']) in added else ''))}</td>"
+                    if i == 0 else "<td></td>" * 5)
             out.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
                        f"<td>{'' if not q else '[' + _num(q.get('q005')) + ', ' + _num(q.get('q995')) + ']'}</td></tr>")
     tried = {(c["effect"], c["target"]) for c in confirmed}
@@ -282,7 +283,25 @@ def _round_table(r: dict, k: int = 8) -> str:
                    f"against {_num(par['free_run'])}), so {html.escape(par['added'])} alone was added.</p>")
     if r.get("verdict"):
         out.append(f"<p>{html.escape(r['verdict'])}</p>")
+    if r.get("withheld"):
+        out.append("<p>Not kept: what this round added or replaced is not in the model reported, which free-runs "
+                   "better on the held-out blocks of the estimation record without it (see below).</p>")
     return "".join(out)
+
+
+def _held_out_section(j: dict) -> list[str]:
+    """Each round's model judged on held-out blocks of the estimation record, and which one is reported."""
+    h = j.get("held_out")
+    if not h or len(h.get("free_run") or []) < 2:
+        return []
+    blocks = list(h["free_run"][0]) or list(next((e for e in h["free_run"] if e), {}))
+    rows = "".join(f"<tr><td>round {i}{' (reported)' if i == h['kept'] else ''}</td>"
+                   + "".join(f"<td>{_num(e.get(b))}</td>" for b in blocks) + f"<td>{_num(h['overall'][i])}</td></tr>"
+                   for i, e in enumerate(h["free_run"]))
+    return [f"<h3>Which round's model is reported</h3><p>Each round's model refitted with one block of the "
+            f"estimation record ({100 * h['share']:g} % of it) left out, then free-run over that block; {html.escape(h['rule'])}."
+            "</p><table><tr><th>model</th>" + "".join(f"<th>{html.escape(b)}</th>" for b in blocks)
+            + f"<th>all blocks</th></tr>{rows}</table>"]
 
 
 def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Path, col: str = "y",
@@ -336,6 +355,7 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
     body.append("<h2>Each round: the candidates and what became of them</h2>")
     body += [_round_table(r) for r in j.get("rounds", [])]
     body += ["<h2>Error before and after</h2>", _error_table(j, unit), fig("free_run.png")]
+    body += _held_out_section(j)
     body += _model_section(j.get("reported") or {}, unit)
     body += ["<h2>Residual tests before and after</h2>", _tests_table(j, col), fig("tests.png"),
              "<h2>Where the model needed help</h2>", fig("process_noise.png"), fig("candidates.png")]
