@@ -7,7 +7,8 @@ Every record is the truth's stochastic ODE simulated by :func:`ardflow.ardcore.l
 ``EST`` share estimates, the rest is the held-out test record the free runs are scored on. The user's model is
 the plain one an engineer would start from: a linear oscillator for the mechanical and electrical records, a
 linear level model for the tanks. ``design`` says whether the loop's families were tuned on a record of that
-class (the Duffing circuit and the tank cascade) or not (every other record is a check).
+class (the Duffing circuit, the tank cascade, and the backlash, on which the dead-zone form of a declared
+coupling was built) or not (every other record is a check).
 
 Records (the physics each one holds; ``sigma`` process noise, ``gamma`` measurement noise):
 
@@ -150,7 +151,7 @@ def backlash(n: int = 4000, seed: int = 14) -> Record:
     user["drift"] = {"y": "v", "v": "-c*v + k*(u - y)"}
     user["parameters"] = ["k", "c", "sigma"]
     spec = _oscillator_study("backlash", user, {p: OSC_PRIORS[p] for p in ("k", "c", "sigma")})
-    return _split("backlash", spec, data, True, False, "a gear with backlash of half-width 0.1")
+    return _split("backlash", spec, data, True, True, "a gear with backlash of half-width 0.1")
 
 
 def hysteresis(n: int = 4000, seed: int = 15) -> Record:

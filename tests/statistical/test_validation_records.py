@@ -1,0 +1,47 @@
+"""Two records of the validation set (tests.bench.validation) through the closed loop, as the bench runs them.
+
+* backlash: the user's coupling k (u - y) is a gear with slack; the loop must replace the declared law by its
+  dead-zone form (not stack stand-ins beside it), find the slack's half-width, and free-run the held-out half
+  better than the user's model, with a 90 % band that holds 80-97 % of it.
+* hysteresis: a Bouc-Wen element no library effect holds; the evidence supports stand-ins that extrapolate
+  badly to the larger motions of the held-out half. The loop must report the model whose free run on held-out
+  blocks of the estimation record is best (here the declared one), say what it did not keep, and so free-run
+  the test half better than the model with the stand-ins.
+"""
+
+import pytest
+
+from ardflow.ardcore.loop.config import DiagnoseConfig
+from ardflow.ardcore.loop.diagnose import diagnose
+
+from ..bench.validation import backlash, hysteresis
+
+pytestmark = pytest.mark.timeout(900)
+
+
+def test_a_coupling_with_slack_is_replaced_by_its_dead_zone_form():
+    rec = backlash()
+    d = diagnose(rec.spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=2))
+    rep = d.report
+    assert [x["form"] for x in rep["replaced"]] == ["dead_zone"] and rep["replaced"][0]["parameter"] == "k"
+    gap = rep["replaced"][0]["shape"]
+    assert gap["q005"] < 0.1 < gap["q995"] or abs(gap["mean"] - 0.1) < 0.02, gap
+    before, after = rep["before"]["free_run"]["rms_error"], rep["reported"]["free_run"]
+    assert after["rms_error"] < 0.7 * before, (before, after)
+    assert 0.8 <= after["band_coverage"] <= 0.97, after
+
+
+def test_stand_ins_that_free_run_worse_held_out_are_not_kept():
+    rec = hysteresis()
+    d = diagnose(rec.spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=3))
+    rep = d.report
+    assert rep["withheld"], "the stand-ins the evidence supported are listed as not kept"
+    h = rep["held_out"]
+    kept, last_blocks = h["kept"], h["free_run"][-1]
+    # a later model is kept only if no held-out block is worse: the final one was worse on at least one
+    assert kept < len(rep["rounds"]) and any(last_blocks[b] > 1.01 * h["free_run"][kept][b] for b in last_blocks)
+    # on the test half (never seen by the choice) the reported model free-runs better than the stand-ins' model
+    last = rep["rounds"][-1]["after"]["free_run"]["rms_error"]
+    assert rep["reported"]["free_run"]["rms_error"] < last
+    assert "not kept" in rep["headline"]
+    assert 0.8 <= rep["reported"]["free_run"]["band_coverage"] <= 0.97
