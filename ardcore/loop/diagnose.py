@@ -162,7 +162,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                                                           if x.get("form")])
             rec, survivors = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds))
             rounds.append(rec)
-            if swap is not None and (not survivors or swap[2] >= survivors[0].log_bayes_factor):
+            if swap is not None and (not survivors or swap[2] >= survivors[0].log_bayes_factor
+                                     or _worth_beside(ctx, swap, survivors[0])):
                 rec.record["replaced"] = swap[1]
                 rec.record.pop("verdict", None)
                 # what earlier rounds added stood in beside the wrong law: each must still earn its place
@@ -220,21 +221,19 @@ def _held_out_choice(ctx: LoopContext, snapshots: list[_Snapshot]) -> tuple[int,
     badly to motions larger than those it saw. Returns the index of the model kept (the last when the record
     is too short to hold a block out), the record of the choice and the kept model's
     :class:`~.simulation_fit.HeldOut` (its band is calibrated on those blocks), or None."""
-    from .simulation_fit import HeldOut, SimulationSettings, held_out_free_runs
+    from .simulation_fit import HeldOut, SimulationSettings, held_out_task
 
     last = len(snapshots) - 1
     config = ctx.config
     settings = SimulationSettings(held_out=config.simulation_held_out, init_samples=config.init_samples)
     errs, held = [], []
-    for s in snapshots:
-        try:
-            e = held_out_free_runs(s.fspec, s.phi, s.held.data, substeps=s.held.cand.substeps, settings=settings)
-        except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-            e = {"error": f"{type(exc).__name__}: {exc}"}
+    # side by side on the loop's pool: one model per task
+    for e in ctx.mapper(held_out_task, [(s.fspec, s.phi, s.held.data, s.held.cand.substeps, settings)
+                                        for s in snapshots]):
         if e is None:
             return last, None, None
         held.append(e if isinstance(e, HeldOut) else None)
-        errs.append(e.errors if isinstance(e, HeldOut) else {})
+        errs.append(e.errors if isinstance(e, HeldOut) else {})  # a failed refit ranks last
 
     def overall(e: dict) -> float:
         return float(np.sqrt(np.mean([v ** 2 for v in e.values()]))) if e else INF
@@ -242,7 +241,7 @@ def _held_out_choice(ctx: LoopContext, snapshots: list[_Snapshot]) -> tuple[int,
     keep, tol = 0, 1 + FREE_RUN_TOLERANCE
     for j in range(1, last + 1):
         e, k = errs[j], errs[keep]
-        if e and all(e[b] <= k[b] * tol for b in e) and overall(e) * tol < overall(k):
+        if e and (not k or all(e[b] <= k[b] * tol for b in e) and overall(e) * tol < overall(k)):
             keep = j
     if last == 0:
         return 0, None, held[0]
@@ -372,6 +371,29 @@ def check_fitted(label: str, row: ModelFit, data: Dataset) -> None:
     raise FitError(f"diagnose: {label} has no finite evidence on these data (ln Z = {row.log_evidence}): its "
                    f"likelihood is not finite anywhere the fit reached. Check the data (largest |value| "
                    f"{big:.3g}) against the model's priors, initial state and noise levels")
+
+
+def _worth_beside(ctx: LoopContext, swap: tuple, best: Confirmation) -> bool:
+    """Whether the laws of ``swap`` (:func:`~.replace.best_laws`: the model with them replaced, their records,
+    their ln BF) are worth replacing although the round's ``best`` addition is worth more than they are: the
+    replaced model with that addition beside it must beat the current model with the addition by more than
+    ``min_log_bf``. A stand-in that patches two wrong laws at once (a saturating flow where a pipe and an
+    orifice both follow a square root) can outweigh them together in one round and, once added, leave too
+    little for either law to win later; the look-ahead asks what the laws are worth beside it."""
+    config, say = ctx.config, ctx.say
+    try:
+        j = joint_fit(ctx, swap[0], [best])
+    except (FitError, ValueError, np.linalg.LinAlgError) as e:
+        say(f"  look-ahead: the replaced laws beside {best.effect} could not be fitted ({type(e).__name__})")
+        return False
+    gain = j.row.log_evidence - best.log_evidence
+    laws = ", ".join(x["by"] for x in swap[1])
+    if gain > config.min_log_bf and worse_than_before(j, free_run_rms(best.fit, config), config) is None:
+        say(f"  look-ahead: {laws} beside {best.effect} is worth {gain:.1f} nats more than {best.effect} alone: "
+            f"the laws are replaced first, and what they leave is screened again next round")
+        return True
+    say(f"  look-ahead: {laws} beside {best.effect} is worth {gain:.1f} nats: {best.effect} is added")
+    return False
 
 
 def _present(rounds: list[LoopRound]) -> set:

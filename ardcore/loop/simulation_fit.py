@@ -254,6 +254,18 @@ def held_out_free_runs(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: i
     return HeldOut(blocks, fits, errors)
 
 
+def held_out_task(args) -> HeldOut | str | None:
+    """:func:`held_out_free_runs` of ``(spec, phi, data, substeps, settings)``, a picklable unit of work for the
+    loop's process pool; a failed fit is returned as its message, not raised."""
+    from ..errors import FitError
+
+    spec, phi, data, substeps, settings = args
+    try:
+        return held_out_free_runs(spec, phi, data, substeps=substeps, settings=settings)
+    except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        return f"{type(exc).__name__}: {exc}"
+
+
 def _held_out_rms(spec: ModelSpec, fitted: dict, part: Dataset, init_samples: int, substeps) -> dict:
     """Each factor's free-run RMS error on ``part`` (infinite when it diverges)."""
     out = {}
