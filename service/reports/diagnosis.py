@@ -235,7 +235,8 @@ def _model_section(m: dict, unit: str) -> list[str]:
                    for k, q in (m.get("parameters") or {}).items())
     return [f"<h3>The model reported</h3><p>One model: {how}. Its free-run RMS error is "
             f"{_num(fr.get('rms_error'))} {unit}{cover}.</p>",
-            "<details><summary>Its parameters</summary><table><tr><th>parameter</th><th>mean</th><th>sd</th>"
+            "<details><summary>Its parameters (as fitted, an added effect's coefficient on its normalised term)"
+            "</summary><table><tr><th>parameter</th><th>mean</th><th>sd</th>"
             f"<th>99 % interval</th></tr>{rows}</table></details>"]
 
 
@@ -334,8 +335,12 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
             "</details>"]
     if j.get("added"):
         # one row per coefficient: the effect, its term, the coefficient's posterior mean and 99 % interval
-        body.append("<h2>Effects added</h2><table><tr><th>effect</th><th>equation</th><th>character</th>"
-                    "<th>ln BF</th><th>coefficient</th><th>mean</th><th>99 % interval</th></tr>")
+        # the coefficient as its round confirmed it, in the model's units; the reported model's table below holds
+        # the final fit's values of the same parameters (normalised terms, refitted beside later effects)
+        body.append("<h2>Effects added</h2><p>Each coefficient as the round that added it confirmed it, in the "
+                    "model's physical units; the final values are under <i>The model reported</i>.</p>"
+                    "<table><tr><th>effect</th><th>equation</th><th>character</th>"
+                    "<th>ln BF</th><th>coefficient</th><th>mean when added</th><th>99 % interval</th></tr>")
         for a in j["added"]:
             post = {**a.get("posterior", {}), **a.get("shape", {})} or {"-": {}}
             for i, (name, q) in enumerate(post.items()):

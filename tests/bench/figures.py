@@ -77,10 +77,6 @@ def publish(results: dict, command: str, machine: dict, path: Path = FIGURES) ->
 
 VALIDATION = ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis", "none")
 """The validation set's records (:mod:`tests.bench.validation`), in the table's order."""
-DESIGN = {"cascade", "duffing"}
-"""The records of a class the loop's families were designed on; the rest are checks."""
-
-
 def _validation_key(k: str) -> bool:
     return k.startswith("validation_") or any(k.startswith(f"loop_{r}_") or k.startswith("peer_") and
                                               k.endswith(f"_{r}") for r in VALIDATION)
@@ -232,21 +228,29 @@ def render_validation(figs: dict) -> list[str]:
     def num(x) -> str:
         return "" if not isinstance(x, (int, float)) else ("diverged" if not math.isfinite(x) else f"{x:.3g}")
 
-    rows = ["| record (class) | user's model | the loop's reported model | what the loop did | linear ARX | "
-            "polynomial NARX | SysIdentPy | PySINDy | loop <= best peer | loop wall time |",
-            "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| record (class) | user's model | the loop's reported model | its structure at the posterior mean | "
+            "what the loop did | linear ARX | polynomial NARX | SysIdentPy | PySINDy | loop <= best peer | "
+            "loop wall time |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in VALIDATION:
         if f"loop_{r}_free_run" not in v:
             continue
         did = [*v.get(f"loop_{r}_replaced", []), *v.get(f"loop_{r}_added", [])]
+        held = v.get(f"loop_{r}_withheld") or []
+        did = (", ".join(did) or "nothing") + (f"; not kept (worse held out): {', '.join(held)}" if held else "")
         loop, best = v[f"loop_{r}_free_run"], v.get(f"peer_best_{r}")
-        rows.append(f"| {r} ({'design' if r in DESIGN else 'check'}) | {num(v.get(f'loop_{r}_before'))} | "
-                    f"{num(loop)}{_cover(v.get(f'loop_{r}_band_coverage'))} | {', '.join(did) or 'nothing'} | "
+        factor = v.get(f"loop_{r}_noise_factor", 1.0)
+        rows.append(f"| {r} ({'design' if v.get(f'loop_{r}_design') else 'check'}) | "
+                    f"{num(v.get(f'loop_{r}_before'))} | "
+                    f"{num(loop)}{_cover(v.get(f'loop_{r}_band_coverage'))} | "
+                    f"{num(v.get(f'loop_{r}_posterior_mean_free_run'))}"
+                    f"{'' if factor == 1.0 else f' (reported at {factor:g} x its process noise)'} | {did} | "
                     + " | ".join(num(v.get(f"peer_{p}_{r}")) for p in ("arx", "narx", "sysidentpy", "pysindy"))
                     + f" | {'yes' if isinstance(best, (int, float)) and loop <= best else 'no'} | "
                       f"{num(v.get(f'loop_{r}_s'))} s |")
     rows += ["", f"The loop's free run is at or below the best peer's on {v.get('validation_loop_at_or_below_best_peer')}"
-                 f" of {v.get('validation_records')} records; on the record without an effect it changed "
+                 f" of {v.get('validation_records')} records ({v.get('validation_checks_at_or_below_best_peer')} of "
+                 f"the {v.get('validation_check_records')} check records); on the record without an effect it changed "
                  f"{v.get('validation_added_on_clean')} terms. Free-run RMS errors on the held-out second half of "
                  "each record, in the record's units."]
     return rows + _provenance(f)

@@ -713,7 +713,12 @@ def bench_validation(tiny: bool = False) -> dict:
     ``loop_<r>_replaced`` (what it did), ``peer_<p>_<r>`` for the linear ARX, the polynomial NARX with its
     simulation-error refit, SysIdentPy and PySINDy, ``peer_best_<r>`` the best of them; and the summary
     ``validation_loop_at_or_below_best_peer`` (records where the loop's free run is at or below the best
-    peer's), ``validation_records``, ``validation_added_on_clean`` (effects added where the truth has none).
+    peer's), ``validation_records``, ``validation_check_records`` and ``validation_checks_at_or_below_best_peer``
+    (the same over the records whose class the loop was not designed on), ``validation_added_on_clean``
+    (effects added where the truth has none); per record also ``loop_<record>_posterior_mean_free_run`` and
+    ``loop_<record>_noise_factor`` (the reported model's structure at its posterior mean, and the noise level
+    reported), ``loop_<record>_withheld`` (supported by the evidence, not kept: worse on held-out blocks) and
+    ``loop_<record>_design``.
     """
     from ardflow.ardcore.loop.config import DiagnoseConfig
     from ardflow.ardcore.loop.diagnose import diagnose
@@ -722,7 +727,7 @@ def bench_validation(tiny: bool = False) -> dict:
     from .validation import RECORDS
 
     out: dict = {}
-    wins = clean_added = 0
+    wins = clean_added = checks = checks_won = 0
     for name, make in RECORDS.items():
         rec = make(n=800) if tiny else make()
         spec = _tiny_spec(rec.spec) if tiny else rec.spec
@@ -738,6 +743,12 @@ def bench_validation(tiny: bool = False) -> dict:
         out[f"loop_{name}_band_coverage"] = r["reported"]["free_run"].get("band_coverage")
         out[f"loop_{name}_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
         out[f"loop_{name}_replaced"] = [x["parameter"] + "*" + x["term"] + " -> " + x["by"] for x in r["replaced"]]
+        out[f"loop_{name}_withheld"] = [a["effect"] + " -> " + a["target"] for a in r.get("withheld", [])]
+        # the reported model beside its structure at the posterior mean (the same model at noise factor 1)
+        out[f"loop_{name}_noise_factor"] = r["reported"].get("noise_factor", 1.0)
+        out[f"loop_{name}_posterior_mean_free_run"] = (r["reported"].get("posterior_mean_free_run")
+                                                       or r["reported"]["free_run"])["rms_error"]
+        out[f"loop_{name}_design"] = rec.design
         y, u = rec.est.columns["y"], rec.est.columns["u"]
         test = {"test": (rec.test.columns["y"], rec.test.columns["u"])}
         peer = {"arx": peers.free_run_rms(peers.fit_narx(y, u, polynomial=False), *test["test"]),
@@ -749,13 +760,18 @@ def bench_validation(tiny: bool = False) -> dict:
         for p, v in peer.items():
             out[f"peer_{p}_{name}"] = v
         out[f"peer_best_{name}"] = min(peer.values())
-        wins += out[f"loop_{name}_free_run"] <= out[f"peer_best_{name}"]
+        won = out[f"loop_{name}_free_run"] <= out[f"peer_best_{name}"]
+        wins += won
+        checks_won += won and not rec.design
+        checks += not rec.design
         if not rec.has_effect:
             clean_added += len(rep.added) + len(r["replaced"])
         if not tiny:  # a smoke run never touches the measured figures
             _save_partial(out)
     out["validation_records"] = len(RECORDS)
     out["validation_loop_at_or_below_best_peer"] = wins
+    out["validation_check_records"] = checks
+    out["validation_checks_at_or_below_best_peer"] = checks_won
     out["validation_added_on_clean"] = clean_added
     return out
 
