@@ -6,6 +6,6 @@ The modules are the interface: import from them (``from ardflow.ardcore.loop.che
 """
 
 __all__ = [
-    "checks", "config", "confirm", "diagnose", "freerun", "initial", "replace", "residual_tests", "residuals",
+    "checks", "config", "confirm", "diagnose", "freerun", "initial", "replace", "residuals",
     "result", "simulation_fit", "verdict",
 ]

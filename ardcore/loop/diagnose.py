@@ -24,7 +24,7 @@
 When no candidate survives, the result says so and describes the residual
 structure that remains (spectral peaks, the states that needed noise).
 
-Rooms: the residual tests live in :mod:`ardcore.loop.residual_tests`, the free run and its
+Rooms: the residuals and their tests live in :mod:`ardcore.loop.residuals`, the free run and its
 prediction band in :mod:`ardcore.loop.freerun`, the evidence screen in :mod:`ardcore.screening.screen` (its EKF score machinery in :mod:`ardcore.screening.score`),
 the library in :mod:`ardcore.effects.base`, the confirmations (re-selection, halves check, joint
 fit, process pool) in :mod:`ardcore.loop.confirm`, the verdict's words in :mod:`ardcore.loop.verdict`;
@@ -36,7 +36,6 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -47,8 +46,9 @@ from .replace import best_laws, shape_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import FitError, SpecError
+from .reported import Snapshot, held_out_choice, reported_model, withhold
 from .result import Diagnosis, FittedModel, LoopRound
-from .freerun import FREE_RUN_TOLERANCE, Band, fitted, free_run, free_run_rms, posterior_draws, worse_than_before
+from .freerun import Band, fitted, free_run, free_run_rms, posterior_draws, worse_than_before
 from .initial import data_informed_initial
 from .config import DiagnoseConfig, LoopContext
 from ..model.declaration import ModelSpec
@@ -58,7 +58,6 @@ from ..selection.spec import StudySpec
 from ..selection.study import run_candidate
 from .verdict import character, headline, unexplained
 
-INF = math.inf
 
 
 # --------------------------------------------------------------------------- fit, free run, loop
@@ -139,13 +138,13 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     mapper, close = pool_mapper(workers)
     ctx = LoopContext(spec, config, say, mapper, tuple(extra_effects), col)
     held = Fit(cand, row, bmr, data)
-    snapshots: list[_Snapshot] = []
+    snapshots: list[Snapshot] = []
     try:
         for rnd in range(config.max_rounds + 1):
             fspec, phi = fitted(held.cand, held.row)
             say(f"round {rnd}: {held.cand.label} ln Z = {held.row.log_evidence:.3f}; computing residuals")
             res, fr, err = _measure(ctx, held, fspec, phi, cur_test, rnd)
-            snapshots.append(_Snapshot(held, fspec, phi, _arrays(res, fr)))
+            snapshots.append(Snapshot(held, fspec, phi, _arrays(res, fr)))
             if first is None:
                 initial = FittedModel(fspec, phi, (), held.cand.substeps)
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
@@ -180,160 +179,22 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             earlier = [x for r in rounds[:-1] for x in r.added]
             held = backward_check(ctx, held, earlier, rnd)
             held = replace_laws(ctx, held, rounds)
-        keep, first["held_out"], blocks = _held_out_choice(ctx, snapshots)
+        keep, first["held_out"], blocks = held_out_choice(ctx, snapshots)
         if keep < len(snapshots) - 1:
             held, fspec, phi = snapshots[keep].held, snapshots[keep].fspec, snapshots[keep].phi
-            _withhold(rounds, keep)
+            withhold(rounds, keep)
             if keep:
                 arrays["after"] = snapshots[keep].arrays
             else:
                 arrays.pop("after", None)
         kept = rounds[:keep]
         final = FittedModel(fspec, phi, tuple(e for r in kept for e in r.effects), held.cand.substeps)
-        first["reported"], reported = _reported(ctx, final, held, cur_test, kept, arrays, blocks)
+        first["reported"], reported = reported_model(ctx, final, held, cur_test, kept, arrays, blocks)
         out = _report(ctx, data, test_data, first, rounds, arrays, held)
     finally:
         close()
     out["wall_s"] = time.perf_counter() - t_start
     return Diagnosis(out, arrays, initial, reported, final)
-
-
-@dataclass(frozen=True)
-class _Snapshot:
-    """The model the loop held at the start of a round (its fit, its structure with pruned terms fixed, its
-    posterior mean) and the residual tests and free run measured on it."""
-
-    held: Fit
-    fspec: ModelSpec
-    phi: dict
-    arrays: dict
-
-
-def _held_out_choice(ctx: LoopContext, snapshots: list[_Snapshot]) -> tuple[int, dict | None, object]:
-    """Which round's model the loop reports, judged on held-out blocks of the estimation record
-    (:func:`~.simulation_fit.held_out_free_runs`: the record's start, its end and its loudest stretch, each
-    left out of a refit of the structure and free-run).
-
-    From the declared model on, a later round's model is kept over the one kept so far only when it free-runs
-    no worse on every block (within :data:`~.freerun.FREE_RUN_TOLERANCE`) and better over them all by more
-    than that. Evidence and the in-sample never-worse check judge an effect on the data it was fitted to; a
-    stand-in for what no library effect holds (a hidden hysteretic state) passes both and then extrapolates
-    badly to motions larger than those it saw. Returns the index of the model kept (the last when the record
-    is too short to hold a block out), the record of the choice and the kept model's
-    :class:`~.simulation_fit.HeldOut` (its band is calibrated on those blocks), or None."""
-    from .simulation_fit import HeldOut, SimulationSettings, held_out_task
-
-    last = len(snapshots) - 1
-    config = ctx.config
-    settings = SimulationSettings(held_out=config.simulation_held_out, init_samples=config.init_samples)
-    errs, held = [], []
-    # side by side on the loop's pool: one model per task
-    for e in ctx.mapper(held_out_task, [(s.fspec, s.phi, s.held.data, s.held.cand.substeps, settings)
-                                        for s in snapshots]):
-        if e is None:
-            return last, None, None
-        held.append(e if isinstance(e, HeldOut) else None)
-        errs.append(e.errors if isinstance(e, HeldOut) else {})  # a failed refit ranks last
-
-    def overall(e: dict) -> float:
-        return float(np.sqrt(np.mean([v ** 2 for v in e.values()]))) if e else INF
-
-    keep, tol = 0, 1 + FREE_RUN_TOLERANCE
-    for j in range(1, last + 1):
-        e, k = errs[j], errs[keep]
-        if e and (not k or all(e[b] <= k[b] * tol for b in e) and overall(e) * tol < overall(k)):
-            keep = j
-    if last == 0:
-        return 0, None, held[0]
-    ctx.say(f"held-out free runs (each block, {100 * config.simulation_held_out:g} % of the record, left out of a "
-            "refit): " + "; ".join(f"round {i} " + ", ".join(f"{b} {v:.4g}" for b, v in e.items())
-                                   for i, e in enumerate(errs))
-            + ("" if keep == last else f"; the model of round {keep} is kept (what came after free-runs worse "
-                                       f"on a block)"))
-    return keep, {"share": config.simulation_held_out, "free_run": errs, "overall": [overall(e) for e in errs],
-                  "kept": keep, "rule": f"a later round's model is kept when no block is worse by more than "
-                                        f"{100 * FREE_RUN_TOLERANCE:g} % and all together are better by more",
-                  "blocks": {b: list(v) for b, v in held[keep].blocks.items()} if held[keep] else None}, held[keep]
-
-
-def _withhold(rounds: list[LoopRound], keep: int) -> None:
-    """Mark what rounds ``keep`` on added, replaced or dropped as not kept: the model of round ``keep`` is
-    reported (:func:`_held_out_choice`)."""
-    for r in rounds[keep:]:
-        r.record["withheld"] = True
-        for x in r.added:
-            x.record["withheld"] = True
-    for r in rounds[:keep]:
-        for x in r.added:
-            if x.record.get("removed") is not None and x.record["removed"] >= keep:
-                x.record.pop("removed")  # dropped in a round not kept: still in the model reported
-                x.record.pop("log_bayes_factor_after", None)
-
-
-def _reported(ctx: LoopContext, final: FittedModel, held: Fit, test: Dataset, rounds: list[LoopRound],
-              arrays: dict, blocks=None) -> tuple[dict, FittedModel]:
-    """The one model the loop reports, and its record: the final structure at the process-noise level whose
-    free run is best on the held-out end of the estimation record (:mod:`.simulation_fit`: factor 1, the
-    posterior's own noise, unless another is better by its ``min_gain``).
-
-    At factor 1 it is the posterior (its mean, its MCMC draws). At another factor it is the structure refitted
-    at that noise, with the posterior's spread moved to it (:meth:`~.simulation_fit.SimulationFit.draws`), and
-    the posterior mean's free run is kept beside it as ``posterior_mean_free_run``. Either way its free run on
-    the test record is measured again with its band calibrated out of sample on ``blocks`` (the
-    :class:`~.simulation_fit.HeldOut` blocks of the estimation record, each left out of a refit), and replaces
-    the last measure as the final error (the last round's ``after`` and the figure's arrays).
-    """
-    from .simulation_fit import SimulationSettings, simulation_fit
-
-    config, say = ctx.config, ctx.say
-    rec = {"structure": held.cand.label, "noise_factor": 1.0,
-           "parameters": {k: {q: getattr(held.row, q)[k] for q in ("mean", "sd", "q005", "q995")}
-                          for k in held.row.mean}}
-    last = next((r.record for r in reversed(rounds) if r.record.get("added") or r.record.get("replaced")), None)
-    measured = (last["after"] if last is not None else {}).get("free_run") or arrays["before"]["free_run"]
-    keep = ("rms_error", "relative_rms_error", "band_coverage", "band_halfwidth_rms", "band_factor", "n")
-    rec["free_run"] = {k: measured[k] for k in keep if k in measured}
-    sim, model = None, final
-    if not config.simulation_factors:
-        rec["chosen_by"] = "the posterior (no other noise level tried)"
-    else:
-        say("reported model: process-noise factors " + ", ".join(f"{f:g}" for f in config.simulation_factors)
-            + " judged on held-out data")
-        try:
-            sim = simulation_fit(final.spec, final.phi, held.data, substeps=final.substeps,
-                                 settings=SimulationSettings(factors=tuple(config.simulation_factors),
-                                                             held_out=config.simulation_held_out,
-                                                             init_samples=config.init_samples))
-        except (FitError, ValueError, np.linalg.LinAlgError) as e:  # the posterior's own result stands
-            rec["chosen_by"] = f"the posterior (the other noise levels failed: {type(e).__name__}: {e})"
-        else:
-            rec.update(sim.to_json() if sim else {"chosen_by": "the posterior (too short to hold part out)"})
-    draws = posterior_draws(held.mr, final.spec, config.band_draws, seed=len(rounds))
-    if sim is not None and sim.factor != 1.0:
-        model = FittedModel(final.spec, sim.phi, final.effects, final.substeps)
-        draws = sim.draws(draws, final.phi)
-        rec.update(parameters=sim.parameters(rec["parameters"]), posterior_mean_free_run=dict(rec["free_run"]))
-    elif blocks is None:  # the posterior, its band as the loop measured it
-        say("reported model: the posterior (no smaller process noise free-runs both held-out ends better)")
-        return rec, final
-    fr = free_run(model.spec, model.phi, test, init_samples=config.init_samples, substeps=model.substeps,
-                  band=Band(draws, calibration=held.data, seed=len(rounds), refits=blocks.refits("end") if blocks else ()))
-    rec["free_run"] = {k: fr[k] for k in keep if k in fr}
-    if last is not None:
-        last["after"]["free_run"] = {**{k: v for k, v in fr.items() if k in last["after"]["free_run"]},
-                                     "band_calibration": fr.get("band_calibration"), "noise_factor": model_factor(sim)}
-        arrays["after"]["free_run"] = fr
-    else:
-        arrays["before"]["free_run"] = fr
-    say(f"reported model: the structure at {model_factor(sim):g} x its posterior process noise; free-run RMS "
-        f"error {fr['rms_error']:.4g} (posterior mean {measured['rms_error']:.4g}), its 90 % band (process noise "
-        f"x {fr.get('band_factor', 1.0):g}, calibrated on held-out blocks) holds {fr.get('band_coverage', math.nan):.0%}")
-    return rec, model
-
-
-def model_factor(sim) -> float:
-    """The process-noise factor of the reported model (1: the posterior's own)."""
-    return 1.0 if sim is None else float(sim.factor)
 
 
 _BASE_FIT = ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean", "sd")
@@ -538,14 +399,14 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
                                 f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
                       + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "
                                 f"absorbed part of what was missing" for k, v in shifts.items())
-                      + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") and kept == rounds else "")
+                      + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") and len(kept) == len(rounds) else "")
                       + (f"; {_withheld(withheld, first)}" if withheld else ""))
     out["headline"] = headline(out, col, unit)
     return out
 
 
 def _withheld(withheld: list, first: dict) -> str:
-    """Why the effects of the rounds after the reported model's are not in it (:func:`_held_out_choice`)."""
+    """Why the effects of the rounds after the reported model's are not in it (:func:`~.reported.held_out_choice`)."""
     h = first["held_out"]
     return (", ".join(x["effect"] for x in withheld) + " not kept: the evidence supported "
             + ("it" if len(withheld) == 1 else "them") + f", but the model of round {h['kept']} free-runs better on "

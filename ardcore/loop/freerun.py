@@ -18,7 +18,7 @@ from .initial import recentred
 from ..model.declaration import ModelSpec
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec
-from .residual_tests import dominant_frequency, harmonics
+from .residuals import dominant_frequency, harmonics
 
 
 def fitted_spec(cand: CandidateSpec, row: ModelFit) -> ModelSpec:

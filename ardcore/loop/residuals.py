@@ -1,20 +1,105 @@
-"""The residuals of a fitted model (docs/method.md section 8, step 2): standardised EKF innovations with their
-tests, and the process noise the filter had to inject per dynamic state, from an RTS smoother on the model
-with a small diagnostic noise (its level fitted by maximum likelihood) on every dynamic state."""
+"""The residuals of a fitted model (docs/method.md section 8, step 2) and their tests.
+
+The residuals: standardised EKF innovations, and the process noise the filter had to inject per dynamic state,
+from an RTS smoother on the model with a small diagnostic noise (its level fitted by maximum likelihood) on
+every dynamic state. Their tests: whiteness, normality, spectral peaks, dominant frequency, harmonics
+(``config`` arguments need ``max_lag``, ``ljung_box_lags`` and ``peak_p``, a
+:class:`~ardcore.loop.config.DiagnoseConfig`).
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize
+from scipy import optimize, signal, stats
 
 from ..data import Dataset
 from ..effects.base import dynamic_states
 from ..likelihood.ekf import compile_model
 from .config import DiagnoseConfig
 from ..model.declaration import ModelSpec
-from .residual_tests import dominant_frequency, residual_tests
+
+
+def acf(x: np.ndarray, max_lag: int) -> np.ndarray:
+    """Sample autocorrelation at lags 0..max_lag (NaN ignored)."""
+    x = x[np.isfinite(x)]
+    x = x - x.mean()
+    d = float(x @ x)
+    return np.array([float(x[: x.size - k] @ x[k:]) / d if d > 0 else 0.0 for k in range(max_lag + 1)])
+
+
+def spectral_peaks(x: np.ndarray, fs: float, p: float, *, nperseg: int | None = None) -> dict:
+    """Welch spectrum and the bins significantly above a running-median background."""
+    x = x[np.isfinite(x)]
+    nperseg = nperseg or int(min(x.size, max(256, 2 ** int(np.log2(max(x.size // 8, 2))))))
+    f, P = signal.welch(x, fs=fs, nperseg=nperseg)
+    k = max(5, (P.size // 20) | 1)
+    bg = np.array([np.median(P[max(0, i - k):i + k + 1]) for i in range(P.size)])
+    n_avg = max(1, 2 * x.size // nperseg - 1)
+    # a Welch bin ~ background * chi2(2 n_avg) / (2 n_avg); the median of that is ~ (1 - 2/(9*2n))^3
+    med = (1 - 2 / (9 * 2 * n_avg)) ** 3
+    thr = stats.chi2.ppf(1 - p, 2 * n_avg) / (2 * n_avg) / med
+    ratio = P / np.maximum(bg, 1e-300)
+    idx = [i for i in range(1, P.size - 1) if ratio[i] > thr and P[i] >= P[i - 1] and P[i] >= P[i + 1]]
+    peaks = sorted(({"f": float(f[i]), "power_ratio": float(ratio[i])} for i in idx),
+                   key=lambda d: -d["power_ratio"])
+    return {"f": f, "psd": P, "background": bg, "threshold": float(thr), "peaks": peaks[:10],
+            "resolution": float(fs / nperseg)}
+
+
+def residual_tests(e: np.ndarray, fs: float, config, *, fundamental: float | None = None) -> dict:
+    """Whiteness, normality and spectral peaks of one standardised innovation series."""
+    x = e[np.isfinite(e)]
+    n = x.size
+    r = acf(x, config.max_lag)
+    band = 1.96 / math.sqrt(n)
+    h = config.ljung_box_lags
+    q = float(n * (n + 2) * np.sum(r[1:h + 1] ** 2 / (n - np.arange(1, h + 1))))
+    jb = stats.jarque_bera(x)
+    sp_ = spectral_peaks(x, fs, config.peak_p)
+    for pk in sp_["peaks"]:
+        if fundamental:
+            m = pk["f"] / fundamental
+            pk["harmonic"] = int(round(m)) if abs(m - round(m)) < 0.08 and round(m) >= 1 else None
+    return {
+        "n": n, "rms": float(np.sqrt(np.mean(x ** 2))), "mean": float(x.mean()),
+        "acf": r, "acf_band": band, "acf_outside": float(np.mean(np.abs(r[1:]) > band)),
+        "ljung_box": q, "ljung_box_lags": h, "ljung_box_p": float(stats.chi2.sf(q, h)),
+        "jarque_bera": float(jb.statistic), "jarque_bera_p": float(jb.pvalue),
+        "skew": float(stats.skew(x)), "excess_kurtosis": float(stats.kurtosis(x)),
+        "spectrum": sp_,
+    }
+
+
+def dominant_frequency(y: np.ndarray, fs: float) -> float:
+    """Frequency of the largest spectral peak (cycles per time unit)."""
+    y = y[np.isfinite(y)]
+    y = y - y.mean()
+    f, P = signal.periodogram(y * np.hanning(y.size), fs=fs)
+    i = int(np.argmax(P[1:])) + 1
+    if 1 < i < P.size - 1:  # parabolic interpolation on log power
+        a, b, c = np.log(P[i - 1:i + 2] + 1e-300)
+        i = i + 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else i
+    return float(i * fs / y.size)
+
+
+def harmonics(y: np.ndarray, fs: float, f0: float, n: int = 7, floor: float | None = None) -> tuple[np.ndarray, float]:
+    """Amplitudes of the first ``n`` harmonics of ``f0``, clipped below at ``floor``
+    (default: 10 x the median spectral amplitude of ``y``, its noise floor); returns them and the floor."""
+    y = y[np.isfinite(y)] - np.nanmean(y)
+    w = np.hanning(y.size)
+    A = np.abs(np.fft.rfft(y * w)) * 2 / w.sum()
+    f = np.fft.rfftfreq(y.size, 1 / fs)
+    floor = 10 * float(np.median(A)) if floor is None else floor
+    out = np.full(n, floor)
+    for k in range(1, n + 1):
+        sel = np.abs(f - k * f0) <= max(2 * (f[1] - f[0]), 0.01 * k * f0)
+        if sel.any():
+            out[k - 1] = max(float(A[sel].max()), floor)
+    return out, floor
+
 
 
 @dataclass

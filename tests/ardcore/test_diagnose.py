@@ -6,7 +6,7 @@ from scipy import optimize
 
 from ardflow.ardcore.loop.config import DiagnoseConfig
 from ardflow.ardcore.loop.diagnose import diagnose
-from ardflow.ardcore.loop.residual_tests import residual_tests
+from ardflow.ardcore.loop.residuals import residual_tests
 from ardflow.ardcore.screening.screen import ScreenInput, screen_effects
 from ardflow.ardcore.likelihood.ekf import compile_model
 from ardflow.ardcore.effects.base import augment, dynamic_states, feature_functions, oscillator_pairs
