@@ -152,9 +152,10 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
         arrays["after"]["free_run"] = fr
     else:
         arrays["before"]["free_run"] = fr
+    band = (f", its 90 % band (process noise x {fr['band_factor']:g}, calibrated on held-out blocks) holds "
+            f"{fr['band_coverage']:.0%}" if "band_coverage" in fr else "")
     say(f"reported model: the structure at {model_factor(sim):g} x its posterior process noise; free-run RMS "
-        f"error {fr['rms_error']:.4g} (posterior mean {measured['rms_error']:.4g}), its 90 % band (process noise "
-        f"x {fr.get('band_factor', 1.0):g}, calibrated on held-out blocks) holds {fr.get('band_coverage', math.nan):.0%}")
+        f"error {fr['rms_error']:.4g} (posterior mean {measured['rms_error']:.4g}){band}")
     return rec, model
 
 
