@@ -742,7 +742,7 @@ def bench_validation(tiny: bool = False) -> dict:
         out[f"loop_{name}_before"] = r["before"]["free_run"]["rms_error"]
         out[f"loop_{name}_band_coverage"] = r["reported"]["free_run"].get("band_coverage")
         out[f"loop_{name}_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
-        out[f"loop_{name}_replaced"] = [x["parameter"] + "*" + x["term"] + " -> " + x["by"] for x in r["replaced"]]
+        out[f"loop_{name}_replaced"] = [f"{x['parameter']}*({x['term']}) -> {x['by']}" for x in r["replaced"]]
         out[f"loop_{name}_withheld"] = [a["effect"] + " -> " + a["target"] for a in r.get("withheld", [])]
         # the reported model beside its structure at the posterior mean (the same model at noise factor 1)
         out[f"loop_{name}_noise_factor"] = r["reported"].get("noise_factor", 1.0)
