@@ -249,6 +249,8 @@ def _worth_beside(ctx: LoopContext, swap: tuple, best: Confirmation) -> bool:
     orifice both follow a square root) can outweigh them together in one round and, once added, leave too
     little for either law to win later; the look-ahead asks what the laws are worth beside it."""
     config, say = ctx.config, ctx.say
+    if best.fitted_effect.where == "noise":
+        return False  # a noise level goes in first: every law and effect is judged against it (the noise rule)
     try:
         j = joint_fit(ctx, swap[0], [best])
     except (FitError, ValueError, np.linalg.LinAlgError) as e:
