@@ -149,9 +149,9 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 initial = FittedModel(fspec, phi, (), held.cand.substeps)
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
                          "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes}
-                arrays["before"] = _arrays(res, fr)
+                arrays["before"] = snapshots[-1].arrays
             else:
-                arrays["after"] = _arrays(res, fr)
+                arrays["after"] = snapshots[-1].arrays
                 rounds[-1].record["after"] = err
             if rnd == config.max_rounds:
                 break
@@ -189,19 +189,16 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 arrays.pop("after", None)
         kept = rounds[:keep]
         final = FittedModel(fspec, phi, tuple(e for r in kept for e in r.effects), held.cand.substeps)
-        first["reported"], reported = reported_model(ctx, final, held, cur_test, kept, arrays, blocks)
-        if not any(r.record.get("added") or r.record.get("replaced") for r in kept):
-            # the model reported is the one measured first: its band as reported (calibrated out of sample)
-            fr = arrays["before"]["free_run"]
-            first["before"]["free_run"].update({k: fr[k] for k in _BAND_KEYS if k in fr})
+        # the measure of the model reported: the last kept round's (or, with none, the first), which its free run
+        # with the calibrated band replaces
+        last = next((r.record for r in reversed(kept) if r.record.get("added") or r.record.get("replaced")), None)
+        shown = (last["after"], arrays["after"]) if last is not None else (first["before"], arrays["before"])
+        first["reported"], reported = reported_model(ctx, final, held, cur_test, shown, len(kept), blocks)
         out = _report(ctx, data, test_data, first, rounds, arrays, held)
     finally:
         close()
     out["wall_s"] = time.perf_counter() - t_start
     return Diagnosis(out, arrays, initial, reported, final)
-
-
-_BAND_KEYS = ("band_coverage", "band_halfwidth_rms", "band_factor", "band_calibration", "draws_rms_error", "n_draws")
 
 
 _BASE_FIT = ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean", "sd")

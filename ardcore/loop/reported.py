@@ -67,13 +67,13 @@ def held_out_choice(ctx: LoopContext, snapshots: list[Snapshot]) -> tuple[int, d
     def overall(e: dict) -> float:
         return float(np.sqrt(np.mean([v ** 2 for v in e.values()]))) if e else INF
 
+    if last == 0:  # nothing to choose between: the blocks still calibrate the band
+        return 0, None, held[0]
     keep, tol = 0, 1 + FREE_RUN_TOLERANCE
     for j in range(1, last + 1):
         e, k = errs[j], errs[keep]
         if e and (not k or all(e[b] <= k[b] * tol for b in e) and overall(e) * tol < overall(k)):
             keep = j
-    if last == 0:
-        return 0, None, held[0]
     ctx.say(f"held-out free runs (each block, {100 * config.simulation_held_out:g} % of the record, left out of a "
             "refit): " + "; ".join(f"round {i} " + ", ".join(f"{b} {v:.4g}" for b, v in e.items())
                                    for i, e in enumerate(errs))
@@ -99,8 +99,8 @@ def withhold(rounds: list[LoopRound], keep: int) -> None:
                 x.record.pop("log_bayes_factor_after", None)
 
 
-def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Dataset, rounds: list[LoopRound],
-              arrays: dict, blocks=None) -> tuple[dict, FittedModel]:
+def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Dataset, shown: tuple, seed: int,
+                   blocks=None) -> tuple[dict, FittedModel]:
     """The one model the loop reports, and its record: the final structure at the process-noise level whose
     free run is best on the held-out end of the estimation record (:mod:`.simulation_fit`: factor 1, the
     posterior's own noise, unless another is better by its ``min_gain``).
@@ -110,14 +110,15 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
     the posterior mean's free run is kept beside it as ``posterior_mean_free_run``. Either way its free run on
     the test record is measured again with its band calibrated out of sample on ``blocks`` (the
     :class:`~.simulation_fit.HeldOut` blocks of the estimation record, each left out of a refit), and replaces
-    the last measure as the final error (the last round's ``after`` and the figure's arrays).
+    the measure ``shown`` stood for: ``(its JSON record, its figure's arrays)``, the last kept round's
+    ``after`` (or the first measure when no round is kept). ``seed``: of the band's draws.
     """
     config, say = ctx.config, ctx.say
     rec = {"structure": held.cand.label, "noise_factor": 1.0,
            "parameters": {k: {q: getattr(held.row, q)[k] for q in ("mean", "sd", "q005", "q995")}
                           for k in held.row.mean}}
-    last = next((r.record for r in reversed(rounds) if r.record.get("added") or r.record.get("replaced")), None)
-    measured = (last["after"] if last is not None else {}).get("free_run") or arrays["before"]["free_run"]
+    measure, figure = shown
+    measured = measure["free_run"]
     keep = ("rms_error", "relative_rms_error", "band_coverage", "band_halfwidth_rms", "band_factor", "n")
     rec["free_run"] = {k: measured[k] for k in keep if k in measured}
     sim, model = None, final
@@ -135,7 +136,7 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
             rec["chosen_by"] = f"the posterior (the other noise levels failed: {type(e).__name__}: {e})"
         else:
             rec.update(sim.to_json() if sim else {"chosen_by": "the posterior (too short to hold part out)"})
-    draws = posterior_draws(held.mr, final.spec, config.band_draws, seed=len(rounds))
+    draws = posterior_draws(held.mr, final.spec, config.band_draws, seed=seed)
     if sim is not None and sim.factor != 1.0:
         model = FittedModel(final.spec, sim.phi, final.effects, final.substeps)
         draws = sim.draws(draws, final.phi)
@@ -144,14 +145,11 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
         say("reported model: the posterior (no smaller process noise free-runs both held-out ends better)")
         return rec, final
     fr = free_run(model.spec, model.phi, test, init_samples=config.init_samples, substeps=model.substeps,
-                  band=Band(draws, calibration=held.data, seed=len(rounds), refits=blocks.refits("end") if blocks else ()))
+                  band=Band(draws, calibration=held.data, seed=seed, refits=blocks.refits("end") if blocks else ()))
     rec["free_run"] = {k: fr[k] for k in keep if k in fr}
-    if last is not None:
-        last["after"]["free_run"] = {**{k: v for k, v in fr.items() if k in last["after"]["free_run"]},
-                                     "band_calibration": fr.get("band_calibration"), "noise_factor": model_factor(sim)}
-        arrays["after"]["free_run"] = fr
-    else:
-        arrays["before"]["free_run"] = fr
+    measure["free_run"] = {**{k: v for k, v in fr.items() if k in measured},
+                           "band_calibration": fr.get("band_calibration"), "noise_factor": model_factor(sim)}
+    figure["free_run"] = fr
     band = (f", its 90 % band (process noise x {fr['band_factor']:g}, calibrated on held-out blocks) holds "
             f"{fr['band_coverage']:.0%}" if "band_coverage" in fr else "")
     say(f"reported model: the structure at {model_factor(sim):g} x its posterior process noise; free-run RMS "
