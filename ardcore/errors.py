@@ -27,3 +27,12 @@ def did_you_mean(name: str, choices) -> str:
 
     close = difflib.get_close_matches(str(name), [str(c) for c in choices], n=1, cutoff=0.6)
     return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+class LoopFailed(ArdflowError):
+    """The closed loop failed after its first fit: ``partial`` holds what it had (the rounds so far, the last
+    model it held and the reason), which the caller writes before it reports the error."""
+
+    def __init__(self, message: str, partial: dict):
+        super().__init__(message)
+        self.partial = partial

@@ -97,7 +97,7 @@ def _onset_index(yf: np.ndarray, period_samples: int, fraction: float) -> tuple[
 
 
 def simulate_reference(seed: int, pipeline: ReferencePipeline | None = None,
-                       true_params: dict | None = None, spec: ModelSpec | None = None) -> Dataset:
+                       true_params: dict | None = None, spec: ModelSpec | None = None, inputs=None) -> Dataset:
     """The reference data set of the paper's Section 3.2.
 
     Parameters
@@ -111,6 +111,9 @@ def simulate_reference(seed: int, pipeline: ReferencePipeline | None = None,
     spec : ModelSpec, optional
         A variant of the data-generating model (e.g. with an effect the candidates do not
         declare); default :func:`~ardcore.model.library.aero_true`.
+    inputs : callable, optional
+        ``inputs(t)``: the columns of a variant with inputs (a periodic gust) on the simulation's time grid;
+        they drive the truth and are not part of the data set (the models fitted to it do not know them).
 
     Returns
     -------
@@ -133,7 +136,14 @@ def simulate_reference(seed: int, pipeline: ReferencePipeline | None = None,
         n = int(round(tau_max / pl.dtau_obs)) + 1
         t = np.arange(n) * pl.dtau_obs
         rng = np.random.default_rng(seed)
-        X, H = cm.simulate(phi, t, x0=np.zeros(len(spec.states)), nsub=nsub, rng=rng)
+        U = None
+        if spec.inputs:
+            cols = inputs(t) if inputs is not None else {}
+            missing = [c for c in spec.inputs if c not in cols]
+            if missing:
+                raise SpecError(f"model {spec.name!r} needs input column {missing[0]!r}: pass inputs=")
+            U = np.column_stack([np.asarray(cols[c], dtype=float) for c in spec.inputs])
+        X, H = cm.simulate(phi, t, x0=np.zeros(len(spec.states)), inputs=U, nsub=nsub, rng=rng)
         theta = H[:, 0]
         noisy = theta + pl.gamma * rng.standard_normal(n)
         yf = lowpass(noisy, fs, pl.cutoff, pl.order)

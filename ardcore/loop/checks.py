@@ -3,8 +3,8 @@ halves of the record (:func:`split_stability`), the round's survivors fitted tog
 and, after each round, whether effects of earlier rounds are
 still worth their place beside the later ones (:func:`backward_check`, with the Savage-Dickey shortcut
 :func:`savage_dickey` for effects far above their threshold), and which of the user's declared terms an added
-effect may replace (:func:`declared_rivals`, :func:`replace_laws`); and that nothing added makes the free run
-worse (:func:`no_worse`, over :func:`~.freerun.worse_than_before`).
+effect may replace (:func:`declared_rivals`, :func:`replace_laws`); and that a survivor's fit is a result
+(:func:`not_degenerate`). What is dropped must also free-run no worse held out (:mod:`.criterion`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from ..effects.base import Effect, augment, with_columns
 from ..jsonio import is_pruned
 from ..model.declaration import ModelSpec
 from ..data import Dataset
-from .freerun import free_run, free_run_rms, worse_than_before
+from .criterion import describe, no_worse
 from .replace import linear_terms
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec, StudySpec
@@ -131,7 +131,7 @@ def savage_dickey(cand: CandidateSpec, row: ModelFit, mr, names: list[str]) -> f
     return float(sum(p.logpdf(0.0) for p in pri)) - ln_post0
 
 
-def backward_check(ctx, held: Fit, earlier_added: list[Added], this_round: int) -> Fit:
+def backward_check(ctx, held: Fit, earlier_added: list[Added], this_round: int, crit=None) -> Fit:
     """Effects added in earlier rounds that the later ones made redundant are dropped again.
 
     Forward selection adds what the screen ranks first; a later effect can explain the same residual better
@@ -142,7 +142,9 @@ def backward_check(ctx, held: Fit, earlier_added: list[Added], this_round: int) 
     candidates have not changed) is dropped, the weakest first, and the rest are checked again. An effect
     whose Savage-Dickey ln Bayes factor (:func:`savage_dickey`) clears its threshold by ``SD_MARGIN`` nats
     is kept without a refit (an offset worth 60,000 nats does not need one to say so). ``earlier_added``: the
-    effects of the rounds before ``this_round``. Returns the model then held.
+    effects of the rounds before ``this_round``. With ``crit`` (the loop's :class:`~.criterion.Criterion`) an
+    effect is dropped only when the model without it also free-runs no worse held out. Returns the model then
+    held.
     """
     spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
     cand, row, bmr, data = held
@@ -168,6 +170,13 @@ def backward_check(ctx, held: Fit, earlier_added: list[Added], this_round: int) 
         x = earlier[k]
         if worth[k] >= x.threshold:
             return Fit(cand, row, bmr, data)
+        if crit is not None:
+            now, without = crit.scores([Fit(cand, row, bmr, data), Fit(tasks[k][0], *fits[k], data)])
+            if not no_worse(without, now):
+                say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
+                    f"effects, but without it the model free-runs worse held out ({describe(without)} against "
+                    f"{describe(now)}): kept")
+                return Fit(cand, row, bmr, data)
         x.record["removed"], x.record["log_bayes_factor_after"] = this_round, float(worth[k])
         say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
             f"effects, below the {x.threshold:.1f} it passed: dropped")
@@ -266,18 +275,12 @@ def declared_rivals(spec: ModelSpec, added: list[tuple[Effect, str]], new_parame
     return out
 
 
-def no_worse(survivors: list, fspec, phi, held: Fit, config, say) -> list:
-    """The survivors whose model is a result: its fit not degenerate (:meth:`ModelFit.degenerate`) and its
-    free run on the estimation record bounded and no worse than the current model's. The evidence judges
-    one-step predictions; an effect that improves them while the simulated response drifts off (or
-    diverges) would make the model worse where it is used. The others are marked and say why."""
-    if not survivors:
-        return survivors
-    before = free_run(fspec, phi, held.data, init_samples=config.init_samples,
-                      substeps=held.cand.substeps)["rms_error"]
+def not_degenerate(survivors: list, say) -> list:
+    """The survivors whose fit is a result (:meth:`ModelFit.degenerate`: a posterior that moved, an evidence with
+    a real error); the others are marked and say why."""
     kept = []
     for c in survivors:
-        why = worse_than_before(c.fit, before, config)
+        why = c.fit.row.degenerate()
         if why is None:
             kept.append(c)
             continue
@@ -292,11 +295,12 @@ def brought(rounds: list) -> set:
         n for r in rounds for x in r.added for n in x.record.get("shape", {})}
 
 
-def replace_laws(ctx, held: Fit, rounds: list) -> Fit:
+def replace_laws(ctx, held: Fit, rounds: list, crit=None) -> Fit:
     """Drop the declared terms this round's effects replace (:func:`declared_rivals`): each is refitted out
     (its parameter fixed at 0, side by side on the loop's pool); the one whose removal raises ln Z most is
     dropped when the model without it is more probable (ln Bayes factor > 0 for the smaller model, equal
-    prior odds) and free-runs no worse on the estimation record. Repeats while one goes. Recorded in the
+    prior odds) and, with ``crit`` (the loop's :class:`~.criterion.Criterion`), free-runs no worse held out.
+    Repeats while one goes. Recorded in the
     round as ``replaced``. Returns the model then held."""
     spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
     cand, row, bmr, data = held
@@ -319,10 +323,12 @@ def replace_laws(ctx, held: Fit, rounds: list) -> Fit:
                 f"(worth {-gain[k]:.1f} nats)")
             return Fit(cand, row, bmr, data)
         fit = Fit(tasks[k][0], fits[k][0], fits[k][1], data)
-        why = worse_than_before(fit, free_run_rms(Fit(cand, row, bmr, data), config), config)
-        if why is not None:
-            say(f"  the declared {r.parameter}*({r.term}) stays: without it {why}")
-            return Fit(cand, row, bmr, data)
+        if crit is not None:
+            now, without = crit.scores([Fit(cand, row, bmr, data), fit])
+            if not no_worse(without, now):
+                say(f"  the declared {r.parameter}*({r.term}) stays: without it the model free-runs worse held out "
+                    f"({describe(without)} against {describe(now)})")
+                return Fit(cand, row, bmr, data)
         replaced.append({"parameter": r.parameter, "term": r.term, "target": r.target, "by": r.effect,
                          "log_bayes_factor": float(gain[k])})
         say(f"  {r.effect} replaces the declared {r.parameter}*({r.term}) in {r.target}'s equation "

@@ -66,10 +66,6 @@ class DiagnoseConfig(BaseModel):
         Add every distinct, stable survivor of a round at once: they are re-selected together under ARD
         (which prunes what the others make redundant) and added when that beats the best single effect by
         ``min_log_bf``. False adds one effect per round.
-    parsimony : float
-        When the survivors together free-run on the estimation record within this fraction of the best
-        single effect, the single effect is added (fewer effects for the same simulation) and the report
-        says so.
     workers : int
         Processes that run a round's confirmations and halves checks side by side (0: one per core, at
         most ``top_k``; 1: in this process).
@@ -112,8 +108,6 @@ class DiagnoseConfig(BaseModel):
     alpha_start: float = Field(1e-2, gt=0)
     posterior: Literal["laplace", "sample"] = "laplace"
     joint: bool = True
-    parsimony: float = Field(0.05, ge=0, le=1, description="survivors together must free-run better than the "
-                             "best alone by this fraction, else the single effect is added")
     workers: int = Field(0, ge=0, le=1024)
     rival_nats: float = Field(5.0, ge=0)
     rivals: int = Field(2, ge=0, le=10)

@@ -36,19 +36,22 @@ from __future__ import annotations
 import math
 import os
 import time
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
-from .checks import Added, backward_check, brought, joint_fit, no_worse, replace_laws, split_stability
-from .confirm import Confirmation, Fit, pool_mapper, trace_and_confirm
+from .checks import Added, backward_check, brought, joint_fit, not_degenerate, replace_laws, split_stability
+from .confirm import Fit, pool_mapper, trace_and_confirm
 from .replace import best_laws, shape_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
-from ..errors import FitError, SpecError
-from .reported import Snapshot, held_out_choice, reported_model, withhold
+from ..errors import ArdflowError, FitError, LoopFailed, SpecError
+from ..jsonio import to_jsonable
+from .criterion import FREE_RUN_TOLERANCE, Criterion, describe
+from .reported import reported_model
 from .result import Diagnosis, FittedModel, LoopRound
-from .freerun import Band, fitted, free_run, free_run_rms, posterior_draws, worse_than_before
+from .freerun import Band, fitted, free_run, posterior_draws
 from .initial import data_informed_initial
 from .config import DiagnoseConfig, LoopContext
 from ..model.declaration import ModelSpec
@@ -138,67 +141,72 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     mapper, close = pool_mapper(workers)
     ctx = LoopContext(spec, config, say, mapper, tuple(extra_effects), col)
     held = Fit(cand, row, bmr, data)
-    snapshots: list[Snapshot] = []
+    crit = Criterion(config, mapper, say)
+    judged: list[dict] = []  # per round: the held model's held-out score and every move's
     try:
         for rnd in range(config.max_rounds + 1):
             fspec, phi = fitted(held.cand, held.row)
             say(f"round {rnd}: {held.cand.label} ln Z = {held.row.log_evidence:.3f}; computing residuals")
             res, fr, err = _measure(ctx, held, fspec, phi, cur_test, rnd)
-            snapshots.append(Snapshot(held, fspec, phi, _arrays(res, fr)))
             if first is None:
                 initial = FittedModel(fspec, phi, (), held.cand.substeps)
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
                          "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes}
-                arrays["before"] = snapshots[-1].arrays
+                arrays["before"] = _arrays(res, fr)
             else:
-                arrays["after"] = snapshots[-1].arrays
+                arrays["after"] = _arrays(res, fr)
                 rounds[-1].record["after"] = err
             if rnd == config.max_rounds:
                 break
-            # a declared law in another form competes with the round's additions: a wrong law is replaced,
-            # not stacked upon, unless an effect it lacks is worth more (an overflow beside it)
             swap = best_laws(ctx, held, brought(rounds), [x for r in rounds for x in r.record.get("replaced", [])
                                                           if x.get("form")])
-            rec, survivors = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds))
+            rec, survivors, deferred = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds))
             rounds.append(rec)
-            if swap is not None and (not survivors or swap[2] >= survivors[0].log_bayes_factor
-                                     or _worth_beside(ctx, swap, survivors[0])):
+            move, judged_round = _decide(ctx, crit, held, swap, survivors, deferred, rec)
+            judged.append(judged_round)
+            if move is None:
+                break
+            if move.kind == "replace":
                 rec.record["replaced"] = swap[1]
                 rec.record.pop("verdict", None)
                 # what earlier rounds added stood in beside the wrong law: each must still earn its place
-                held = backward_check(ctx, swap[0], [x for r in rounds[:-1] for x in r.added], rnd)
+                held = backward_check(ctx, swap[0], [x for r in rounds[:-1] for x in r.added], rnd, crit)
                 continue
-            if swap is not None:
-                say(f"  adding {survivors[0].effect} (ln BF {survivors[0].log_bayes_factor:.1f}) is worth more "
-                    f"than " + ", ".join(x["by"] for x in swap[1]) + f" (ln BF {swap[2]:.1f})")
-            if not survivors:
-                break
-            held = _adopt(ctx, held, survivors, fspec, phi, rec)
+            held = _adopt(ctx, held, move, fspec, phi, rec)
             for e in rec.effects:
                 cur_test = with_columns(cur_test, e)
             earlier = [x for r in rounds[:-1] for x in r.added]
-            held = backward_check(ctx, held, earlier, rnd)
-            held = replace_laws(ctx, held, rounds)
-        keep, first["held_out"], blocks = held_out_choice(ctx, snapshots)
-        if keep < len(snapshots) - 1:
-            held, fspec, phi = snapshots[keep].held, snapshots[keep].fspec, snapshots[keep].phi
-            withhold(rounds, keep)
-            if keep:
-                arrays["after"] = snapshots[keep].arrays
-            else:
-                arrays.pop("after", None)
-        kept = rounds[:keep]
-        final = FittedModel(fspec, phi, tuple(e for r in kept for e in r.effects), held.cand.substeps)
-        # the measure of the model reported: the last kept round's (or, with none, the first), which its free run
-        # with the calibrated band replaces
-        last = next((r.record for r in reversed(kept) if r.record.get("added") or r.record.get("replaced")), None)
+            held = backward_check(ctx, held, earlier, rnd, crit)
+            held = replace_laws(ctx, held, rounds, crit)
+        score = crit.score(held)
+        first["held_out"] = _held_out_record(config, judged, score)
+        final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), held.cand.substeps)
+        # the measure of the model reported: the last round's that changed it (or, with none, the first), which
+        # its free run with the calibrated band replaces
+        last = next((r.record for r in reversed(rounds) if r.record.get("added") or r.record.get("replaced")), None)
         shown = (last["after"], arrays["after"]) if last is not None else (first["before"], arrays["before"])
-        first["reported"], reported = reported_model(ctx, final, held, cur_test, shown, len(kept), blocks)
+        first["reported"], reported = reported_model(ctx, final, held, cur_test, shown, len(rounds), score.held)
         out = _report(ctx, data, test_data, first, rounds, arrays, held)
+    except (ArdflowError, ArithmeticError, LookupError, ValueError, TypeError, RuntimeError,
+            np.linalg.LinAlgError) as exc:
+        # never lose the work: what the loop had, with the reason, for the caller to write before it says so
+        raise LoopFailed(f"diagnose failed in round {len(rounds)} ({type(exc).__name__}: {exc}); the rounds so far "
+                         "and the last model held are written", _partial(ctx, first, rounds, held, exc, judged)) from exc
     finally:
         close()
     out["wall_s"] = time.perf_counter() - t_start
     return Diagnosis(out, arrays, initial, reported, final)
+
+
+def _partial(ctx: LoopContext, first: dict | None, rounds: list[LoopRound], held: Fit, exc: Exception,
+             judged: list) -> dict:
+    """What a failed loop had: the first measures, the rounds so far, the held-out judgements, the last model it
+    held (its fit's summary) and why it stopped."""
+    out = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}", "model": ctx.spec.models[0].label,
+           "last_model": held.cand.label, **(first or {}),
+           "rounds": [r.record for r in rounds], "held_out_moves": judged,
+           "last_fit": held.row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
+    return to_jsonable(out)
 
 
 _BASE_FIT = ("log_evidence", "log_evidence_se", "psi_opt", "kept", "pruned", "mean", "sd")
@@ -238,32 +246,6 @@ def check_fitted(label: str, row: ModelFit, data: Dataset) -> None:
                    f"{big:.3g}) against the model's priors, initial state and noise levels")
 
 
-def _worth_beside(ctx: LoopContext, swap: tuple, best: Confirmation) -> bool:
-    """Whether the laws of ``swap`` (:func:`~.replace.best_laws`: the model with them replaced, their records,
-    their ln BF) are worth replacing although the round's ``best`` addition is worth more than they are: the
-    replaced model with that addition beside it must beat the current model with the addition by more than
-    ``min_log_bf``. A stand-in that patches two wrong laws at once (a saturating flow where a pipe and an
-    orifice both follow a square root) can outweigh them together in one round and, once added, leave too
-    little for either law to win later; the look-ahead asks what the laws are worth beside it."""
-    config, say = ctx.config, ctx.say
-    if best.fitted_effect.where == "noise":
-        return False  # a noise level goes in first: every law and effect is judged against it (the noise rule)
-    try:
-        j = joint_fit(ctx, swap[0], [best])
-    except (FitError, ValueError, np.linalg.LinAlgError) as e:
-        say(f"  look-ahead: the replaced laws beside {best.effect} could not be fitted ({type(e).__name__})")
-        return False
-    gain = j.row.log_evidence - best.log_evidence
-    laws = ", ".join(x["by"] for x in swap[1])
-    # the laws passed the never-worse check on their own; the model reported is judged on held-out blocks
-    if gain > config.min_log_bf:
-        say(f"  look-ahead: {laws} beside {best.effect} is worth {gain:.1f} nats more than {best.effect} alone: "
-            f"the laws are replaced first, and what they leave is screened again next round")
-        return True
-    say(f"  look-ahead: {laws} beside {best.effect} is worth {gain:.1f} nats: {best.effect} is added")
-    return False
-
-
 def _present(rounds: list[LoopRound]) -> set:
     """(library name, target) of the effects the model holds: not screened again (a second saturating flow
     beside the first, its width already fitted, is a basis expansion, not an effect)."""
@@ -271,13 +253,14 @@ def _present(rounds: list[LoopRound]) -> set:
 
 
 def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rnd: int,
-                 present: set = frozenset()) -> tuple[LoopRound, list]:
-    """One round's trace: screen, confirm, check the survivors' stability; the round's record and survivors
-    (best first). With none, the record carries the verdict on what remains."""
+                 present: set = frozenset()) -> tuple[LoopRound, list, list]:
+    """One round's trace: screen, confirm, check the survivors' stability; the round's record, the survivors
+    (best first) and those deferred behind a measurement-noise level (the noise rule, :func:`_decide`). With no
+    survivor, the record carries the verdict on what remains."""
     config, say = ctx.config, ctx.say
     ranked, confirmed = trace_and_confirm(ctx, held, fspec, phi, res, present)
     survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
-    survivors = no_worse(survivors, fspec, phi, held, config, say)
+    survivors = not_degenerate(survivors, say)
     noise = [c for c in survivors if c.fitted_effect.where == "noise"
              and any(abs(c.fit.row.mean.get(n, 0.0)) > math.log(2) for n in c.scales)]
     deferred = [c for c in survivors if c not in noise] if noise else []
@@ -288,15 +271,8 @@ def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rnd: int,
         say("the measurement noise changes by more than 2x: " + ", ".join(c.effect for c in deferred)
             + " screened again under it next round")
         survivors = noise
-    if config.split_z is not None:
-        for c in survivors:
-            if c.fitted_effect.where == "noise":
-                continue  # a noise level is a nuisance that may drift over a record; the check is for dynamics
-            c.stability = split_stability(ctx.spec, c, config, say, ctx.mapper)
-            c.survives = c.stability["stable"]
-            if c.survives and not config.joint:
-                break  # the best stable one is added
-        survivors = [c for c in survivors if (c.stability or {}).get("stable", True) and c.survives]
+    else:
+        survivors = _stable(ctx, survivors)
     # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
     tried = {(c.screened.effect.name, c.target) for c in confirmed}
     order = sorted(confirmed, key=lambda c: (not c.survives, -c.log_bayes_factor))
@@ -310,35 +286,138 @@ def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rnd: int,
            "candidates": candidates, "confirmed": confirmations, "added": None}
     if not survivors:
         rec["verdict"] = unexplained(res, candidates, confirmations, ctx.column, config)
-    return LoopRound(rec), survivors
+    return LoopRound(rec), survivors, deferred
 
 
-def _adopt(ctx: LoopContext, held: Fit, survivors, fspec, phi, rnd: LoopRound) -> Fit:
-    """Add the best survivor (or the survivors fitted together, when that is worth more); record what was
-    added in ``rnd``. Returns the model then held (with the data its effects need)."""
-    config, say, row = ctx.config, ctx.say, held.row
-    best: Confirmation = survivors[0]
-    chosen, fit = [best], best.fit
-    if config.joint and len(survivors) > 1:
-        # the survivors were screened as distinct: fit them together under ARD, which prunes any that the
-        # others make redundant; taken when it beats the best single effect by more than min_log_bf
-        j = joint_fit(ctx, held, survivors)
-        if j.row.log_evidence > best.log_evidence + config.min_log_bf:
-            alone = free_run_rms(best.fit, config)
-            why = worse_than_before(j, alone, config)  # together they must free-run no worse than the best alone
-            together = free_run_rms(j, config) if why is None else math.nan
-            if why is not None:
-                say(f"  the survivors together: not taken: {why}")
-            elif together > (1 - config.parsimony) * alone:
-                # the evidence prefers the stack, the simulation does not: the fewer effects are reported
-                rnd.record["parsimony"] = {"added": best.effect, "instead_of": [c.effect for c in survivors],
-                                           "within": config.parsimony,
-                                           "free_run": alone, "free_run_together": together,
-                                           "log_bayes_factor_together": j.row.log_evidence - row.log_evidence}
-                say(f"  the survivors together free-run within {100 * config.parsimony:g} % of {best.effect} "
-                    f"alone ({together:.4g} against {alone:.4g}): {best.effect} alone is added (fewer effects)")
-            else:
-                chosen, fit = survivors, j
+def _stable(ctx: LoopContext, survivors: list) -> list:
+    """The survivors whose coefficients agree over the two halves of the record (:func:`split_stability`; a
+    noise level is not checked: it is a nuisance that may drift over a record)."""
+    config = ctx.config
+    if config.split_z is None:
+        return survivors
+    for c in survivors:
+        if c.fitted_effect.where != "noise":
+            c.stability = split_stability(ctx.spec, c, config, ctx.say, ctx.mapper)
+            c.survives = c.stability["stable"]
+    return [c for c in survivors if (c.stability or {}).get("stable", True) and c.survives]
+
+
+@dataclass
+class Move:
+    """A change of the model the evidence supports, for the criterion to judge: ``kind`` "add" (the
+    confirmations ``chosen``, fitted together in ``fit`` when more than one) or "replace" (declared laws in
+    another form, ``fit``); ``new`` counts the parameters it brings (the simpler of two equally good moves is
+    taken); ``name`` says what it is."""
+
+    kind: str
+    fit: Fit
+    new: int
+    name: str
+    chosen: list = field(default_factory=list)
+
+    @property
+    def nuisance(self) -> bool:
+        """A measurement-noise level: it changes what the filter trusts, not the dynamics, so it must free-run
+        no worse held out rather than better."""
+        return self.kind == "add" and all(c.fitted_effect.where == "noise" for c in self.chosen)
+
+
+def _moves(ctx: LoopContext, held: Fit, swap, survivors: list) -> list[Move]:
+    """The round's moves: the declared laws in another form, each survivor alone and, when the evidence prefers
+    them together by more than ``min_log_bf``, the survivors fitted together."""
+    config, say = ctx.config, ctx.say
+    moves = []
+    if swap is not None:
+        moves.append(Move("replace", swap[0], len(swap[1]), " and ".join(x["by"] for x in swap[1])))
+    for c in survivors:
+        moves.append(Move("add", c.fit, len(c.scales) + len(c.shape_prior), f"{c.effect} -> {c.target}", [c]))
+    if config.joint and len([c for c in survivors if c.fitted_effect.where != "noise"]) > 1:
+        # the survivors were screened as distinct: fitted together under ARD, which prunes any that the others
+        # make redundant; a move when it beats the best single effect by more than min_log_bf
+        try:
+            j = joint_fit(ctx, held, survivors)
+        except (FitError, ValueError, np.linalg.LinAlgError) as e:
+            say(f"  the survivors together could not be fitted ({type(e).__name__})")
+        else:
+            if j.row.log_evidence > survivors[0].log_evidence + config.min_log_bf and j.row.degenerate() is None:
+                moves.append(Move("add", j, sum(len(c.scales) + len(c.shape_prior) for c in survivors),
+                                  " with ".join(c.effect for c in survivors), list(survivors)))
+    return moves
+
+
+def _decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, deferred: list,
+            rnd: LoopRound) -> tuple[Move | None, dict]:
+    """The move the loop takes this round, by the one criterion (:mod:`.criterion`), or None (the loop stops),
+    and the round's record of what was judged.
+
+    A measurement-noise level off by more than 2x goes in alone when it free-runs no worse held out (the noise
+    rule: every other candidate was screened against a filter that took the misfit for process noise); if it
+    does not, the candidates deferred behind it are judged now. Otherwise every move the evidence supports
+    (:func:`_moves`) is scored held out and the best that improves on the current model is taken."""
+    say, rec = ctx.say, rnd.record
+    cur = crit.score(held)
+    judged = {"round": rec["round"], "model": held.cand.label, "score": cur.to_json(), "moves": []}
+    if deferred:
+        noise = _moves(ctx, held, None, survivors[:1])
+        k, (s,) = crit.choose(held, [(noise[0].fit, noise[0].new, True)])
+        judged["moves"].append({"move": noise[0].name, "kind": "add", **s.to_json(), "taken": k == 0})
+        if k == 0:
+            say(f"  held out: {noise[0].name} free-runs no worse ({describe(s)} against {describe(cur)}): it goes in "
+                "first")
+            return noise[0], judged
+        say(f"  held out: {noise[0].name} free-runs worse ({describe(s)} against {describe(cur)}): not added; "
+            + ", ".join(c.effect for c in deferred) + " judged now")
+        _refuse(rec, noise[0], s)
+        survivors = _stable(ctx, deferred)
+    moves = _moves(ctx, held, swap, survivors)
+    if not moves:
+        return None, judged
+    k, scores = crit.choose(held, [(m.fit, m.new, m.nuisance) for m in moves])
+    say(f"  held out: the model: {describe(cur)}")
+    for i, (m, s) in enumerate(zip(moves, scores)):
+        judged["moves"].append({"move": m.name, "kind": m.kind, **s.to_json(), "taken": i == k})
+        say(f"  held out: {m.name}: {describe(s)}" + (" (taken)" if i == k else ""))
+        if i != k:
+            _refuse(rec, m, s)
+    if k is None:
+        say(f"  nothing the evidence supports free-runs better held out than the model ({describe(cur)}): the loop "
+            "stops")
+        rec["verdict"] = (rec.get("verdict") or "") + ("; " if rec.get("verdict") else "") + (
+            "supported by the evidence but free-running no better on held-out blocks of the estimation record "
+            "(each left out of a refit): " + ", ".join(m.name for m in moves))
+    return (moves[k] if k is not None else None), judged
+
+
+def _refuse(rec: dict, move: Move, score) -> None:
+    """Record in the round that ``move``, which the evidence supports, was not taken by the criterion."""
+    for c in move.chosen or [None]:
+        rec.setdefault("refused", []).append(
+            {"effect": c.effect if c is not None else move.name, "target": c.target if c is not None else "",
+             "kind": move.kind, "round": rec["round"],
+             "log_bayes_factor": c.log_bayes_factor if c is not None else None, "held_out": score.to_json()})
+
+
+def _held_out_record(config: DiagnoseConfig, judged: list[dict], final) -> dict:
+    """``report["held_out"]``: each round's model judged on held-out blocks, the moves of each round, and the
+    blocks of the model reported (its band is calibrated on them)."""
+    models = [j["score"]["blocks"] for j in judged]
+    overall = [j["score"]["overall"] for j in judged]
+    if not models or final.to_json()["blocks"] != models[-1]:  # the model reported, unless the last round's
+        models.append(final.to_json()["blocks"])
+        overall.append(final.overall)
+    return {"share": config.simulation_held_out, "free_run": models, "overall": overall, "kept": len(models) - 1,
+            "moves": judged,
+            "rule": f"a move is taken when the evidence supports it and its model free-runs the held-out blocks "
+                    f"better: no block worse by more than {100 * FREE_RUN_TOLERANCE:g} % and all together better by "
+                    "more; the loop stops when no move does",
+            "blocks": {b: list(v) for b, v in final.held.blocks.items()} if final.held else None}
+
+
+def _adopt(ctx: LoopContext, held: Fit, move: Move, fspec, phi, rnd: LoopRound) -> Fit:
+    """Add the effects of ``move`` (one survivor, or the survivors fitted together); record what was added in
+    ``rnd``. Returns the model then held (with the data its effects need)."""
+    say, row = ctx.say, held.row
+    chosen, fit = move.chosen, move.fit
     jrow = fit.row
     recs = []
     for c in chosen:
@@ -365,11 +444,14 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
     spec, row = ctx.spec, held.row
     records = [x.record for r in rounds for x in r.added]
     rounds = [r.record for r in rounds]
-    withheld = [a for a in records if a.get("withheld")]
-    added = [a for a in records if not a.get("removed") and not a.get("withheld")]
-    removed = [a for a in records if a.get("removed") and not a.get("withheld")]
-    kept = [r for r in rounds if not r.get("withheld")]
+    added = [a for a in records if not a.get("removed")]
+    removed = [a for a in records if a.get("removed")]
+    kept = rounds
     replaced = _latest_forms([x for r in kept for x in r.get("replaced", [])])
+    # what the evidence supported and the criterion refused, each once (its latest judgement), unless taken later
+    taken = {(a["effect"], a["target"]) for a in records} | {(x["by"], "") for x in replaced}
+    withheld = list({(x["effect"], x["target"]): x for r in rounds for x in r.get("refused", [])
+                     if (x["effect"], x["target"]) not in taken}.values())
     for x in replaced:  # a form's shape as the final model has it (later rounds refit it with what they add)
         if x.get("shape") and x["shape"]["name"] in row.mean:
             x["shape"] = shape_summary(row, x["shape"]["name"])
@@ -386,7 +468,7 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
     unit = (data.meta.get("units") or {}).get(col, "")
     if not added and not replaced:
         out["verdict"] = (_withheld(withheld, first) if withheld else
-                          rounds[0]["verdict"] if rounds else "no rounds run")
+                          rounds[0].get("verdict", "nothing added") if rounds else "no rounds run")
         out["headline"] = headline(out, col, unit)
         return out
     a, b = out["after"], out["before"]
@@ -406,19 +488,19 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
                                 f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
                       + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "
                                 f"absorbed part of what was missing" for k, v in shifts.items())
-                      + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") and len(kept) == len(rounds) else "")
+                      + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else "")
                       + (f"; {_withheld(withheld, first)}" if withheld else ""))
     out["headline"] = headline(out, col, unit)
     return out
 
 
 def _withheld(withheld: list, first: dict) -> str:
-    """Why the effects of the rounds after the reported model's are not in it (:func:`~.reported.held_out_choice`)."""
+    """Why effects the evidence supported are not in the model reported (:mod:`.criterion`)."""
     h = first["held_out"]
     return (", ".join(x["effect"] for x in withheld) + " not kept: the evidence supported "
-            + ("it" if len(withheld) == 1 else "them") + f", but the model of round {h['kept']} free-runs better on "
-            f"held-out blocks of the estimation record (RMS error {h['overall'][h['kept']]:.4g} against "
-            f"{h['overall'][-1]:.4g} with them)")
+            + ("it" if len(withheld) == 1 else "them") + ", but on held-out blocks of the estimation record the model "
+            "reported free-runs as well or better without " + ("it" if len(withheld) == 1 else "them")
+            + f" (RMS error {h['overall'][-1]:.4g})")
 
 
 def _latest_forms(replaced: list) -> list:

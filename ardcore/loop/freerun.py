@@ -10,7 +10,6 @@ import numpy as np
 import sympy as sp
 
 from ..data import Dataset
-from ..errors import FitError
 from ..effects.base import user_inputs
 from ..jsonio import is_pruned
 from ..likelihood.ekf import compile_model
@@ -262,35 +261,3 @@ def posterior_draws(mr, spec: ModelSpec, n: int, seed: int = 0) -> list[dict]:
         return []
     idx = np.random.default_rng(seed).choice(flat.shape[0], size=min(n, flat.shape[0]), replace=False)
     return [{p: float(flat[i, names.index(p)]) for p in spec.free_parameters} for i in idx]
-
-
-# --------------------------------------------------------------------------- never worse
-
-
-def free_run_rms(fit, config) -> float:
-    """RMS error of the free run of ``fit``'s model (posterior mean) on its estimation record."""
-    fs, ph = fitted(fit.cand, fit.row)
-    return free_run(fs, ph, fit.data, init_samples=config.init_samples, substeps=fit.cand.substeps)["rms_error"]
-
-
-FREE_RUN_TOLERANCE = 0.01
-"""How much worse (relative) a free run on the estimation record may be and still count as no worse: a
-measurement-noise level or a term the data barely pin moves the posterior mean, and with it the free run, by
-less than this, which is no sign of a worse model."""
-
-
-def worse_than_before(fit, before: float, config) -> str | None:
-    """Why the model of ``fit`` (a re-selection with an effect) is no improvement on one whose free run on
-    the estimation record has RMS error ``before``, or None: it diverges, or its error exceeds ``before`` by
-    more than :data:`FREE_RUN_TOLERANCE`."""
-    why = fit.row.degenerate()
-    if why is not None:
-        return why
-    try:
-        after = free_run_rms(fit, config)
-    except (FitError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-        return f"its free run failed ({type(exc).__name__})"
-    if math.isfinite(after) and after <= before * (1 + FREE_RUN_TOLERANCE):
-        return None
-    return (f"its free run on the estimation record {'diverges' if not math.isfinite(after) else 'is worse'} "
-            f"(RMS error {before:.4g} -> {after:.4g})")

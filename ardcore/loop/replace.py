@@ -37,7 +37,7 @@ from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec, symbolic
 from ..selection.spec import CandidateSpec
 from .confirm import Fit, essential_from_row, fit_task, warm_with
-from .freerun import fitted, free_run_rms, worse_than_before
+from .freerun import fitted
 
 POWER_RANGE = (0.25, 4.0)
 """The exponents the prior of ``e`` spans at +-2 sd (an orifice 0.5, laminar 1, a weir 1.5, turbulent 2)."""
@@ -281,7 +281,8 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
 
     Every candidate is fitted side by side on the loop's pool; the best qualifies when its ln Bayes factor
     against the current model exceeds ``config.min_log_bf`` plus ln of the number of candidates tried (their
-    multiplicity, as for additions) and its free run on the estimation record is no worse. The record says
+    multiplicity, as for additions) and its fit is a result; the loop's criterion then judges it beside the round's
+    additions (:mod:`.criterion`). The record says
     what was replaced (parameter, term, target, by, form, the shape's posterior, ln BF)."""
 
     spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
@@ -339,7 +340,7 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
             f"{gain[k]:.1f}, needs {need:.1f})")
         return None
     fit = Fit(tasks[k][0], row, mr, current.data)
-    why = worse_than_before(fit, free_run_rms(current, config), config)
+    why = row.degenerate()
     if why is not None:
         say(f"  the declared {w.parameter}*({w.term}) stays: as a {form.name} law {why}")
         return None

@@ -1,102 +1,24 @@
-"""The one model the loop reports (docs/loop.md steps 5, 6 and 6b): which round's model, at which process-noise
-level, with which band.
-
-* :func:`held_out_choice`: each round's model refitted with a block of the estimation record left out and
-  free-run over it (:func:`~.simulation_fit.held_out_free_runs`); a later round's model is kept only when it
-  free-runs no worse on every block and better over them all. :func:`withhold` marks what the rounds after
-  the kept one did as not kept.
-* :func:`reported_model`: the kept structure at the process-noise level chosen on held-out data
-  (:func:`~.simulation_fit.simulation_fit`), its free run on the test record with the band calibrated out of
-  sample on the held-out blocks (:func:`~.freerun.calibrated_out_of_sample`).
+"""The one model the loop reports (docs/loop.md steps 5 and 6): the loop's final structure (every move of which
+its criterion took, :mod:`.criterion`) at the process-noise level chosen on held-out data
+(:func:`~.simulation_fit.simulation_fit`), its free run on the test record with the band calibrated out of
+sample on the criterion's held-out blocks (:func:`~.freerun.calibrated_out_of_sample`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from ..data import Dataset
 from ..errors import FitError
-from ..model.declaration import ModelSpec
 from .config import LoopContext
 from .confirm import Fit
-from .freerun import FREE_RUN_TOLERANCE, Band, free_run, posterior_draws
-from .result import FittedModel, LoopRound
-from .simulation_fit import HeldOut, SimulationSettings, held_out_task, simulation_fit
+from .freerun import Band, free_run, posterior_draws
+from .result import FittedModel
+from .simulation_fit import SimulationSettings, simulation_fit
 
 INF = math.inf
-
-
-@dataclass(frozen=True)
-class Snapshot:
-    """The model the loop held at the start of a round (its fit, its structure with pruned terms fixed, its
-    posterior mean) and the residual tests and free run measured on it."""
-
-    held: Fit
-    fspec: ModelSpec
-    phi: dict
-    arrays: dict
-
-
-def held_out_choice(ctx: LoopContext, snapshots: list[Snapshot]) -> tuple[int, dict | None, object]:
-    """Which round's model the loop reports, judged on held-out blocks of the estimation record
-    (:func:`~.simulation_fit.held_out_free_runs`: the record's start, its end and its loudest stretch, each
-    left out of a refit of the structure and free-run).
-
-    From the declared model on, a later round's model is kept over the one kept so far only when it free-runs
-    no worse on every block (within :data:`~.freerun.FREE_RUN_TOLERANCE`) and better over them all by more
-    than that. Evidence and the in-sample never-worse check judge an effect on the data it was fitted to; a
-    stand-in for what no library effect holds (a hidden hysteretic state) passes both and then extrapolates
-    badly to motions larger than those it saw. Returns the index of the model kept (the last when the record
-    is too short to hold a block out), the record of the choice and the kept model's
-    :class:`~.simulation_fit.HeldOut` (its band is calibrated on those blocks), or None."""
-    last = len(snapshots) - 1
-    config = ctx.config
-    settings = SimulationSettings(held_out=config.simulation_held_out, init_samples=config.init_samples)
-    errs, held = [], []
-    # side by side on the loop's pool: one model per task
-    for e in ctx.mapper(held_out_task, [(s.fspec, s.phi, s.held.data, s.held.cand.substeps, settings)
-                                        for s in snapshots]):
-        if e is None:
-            return last, None, None
-        held.append(e if isinstance(e, HeldOut) else None)
-        errs.append(e.errors if isinstance(e, HeldOut) else {})  # a failed refit ranks last
-
-    def overall(e: dict) -> float:
-        return float(np.sqrt(np.mean([v ** 2 for v in e.values()]))) if e else INF
-
-    if last == 0:  # nothing to choose between: the blocks still calibrate the band
-        return 0, None, held[0]
-    keep, tol = 0, 1 + FREE_RUN_TOLERANCE
-    for j in range(1, last + 1):
-        e, k = errs[j], errs[keep]
-        if e and (not k or all(e[b] <= k[b] * tol for b in e) and overall(e) * tol < overall(k)):
-            keep = j
-    ctx.say(f"held-out free runs (each block, {100 * config.simulation_held_out:g} % of the record, left out of a "
-            "refit): " + "; ".join(f"round {i} " + ", ".join(f"{b} {v:.4g}" for b, v in e.items())
-                                   for i, e in enumerate(errs))
-            + ("" if keep == last else f"; the model of round {keep} is kept (what came after free-runs worse "
-                                       f"on a block)"))
-    return keep, {"share": config.simulation_held_out, "free_run": errs, "overall": [overall(e) for e in errs],
-                  "kept": keep, "rule": f"a later round's model is kept when no block is worse by more than "
-                                        f"{100 * FREE_RUN_TOLERANCE:g} % and all together are better by more",
-                  "blocks": {b: list(v) for b, v in held[keep].blocks.items()} if held[keep] else None}, held[keep]
-
-
-def withhold(rounds: list[LoopRound], keep: int) -> None:
-    """Mark what rounds ``keep`` on added, replaced or dropped as not kept: the model of round ``keep`` is
-    reported (:func:`held_out_choice`)."""
-    for r in rounds[keep:]:
-        r.record["withheld"] = True
-        for x in r.added:
-            x.record["withheld"] = True
-    for r in rounds[:keep]:
-        for x in r.added:
-            if x.record.get("removed") is not None and x.record["removed"] >= keep:
-                x.record.pop("removed")  # dropped in a round not kept: still in the model reported
-                x.record.pop("log_bayes_factor_after", None)
 
 
 def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Dataset, shown: tuple, seed: int,

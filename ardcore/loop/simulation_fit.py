@@ -267,12 +267,30 @@ def held_out_task(args) -> HeldOut | str | None:
 
 
 def _held_out_rms(spec: ModelSpec, fitted: dict, part: Dataset, init_samples: int, substeps) -> dict:
-    """Each factor's free-run RMS error on ``part`` (infinite when it diverges)."""
-    out = {}
-    for f, q in fitted.items():
-        r = free_run(spec, q, part, init_samples=init_samples, substeps=substeps)["rms_error"]
-        out[f] = float(r) if np.isfinite(r) else float("inf")
-    return out
+    """Each factor's free-run error on ``part`` (:func:`held_out_error`; infinite when it diverges)."""
+    return {f: held_out_error(free_run(spec, q, part, init_samples=init_samples, substeps=substeps))
+            for f, q in fitted.items()}
+
+
+def held_out_error(fr: dict) -> float:
+    """The error of a free run ``fr`` (:func:`~.freerun.free_run`) on a held-out block, in the output's units;
+    infinite when it diverges.
+
+    A driven model's free run follows its input, so its RMS error is the error. A model without inputs that
+    oscillates (a self-excited limit cycle, a free oscillation) cannot keep its phase over a long block: a
+    frequency right to a fraction of a per cent still drifts out of phase, and the RMS error then measures the
+    drift, not the model. Its error is the oscillation's own, phase-free: the relative errors of its amplitude,
+    frequency and mean, ``rms_data * hypot(amplitude, frequency, mean)`` (an oscillation right in all three
+    scores 0, as it would with its phase)."""
+    r = float(fr["rms_error"])
+    if not np.isfinite(r):
+        return float("inf")
+    if "amplitude_error" not in fr or not fr.get("rms_data"):
+        return r
+    y, yh = fr["y"], fr["y_free"]
+    mean = (float(np.nanmean(yh)) - float(np.nanmean(y))) / fr["rms_data"]
+    e = float(fr["rms_data"] * np.sqrt(fr["amplitude_error"] ** 2 + fr["frequency_error"] ** 2 + mean ** 2))
+    return min(e, r) if np.isfinite(e) else r
 
 
 def refit(spec: ModelSpec, phi: dict, data: Dataset, factor: float, *, substeps: int | None = None,

@@ -145,4 +145,4 @@ def _not_kept(report: dict) -> str:
     """What the evidence supported but the reported model leaves out, in a clause."""
     names = [x["effect"] for x in report["withheld"]]
     return (", ".join(names) + (" was" if len(names) == 1 else " were") + " supported by the evidence but not kept "
-            f"(the model without {'it' if len(names) == 1 else 'them'} free-runs better on held-out data)")
+            f"(on held-out data the model reported free-runs as well or better without {'it' if len(names) == 1 else 'them'})")

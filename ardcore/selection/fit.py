@@ -104,7 +104,14 @@ class ModelFit:
     def degenerate(self) -> str | None:
         """What makes this fit no result, or None: a sampled parameter whose posterior has no spread (sd 0 or
         not finite: the chains never moved it) or a sampled evidence without a finite, positive standard
-        error. (A Laplace evidence states no Monte Carlo error: its 0 is not a defect.)"""
+        error; an evidence that is not a finite number, or a Laplace evidence whose curvature at the optimum is not
+        positive definite (its log-determinant, and so ln Z and every sd, are then placeholders). (A Laplace
+        evidence states no Monte Carlo error: its 0 is not a defect.)"""
+        if not math.isfinite(self.log_evidence):
+            return f"{self.name}: the evidence is not a finite number (ln Z = {self.log_evidence})"
+        if any("not positive definite" in str(w) for w in self.warnings):
+            return (f"{self.name}: the likelihood's curvature at the optimum is not positive definite, so its Laplace "
+                    "evidence and posterior sd are not a result")
         flat = [k for k, v in self.sd.items() if not (math.isfinite(v) and v > 0)]
         if flat:
             return (f"{self.name}: the posterior of {', '.join(flat[:5])} has no spread (sd "

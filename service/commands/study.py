@@ -168,7 +168,7 @@ def cmd_diagnose(a) -> int:
     from ardflow.ardcore.data import read_dataset
     from ardflow.ardcore.loop.config import DiagnoseConfig
     from ardflow.ardcore.loop.diagnose import diagnose
-    from ardflow.ardcore.errors import SpecError
+    from ardflow.ardcore.errors import LoopFailed, SpecError
     from ardflow.ardcore.selection.spec import StudySpec, load_spec
 
     from ardflow.service.reports.diagnosis import write_diagnosis
@@ -215,8 +215,17 @@ def cmd_diagnose(a) -> int:
         from ardflow.workers.graph import stored_fit
 
         fit = stored_fit(store, spec.models[0].label)  # the study's own fit: no refit
-    rep = diagnose(spec, data, test_data=test, config=cfg, base=fit,
-                   progress=lambda s: print(f"[diagnose] {s}", flush=True))
+    try:
+        rep = diagnose(spec, data, test_data=test, config=cfg, base=fit,
+                       progress=lambda s: print(f"[diagnose] {s}", flush=True))
+    except LoopFailed as exc:
+        # never lose the work: what the loop had goes where the report would have gone, then the one-line error
+        out = Path(a.out)
+        out.mkdir(parents=True, exist_ok=True)
+        tmp = out / "diagnosis.json.tmp"
+        tmp.write_text(json.dumps(exc.partial, indent=1, allow_nan=False, default=str))
+        tmp.replace(out / "diagnosis.json")
+        raise LoopFailed(f"{exc} to {out / 'diagnosis.json'}", exc.partial) from None
     path = write_diagnosis(rep, data.t, a.out, col=spec.models[0].model_spec().observed_columns[0],
                            label=spec.data.axis_label)
     print(f"\n{rep.report.get('headline', '')}\n\n{rep.verdict}")

@@ -250,12 +250,13 @@ def _round_table(r: dict, k: int = 8) -> str:
            "<th>equation</th><th>screened ln BF</th><th>confirmed ln BF</th><th>result</th><th>coefficient</th>"
            "<th>mean</th><th>99 % interval</th></tr>"]
     confirmed = sorted(r.get("confirmed") or [], key=lambda c: -c["log_bayes_factor"])
+    refused = {(x["effect"], x["target"]) for x in r.get("refused") or []}
     for c in confirmed:
         post = {**(c.get("posterior") or {}), **(c.get("shape") or {})} or {"": {}}
         for i, (name, q) in enumerate(post.items()):
             lead = (f"<td>{html.escape(c['effect'])}</td><td>{html.escape(c['target'])}</td>"
                     f"<td>{_num(c.get('screened_log_bayes_factor'))}</td><td>{_num(c['log_bayes_factor'])}</td>"
-                    f"<td>{html.escape(_fate(c, added) + (', then not kept' if r.get('withheld') and (c['effect'], c['target']) in added else ''))}</td>"
+                    f"<td>{html.escape(_fate(c, added) + (', not kept: free-runs no better held out' if (c['effect'], c['target']) in refused else ''))}</td>"
                     if i == 0 else "<td></td>" * 5)
             out.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
                        f"<td>{'' if not q else '[' + _num(q.get('q005')) + ', ' + _num(q.get('q995')) + ']'}</td></tr>")
@@ -276,33 +277,35 @@ def _round_table(r: dict, k: int = 8) -> str:
                    "addition above.</p>" if x.get("shape") else
                    f"<p>The declared {html.escape(x['parameter'])}*({html.escape(x['term'])}) was dropped: "
                    f"{html.escape(x['by'])} replaces it (ln BF {_num(x['log_bayes_factor'])}).</p>")
-    par = r.get("parsimony")
-    if par:
-        out.append(f"<p>Parsimony: {html.escape(', '.join(par['instead_of']))} together free-run within "
-                   f"{100 * par.get('within', 0.05):g} % of "
-                   f"{html.escape(par['added'])} alone on the estimation record ({_num(par['free_run_together'])} "
-                   f"against {_num(par['free_run'])}), so {html.escape(par['added'])} alone was added.</p>")
     if r.get("verdict"):
         out.append(f"<p>{html.escape(r['verdict'])}</p>")
-    if r.get("withheld"):
-        out.append("<p>Not kept: what this round added or replaced is not in the model reported, which free-runs "
-                   "better on the held-out blocks of the estimation record without it (see below).</p>")
     return "".join(out)
 
 
 def _held_out_section(j: dict) -> list[str]:
-    """Each round's model judged on held-out blocks of the estimation record, and which one is reported."""
+    """How the loop decided: each round's model and every move the evidence supported, judged by their free run
+    on held-out blocks of the estimation record (the loop's one criterion), and which move was taken."""
     h = j.get("held_out")
-    if not h or len(h.get("free_run") or []) < 2:
+    if not h or not h.get("free_run"):
         return []
-    blocks = list(h["free_run"][0]) or list(next((e for e in h["free_run"] if e), {}))
-    rows = "".join(f"<tr><td>round {i}{' (reported)' if i == h['kept'] else ''}</td>"
-                   + "".join(f"<td>{_num(e.get(b))}</td>" for b in blocks) + f"<td>{_num(h['overall'][i])}</td></tr>"
-                   for i, e in enumerate(h["free_run"]))
-    return [f"<h3>Which round's model is reported</h3><p>Each round's model refitted with one block of the "
-            f"estimation record ({100 * h['share']:g} % of it) left out, then free-run over that block; {html.escape(h['rule'])}."
+    blocks = list(next((e for e in h["free_run"] if e), {}))
+    if not blocks:
+        return []
+
+    def row(label, e, overall, taken=False):
+        return (f"<tr><td>{html.escape(label)}</td>" + "".join(f"<td>{_num(e.get(b))}</td>" for b in blocks)
+                + f"<td>{_num(overall)}</td><td>{'taken' if taken else ''}</td></tr>")
+
+    rows = []
+    for rnd in h.get("moves") or []:
+        rows.append(row(f"round {rnd['round']}: the model {rnd['model']}", rnd["score"]["blocks"],
+                        rnd["score"]["overall"]))
+        rows += [row(f"  + {m['move']}", m.get("blocks", {}), m.get("overall"), m.get("taken")) for m in rnd["moves"]]
+    rows.append(row("the model reported", h["free_run"][-1], h["overall"][-1]))
+    return [f"<h3>How the loop decided</h3><p>Every model refitted with one block of the estimation record "
+            f"({100 * h['share']:g} % of it) left out, then free-run over that block; {html.escape(h['rule'])}."
             "</p><table><tr><th>model</th>" + "".join(f"<th>{html.escape(b)}</th>" for b in blocks)
-            + f"<th>all blocks</th></tr>{rows}</table>"]
+            + f"<th>all blocks</th><th></th></tr>{''.join(rows)}</table>"]
 
 
 def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Path, col: str = "y",

@@ -75,7 +75,9 @@ def publish(results: dict, command: str, machine: dict, path: Path = FIGURES) ->
     path.write_text(json.dumps(figs, indent=1, sort_keys=True) + "\n")
 
 
-VALIDATION = ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis", "none")
+VALIDATION = ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis", "none", "tanks_linear",
+              "tanks_sqrt", "lco_none", "lco_even_stiffness", "lco_odd_stiffness", "lco_cubic_damping",
+              "lco_quadratic_damping", "lco_gust")
 """The validation set's records (:mod:`tests.bench.validation`), in the table's order."""
 def _validation_key(k: str) -> bool:
     return k.startswith("validation_") or any(k.startswith(f"loop_{r}_") or k.startswith("peer_") and
@@ -229,30 +231,39 @@ def render_validation(figs: dict) -> list[str]:
         return "" if not isinstance(x, (int, float)) else ("diverged" if not math.isfinite(x) else f"{x:.3g}")
 
     rows = ["| record (class) | user's model | the loop's reported model | its structure at the posterior mean | "
-            "what the loop did | linear ARX | polynomial NARX | SysIdentPy | PySINDy | loop <= best peer | "
-            "loop wall time |",
-            "|---|---|---|---|---|---|---|---|---|---|---|"]
+            "what the loop did | verdict (gate) | linear ARX | polynomial NARX | SysIdentPy | PySINDy | "
+            "loop <= best peer | loop wall time |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in VALIDATION:
         if f"loop_{r}_free_run" not in v:
             continue
         did = [*v.get(f"loop_{r}_replaced", []), *v.get(f"loop_{r}_added", [])]
         held = v.get(f"loop_{r}_withheld") or []
-        did = (", ".join(did) or "nothing") + (f"; not kept (worse held out): {', '.join(held)}" if held else "")
+        did = (", ".join(did) or "nothing") + (f"; not kept (no better held out): {', '.join(held)}" if held else "")
+        verdict = v.get(f"loop_{r}_verdict", "")
+        verdict = num(verdict) if isinstance(verdict, float) else verdict
+        compared = not r.startswith("lco_")
+        cls = "real" if r.startswith("tanks_") else "gate" if r.startswith("lco_") else (
+            "design" if v.get(f"loop_{r}_design") else "check")
         loop, best = v[f"loop_{r}_free_run"], v.get(f"peer_best_{r}")
         factor = v.get(f"loop_{r}_noise_factor", 1.0)
-        rows.append(f"| {r} ({'design' if v.get(f'loop_{r}_design') else 'check'}) | "
+        rows.append(f"| {r} ({cls}) | "
                     f"{num(v.get(f'loop_{r}_before'))} | "
                     f"{num(loop)}{_cover(v.get(f'loop_{r}_band_coverage'))} | "
                     f"{num(v.get(f'loop_{r}_posterior_mean_free_run'))}"
-                    f"{'' if factor == 1.0 else f' (reported at {factor:g} x its process noise)'} | {did} | "
+                    f"{'' if factor == 1.0 else f' (reported at {factor:g} x its process noise)'} | {did} | {verdict} | "
                     + " | ".join(num(v.get(f"peer_{p}_{r}")) for p in ("arx", "narx", "sysidentpy", "pysindy"))
-                    + f" | {'yes' if isinstance(best, (int, float)) and loop <= best else 'no'} | "
+                    + f" | {('yes' if isinstance(best, (int, float)) and loop <= best else 'no') if compared else ''} | "
                       f"{num(v.get(f'loop_{r}_s'))} s |")
+    reg = v.get("validation_regressions") or []
     rows += ["", f"The loop's free run is at or below the best peer's on {v.get('validation_loop_at_or_below_best_peer')}"
-                 f" of {v.get('validation_records')} records ({v.get('validation_checks_at_or_below_best_peer')} of "
-                 f"the {v.get('validation_check_records')} check records); on the record without an effect it changed "
-                 f"{v.get('validation_added_on_clean')} terms. Free-run RMS errors on the held-out second half of "
-                 "each record, in the record's units."]
+                 f" of the {v.get('validation_compared_records', v.get('validation_records'))} driven records "
+                 f"({v.get('validation_checks_at_or_below_best_peer')} of the {v.get('validation_check_records')} "
+                 f"check records); on the records without an effect it changed {v.get('validation_added_on_clean')} "
+                 "terms. Free-run RMS errors on the held-out second half of each record (the tanks: on their "
+                 "separate validation experiment), in the record's units; a self-excited LCO (gate) loses its "
+                 "phase over a free run, so its records are judged by their verdict. Regression gate "
+                 "(`tests/bench/verdicts.json`): " + ("; ".join(reg) if reg else "no record's verdict got worse") + "."]
     return rows + _provenance(f)
 
 

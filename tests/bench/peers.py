@@ -4,11 +4,10 @@ Free-run (simulation) RMS error on a test record, the benchmark convention: the 
 ``init`` samples of the test record may be used to initialise (here: as the lagged
 outputs a NARX model needs), the error is taken from sample ``init`` on.
 
-* ``arx``: linear ARX by least squares (orders as the Silverbox literature uses them).
-* ``narx``: polynomial NARX by least squares: linear lags of y and u and the
-  polynomial terms in y of degree 2 and 3 a Duffing-type circuit needs, then a
-  simulation-error refit of the same coefficients (Gauss-Newton on the free run of a
-  part of the estimation record, as is customary for NARX models used in simulation).
+* ``arx`` and ``narx`` (:func:`tuned_narx`): a linear ARX and a polynomial NARX as their users tune them:
+  orders, degree and terms (forward orthogonal least squares) chosen by free run on validation blocks of the
+  estimation record, then a simulation-error refit (Levenberg-Marquardt on the free run, as is customary for
+  NARX models used in simulation).
 * ``pysindy`` / ``sysidentpy``: when installed (``pip install -e '.[bench]'``): PySINDy's
   discrete-time SINDy and SysIdentPy's FROLS/AOLS polynomial NARX, their settings chosen on
   a validation part of the estimation record.
@@ -21,86 +20,6 @@ import math
 import numpy as np
 from numba import njit
 from scipy import optimize
-
-
-def _lagged(y: np.ndarray, u: np.ndarray, na: int, nb: int, k0: int) -> tuple[np.ndarray, np.ndarray]:
-    """Linear regressors y(k-1..k-na), u(k..k-nb) for k >= k0."""
-    n = y.size
-    ks = np.arange(k0, n)
-    cols = [y[ks - i] for i in range(1, na + 1)] + [u[ks - j] for j in range(0, nb + 1)]
-    return np.column_stack(cols), y[ks]
-
-
-def _narx_features(ylags: np.ndarray, ulags: np.ndarray) -> np.ndarray:
-    """[1, y lags, u lags, y1^2, y1 y2, y2^2, y1^3, y1^2 y2, y1 y2^2, y2^3] per row."""
-    y1, y2 = ylags[:, 0], ylags[:, 1]
-    return np.column_stack([np.ones(len(y1)), ylags, ulags, y1 * y1, y1 * y2, y2 * y2,
-                            y1 ** 3, y1 * y1 * y2, y1 * y2 * y2, y2 ** 3])
-
-
-NA, NB = 3, 3
-
-
-@njit(cache=True)
-def _simulate_narx(theta, y0, u, na, nb):
-    """Free run of the NARX (and ARX when the polynomial part is zero) from the first lags of y0."""
-    n = u.size
-    y = np.empty(n)
-    k0 = max(na, nb)
-    y[:k0] = y0[:k0]
-    for k in range(k0, n):
-        y1, y2 = y[k - 1], y[k - 2]
-        v = theta[0]
-        for i in range(na):
-            v += theta[1 + i] * y[k - 1 - i]
-        for j in range(nb + 1):
-            v += theta[1 + na + j] * u[k - j]
-        b = 1 + na + nb + 1
-        v += (theta[b] * y1 * y1 + theta[b + 1] * y1 * y2 + theta[b + 2] * y2 * y2 + theta[b + 3] * y1 ** 3
-              + theta[b + 4] * y1 * y1 * y2 + theta[b + 5] * y1 * y2 * y2 + theta[b + 6] * y2 ** 3)
-        if not math.isfinite(v) or abs(v) > 1e6:
-            y[k:] = np.nan
-            return y
-        y[k] = v
-    return y
-
-
-def fit_narx(y: np.ndarray, u: np.ndarray, *, polynomial: bool = True, refit_samples: int = 20000) -> np.ndarray:
-    """Least squares (one-step), then for the NARX a simulation-error refit on part of the record."""
-    k0 = max(NA, NB)
-    L, target = _lagged(y, u, NA, NB, k0)
-    F = _narx_features(L[:, :NA], L[:, NA:])
-    if not polynomial:
-        F = F[:, :1 + NA + NB + 1]
-    s = np.linalg.norm(F, axis=0)
-    s[s == 0] = 1
-    th, *_ = np.linalg.lstsq(F / s, target, rcond=None)
-    th = th / s
-    full = np.zeros(1 + NA + NB + 1 + 7)
-    full[:th.size] = th
-    if not polynomial:
-        return full
-    m = min(refit_samples, y.size)
-    ys, us = y[:m], u[:m]
-
-    def resid(p):
-        sim = _simulate_narx(p * full_scale, ys, us, NA, NB)
-        r = sim[k0:] - ys[k0:]
-        return np.where(np.isfinite(r), r, 1.0)
-
-    full_scale = np.where(full != 0, np.abs(full), 1.0)
-    r = optimize.least_squares(resid, full / full_scale, method="lm", max_nfev=200 * full.size)
-    cand = r.x * full_scale
-    # keep the refit only when it simulates better on the estimation part it was fitted on
-    e0 = np.sqrt(np.nanmean(resid(full / full_scale) ** 2))
-    e1 = np.sqrt(np.nanmean(resid(r.x) ** 2))
-    return cand if e1 < e0 else full
-
-
-def free_run_rms(theta: np.ndarray, y: np.ndarray, u: np.ndarray, init: int = 50) -> float:
-    sim = _simulate_narx(theta, y, u, NA, NB)
-    e = sim[init:] - y[init:]
-    return float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else float("inf")
 
 
 @njit(cache=True)
@@ -164,9 +83,10 @@ def pysindy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
 
 
 def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
-    """SysIdentPy polynomial NARX (degree 3, lags 3): FROLS with 13 terms and AOLS (k = 13, L = 1), the one
-    that free-runs better on the last 20 % of the estimation record is refitted on all of it; free run
-    (``steps_ahead=None``) from the first ``init`` samples of each test record."""
+    """SysIdentPy's polynomial NARX as its users tune it: FROLS (and AOLS) over lags 1-4, degree 2-3 and 5-20
+    terms, each fitted on the first 80 % of the estimation record and free-run (``steps_ahead=None``) over the
+    rest; the best that stays bounded there is refitted on all of it and free-run on each test record from its
+    first ``init`` samples."""
     try:
         from sysidentpy.basis_function import Polynomial
         from sysidentpy.model_structure_selection import AOLS, FROLS
@@ -174,10 +94,10 @@ def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | Non
         return None
     import warnings
 
-    def make(kind):
+    def make(kind, lag, degree, n):
         if kind == "frols":
-            return FROLS(order_selection=False, n_terms=13, ylag=3, xlag=3, basis_function=Polynomial(degree=3))
-        return AOLS(ylag=3, xlag=3, k=13, L=1, basis_function=Polynomial(degree=3))
+            return FROLS(order_selection=False, n_terms=n, ylag=lag, xlag=lag, basis_function=Polynomial(degree=degree))
+        return AOLS(ylag=lag, xlag=lag, k=n, L=1, basis_function=Polynomial(degree=degree))
 
     def run(model, yt, ut):
         try:
@@ -192,9 +112,177 @@ def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | Non
         cut = int(0.8 * y_est.size)
         scores = []
         for kind in ("frols", "aols"):
-            m = make(kind)
-            m.fit(X=u_est[:cut, None], y=y_est[:cut, None])
-            scores.append((run(m, y_est[cut:], u_est[cut:]), kind))
-        model = make(min(scores)[1])
+            for lag in (1, 2, 3, 4):
+                for degree in (2, 3):
+                    for n in (5, 8, 13, 20):
+                        try:
+                            m = make(kind, lag, degree, n)
+                            m.fit(X=u_est[:cut, None], y=y_est[:cut, None])
+                        except Exception:  # a grid point the library cannot fit is skipped, as a user would
+                            continue
+                        scores.append((run(m, y_est[cut:], u_est[cut:]), (kind, lag, degree, n)))
+        if not scores:
+            return None
+        model = make(*min(scores, key=lambda s: s[0])[1])
         model.fit(X=u_est[:, None], y=y_est[:, None])
     return {name: run(model, yt, ut) for name, (yt, ut) in tests.items()}
+
+
+# --------------------------------------------------------------------------- the NARX as its users tune it
+
+
+@njit(cache=True)
+def _simulate_terms(theta, powers, y0, u, na, nb):
+    """Free run of a polynomial NARX y(k) = theta @ prod(z ** powers), z = [y(k-1..k-na), u(k..k-nb)], from
+    the first max(na, nb) samples of ``y0``; NaN from where it leaves any sane range."""
+    n = u.size
+    y = np.empty(n)
+    k0 = max(na, nb)
+    y[:k0] = y0[:k0]
+    z = np.empty(na + nb + 1)
+    for k in range(k0, n):
+        for i in range(na):
+            z[i] = y[k - 1 - i]
+        for j in range(nb + 1):
+            z[na + j] = u[k - j]
+        v = 0.0
+        for t in range(powers.shape[0]):
+            f = theta[t]
+            for i in range(z.size):
+                for _ in range(powers[t, i]):
+                    f *= z[i]
+            v += f
+        if not math.isfinite(v) or abs(v) > 1e6:
+            y[k:] = np.nan
+            return y
+        y[k] = v
+    return y
+
+
+def _powers(na: int, nb: int, degree: int) -> np.ndarray:
+    """Exponents of every monomial of z = [y(k-1..k-na), u(k..k-nb)] up to ``degree``, the constant first."""
+    import itertools
+
+    m = na + nb + 1
+    rows = [np.zeros(m, dtype=np.int64)]
+    for d in range(1, degree + 1):
+        for combo in itertools.combinations_with_replacement(range(m), d):
+            r = np.zeros(m, dtype=np.int64)
+            for i in combo:
+                r[i] += 1
+            rows.append(r)
+    return np.array(rows)
+
+
+def _forward_order(F: np.ndarray, target: np.ndarray, max_terms: int) -> list[int]:
+    """Columns of ``F`` in the order forward orthogonal least squares picks them (largest error reduction ratio
+    first, Billings' FROLS): the term selection of polynomial NARX users."""
+    Q = F.astype(float).copy()  # orthogonalised in place as terms are picked
+    picked: list[int] = []
+    tt = float(target @ target)
+    for _ in range(min(max_terms, F.shape[1])):
+        nq = np.einsum("ij,ij->j", Q, Q)
+        err = np.where(nq > 1e-12 * max(nq.max(), 1e-300), (Q.T @ target) ** 2 / np.where(nq > 0, nq, 1) / tt, -1)
+        err[picked] = -1
+        j = int(np.argmax(err))
+        if err[j] <= 0:
+            break
+        picked.append(j)
+        q = Q[:, j] / math.sqrt(nq[j])
+        Q -= np.outer(q, q @ Q)
+    return picked
+
+
+class NARX:
+    """A polynomial NARX (orders ``na``, ``nb``, ``degree``) fitted by least squares and refitted by simulation
+    error; :meth:`free_run_rms` scores it as the bench does (the first ``init`` samples initialise)."""
+
+    def __init__(self, na: int, nb: int, degree: int, terms: list | None = None):
+        self.na, self.nb, self.degree = na, nb, degree
+        p = _powers(na, nb, degree)
+        self.powers = np.ascontiguousarray(p if terms is None else p[sorted(terms)])
+        self.theta = np.zeros(self.powers.shape[0])
+
+    def _features(self, y, u):
+        k0 = max(self.na, self.nb)
+        ks = np.arange(k0, y.size)
+        z = np.column_stack([y[ks - i] for i in range(1, self.na + 1)] + [u[ks - j] for j in range(self.nb + 1)])
+        return np.prod(z[:, None, :] ** self.powers[None, :, :], axis=2), y[ks]
+
+    def fit(self, y, u, *, refit_samples: int = 20000, max_nfev: int = 60):
+        """Least squares (one step ahead), then Levenberg-Marquardt on the free-run error of the first
+        ``refit_samples`` samples, kept when it free-runs the estimation record better."""
+        F, target = self._features(y, u)
+        s = np.linalg.norm(F, axis=0)
+        s[s == 0] = 1
+        th, *_ = np.linalg.lstsq(F / s, target, rcond=None)
+        self.theta = th / s
+        m = min(refit_samples, y.size)
+        ys, us, k0 = y[:m], u[:m], max(self.na, self.nb)
+        scale = np.where(self.theta != 0, np.abs(self.theta), 1.0)
+
+        def resid(p):
+            r = _simulate_terms(p * scale, self.powers, ys, us, self.na, self.nb)[k0:] - ys[k0:]
+            return np.where(np.isfinite(r), r, 10.0 * np.nanstd(ys))
+
+        e0 = np.sqrt(np.mean(resid(self.theta / scale) ** 2))
+        try:
+            r = optimize.least_squares(resid, self.theta / scale, method="lm", max_nfev=max_nfev * self.theta.size)
+            if np.sqrt(np.mean(resid(r.x) ** 2)) < e0:
+                self.theta = r.x * scale
+        except (ValueError, np.linalg.LinAlgError):
+            pass
+        return self
+
+    def free_run_rms(self, y, u, init: int = 50) -> float:
+        sim = _simulate_terms(self.theta, self.powers, y, u, self.na, self.nb)
+        e = sim[init:] - y[init:]
+        return float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else float("inf")
+
+
+def _least_squares(m: NARX, y, u) -> NARX:
+    """``m`` fitted by least squares (one step ahead) to ``y``, ``u``."""
+    G, target = m._features(y, u)
+    s = np.linalg.norm(G, axis=0)
+    s[s == 0] = 1
+    th, *_ = np.linalg.lstsq(G / s, target, rcond=None)
+    m.theta = th / s
+    return m
+
+
+def tuned_narx(y: np.ndarray, u: np.ndarray, *, degrees=(1, 2, 3), orders=(1, 2, 3, 4), validation: float = 0.2,
+               sizes=(2, 3, 4, 5, 6, 8, 10, 13, 16, 20), finalists: int = 3) -> NARX:
+    """A polynomial NARX as its users tune it, by free run on validation blocks: for every (na = nb + 1,
+    degree) of the grid the terms are ranked by forward orthogonal least squares (Billings' FROLS), and every
+    model of the first ``sizes`` terms is fitted by least squares without a block of ``validation`` of the
+    estimation record (its end, then its start) and free-run over it; the ``finalists`` with the lowest RMS
+    over both blocks are refitted by simulation error and scored again; the winner is refitted so on the whole
+    record. A model that diverges on a validation block is never chosen (the next one is). ``degrees=(1,)``:
+    a linear ARX."""
+    n = y.size
+    m_ = int(validation * n)
+    folds = [(slice(0, n - m_), slice(n - m_, n)), (slice(m_, n), slice(0, m_))]
+
+    def score(make, refit=False):
+        e = []
+        for fit, val in folds:
+            m = make()
+            m = m.fit(y[fit], u[fit]) if refit else _least_squares(m, y[fit], u[fit])
+            e.append(m.free_run_rms(y[val], u[val]))
+        return float(np.sqrt(np.mean(np.square(e))))
+
+    first = []
+    for d in degrees:
+        for na in orders:
+            nb = na - 1
+            F, target = NARX(na, nb, d)._features(y[folds[0][0]], u[folds[0][0]])
+            order = _forward_order(F, target, max(sizes))
+            for k in sizes:
+                if k > len(order):
+                    break
+                terms = tuple(order[:k])
+                first.append((score(lambda: NARX(na, nb, d, list(terms))), (na, nb, d, terms)))
+    ranked = sorted([f for f in first if math.isfinite(f[0])], key=lambda f: f[0]) or first
+    second = [(score(lambda c=c: NARX(c[0], c[1], c[2], list(c[3])), refit=True), c) for _, c in ranked[:finalists]]
+    na, nb, d, terms = min(second, key=lambda f: f[0])[1]
+    return NARX(na, nb, d, list(terms)).fit(y, u)

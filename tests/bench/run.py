@@ -595,10 +595,10 @@ def bench_loop(tiny: bool = False) -> dict:
     y, u = seg["estimation"].columns["y"], seg["estimation"].columns["u"]
     tests = {"multisine": (seg["test_multisine"].columns["y"], seg["test_multisine"].columns["u"]),
              "arrow": (seg["test_arrow"].columns["y"], seg["test_arrow"].columns["u"])}
-    arx = peers.fit_narx(y, u, polynomial=False)
-    narx = peers.fit_narx(y, u)
-    peer = {"arx": {k: peers.free_run_rms(arx, *v) for k, v in tests.items()},
-            "narx": {k: peers.free_run_rms(narx, *v) for k, v in tests.items()}}
+    arx = peers.tuned_narx(y, u, degrees=(1,))
+    narx = peers.tuned_narx(y, u)
+    peer = {"arx": {k: arx.free_run_rms(*v) for k, v in tests.items()},
+            "narx": {k: narx.free_run_rms(*v) for k, v in tests.items()}}
     for name, fn in (("pysindy", lambda: peers.pysindy_free_run(y, u, tests)),
                      ("sysidentpy", lambda: peers.sysidentpy_free_run(y, u, tests))):
         r = fn()
@@ -647,8 +647,8 @@ def bench_loop(tiny: bool = False) -> dict:
     out["loop_pendulum_band_coverage"] = prep.report["reported"]["free_run"].get("band_coverage")
     out["loop_pendulum_added"] = [a["effect"] + " -> " + a["target"] for a in prep.added]
     py = pdata.columns["y"]
-    pn = peers.fit_narx(py, np.zeros_like(py))
-    out["loop_peer_narx_pendulum_rad"] = peers.free_run_rms(pn, ptest.columns["y"], np.zeros(len(ptest)))
+    pn = peers.tuned_narx(py, np.zeros_like(py))
+    out["loop_peer_narx_pendulum_rad"] = pn.free_run_rms(ptest.columns["y"], np.zeros(len(ptest)))
     # -- the loop on the 5000-point reference data (M2's data-generating form)
     ref = StudySpec.model_validate({
         "name": "loop", "data": {"generator": "reference", "seed": 3},
@@ -703,31 +703,58 @@ def bench_fresh(tiny: bool = False) -> dict:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+VERDICTS = ROOT / "tests" / "bench" / "verdicts.json"
+"""The regression gate's recorded verdicts (:func:`bench_validation`): what the loop did on each validation record
+when it was last measured. A change to the loop may improve a verdict, never worsen one."""
+
+
+def _peers(rec) -> dict:
+    """The peers' free-run RMS errors on ``rec``'s test record, each tuned as its users tune it
+    (:mod:`tests.bench.peers`): a linear ARX and a polynomial NARX (orders, degree and terms chosen by free run
+    on validation blocks of the estimation record, then a simulation-error refit), SysIdentPy and PySINDy."""
+    from . import peers
+
+    y = rec.est.columns["y"]
+    u = rec.est.columns.get("u", np.zeros_like(y))
+    yt = rec.test.columns["y"]
+    ut = rec.test.columns.get("u", np.zeros_like(yt))
+    out = {"arx": peers.tuned_narx(y, u, degrees=(1,)).free_run_rms(yt, ut),
+           "narx": peers.tuned_narx(y, u).free_run_rms(yt, ut)}
+    if "u" in rec.est.columns:  # the libraries' NARX and SINDy with a control input
+        for p, fn in (("pysindy", peers.pysindy_free_run), ("sysidentpy", peers.sysidentpy_free_run)):
+            got = fn(y, u, {"test": (yt, ut)})
+            if got is not None:
+                out[p] = got["test"]
+    return out
+
+
 def bench_validation(tiny: bool = False) -> dict:
     """The loop on the validation set (:mod:`tests.bench.validation`): each record from its plain user model,
-    and the peers on the same split, in one run.
+    and the peers on the same split, in one run; and the regression gate.
 
     Keys per record ``<r>``: ``loop_<r>_free_run`` (the reported model's free-run RMS error on the test
     record), ``loop_<r>_before`` (the user's model's), ``loop_<r>_band_coverage`` (the test data's share
     inside the reported model's 90 % band), ``loop_<r>_s`` (the loop's wall time), ``loop_<r>_added`` and
-    ``loop_<r>_replaced`` (what it did), ``peer_<p>_<r>`` for the linear ARX, the polynomial NARX with its
-    simulation-error refit, SysIdentPy and PySINDy, ``peer_best_<r>`` the best of them; and the summary
-    ``validation_loop_at_or_below_best_peer`` (records where the loop's free run is at or below the best
-    peer's), ``validation_records``, ``validation_check_records`` and ``validation_checks_at_or_below_best_peer``
-    (the same over the records whose class the loop was not designed on), ``validation_added_on_clean``
-    (effects added where the truth has none); per record also ``loop_<record>_posterior_mean_free_run`` and
-    ``loop_<record>_noise_factor`` (the reported model's structure at its posterior mean, and the noise level
-    reported), ``loop_<record>_withheld`` (supported by the evidence, not kept: worse on held-out blocks) and
-    ``loop_<record>_design``.
+    ``loop_<r>_replaced`` (what it did), ``loop_<r>_withheld`` (supported by the evidence, not taken by the
+    held-out criterion), ``loop_<r>_verdict`` (``found``, ``nothing`` or ``other``: :func:`validation.verdict`),
+    ``peer_<p>_<r>`` for the tuned linear ARX and polynomial NARX, SysIdentPy and PySINDy, ``peer_best_<r>`` the
+    best of them; and the summary ``validation_loop_at_or_below_best_peer`` (records with an input where the
+    loop's free run is at or below the best peer's; a self-excited LCO's free run loses its phase, so its
+    records are graded by their verdict only), ``validation_records``, ``validation_check_records`` and
+    ``validation_checks_at_or_below_best_peer``, ``validation_added_on_clean`` (effects added where the truth
+    has none), ``validation_regressions`` (records whose verdict is worse than :data:`VERDICTS` holds: the gate;
+    a full run fails when any is). Per record also ``loop_<r>_posterior_mean_free_run``,
+    ``loop_<r>_noise_factor`` and ``loop_<r>_design``.
     """
     from ardflow.ardcore.loop.config import DiagnoseConfig
     from ardflow.ardcore.loop.diagnose import diagnose
 
-    from . import peers
-    from .validation import RECORDS
+    from .validation import RECORDS, graded, verdict
 
     out: dict = {}
-    wins = clean_added = checks = checks_won = 0
+    recorded = json.loads(VERDICTS.read_text()) if VERDICTS.exists() else {}
+    wins = clean_added = checks = checks_won = compared = 0
+    regressions = []
     for name, make in RECORDS.items():
         rec = make(n=800) if tiny else make()
         spec = _tiny_spec(rec.spec) if tiny else rec.spec
@@ -744,35 +771,47 @@ def bench_validation(tiny: bool = False) -> dict:
         out[f"loop_{name}_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
         out[f"loop_{name}_replaced"] = [f"{x['parameter']}*({x['term']}) -> {x['by']}" for x in r["replaced"]]
         out[f"loop_{name}_withheld"] = [a["effect"] + " -> " + a["target"] for a in r.get("withheld", [])]
+        if rec.real:  # a measured record: no truth to find; its free run must stay as good as recorded
+            out[f"loop_{name}_verdict"] = v = out[f"loop_{name}_free_run"]
+            if isinstance(recorded.get(name), float) and v > 1.05 * recorded[name]:
+                regressions.append(f"{name}: free run {recorded[name]:.4g} -> {v:.4g}")
+        else:
+            out[f"loop_{name}_verdict"] = v = verdict(rec, rep.added, r["replaced"], out[f"loop_{name}_before"],
+                                                      out[f"loop_{name}_free_run"])
+            if name in recorded and graded(rec, v) < graded(rec, recorded[name]):
+                regressions.append(f"{name}: {recorded[name]} -> {v}")
         # the reported model beside its structure at the posterior mean (the same model at noise factor 1)
         out[f"loop_{name}_noise_factor"] = r["reported"].get("noise_factor", 1.0)
         out[f"loop_{name}_posterior_mean_free_run"] = (r["reported"].get("posterior_mean_free_run")
                                                        or r["reported"]["free_run"])["rms_error"]
         out[f"loop_{name}_design"] = rec.design
-        y, u = rec.est.columns["y"], rec.est.columns["u"]
-        test = {"test": (rec.test.columns["y"], rec.test.columns["u"])}
-        peer = {"arx": peers.free_run_rms(peers.fit_narx(y, u, polynomial=False), *test["test"]),
-                "narx": peers.free_run_rms(peers.fit_narx(y, u), *test["test"])}
-        for p, fn in (("pysindy", peers.pysindy_free_run), ("sysidentpy", peers.sysidentpy_free_run)):
-            got = fn(y, u, test)
-            if got is not None:
-                peer[p] = got["test"]
-        for p, v in peer.items():
-            out[f"peer_{p}_{name}"] = v
+        peer = _peers(rec)
+        for p, val in peer.items():
+            out[f"peer_{p}_{name}"] = val
         out[f"peer_best_{name}"] = min(peer.values())
-        won = out[f"loop_{name}_free_run"] <= out[f"peer_best_{name}"]
-        wins += won
-        checks_won += won and not rec.design
-        checks += not rec.design
+        if "u" in rec.est.columns:
+            won = out[f"loop_{name}_free_run"] <= out[f"peer_best_{name}"]
+            compared += 1
+            wins += won
+            checks_won += won and not rec.design
+            checks += not rec.design
         if not rec.has_effect:
             clean_added += len(rep.added) + len(r["replaced"])
         if not tiny:  # a smoke run never touches the measured figures
             _save_partial(out)
     out["validation_records"] = len(RECORDS)
+    out["validation_compared_records"] = compared
     out["validation_loop_at_or_below_best_peer"] = wins
     out["validation_check_records"] = checks
     out["validation_checks_at_or_below_best_peer"] = checks_won
     out["validation_added_on_clean"] = clean_added
+    out["validation_regressions"] = regressions
+    if not tiny:
+        # what this run found becomes the record, only where no verdict got worse (the gate stays as it was)
+        if not regressions:
+            VERDICTS.write_text(json.dumps({n: out[f"loop_{n}_verdict"] for n in RECORDS}, indent=1) + "\n")
+        else:
+            print("  [gate] verdicts worse than recorded: " + "; ".join(regressions), flush=True)
     return out
 
 
@@ -805,8 +844,10 @@ CONTRACT = {
              "loop_peer_best_multisine_mv", "loop_peer_pysindy_multisine_mv", "loop_peer_sysidentpy_multisine_mv",
              "loop_peer_narx_pendulum_rad"],
     "validation": ["validation_records", "validation_loop_at_or_below_best_peer", "validation_added_on_clean",
+                   "validation_regressions",
                    *[k.format(r) for r in ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis",
-                                           "none") for k in ("loop_{}_free_run", "peer_best_{}", "loop_{}_s")]],
+                                           "none") for k in ("loop_{}_free_run", "peer_best_{}", "loop_{}_s",
+                                                             "loop_{}_verdict")]],
     "fresh": ["fresh_demo_s", "fresh_demo_evaluations"],
 }
 """Keys each group must write (named in issues and the README: a contract); the smoke test checks them."""
@@ -836,6 +877,10 @@ def main(argv=None) -> int:
                       "date": time.strftime("%Y-%m-%d")}
     out.write_text(json.dumps(res, indent=2))
     print(f"[bench] wrote {out}")
+    if ran.get("validation_regressions") and not a.tiny:
+        print("[bench] FAILED: the regression gate (tests/bench/verdicts.json): " + "; ".join(
+            ran["validation_regressions"]), file=sys.stderr)
+        return 1
     if not a.tiny and a.out is None:
         # the measured headline figures, with their provenance, for the README and docs
         from .figures import FIGURES, publish, update_readme

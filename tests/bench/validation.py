@@ -31,6 +31,7 @@ Records (the physics each one holds; ``sigma`` process noise, ``gamma`` measurem
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +53,11 @@ class Record:
     has_effect: bool
     design: bool
     physics: str
+    real: bool = False
+    """A measured record: no truth to find, so the gate holds its free-run error (no worse than recorded)."""
+    family: tuple = ()
+    """What finding the missing physics means (:func:`verdict`): library names or kinds of effects, or
+    ``form:<form>`` for a declared law replaced in that form; empty when the library holds nothing to find."""
 
 
 SAMPLER = {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600}
@@ -92,9 +98,9 @@ def _simulate(truth, params: dict, t: np.ndarray, u: np.ndarray, seed: int, n_st
     return Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": f"validation:{truth.name}"})
 
 
-def _split(name, spec, data, has_effect, design, physics) -> Record:
+def _split(name, spec, data, has_effect, design, physics, family=()) -> Record:
     k = int(round(EST * len(data)))
-    return Record(name, spec, data.slice(0, k), data.slice(k, None), has_effect, design, physics)
+    return Record(name, spec, data.slice(0, k), data.slice(k, None), has_effect, design, physics, tuple(family))
 
 
 def _against_linear(name: str, truth, values: dict, u: np.ndarray, seed: int):
@@ -121,7 +127,7 @@ def duffing(n: int = 4000, seed: int = 11) -> Record:
     u = 1.5 * np.sin(2 * np.pi * np.cumsum(f) * 0.02)
     truth = _truth("-k*y - c*v - k3*y**3 + b*u", ["k", "c", "k3", "b", "sigma"], 2e-3)
     spec, data = _against_linear("duffing", truth, {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("duffing", spec, data, True, True, "hardening cubic stiffness under a swept sine")
+    return _split("duffing", spec, data, True, True, "hardening cubic stiffness under a swept sine", ("cubic_stiffness",))
 
 
 def friction(n: int = 4000, seed: int = 12) -> Record:
@@ -131,14 +137,15 @@ def friction(n: int = 4000, seed: int = 12) -> Record:
         u[k0:k0 + 25] = rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 4.0)
     truth = _truth("-k*y - c*v - Fc*tanh(v/0.02) + b*u", ["k", "c", "Fc", "b", "sigma"], 2e-3)
     spec, data = _against_linear("friction", truth, {"k": 16.0, "c": 0.2, "Fc": 0.8, "b": 8.0, "sigma": 0.05}, u, seed)
-    return _split("friction", spec, data, True, False, "viscous and Coulomb friction, decaying to rest")
+    return _split("friction", spec, data, True, False, "viscous and Coulomb friction, decaying to rest", ("friction",))
 
 
 def saturation(n: int = 4000, seed: int = 13) -> Record:
     u = 2.5 * _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*0.8*tanh(u/0.8)", ["k", "c", "b", "sigma"], 2e-3)
     spec, data = _against_linear("saturation", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("saturation", spec, data, True, False, "an actuator saturating at 0.8")
+    return _split("saturation", spec, data, True, False, "an actuator saturating at 0.8",
+                  ("input_cubic", "form:saturation"))
 
 
 def backlash(n: int = 4000, seed: int = 14) -> Record:
@@ -151,7 +158,7 @@ def backlash(n: int = 4000, seed: int = 14) -> Record:
     user["drift"] = {"y": "v", "v": "-c*v + k*(u - y)"}
     user["parameters"] = ["k", "c", "sigma"]
     spec = _oscillator_study("backlash", user, {p: OSC_PRIORS[p] for p in ("k", "c", "sigma")})
-    return _split("backlash", spec, data, True, True, "a gear with backlash of half-width 0.1")
+    return _split("backlash", spec, data, True, True, "a gear with backlash of half-width 0.1", ("form:dead_zone",))
 
 
 def hysteresis(n: int = 4000, seed: int = 15) -> Record:
@@ -201,9 +208,113 @@ def cascade(n: int = 3000, seed: int = 17) -> Record:
                                "q": {"kind": "lognormal", "median": 0.3, "cov": 200},
                                "s": {"kind": "lognormal", "median": 0.01, "cov": 200}}}],
         "sampler": SAMPLER, "seed": 2})
-    return _split("cascade", spec, data, True, True, "sqrt(h) pipe and orifice, a rim on the lower tank")
+    return _split("cascade", spec, data, True, True, "sqrt(h) pipe and orifice, a rim on the lower tank",
+                  ("overflow", "form:power"))
+
+
+# --------------------------------------------------------------------------- the regression gate: the reference LCO
+
+M2_PRIORS = {"B": {"kind": "lognormal", "median": 0.2, "cov": 50}, "a1": {"kind": "uniform", "low": -2, "high": 0},
+             "a2": {"kind": "uniform", "low": -2, "high": 0}, "a3": {"kind": "uniform", "low": -250, "high": 250},
+             "a4": {"kind": "uniform", "low": -1000, "high": 0},
+             "sigma": {"kind": "lognormal", "median": 0.002, "cov": 50}}
+"""The user's model on the reference problem: M2's data-generating form with essential priors."""
+
+LCO_FREQUENCY = 0.0307
+"""The reference LCO's frequency (cycles per unit of tau), near which a gust is planted (0.57 of it)."""
+
+LCO_EFFECTS = {
+    # name: (term added to the moment's equation CM' (sympy, in theta, dtheta and the gust input g), its
+    # coefficient, the family the loop must name (None: nothing to find), what it is)
+    "lco_none": (None, 0.0, None, "the reference LCO problem, the user's model is the truth"),
+    "lco_even_stiffness": ("theta**2", 1.0, "quadratic_stiffness", "an even (quadratic) aerodynamic stiffness"),
+    "lco_odd_stiffness": ("theta**5", 8000.0, "quintic_stiffness", "a quintic aerodynamic stiffness"),
+    "lco_cubic_damping": ("dtheta**3", -3000.0, "cubic_damping", "a cubic aerodynamic damping"),
+    "lco_quadratic_damping": ("dtheta*abs(dtheta)", -15.0, "quadratic_damping",
+                              "a weak velocity-squared damping"),
+    "lco_gust": ("g", 0.002, "forcing", "a periodic gust at 0.57 of the LCO frequency"),
+}
+"""The regression gate's records: the paper's reference LCO problem (simulate_reference, M2 with a5 = a6 = 0) with
+each effect planted in the aerodynamic moment's equation, as the family tests plant them; the user's model is M2's
+data-generating form without it."""
+
+
+def lco(name: str, n: int | None = None, seed: int = 3) -> Record:
+    """One gate record of :data:`LCO_EFFECTS` (``n``: a shorter record, for the smoke run)."""
+    from ardflow.ardcore.likelihood.simulate import simulate_reference
+    from ardflow.ardcore.model.library import aero_true
+    from ardflow.ardcore.selection.spec import StudySpec
+
+    term, value, family, physics = LCO_EFFECTS[name]
+    truth, inputs = aero_true(), None
+    if term is not None:
+        gust = "g" in term.split("*")
+        truth = truth.model_copy(update={
+            "name": "M2planted", "drift": {**truth.drift, "CM": f"{truth.drift['CM']} + kp*({term})"},
+            "parameters": [*truth.parameters, "kp"], "inputs": ["g"] if gust else []}).revalidate()
+        if gust:
+            w = 2 * np.pi * 0.57 * LCO_FREQUENCY
+            inputs = lambda t: {"g": np.sin(w * t + 0.3)}  # noqa: E731
+    data = simulate_reference(seed, true_params={"kp": value}, spec=truth, inputs=inputs)
+    if n is not None:
+        data = data.slice(0, n)
+    spec = StudySpec.model_validate({
+        "name": name, "data": {"generator": "reference", "seed": seed},
+        "models": [{"model": "M2true", "priors": M2_PRIORS}],
+        "sampler": {"start_maxfev": 1500, "round_size": 250, "n_stationary": 1000, "n_proposal": 1000},
+        "maximiser": {"step_decades": 2, "min_step_decades": 2, "max_sweeps": 1}, "seed": seed})
+    return _split(name, spec, data, family is not None, False, physics, (family,) if family else ())
+
+
+def tanks(start: str) -> Record:
+    """The cascaded-tanks benchmark (real; ``examples/data/cascaded_tanks.csv``): estimate on its estimation
+    experiment, free-run its separate validation experiment from the user's linear two-tank model
+    (``start="linear"``, ``examples/tanks_linear.json``) or from the physical square-root model
+    (``"sqrt"``, ``examples/tanks_sqrt.json``)."""
+    from pathlib import Path
+
+    from ardflow.ardcore.data import read_dataset
+    from ardflow.ardcore.selection.spec import load_spec
+
+    examples = Path(__file__).resolve().parents[2] / "examples"
+    spec = load_spec(examples / f"tanks_{start}.json")
+    est = spec.data.load(examples)
+    test = read_dataset(examples / "data" / "cascaded_tanks.csv", time=spec.data.time, fs=spec.data.fs,
+                        rename={"uVal": "u", "yVal": "y"}, columns=spec.data.columns)
+    return Record(f"tanks_{start}", spec, est, test, True, False,
+                  f"real cascaded tanks, from the {'linear' if start == 'linear' else 'square-root'} model", True)
+
+
+def _lco_maker(name):
+    return lambda n=None, seed=3: lco(name, n, seed)
 
 
 RECORDS = {"cascade": cascade, "duffing": duffing, "friction": friction, "saturation": saturation,
-           "backlash": backlash, "hysteresis": hysteresis, "none": none}
+           "backlash": backlash, "hysteresis": hysteresis, "none": none,
+           "tanks_linear": lambda n=None, seed=None: tanks("linear"), "tanks_sqrt": lambda n=None, seed=None: tanks("sqrt"),
+           **{k: _lco_maker(k) for k in LCO_EFFECTS}}
 """Every validation record by name (each a function of the record length and seed)."""
+
+
+def verdict(rec: Record, added: list, replaced: list, before: float = math.nan, after: float = math.nan) -> str:
+    """What the loop did on ``rec``, as the regression gate grades it: ``found`` (an effect or a replaced law's
+    form of ``rec.family`` is in the model reported), ``nothing`` (nothing added or replaced), ``stand-in``
+    (something outside the record's physics that free-runs the test record, ``before`` -> ``after``, at least
+    10 % better than the user's model) or ``other``."""
+    if not added and not replaced:
+        return "nothing"
+    names = {a["effect"].split("(")[0] for a in added} | {a.get("kind") for a in added} | {
+        f"form:{x.get('form')}" for x in replaced}
+    if names & set(rec.family):
+        return "found"
+    return "stand-in" if after < 0.9 * before else "other"
+
+
+def graded(rec: Record, v: str) -> int:
+    """The grade of verdict ``v`` on ``rec`` (higher is better): finding the family is best and adding
+    something else that does not free-run better worst. Where the library holds nothing to find, nothing is
+    best on a clean record and, where the truth holds what the library cannot (a hidden hysteretic state),
+    stand-ins that free-run new data better are as good as nothing."""
+    if not rec.family:
+        return 2 if v == "nothing" or (v == "stand-in" and rec.has_effect) else 0
+    return {"found": 2, "nothing": 1, "stand-in": 1, "other": 0}[v]
