@@ -11,14 +11,13 @@ law, drop a term, stop) is decided here, by one number computed in one place:
   from a refit of the structure with that block's observations left out
   (:func:`~.simulation_fit.held_out_free_runs`); a diverging free run scores infinity;
 * a move that **adds** (an effect, a law in another form, the survivors of a round together) is taken only
-  when the evidence supports it *and* it free-runs better held out: no block worse by more than
-  :data:`FREE_RUN_TOLERANCE` and all blocks together better by more than that (:func:`improves`);
+  when the evidence supports it *and* it free-runs better held out: all blocks together better by more than
+  :data:`FREE_RUN_TOLERANCE` (:func:`improves`);
 * a move that **removes** (an earlier effect a later one made redundant, a declared term an effect replaced)
   is taken when the evidence prefers the smaller model and it free-runs no worse held out
   (:func:`no_worse`);
-* of several moves that improve, the one with the lowest score is taken, unless one with fewer new
-  parameters scores within the tolerance of it; of moves that tie held out and bring as many parameters, the
-  evidence decides (:meth:`Criterion.choose`);
+* of several moves that improve, the evidence picks (:meth:`Criterion.choose`): the criterion says whether a
+  move is worth taking, the evidence which;
 * a measurement-noise level changes what the filter trusts, not the dynamics: it must free-run no worse;
 * the loop **stops** when no move the evidence supports improves the score.
 
@@ -67,15 +66,16 @@ class Score:
 
 
 def improves(new: Score, cur: Score, tol: float = FREE_RUN_TOLERANCE) -> bool:
-    """Whether ``new`` free-runs better than ``cur`` held out: no block worse by more than ``tol`` (relative) and
-    all together better by more than ``tol``. A model without a score never improves; any finite score improves
-    on a model without one (a current model that diverges everywhere)."""
+    """Whether ``new`` free-runs better than ``cur`` held out: all blocks together (the RMS of their errors)
+    better by more than ``tol`` (relative). One block alone does not veto: a block's error carries the noise
+    of what happened in it (a limit cycle's amplitude wanders with the process noise), and the blocks together
+    are the criterion. A model without a score never improves; any finite score improves on a model without
+    one (a current model that diverges everywhere)."""
     if not new.errors or not math.isfinite(new.overall):
         return False
     if not cur.errors or not math.isfinite(cur.overall):
         return True
-    return (all(new.errors[b] <= cur.errors[b] * (1 + tol) for b in new.errors if b in cur.errors)
-            and new.overall * (1 + tol) < cur.overall)
+    return new.overall * (1 + tol) < cur.overall
 
 
 def no_worse(new: Score, cur: Score, tol: float = FREE_RUN_TOLERANCE) -> bool:
@@ -126,22 +126,23 @@ class Criterion:
         return self.scores([fit])[0]
 
     def choose(self, current, moves: list) -> tuple[int | None, list[Score]]:
-        """Which of ``moves`` (``(fit, new parameters, nuisance)`` each, supported by the evidence) the loop takes
-        over ``current`` (a fit), and every move's score. A move qualifies when it :func:`improves` on the
-        current model, a nuisance (a measurement-noise level, which changes what the filter trusts and not the
-        dynamics) when it is :func:`no_worse`; of those within the tolerance of the lowest score, the one that
-        brings fewest parameters is taken (the simpler move for the same simulation) and, of equally simple
-        ones, the one with the highest evidence. None when none qualifies."""
+        """Which of ``moves`` (``(fit, nuisance)`` each, supported by the evidence) the loop takes over
+        ``current`` (a fit), and every move's score. A move qualifies when it :func:`improves` on the current
+        model, a nuisance (a measurement-noise level, which changes what the filter trusts and not the
+        dynamics) when it is :func:`no_worse`; of those that qualify the evidence picks (the highest ln Z: the
+        criterion says whether a move is worth taking, the evidence which of several, its Occam factor charging
+        each its parameters). None when none qualifies; on a record too short to hold a block out, the move
+        with the highest evidence."""
         if not moves:
             return None, []
         got = self.scores([current] + [m[0] for m in moves])
         cur, sc = got[0], got[1:]
-        ok = [i for i, (s, m) in enumerate(zip(sc, moves)) if (no_worse if m[2] else improves)(s, cur)]
+        ok = list(range(len(moves)))
+        if cur.errors or cur.failed is not None:  # else too short to hold a block out: the evidence alone decides
+            ok = [i for i, (s, m) in enumerate(zip(sc, moves)) if (no_worse if m[1] else improves)(s, cur)]
         if not ok:
             return None, sc
-        best = min(sc[i].overall for i in ok)
-        near = [i for i in ok if sc[i].overall <= best * (1 + FREE_RUN_TOLERANCE)]
-        return min(near, key=lambda i: (moves[i][1], -moves[i][0].row.log_evidence)), sc
+        return max(ok, key=lambda i: moves[i][0].row.log_evidence), sc
 
 
 def describe(score: Score) -> str:

@@ -306,12 +306,10 @@ def _stable(ctx: LoopContext, survivors: list) -> list:
 class Move:
     """A change of the model the evidence supports, for the criterion to judge: ``kind`` "add" (the
     confirmations ``chosen``, fitted together in ``fit`` when more than one) or "replace" (declared laws in
-    another form, ``fit``); ``new`` counts the parameters it brings (the simpler of two equally good moves is
-    taken); ``name`` says what it is."""
+    another form, ``fit``); ``name`` says what it is."""
 
     kind: str
     fit: Fit
-    new: int
     name: str
     chosen: list = field(default_factory=list)
 
@@ -328,9 +326,9 @@ def _moves(ctx: LoopContext, held: Fit, swap, survivors: list) -> list[Move]:
     config, say = ctx.config, ctx.say
     moves = []
     if swap is not None:
-        moves.append(Move("replace", swap[0], len(swap[1]), " and ".join(x["by"] for x in swap[1])))
+        moves.append(Move("replace", swap[0], " and ".join(x["by"] for x in swap[1])))
     for c in survivors:
-        moves.append(Move("add", c.fit, len(c.scales) + len(c.shape_prior), f"{c.effect} -> {c.target}", [c]))
+        moves.append(Move("add", c.fit, f"{c.effect} -> {c.target}", [c]))
     if config.joint and len([c for c in survivors if c.fitted_effect.where != "noise"]) > 1:
         # the survivors were screened as distinct: fitted together under ARD, which prunes any that the others
         # make redundant; a move when it beats the best single effect by more than min_log_bf
@@ -340,8 +338,7 @@ def _moves(ctx: LoopContext, held: Fit, swap, survivors: list) -> list[Move]:
             say(f"  the survivors together could not be fitted ({type(e).__name__})")
         else:
             if j.row.log_evidence > survivors[0].log_evidence + config.min_log_bf and j.row.degenerate() is None:
-                moves.append(Move("add", j, sum(len(c.scales) + len(c.shape_prior) for c in survivors),
-                                  " with ".join(c.effect for c in survivors), list(survivors)))
+                moves.append(Move("add", j, " with ".join(c.effect for c in survivors), list(survivors)))
     return moves
 
 
@@ -353,13 +350,14 @@ def _decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list,
     A measurement-noise level off by more than 2x goes in alone when it free-runs no worse held out (the noise
     rule: every other candidate was screened against a filter that took the misfit for process noise); if it
     does not, the candidates deferred behind it are judged now. Otherwise every move the evidence supports
-    (:func:`_moves`) is scored held out and the best that improves on the current model is taken."""
+    (:func:`_moves`) is scored held out and, of those that improve on the current model, the one with the
+    highest evidence is taken."""
     say, rec = ctx.say, rnd.record
     cur = crit.score(held)
     judged = {"round": rec["round"], "model": held.cand.label, "score": cur.to_json(), "moves": []}
     if deferred:
         noise = _moves(ctx, held, None, survivors[:1])
-        k, (s,) = crit.choose(held, [(noise[0].fit, noise[0].new, True)])
+        k, (s,) = crit.choose(held, [(noise[0].fit, True)])
         judged["moves"].append({"move": noise[0].name, "kind": "add", **s.to_json(), "taken": k == 0})
         if k == 0:
             say(f"  held out: {noise[0].name} free-runs no worse ({describe(s)} against {describe(cur)}): it goes in "
@@ -372,7 +370,7 @@ def _decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list,
     moves = _moves(ctx, held, swap, survivors)
     if not moves:
         return None, judged
-    k, scores = crit.choose(held, [(m.fit, m.new, m.nuisance) for m in moves])
+    k, scores = crit.choose(held, [(m.fit, m.nuisance) for m in moves])
     say(f"  held out: the model: {describe(cur)}")
     for i, (m, s) in enumerate(zip(moves, scores)):
         judged["moves"].append({"move": m.name, "kind": m.kind, **s.to_json(), "taken": i == k})
@@ -408,8 +406,8 @@ def _held_out_record(config: DiagnoseConfig, judged: list[dict], final) -> dict:
     return {"share": config.simulation_held_out, "free_run": models, "overall": overall, "kept": len(models) - 1,
             "moves": judged,
             "rule": f"a move is taken when the evidence supports it and its model free-runs the held-out blocks "
-                    f"better: no block worse by more than {100 * FREE_RUN_TOLERANCE:g} % and all together better by "
-                    "more; the loop stops when no move does",
+                    f"better (all together, by more than {100 * FREE_RUN_TOLERANCE:g} %); of several, the one with "
+                    "the highest evidence; the loop stops when no move does",
             "blocks": {b: list(v) for b, v in final.held.blocks.items()} if final.held else None}
 
 

@@ -755,7 +755,11 @@ def bench_validation(tiny: bool = False) -> dict:
     recorded = json.loads(VERDICTS.read_text()) if VERDICTS.exists() else {}
     wins = clean_added = checks = checks_won = compared = 0
     regressions = []
-    for name, make in RECORDS.items():
+    # --tiny: every kind of record once (a simulated oscillator and tank, a real tank record, a gate LCO with a
+    # gust input), not every record
+    names = [n for n in RECORDS if not tiny or not n.startswith(("lco_", "tanks_")) or n in ("tanks_linear", "lco_gust")]
+    for name in names:
+        make = RECORDS[name]
         rec = make(n=800) if tiny else make()
         spec = _tiny_spec(rec.spec) if tiny else rec.spec
         print(f"  [{name}] {rec.physics}", flush=True)
@@ -799,13 +803,14 @@ def bench_validation(tiny: bool = False) -> dict:
             clean_added += len(rep.added) + len(r["replaced"])
         if not tiny:  # a smoke run never touches the measured figures
             _save_partial(out)
-    out["validation_records"] = len(RECORDS)
+    out["validation_records"] = len(names)
     out["validation_compared_records"] = compared
     out["validation_loop_at_or_below_best_peer"] = wins
     out["validation_check_records"] = checks
     out["validation_checks_at_or_below_best_peer"] = checks_won
     out["validation_added_on_clean"] = clean_added
     out["validation_regressions"] = regressions
+    out["validation_regression_count"] = len(regressions)
     if not tiny:
         # what this run found becomes the record, only where no verdict got worse (the gate stays as it was)
         if not regressions:
@@ -844,10 +849,9 @@ CONTRACT = {
              "loop_peer_best_multisine_mv", "loop_peer_pysindy_multisine_mv", "loop_peer_sysidentpy_multisine_mv",
              "loop_peer_narx_pendulum_rad"],
     "validation": ["validation_records", "validation_loop_at_or_below_best_peer", "validation_added_on_clean",
-                   "validation_regressions",
+                   "validation_regression_count",
                    *[k.format(r) for r in ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis",
-                                           "none") for k in ("loop_{}_free_run", "peer_best_{}", "loop_{}_s",
-                                                             "loop_{}_verdict")]],
+                                           "none") for k in ("loop_{}_free_run", "peer_best_{}", "loop_{}_s")]],
     "fresh": ["fresh_demo_s", "fresh_demo_evaluations"],
 }
 """Keys each group must write (named in issues and the README: a contract); the smoke test checks them."""

@@ -184,3 +184,36 @@ def test_full_settings_are_the_engines_defaults():
         == (4, 500, 5000, 5000) == tuple(SamplerConfig.model_fields[k].default
                                          for k in ("n_chains", "round_size", "n_stationary", "n_proposal"))
     assert full.sampler.min_burnin_rounds == demo.sampler.min_burnin_rounds  # the rest as the spec says
+
+
+def test_a_diagnosis_that_fails_after_its_fit_writes_what_it_had(tmp_path, monkeypatch, capsys):
+    """A loop that fails after its first fit (here the trace raises inside the first round) loses nothing: the
+    CLI writes the measures, the rounds so far and the last model held to diagnosis.json with the reason, and
+    says so in one line with a non-zero status."""
+    from ardflow.ardcore.likelihood.simulate import simulate_model
+    from ardflow.ardcore.loop import diagnose as loop
+    from ardflow.service.cli import main
+
+    t = np.arange(900) * 0.02
+    d = simulate_model("linear_oscillator", {"k": 16.0, "c": 0.1, "sigma": 0.05}, t, 4, x0=[1.0, 0.0])
+    (tmp_path / "est.csv").write_text("t,y\n" + "\n".join(f"{float(a)!r},{float(b)!r}"
+                                                          for a, b in zip(t, d.columns["y"])))
+    spec = {"name": "osc", "data": {"path": str(tmp_path / "est.csv")}, "evidence": "laplace",
+            "models": [{"model": "linear_oscillator",
+                        "priors": {"k": {"kind": "lognormal", "median": 15.0, "cov": 50},
+                                   "c": {"kind": "lognormal", "median": 0.1, "cov": 200},
+                                   "sigma": {"kind": "lognormal", "median": 0.05, "cov": 200}}}],
+            "sampler": {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600}}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+
+    def broken(*a, **k):
+        raise RuntimeError("the trace broke")
+
+    monkeypatch.setattr(loop, "trace_and_confirm", broken)
+    rc = main(["diagnose", str(tmp_path / "spec.json"), "--out", str(tmp_path / "out"), "--max-rounds", "1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "the trace broke" in err[0] and "diagnosis.json" in err[0], err
+    rep = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
+    assert rep["status"] == "failed" and "RuntimeError: the trace broke" in rep["reason"]
+    assert rep["before"]["free_run"]["rms_error"] > 0 and rep["last_fit"]["mean"]["k"] > 0
+    assert rep["model"] == "linear_oscillator" and rep["rounds"] == []
