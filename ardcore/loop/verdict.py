@@ -126,6 +126,7 @@ def headline(report: dict, col: str, unit: str = "") -> str:
                  f"{after['log_evidence']:.1f}.")
     else:
         what = (f"Nothing was added: {_not_kept(report)}." if report.get("withheld") else
+                "Nothing was screened (no round was run): the model as given." if not report.get("rounds", [0]) else
                 "Nothing was added: no effect of the library is supported by the evidence.")
         # the reported model: the declared structure, at the noise level chosen for it
         reported = (report.get("reported") or {}).get("free_run") or before["free_run"]

@@ -317,7 +317,9 @@ class Maximiser:
         """Occam: the nested model (alpha = inf) wins unless the term is worth more than the noise."""
         tr, target, res = yield from self._sample(dict(self.psi, **{k: INF}), self.best_res,
                                                   f"{k}: prune test (alpha = inf)")
-        pruned = not self._better(self.best, tr, margin=self.config.keep_nats)
+        # an evidence that is not a number decides nothing: the term stays (a NaN is never "no better")
+        pruned = math.isfinite(tr.evidence.log_evidence) and not self._better(self.best, tr,
+                                                                              margin=self.config.keep_nats)
         if pruned:
             self.pruned_at[k] = self.psi[k]
             self._accept(tr, target, res)

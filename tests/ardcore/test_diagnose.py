@@ -392,6 +392,8 @@ def test_headline_is_three_sentences_that_agree_with_the_tests():
     assert headline(white, "y", "V") == ("Nothing was added: no effect of the library is supported by the evidence. "
                                          "Free-run RMS error 0.2 V. The innovations left are white (Ljung-Box "
                                          "p = 0.40).")
+    # with no round run nothing was screened, and the headline does not claim the library was tried
+    assert headline(dict(white, rounds=[]), "y", "V").startswith("Nothing was screened (no round was run)")
     added = dict(base, added=[{"effect": "sqrt_outflow(h)", "target": "h"}],
                  replaced=[{"parameter": "a", "term": "h", "target": "h", "by": "sqrt_outflow(h)"}],
                  after={"free_run": {"rms_error": 0.01}, "log_evidence": 30.0},

@@ -73,6 +73,16 @@ def test_errors_are_one_line_without_traceback(tmp_path, args, msg):
     assert msg in r.stderr and "Traceback" not in r.stderr
 
 
+def _oscillator_spec(path: str) -> dict:
+    """A quick Laplace study of the linear oscillator on the record at ``path``."""
+    return {"name": "osc", "data": {"path": path}, "evidence": "laplace",
+            "models": [{"model": "linear_oscillator",
+                        "priors": {"k": {"kind": "lognormal", "median": 15.0, "cov": 50},
+                                   "c": {"kind": "lognormal", "median": 0.1, "cov": 200},
+                                   "sigma": {"kind": "lognormal", "median": 0.05, "cov": 200}}}],
+            "sampler": {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600}}
+
+
 def test_diagnose_held_out_file_with_its_own_column_names(tmp_path):
     """A held-out file whose columns are named differently (yVal) is renamed by --test-rename."""
     import numpy as np
@@ -84,13 +94,7 @@ def test_diagnose_held_out_file_with_its_own_column_names(tmp_path):
     y = d.columns["y"]
     (tmp_path / "est.csv").write_text("t,y\n" + "\n".join(f"{float(a)!r},{float(b)!r}" for a, b in zip(t[:800], y[:800])))
     (tmp_path / "val.csv").write_text("t,yVal\n" + "\n".join(f"{float(a)!r},{float(b)!r}" for a, b in zip(t[800:], y[800:])))
-    spec = {"name": "osc", "data": {"path": "est.csv"}, "evidence": "laplace",
-            "models": [{"model": "linear_oscillator",
-                        "priors": {"k": {"kind": "lognormal", "median": 15.0, "cov": 50},
-                                   "c": {"kind": "lognormal", "median": 0.1, "cov": 200},
-                                   "sigma": {"kind": "lognormal", "median": 0.05, "cov": 200}}}],
-            "sampler": {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600}}
-    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    (tmp_path / "spec.json").write_text(json.dumps(_oscillator_spec("est.csv")))
     r = run("diagnose", "spec.json", "--out", "out", "--test-data", "val.csv", "--max-rounds", "0", cwd=tmp_path)
     assert r.returncode == 2 and "Traceback" not in r.stderr and "val.csv" in r.stderr, r.stderr
     r = run("diagnose", "spec.json", "--out", "out", "--test-data", "val.csv", "--test-rename", "yVal=y",
@@ -198,13 +202,7 @@ def test_a_diagnosis_that_fails_after_its_fit_writes_what_it_had(tmp_path, monke
     d = simulate_model("linear_oscillator", {"k": 16.0, "c": 0.1, "sigma": 0.05}, t, 4, x0=[1.0, 0.0])
     (tmp_path / "est.csv").write_text("t,y\n" + "\n".join(f"{float(a)!r},{float(b)!r}"
                                                           for a, b in zip(t, d.columns["y"])))
-    spec = {"name": "osc", "data": {"path": str(tmp_path / "est.csv")}, "evidence": "laplace",
-            "models": [{"model": "linear_oscillator",
-                        "priors": {"k": {"kind": "lognormal", "median": 15.0, "cov": 50},
-                                   "c": {"kind": "lognormal", "median": 0.1, "cov": 200},
-                                   "sigma": {"kind": "lognormal", "median": 0.05, "cov": 200}}}],
-            "sampler": {"n_stationary": 200, "n_proposal": 200, "round_size": 100, "start_maxfev": 600}}
-    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    (tmp_path / "spec.json").write_text(json.dumps(_oscillator_spec(str(tmp_path / "est.csv"))))
 
     def broken(*a, **k):
         raise RuntimeError("the trace broke")

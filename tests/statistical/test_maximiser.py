@@ -107,3 +107,23 @@ def test_reverse_order_prunes_the_stand_ins_not_the_term():
     # visiting a first, b and c together make it look redundant: the wrong nested model survives
     assert fwd.pruned == ["a"] and sorted(fwd.kept) == ["b", "c"]
     assert rev.best.evidence.log_evidence > fwd.best.evidence.log_evidence + 3
+
+
+class NanPrune(Surface):
+    """The surface above, whose evidence is not a number wherever term b is pruned (a likelihood that fails
+    there, as a kink's slogdet did)."""
+
+    def __call__(self, psi, seed, warm, iteration=None):
+        t, ev, r = super().__call__(psi, seed, warm, iteration)
+        if psi["b"] == INF:
+            ev = Evidence(math.nan, math.nan, math.nan, math.nan, "synthetic", [], [])
+        return t, ev, r
+
+
+def test_a_prune_whose_evidence_is_not_a_number_is_refused():
+    """Term b is worth ~4,990 nats; its prune test's evidence is NaN. The maximiser must keep b (a NaN is no
+    evidence that the smaller model is as good) and its optimum's evidence stays a number."""
+    mr = maximise(NanPrune(), {"a": None, "b": None},
+                  MaximiserConfig(step_decades=2, min_step_decades=2, max_sweeps=1, order="declared"), seed=0)
+    assert mr.psi_opt["b"] != INF and math.isfinite(mr.best.evidence.log_evidence)
+    assert any("prune" in t.action and not t.accepted and math.isnan(t.evidence.log_evidence) for t in mr.history)
