@@ -86,7 +86,15 @@ def _batch_se(log_terms: np.ndarray, batches: int = BATCHES) -> float:
     lm = np.array([logsumexp(p) - math.log(p.size) for p in parts])
     total = logsumexp(lm) - math.log(b)
     rel = np.exp(lm - total)
+    if rel.max() > DOMINANT * b:
+        # one batch carries the mean: the delta method's se saturates at 1 nat whatever the truth, a placeholder,
+        # and the estimate is as good as one draw; it has no error bar
+        return math.inf
     return float(np.std(rel, ddof=1) / math.sqrt(b))
+
+
+DOMINANT = 0.9
+"""A batch that carries more than this share of a mean's weight makes its batch-means error meaningless."""
 
 
 def pooled_se(values: np.ndarray, within: np.ndarray, batches: int = BATCHES) -> float:

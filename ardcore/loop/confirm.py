@@ -351,15 +351,17 @@ def _confirmation(sc: Screened, eff: Effect, shape: dict, fit: Fit, row: ModelFi
     # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam
     # factor; a fitted shape has paid it through its prior
     gain = arow.log_evidence - row.log_evidence - (0.0 if shape else sc.shape_occam)
-    if not math.isfinite(gain):
-        gain = -math.inf  # the re-selection failed (no finite evidence): it confirms nothing, and says so
+    why = arow.degenerate()
+    if not math.isfinite(gain) or why is not None:
+        gain = -math.inf  # the re-selection failed (no evidence that is a result): it confirms nothing, and says so
     kept = [n for n in names if n in arow.kept]
     scale = dict(zip(names, sc.scales))
     # the EKF evidence takes coloured innovations as white: the support it gives is divided by the factor
     # the screen found the score's variance understated by (1 for white innovations)
     adjusted = gain / sc.inflation if gain > 0 else gain
     if gain == -math.inf:
-        say(f"  {sc.effect.name}: the re-selection found no finite evidence (fit failed): not confirmed")
+        say(f"  {sc.effect.name}: the re-selection gave no evidence that is a result ({why or 'not finite'}): "
+            "not confirmed")
     else:
         say(f"  {eff.name}: ln BF = {gain:.2f}" + (f" ({adjusted:.2f} adjusted for coloured innovations, "
                                                      f"x 1/{sc.inflation:.2g})" if sc.inflation > 1.05 else "")

@@ -139,7 +139,17 @@ def headline(report: dict, col: str, unit: str = "") -> str:
                 "explains.")
     else:
         left = f" The innovations left are white (Ljung-Box p = {p:.2f})."
+        rel = ((report.get("reported") or {}).get("free_run") or after["free_run"]).get("relative_rms_error")
+        if isinstance(rel, (int, float)) and rel > POOR_FREE_RUN:
+            # white innovations say the filter predicts one step; its process noise may cover what is missing
+            left = (f" The innovations are white (Ljung-Box p = {p:.2f}), but the free run misses {rel:.0%} of the "
+                    "output's spread: the process noise covers what the model lacks.")
     return f"{what} {error}{left}"
+
+
+POOR_FREE_RUN = 0.2
+"""A free run whose RMS error exceeds this share of the output's spread is not called adequate by the headline,
+however white the innovations."""
 
 
 def _not_kept(report: dict) -> str:

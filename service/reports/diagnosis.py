@@ -60,7 +60,8 @@ def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
     colors = ["C2" if conf.get((x["effect"], x["target"]), {}).get("survives") else
               ("C1" if (x["effect"], x["target"]) in conf else "0.6") for x in c]
     # screened ln BF spans nats to tens of thousands: a signed log scale keeps both ends readable
-    v = np.array([x["log_bayes_factor"] for x in c])
+    v = np.array([_f(x["log_bayes_factor"]) for x in c])
+    v = np.where(np.isfinite(v), v, 0.0)  # a failed confirmation has no bar
     if not len(c):  # --max-rounds 0: nothing was screened
         ax.text(0.5, 0.5, "no candidates screened", ha="center", va="center", transform=ax.transAxes)
         ax.set_axis_off()
@@ -115,11 +116,19 @@ def _plot_free_run(arrays: dict, out: Path, label=str) -> Path:
     return save_figure(fig, out)
 
 
+def _f(x) -> float:
+    """A number of the JSON report as a float ("inf"/"-inf" as written for infinities, null as NaN)."""
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
 def _num(x) -> str:
     """A number at 4 significant digits (blank when absent)."""
     if x is None:
         return ""
-    return f"{x:.4g}" if isinstance(x, float) else html.escape(str(x))
+    return f"{x:.4g}" if isinstance(x, (int, float)) and not isinstance(x, bool) else html.escape(str(x))
 
 
 # the error table's rows: (key in the report, what it is, its unit: "data" is the measured column's unit)
@@ -202,7 +211,9 @@ def _fate(c: dict, added: set) -> str:
         return "added"
     if not c.get("kept_terms"):
         return "rejected: ARD pruned its terms"
-    if c.get("adjusted_log_bayes_factor", c["log_bayes_factor"]) <= c.get("threshold", 0):
+    if not np.isfinite(_f(c["log_bayes_factor"])):
+        return "rejected: its re-selection gave no evidence that is a result"
+    if _f(c.get("adjusted_log_bayes_factor", c["log_bayes_factor"])) <= _f(c.get("threshold", 0)):
         return f"rejected: ln BF below its threshold {c.get('threshold', 0):.1f} (3 + ln N)"
     if not (c.get("stability") or {}).get("stable", True):
         return "rejected: the two halves of the record disagree"
@@ -249,7 +260,7 @@ def _round_table(r: dict, k: int = 8) -> str:
     out = [f"<h3>Round {r['round']} (model {html.escape(str(r.get('model', '')))})</h3><table><tr><th>candidate</th>"
            "<th>equation</th><th>screened ln BF</th><th>confirmed ln BF</th><th>result</th><th>coefficient</th>"
            "<th>mean</th><th>99 % interval</th></tr>"]
-    confirmed = sorted(r.get("confirmed") or [], key=lambda c: -c["log_bayes_factor"])
+    confirmed = sorted(r.get("confirmed") or [], key=lambda c: -np.nan_to_num(_f(c["log_bayes_factor"]), nan=-np.inf))
     refused = {(x["effect"], x["target"]) for x in r.get("refused") or []}
     for c in confirmed:
         post = {**(c.get("posterior") or {}), **(c.get("shape") or {})} or {"": {}}
@@ -265,7 +276,7 @@ def _round_table(r: dict, k: int = 8) -> str:
     for c in rest:
         out.append(f"<tr><td>{html.escape(c['effect'])}</td><td>{html.escape(c['target'])}</td>"
                    f"<td>{_num(c.get('log_bayes_factor'))}</td><td></td><td>"
-                   + ("screened only: below 3 nats" if c.get("log_bayes_factor", 0) < 3
+                   + ("screened only: below 3 nats" if _f(c.get("log_bayes_factor", 0)) < 3
                       else "screened only: not among the best to confirm") +
                    "</td><td></td><td></td><td></td></tr>")
     if not confirmed and not rest:

@@ -392,6 +392,9 @@ def test_headline_is_three_sentences_that_agree_with_the_tests():
     assert headline(white, "y", "V") == ("Nothing was added: no effect of the library is supported by the evidence. "
                                          "Free-run RMS error 0.2 V. The innovations left are white (Ljung-Box "
                                          "p = 0.40).")
+    # white innovations with a poor free run: the headline says the process noise covers what is missing
+    poor = dict(white, before={"free_run": {"rms_error": 0.9, "relative_rms_error": 0.45}, "log_evidence": 10.0})
+    assert "misses 45% of the output's spread" in headline(poor, "y", "V")
     # with no round run nothing was screened, and the headline does not claim the library was tried
     assert headline(dict(white, rounds=[]), "y", "V").startswith("Nothing was screened (no round was run)")
     added = dict(base, added=[{"effect": "sqrt_outflow(h)", "target": "h"}],

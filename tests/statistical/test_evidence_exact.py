@@ -260,3 +260,23 @@ def test_fd_derivatives_exact_on_a_quadratic_and_second_order_otherwise():
 
     errs = [np.abs(fd_derivatives(f, x, np.full(d, h))[2] - exact(x)).max() for h in (0.02, 0.01)]
     assert errs[1] < 0.3 * errs[0] and errs[1] < 1e-3
+
+
+def test_a_mean_carried_by_one_batch_has_no_error_bar():
+    """The batch-means error of ln mean(exp(terms)): on well-mixed terms it matches the spread of repeated
+    estimates; when one term carries the mean (a Chib-Jeliazkov ratio where one draw dominates) the delta
+    method would give exactly 1 nat whatever the truth, so the estimate has no error bar (inf), never 1.0."""
+    import math
+
+    import numpy as np
+
+    from ardflow.ardcore.evidence.estimators import _batch_se
+
+    rng = np.random.default_rng(0)
+    draws = [rng.normal(0.0, 0.5, 2000) for _ in range(200)]
+    est = [np.log(np.mean(np.exp(d))) for d in draws]
+    se = np.median([_batch_se(d) for d in draws])
+    assert 0.6 * np.std(est) < se < 1.6 * np.std(est), (se, np.std(est))
+    spiky = rng.normal(0.0, 0.5, 2000)
+    spiky[1234] = 40.0
+    assert _batch_se(spiky) == math.inf
