@@ -4,7 +4,8 @@ and, after each round, whether effects of earlier rounds are
 still worth their place beside the later ones (:func:`backward_check`, with the Savage-Dickey shortcut
 :func:`savage_dickey` for effects far above their threshold), and which of the user's declared terms an added
 effect may replace (:func:`declared_rivals`, :func:`replace_laws`); and that a survivor's fit is a result
-(:func:`not_degenerate`). What is dropped must also free-run no worse held out (:mod:`.criterion`).
+(:func:`not_degenerate`). What is dropped must also free-run no worse held out (the loop's criterion,
+:meth:`~.criterion.Criterion.refuses_removal`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ from ..effects.base import Effect, augment, with_columns
 from ..jsonio import is_pruned
 from ..model.declaration import ModelSpec
 from ..data import Dataset
-from .criterion import describe, no_worse
 from .replace import linear_terms
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec, StudySpec
@@ -170,13 +170,11 @@ def backward_check(ctx, held: Fit, earlier_added: list[Added], this_round: int, 
         x = earlier[k]
         if worth[k] >= x.threshold:
             return Fit(cand, row, bmr, data)
-        if crit is not None:
-            now, without = crit.scores([Fit(cand, row, bmr, data), Fit(tasks[k][0], *fits[k], data)])
-            if not no_worse(without, now):
-                say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
-                    f"effects, but without it the model free-runs worse held out ({describe(without)} against "
-                    f"{describe(now)}): kept")
-                return Fit(cand, row, bmr, data)
+        why = crit.refuses_removal(Fit(cand, row, bmr, data), Fit(tasks[k][0], *fits[k], data)) if crit else None
+        if why is not None:
+            say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
+                f"effects, but {why}: kept")
+            return Fit(cand, row, bmr, data)
         x.record["removed"], x.record["log_bayes_factor_after"] = this_round, float(worth[k])
         say(f"  {x.record['effect']} (added in round {x.round}) is worth {worth[k]:.2f} nats beside the later "
             f"effects, below the {x.threshold:.1f} it passed: dropped")
@@ -319,16 +317,16 @@ def replace_laws(ctx, held: Fit, rounds: list, crit=None) -> Fit:
         k = int(np.nanargmax(gain)) if np.isfinite(gain).any() else 0
         r = rivals[k]
         if not gain[k] > 0:
+            worth = (f"worth {-gain[k]:.1f} nats" if math.isfinite(gain[k]) else
+                     "the model without it could not be fitted to a finite evidence")
             say(f"  the declared {r.parameter}*({r.term}) in {r.target}'s equation stays beside {r.effect} "
-                f"(worth {-gain[k]:.1f} nats)")
+                f"({worth})")
             return Fit(cand, row, bmr, data)
         fit = Fit(tasks[k][0], fits[k][0], fits[k][1], data)
-        if crit is not None:
-            now, without = crit.scores([Fit(cand, row, bmr, data), fit])
-            if not no_worse(without, now):
-                say(f"  the declared {r.parameter}*({r.term}) stays: without it the model free-runs worse held out "
-                    f"({describe(without)} against {describe(now)})")
-                return Fit(cand, row, bmr, data)
+        why = crit.refuses_removal(Fit(cand, row, bmr, data), fit) if crit else None
+        if why is not None:
+            say(f"  the declared {r.parameter}*({r.term}) stays: {why}")
+            return Fit(cand, row, bmr, data)
         replaced.append({"parameter": r.parameter, "term": r.term, "target": r.target, "by": r.effect,
                          "log_bayes_factor": float(gain[k])})
         say(f"  {r.effect} replaces the declared {r.parameter}*({r.term}) in {r.target}'s equation "

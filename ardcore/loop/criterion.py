@@ -22,17 +22,26 @@ law, drop a term, stop) is decided here, by one number computed in one place:
 * the loop **stops** when no move the evidence supports improves the score.
 
 The evidence proposes, the held-out free run decides: a stand-in that the evidence supports but that
-extrapolates badly is never taken, so nothing needs to be withdrawn at the end.
+extrapolates badly is never taken, so nothing needs to be withdrawn at the end. The round's moves are made by
+:func:`_moves` (each survivor of the confirmations alone, the survivors fitted together when the evidence
+prefers them so, the declared laws in another form) and :func:`decide` takes one; what the evidence supported
+and the criterion refused is recorded in the round, every round's judgement in ``report["held_out"]``
+(:func:`held_out_record`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import FitError
+from .checks import joint_fit, split_stability
+from .config import DiagnoseConfig, LoopContext
+from .confirm import Fit
 from .freerun import fitted
+from .result import LoopRound
 from .simulation_fit import HeldOut, SimulationSettings, held_out_task
 
 INF = math.inf
@@ -125,6 +134,14 @@ class Criterion:
         """:meth:`scores` of one fit."""
         return self.scores([fit])[0]
 
+    def refuses_removal(self, current, smaller) -> str | None:
+        """Why the loop may not drop a term from ``current`` (a fit) although the evidence prefers ``smaller``
+        (the fit without it), or None: the smaller model free-runs worse held out (:func:`no_worse`)."""
+        now, without = self.scores([current, smaller])
+        if no_worse(without, now):
+            return None
+        return f"without it the model free-runs worse held out ({describe(without)} against {describe(now)})"
+
     def choose(self, current, moves: list) -> tuple[int | None, list[Score]]:
         """Which of ``moves`` (``(fit, nuisance)`` each, supported by the evidence) the loop takes over
         ``current`` (a fit), and every move's score. A move qualifies when it :func:`improves` on the current
@@ -150,3 +167,128 @@ def describe(score: Score) -> str:
     if not score.errors:
         return f"no held-out score ({score.failed or 'the record is too short to hold a block out'})"
     return ", ".join(f"{b} {e:.4g}" for b, e in score.errors.items())
+
+
+# --------------------------------------------------------------------------- the round's move
+
+
+def stable(ctx: LoopContext, survivors: list) -> list:
+    """The survivors whose coefficients agree over the two halves of the record (:func:`split_stability`; a
+    noise level is not checked: it is a nuisance that may drift over a record)."""
+    config = ctx.config
+    if config.split_z is None:
+        return survivors
+    for c in survivors:
+        if c.fitted_effect.where != "noise":
+            c.stability = split_stability(ctx.spec, c, config, ctx.say, ctx.mapper)
+            c.survives = c.stability["stable"]
+    return [c for c in survivors if (c.stability or {}).get("stable", True) and c.survives]
+
+
+@dataclass
+class Move:
+    """A change of the model the evidence supports, for the criterion to judge: ``kind`` "add" (the
+    confirmations ``chosen``, fitted together in ``fit`` when more than one) or "replace" (declared laws in
+    another form, ``fit``); ``name`` says what it is."""
+
+    kind: str
+    fit: Fit
+    name: str
+    chosen: list = field(default_factory=list)
+
+    @property
+    def nuisance(self) -> bool:
+        """A measurement-noise level: it changes what the filter trusts, not the dynamics, so it must free-run
+        no worse held out rather than better."""
+        return self.kind == "add" and all(c.fitted_effect.where == "noise" for c in self.chosen)
+
+
+def _moves(ctx: LoopContext, held: Fit, swap, survivors: list) -> list[Move]:
+    """The round's moves: the declared laws in another form, each survivor alone and, when the evidence prefers
+    them together by more than ``min_log_bf``, the survivors fitted together."""
+    config, say = ctx.config, ctx.say
+    moves = []
+    if swap is not None:
+        moves.append(Move("replace", swap[0], " and ".join(x["by"] for x in swap[1])))
+    for c in survivors:
+        moves.append(Move("add", c.fit, f"{c.effect} -> {c.target}", [c]))
+    if config.joint and len([c for c in survivors if c.fitted_effect.where != "noise"]) > 1:
+        # the survivors were screened as distinct: fitted together under ARD, which prunes any that the others
+        # make redundant; a move when it beats the best single effect by more than min_log_bf
+        try:
+            j = joint_fit(ctx, held, survivors)
+        except (FitError, ValueError, np.linalg.LinAlgError) as e:
+            say(f"  the survivors together could not be fitted ({type(e).__name__})")
+        else:
+            if j.row.log_evidence > survivors[0].log_evidence + config.min_log_bf and j.row.degenerate() is None:
+                moves.append(Move("add", j, " with ".join(c.effect for c in survivors), list(survivors)))
+    return moves
+
+
+def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, deferred: list,
+            rnd: LoopRound) -> tuple[Move | None, dict]:
+    """The move the loop takes this round, by the one criterion (:mod:`.criterion`), or None (the loop stops),
+    and the round's record of what was judged.
+
+    A measurement-noise level off by more than 2x goes in alone when it free-runs no worse held out (the noise
+    rule: every other candidate was screened against a filter that took the misfit for process noise); if it
+    does not, the candidates deferred behind it are judged now. Otherwise every move the evidence supports
+    (:func:`_moves`) is scored held out and, of those that improve on the current model, the one with the
+    highest evidence is taken."""
+    say, rec = ctx.say, rnd.record
+    cur = crit.score(held)
+    judged = {"round": rec["round"], "model": held.cand.label, "score": cur.to_json(), "moves": []}
+    if deferred:
+        noise = _moves(ctx, held, None, survivors[:1])
+        k, (s,) = crit.choose(held, [(noise[0].fit, True)])
+        judged["moves"].append({"move": noise[0].name, "kind": "add", **s.to_json(), "taken": k == 0})
+        if k == 0:
+            say(f"  held out: {noise[0].name} free-runs no worse ({describe(s)} against {describe(cur)}): it goes in "
+                "first")
+            return noise[0], judged
+        say(f"  held out: {noise[0].name} free-runs worse ({describe(s)} against {describe(cur)}): not added; "
+            + ", ".join(c.effect for c in deferred) + " judged now")
+        _refuse(rec, noise[0], s)
+        survivors = stable(ctx, deferred)
+    moves = _moves(ctx, held, swap, survivors)
+    if not moves:
+        return None, judged
+    k, scores = crit.choose(held, [(m.fit, m.nuisance) for m in moves])
+    say(f"  held out: the model: {describe(cur)}")
+    for i, (m, s) in enumerate(zip(moves, scores)):
+        judged["moves"].append({"move": m.name, "kind": m.kind, **s.to_json(), "taken": i == k})
+        say(f"  held out: {m.name}: {describe(s)}" + (" (taken)" if i == k else ""))
+        if i != k:
+            _refuse(rec, m, s)
+    if k is None:
+        say(f"  nothing the evidence supports free-runs better held out than the model ({describe(cur)}): the loop "
+            "stops")
+        rec["verdict"] = (rec.get("verdict") or "") + ("; " if rec.get("verdict") else "") + (
+            "supported by the evidence but free-running no better on held-out blocks of the estimation record "
+            "(each left out of a refit): " + ", ".join(m.name for m in moves))
+    return (moves[k] if k is not None else None), judged
+
+
+def _refuse(rec: dict, move: Move, score) -> None:
+    """Record in the round that ``move``, which the evidence supports, was not taken by the criterion."""
+    for c in move.chosen or [None]:
+        rec.setdefault("refused", []).append(
+            {"effect": c.effect if c is not None else move.name, "target": c.target if c is not None else "",
+             "kind": move.kind, "round": rec["round"],
+             "log_bayes_factor": c.log_bayes_factor if c is not None else None, "held_out": score.to_json()})
+
+
+def held_out_record(config: DiagnoseConfig, judged: list[dict], final) -> dict:
+    """``report["held_out"]``: each round's model judged on held-out blocks, the moves of each round, and the
+    blocks of the model reported (its band is calibrated on them)."""
+    models = [j["score"]["blocks"] for j in judged]
+    overall = [j["score"]["overall"] for j in judged]
+    if not models or final.to_json()["blocks"] != models[-1]:  # the model reported, unless the last round's
+        models.append(final.to_json()["blocks"])
+        overall.append(final.overall)
+    return {"share": config.simulation_held_out, "free_run": models, "overall": overall, "kept": len(models) - 1,
+            "moves": judged,
+            "rule": f"a move is taken when the evidence supports it and its model free-runs the held-out blocks "
+                    f"better (all together, by more than {100 * FREE_RUN_TOLERANCE:g} %); of several, the one with "
+                    "the highest evidence; the loop stops when no move does",
+            "blocks": {b: list(v) for b, v in final.held.blocks.items()} if final.held else None}

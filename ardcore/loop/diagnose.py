@@ -19,16 +19,21 @@
    **confirmed** by the full ARD re-selection: each is added (normalised) under
    an ARD prior and the candidate re-selected, so ARD decides whether the new
    term survives;
-5. **reports** the error before and after.
+5. **decides** by one criterion: a move the evidence supports is taken only when
+   its model free-runs better on held-out blocks of the estimation record
+   (:mod:`ardcore.loop.criterion`); the loop stops when
+   none does;
+6. **reports** the error before and after.
 
-When no candidate survives, the result says so and describes the residual
+When no move is taken, the result says so and describes the residual
 structure that remains (spectral peaks, the states that needed noise).
 
 Rooms: the residuals and their tests live in :mod:`ardcore.loop.residuals`, the free run and its
 prediction band in :mod:`ardcore.loop.freerun`, the evidence screen in :mod:`ardcore.screening.screen` (its EKF score machinery in :mod:`ardcore.screening.score`),
 the library in :mod:`ardcore.effects.base`, the confirmations (re-selection, halves check, joint
-fit, process pool) in :mod:`ardcore.loop.confirm`, the verdict's words in :mod:`ardcore.loop.verdict`;
-the residuals themselves in :mod:`ardcore.loop.residuals`; this module holds the loop.
+fit, process pool) in :mod:`ardcore.loop.confirm`, the criterion and the round's decision in
+:mod:`ardcore.loop.criterion`, the verdict's words in
+:mod:`ardcore.loop.verdict`; this module holds the loop.
 """
 
 from __future__ import annotations
@@ -36,20 +41,19 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
-from .checks import Added, backward_check, brought, joint_fit, not_degenerate, replace_laws, split_stability
+from .checks import Added, backward_check, brought, not_degenerate, replace_laws
 from .confirm import Fit, pool_mapper, trace_and_confirm
 from .replace import best_laws, shape_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import ArdflowError, FitError, LoopFailed, SpecError
 from ..jsonio import to_jsonable
-from .criterion import FREE_RUN_TOLERANCE, Criterion, describe
-from .reported import reported_model
+from .criterion import Criterion, Move, decide, held_out_record, stable
+from .simulation_fit import reported_model
 from .result import Diagnosis, FittedModel, LoopRound
 from .freerun import Band, fitted, free_run, posterior_draws
 from .initial import data_informed_initial
@@ -162,7 +166,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                                                           if x.get("form")])
             rec, survivors, deferred = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds))
             rounds.append(rec)
-            move, judged_round = _decide(ctx, crit, held, swap, survivors, deferred, rec)
+            move, judged_round = decide(ctx, crit, held, swap, survivors, deferred, rec)
             judged.append(judged_round)
             if move is None:
                 break
@@ -179,7 +183,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             held = backward_check(ctx, held, earlier, rnd, crit)
             held = replace_laws(ctx, held, rounds, crit)
         score = crit.score(held)
-        first["held_out"] = _held_out_record(config, judged, score)
+        first["held_out"] = held_out_record(config, judged, score)
         final = FittedModel(fspec, phi, tuple(e for r in rounds for e in r.effects), held.cand.substeps)
         # the measure of the model reported: the last round's that changed it (or, with none, the first), which
         # its free run with the calibrated band replaces
@@ -272,7 +276,7 @@ def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rnd: int,
             + " screened again under it next round")
         survivors = noise
     else:
-        survivors = _stable(ctx, survivors)
+        survivors = stable(ctx, survivors)
     # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
     tried = {(c.screened.effect.name, c.target) for c in confirmed}
     order = sorted(confirmed, key=lambda c: (not c.survives, -c.log_bayes_factor))
@@ -287,128 +291,6 @@ def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rnd: int,
     if not survivors:
         rec["verdict"] = unexplained(res, candidates, confirmations, ctx.column, config)
     return LoopRound(rec), survivors, deferred
-
-
-def _stable(ctx: LoopContext, survivors: list) -> list:
-    """The survivors whose coefficients agree over the two halves of the record (:func:`split_stability`; a
-    noise level is not checked: it is a nuisance that may drift over a record)."""
-    config = ctx.config
-    if config.split_z is None:
-        return survivors
-    for c in survivors:
-        if c.fitted_effect.where != "noise":
-            c.stability = split_stability(ctx.spec, c, config, ctx.say, ctx.mapper)
-            c.survives = c.stability["stable"]
-    return [c for c in survivors if (c.stability or {}).get("stable", True) and c.survives]
-
-
-@dataclass
-class Move:
-    """A change of the model the evidence supports, for the criterion to judge: ``kind`` "add" (the
-    confirmations ``chosen``, fitted together in ``fit`` when more than one) or "replace" (declared laws in
-    another form, ``fit``); ``name`` says what it is."""
-
-    kind: str
-    fit: Fit
-    name: str
-    chosen: list = field(default_factory=list)
-
-    @property
-    def nuisance(self) -> bool:
-        """A measurement-noise level: it changes what the filter trusts, not the dynamics, so it must free-run
-        no worse held out rather than better."""
-        return self.kind == "add" and all(c.fitted_effect.where == "noise" for c in self.chosen)
-
-
-def _moves(ctx: LoopContext, held: Fit, swap, survivors: list) -> list[Move]:
-    """The round's moves: the declared laws in another form, each survivor alone and, when the evidence prefers
-    them together by more than ``min_log_bf``, the survivors fitted together."""
-    config, say = ctx.config, ctx.say
-    moves = []
-    if swap is not None:
-        moves.append(Move("replace", swap[0], " and ".join(x["by"] for x in swap[1])))
-    for c in survivors:
-        moves.append(Move("add", c.fit, f"{c.effect} -> {c.target}", [c]))
-    if config.joint and len([c for c in survivors if c.fitted_effect.where != "noise"]) > 1:
-        # the survivors were screened as distinct: fitted together under ARD, which prunes any that the others
-        # make redundant; a move when it beats the best single effect by more than min_log_bf
-        try:
-            j = joint_fit(ctx, held, survivors)
-        except (FitError, ValueError, np.linalg.LinAlgError) as e:
-            say(f"  the survivors together could not be fitted ({type(e).__name__})")
-        else:
-            if j.row.log_evidence > survivors[0].log_evidence + config.min_log_bf and j.row.degenerate() is None:
-                moves.append(Move("add", j, " with ".join(c.effect for c in survivors), list(survivors)))
-    return moves
-
-
-def _decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, deferred: list,
-            rnd: LoopRound) -> tuple[Move | None, dict]:
-    """The move the loop takes this round, by the one criterion (:mod:`.criterion`), or None (the loop stops),
-    and the round's record of what was judged.
-
-    A measurement-noise level off by more than 2x goes in alone when it free-runs no worse held out (the noise
-    rule: every other candidate was screened against a filter that took the misfit for process noise); if it
-    does not, the candidates deferred behind it are judged now. Otherwise every move the evidence supports
-    (:func:`_moves`) is scored held out and, of those that improve on the current model, the one with the
-    highest evidence is taken."""
-    say, rec = ctx.say, rnd.record
-    cur = crit.score(held)
-    judged = {"round": rec["round"], "model": held.cand.label, "score": cur.to_json(), "moves": []}
-    if deferred:
-        noise = _moves(ctx, held, None, survivors[:1])
-        k, (s,) = crit.choose(held, [(noise[0].fit, True)])
-        judged["moves"].append({"move": noise[0].name, "kind": "add", **s.to_json(), "taken": k == 0})
-        if k == 0:
-            say(f"  held out: {noise[0].name} free-runs no worse ({describe(s)} against {describe(cur)}): it goes in "
-                "first")
-            return noise[0], judged
-        say(f"  held out: {noise[0].name} free-runs worse ({describe(s)} against {describe(cur)}): not added; "
-            + ", ".join(c.effect for c in deferred) + " judged now")
-        _refuse(rec, noise[0], s)
-        survivors = _stable(ctx, deferred)
-    moves = _moves(ctx, held, swap, survivors)
-    if not moves:
-        return None, judged
-    k, scores = crit.choose(held, [(m.fit, m.nuisance) for m in moves])
-    say(f"  held out: the model: {describe(cur)}")
-    for i, (m, s) in enumerate(zip(moves, scores)):
-        judged["moves"].append({"move": m.name, "kind": m.kind, **s.to_json(), "taken": i == k})
-        say(f"  held out: {m.name}: {describe(s)}" + (" (taken)" if i == k else ""))
-        if i != k:
-            _refuse(rec, m, s)
-    if k is None:
-        say(f"  nothing the evidence supports free-runs better held out than the model ({describe(cur)}): the loop "
-            "stops")
-        rec["verdict"] = (rec.get("verdict") or "") + ("; " if rec.get("verdict") else "") + (
-            "supported by the evidence but free-running no better on held-out blocks of the estimation record "
-            "(each left out of a refit): " + ", ".join(m.name for m in moves))
-    return (moves[k] if k is not None else None), judged
-
-
-def _refuse(rec: dict, move: Move, score) -> None:
-    """Record in the round that ``move``, which the evidence supports, was not taken by the criterion."""
-    for c in move.chosen or [None]:
-        rec.setdefault("refused", []).append(
-            {"effect": c.effect if c is not None else move.name, "target": c.target if c is not None else "",
-             "kind": move.kind, "round": rec["round"],
-             "log_bayes_factor": c.log_bayes_factor if c is not None else None, "held_out": score.to_json()})
-
-
-def _held_out_record(config: DiagnoseConfig, judged: list[dict], final) -> dict:
-    """``report["held_out"]``: each round's model judged on held-out blocks, the moves of each round, and the
-    blocks of the model reported (its band is calibrated on them)."""
-    models = [j["score"]["blocks"] for j in judged]
-    overall = [j["score"]["overall"] for j in judged]
-    if not models or final.to_json()["blocks"] != models[-1]:  # the model reported, unless the last round's
-        models.append(final.to_json()["blocks"])
-        overall.append(final.overall)
-    return {"share": config.simulation_held_out, "free_run": models, "overall": overall, "kept": len(models) - 1,
-            "moves": judged,
-            "rule": f"a move is taken when the evidence supports it and its model free-runs the held-out blocks "
-                    f"better (all together, by more than {100 * FREE_RUN_TOLERANCE:g} %); of several, the one with "
-                    "the highest evidence; the loop stops when no move does",
-            "blocks": {b: list(v) for b, v in final.held.blocks.items()} if final.held else None}
 
 
 def _adopt(ctx: LoopContext, held: Fit, move: Move, fspec, phi, rnd: LoopRound) -> Fit:

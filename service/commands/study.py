@@ -225,7 +225,8 @@ def cmd_diagnose(a) -> int:
         tmp = out / "diagnosis.json.tmp"
         tmp.write_text(json.dumps(exc.partial, indent=1, allow_nan=False, default=str))
         tmp.replace(out / "diagnosis.json")
-        raise LoopFailed(f"{exc} to {out / 'diagnosis.json'}", exc.partial) from None
+        # the folder is not named: the service passes its own paths, which its users must not see
+        raise LoopFailed(f"{exc} to diagnosis.json in the --out folder", exc.partial) from None
     path = write_diagnosis(rep, data.t, a.out, col=spec.models[0].model_spec().observed_columns[0],
                            label=spec.data.axis_label)
     print(f"\n{rep.report.get('headline', '')}\n\n{rep.verdict}")
