@@ -12,12 +12,12 @@ law, drop a term, stop) is decided here, by one number computed in one place:
   (:func:`~.simulation_fit.held_out_free_runs`); a diverging free run scores infinity;
 * a move that **adds** (an effect, a law in another form, the survivors of a round together) is taken only
   when the evidence supports it *and* it free-runs better held out: all blocks together better by more than
-  :data:`FREE_RUN_TOLERANCE` (:func:`improves`);
+  :data:`FREE_RUN_TOLERANCE`, the loudest block (where a stand-in must extrapolate) no worse (:func:`improves`);
 * a move that **removes** (an earlier effect a later one made redundant, a declared term an effect replaced)
   is taken when the evidence prefers the smaller model and it free-runs no worse held out
   (:func:`no_worse`);
-* of several moves that improve, the evidence picks (:meth:`Criterion.choose`): the criterion says whether a
-  move is worth taking, the evidence which;
+* of several moves that improve, one that another free-runs better on every block is out; between the rest
+  the blocks disagree and the evidence picks (:meth:`Criterion.choose`);
 * a measurement-noise level changes what the filter trusts, not the dynamics: it must free-run no worse;
 * the loop **stops** when no move the evidence supports improves the score.
 
@@ -76,15 +76,21 @@ class Score:
 
 def improves(new: Score, cur: Score, tol: float = FREE_RUN_TOLERANCE) -> bool:
     """Whether ``new`` free-runs better than ``cur`` held out: all blocks together (the RMS of their errors)
-    better by more than ``tol`` (relative). One block alone does not veto: a block's error carries the noise
-    of what happened in it (a limit cycle's amplitude wanders with the process noise), and the blocks together
-    are the criterion. A model without a score never improves; any finite score improves on a model without
-    one (a current model that diverges everywhere)."""
+    better by more than ``tol`` (relative), and the loudest block no worse by more than ``tol``. The loudest
+    stretch is where a stand-in fitted to smaller motions must extrapolate, and what extrapolates badly is
+    worse there first; any other single block does not veto, its error carrying the noise of what happened in
+    it (a limit cycle's amplitude wanders with the process noise). A model without a score never improves; any
+    finite score improves on a model without one (a current model that diverges everywhere)."""
     if not new.errors or not math.isfinite(new.overall):
         return False
     if not cur.errors or not math.isfinite(cur.overall):
         return True
-    return new.overall * (1 + tol) < cur.overall
+    loud = new.errors.get(LOUDEST, 0.0) <= cur.errors.get(LOUDEST, math.inf) * (1 + tol)
+    return loud and new.overall * (1 + tol) < cur.overall
+
+
+LOUDEST = "loudest"
+"""The held-out block a move may not make worse (:data:`~.simulation_fit.HELD_OUT_BLOCKS`)."""
 
 
 def no_worse(new: Score, cur: Score, tol: float = FREE_RUN_TOLERANCE) -> bool:
@@ -146,10 +152,11 @@ class Criterion:
         """Which of ``moves`` (``(fit, nuisance)`` each, supported by the evidence) the loop takes over
         ``current`` (a fit), and every move's score. A move qualifies when it :func:`improves` on the current
         model, a nuisance (a measurement-noise level, which changes what the filter trusts and not the
-        dynamics) when it is :func:`no_worse`; of those that qualify the evidence picks (the highest ln Z: the
-        criterion says whether a move is worth taking, the evidence which of several, its Occam factor charging
-        each its parameters). None when none qualifies; on a record too short to hold a block out, the move
-        with the highest evidence."""
+        dynamics) when it is :func:`no_worse`. Of those that qualify, one that another free-runs better on
+        every block (:func:`dominates`) is out: the held-out data prefer the other. Between the rest the blocks
+        disagree, so the held-out data cannot tell them apart and the evidence decides (the highest ln Z, its
+        Occam factor charging each its parameters). None when none qualifies; on a record too short to hold a
+        block out, the move with the highest evidence."""
         if not moves:
             return None, []
         got = self.scores([current] + [m[0] for m in moves])
@@ -157,9 +164,16 @@ class Criterion:
         ok = list(range(len(moves)))
         if cur.errors or cur.failed is not None:  # else too short to hold a block out: the evidence alone decides
             ok = [i for i, (s, m) in enumerate(zip(sc, moves)) if (no_worse if m[1] else improves)(s, cur)]
-        if not ok:
+        front = [i for i in ok if not any(dominates(sc[j], sc[i]) for j in ok if j != i)]
+        if not front:
             return None, sc
-        return max(ok, key=lambda i: moves[i][0].row.log_evidence), sc
+        return max(front, key=lambda i: moves[i][0].row.log_evidence), sc
+
+
+def dominates(a: Score, b: Score, tol: float = FREE_RUN_TOLERANCE) -> bool:
+    """Whether ``a`` free-runs better than ``b`` on every held-out block, by more than ``tol`` on each."""
+    return bool(a.errors) and set(a.errors) == set(b.errors) and all(
+        a.errors[k] * (1 + tol) < b.errors[k] for k in a.errors)
 
 
 def describe(score: Score) -> str:
@@ -289,6 +303,7 @@ def held_out_record(config: DiagnoseConfig, judged: list[dict], final) -> dict:
     return {"share": config.simulation_held_out, "free_run": models, "overall": overall, "kept": len(models) - 1,
             "moves": judged,
             "rule": f"a move is taken when the evidence supports it and its model free-runs the held-out blocks "
-                    f"better (all together, by more than {100 * FREE_RUN_TOLERANCE:g} %); of several, the one with "
-                    "the highest evidence; the loop stops when no move does",
+                    f"better (all together, by more than {100 * FREE_RUN_TOLERANCE:g} %, the loudest no worse); of "
+                    "several, the one with the highest evidence among those no other free-runs better on every block; "
+                    "the loop stops when no move does",
             "blocks": {b: list(v) for b, v in final.held.blocks.items()} if final.held else None}

@@ -362,8 +362,9 @@ def test_the_criterion_takes_what_free_runs_better_held_out_and_refuses_a_fit_th
 
     cur = Score({"start": 1.0, "end": 1.0, "loudest": 1.0})
     assert improves(Score({"start": 0.5, "end": 0.5, "loudest": 0.5}), cur)
-    assert improves(Score({"start": 0.2, "end": 0.2, "loudest": 1.1}), cur)  # one block's noise does not veto
-    assert not improves(Score({"start": 0.9, "end": 0.9, "loudest": 1.3}), cur)  # the total is worse
+    assert improves(Score({"start": 1.1, "end": 0.2, "loudest": 0.2}), cur)  # one block's noise does not veto
+    assert not improves(Score({"start": 0.2, "end": 0.2, "loudest": 1.02}), cur)  # worse where it extrapolates
+    assert not improves(Score({"start": 1.3, "end": 0.9, "loudest": 0.9}), cur)  # the total is worse
     assert not improves(Score({"start": 0.5, "end": float("inf"), "loudest": 0.5}), cur)
     assert not improves(Score({"start": 0.995, "end": 0.995, "loudest": 0.995}), cur)  # within the tolerance
     assert improves(Score({"start": 3.0, "end": 3.0, "loudest": 3.0}), Score({}))  # nothing scored the model held
