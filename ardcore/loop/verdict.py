@@ -3,6 +3,8 @@ added (used by :func:`ardcore.loop.diagnose.diagnose`)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import sympy as sp
 
@@ -52,7 +54,8 @@ def unexplained(res, ranked: list, confirmed: list, col: str, config) -> str:
         parts.append("the innovations are white (Ljung-Box p = %.3g) with no spectral peak: "
                      "no evidence of a missing effect" % t["ljung_box_p"])
     else:
-        screened_out = ranked and not any(c["log_bayes_factor"] > config.min_score for c in ranked)
+        screened_out = ranked and not any(_finite(c["log_bayes_factor"]) and float(c["log_bayes_factor"])
+                                          > config.min_score for c in ranked)
         # every confirmed candidate rejected by the full evidence (not merely unstable): the same conclusion
         rejected = confirmed and not any(c.get("survives") or c.get("stability") for c in confirmed)
         if screened_out or rejected:
@@ -82,16 +85,30 @@ def unexplained(res, ranked: list, confirmed: list, col: str, config) -> str:
     if unstable:
         parts.append("supported by evidence but NOT stable between the two halves of the record (a term "
                      "compensating for something that changes over time, not the missing effect): " + ", ".join(
-                         f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f}, z = "
+                         f"{c['effect']} (ln BF {_nats(c['log_bayes_factor'])}, z = "
                          f"{max(c['stability']['z'].values()):.1f})" for c in unstable))
     rest = [c for c in confirmed if c not in unstable]
     if rest:
         parts.append("tested by evidence and rejected: " + ", ".join(
-            f"{c['effect']} (ln BF {c['log_bayes_factor']:.1f})" for c in rest))
+            f"{c['effect']} (" + (f"ln BF {_nats(c['log_bayes_factor'])}" if _finite(c["log_bayes_factor"])
+                                  else "its fit gave no evidence that is a result") + ")" for c in rest))
     elif ranked and not confirmed:
         parts.append(f"no candidate's screened ln Bayes factor reaches {config.min_score:g} (best: "
-                     f"{ranked[0]['effect']} on {ranked[0]['target']}, {ranked[0]['log_bayes_factor']:.1f})")
+                     f"{ranked[0]['effect']} on {ranked[0]['target']}, {_nats(ranked[0]['log_bayes_factor'])})")
     return "; ".join(parts)
+
+
+def _finite(x) -> bool:
+    """Whether a number of the JSON records (infinities written "inf"/"-inf") is finite."""
+    try:
+        return math.isfinite(float(x))
+    except (TypeError, ValueError):
+        return False
+
+
+def _nats(x) -> str:
+    """A ln Bayes factor of the JSON records at one decimal ("-inf" as it is)."""
+    return f"{float(x):.1f}" if _finite(x) else str(x)
 
 
 def injected_share(res) -> dict:

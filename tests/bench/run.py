@@ -746,6 +746,7 @@ def bench_validation(tiny: bool = False) -> dict:
     a full run fails when any is). Per record also ``loop_<r>_posterior_mean_free_run``,
     ``loop_<r>_noise_factor`` and ``loop_<r>_design``.
     """
+    from ardflow.ardcore.errors import LoopFailed
     from ardflow.ardcore.loop.config import DiagnoseConfig
     from ardflow.ardcore.loop.diagnose import diagnose
 
@@ -764,9 +765,17 @@ def bench_validation(tiny: bool = False) -> dict:
         spec = _tiny_spec(rec.spec) if tiny else rec.spec
         print(f"  [{name}] {rec.physics}", flush=True)
         t0 = time.perf_counter()
-        # --tiny: the fit, the measures and the reported model only (no round: the keys, not the figures)
-        rep = diagnose(spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=0 if tiny else 3),
-                       progress=lambda m: print("    " + m, flush=True))
+        try:
+            # --tiny: the fit, the measures and the reported model only (no round: the keys, not the figures)
+            rep = diagnose(spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=0 if tiny else 3),
+                           progress=lambda m: print("    " + m, flush=True))
+        except LoopFailed as exc:  # a record the loop fails on is a result of the bench (and a regression)
+            out[f"loop_{name}_s"] = time.perf_counter() - t0
+            out[f"loop_{name}_error"] = str(exc)
+            out[f"loop_{name}_verdict"] = "failed"
+            if name in recorded:
+                regressions.append(f"{name}: {recorded[name]} -> failed ({exc})")
+            continue
         out[f"loop_{name}_s"] = time.perf_counter() - t0
         r = rep.report
         out[f"loop_{name}_free_run"] = r["reported"]["free_run"]["rms_error"]
@@ -814,7 +823,8 @@ def bench_validation(tiny: bool = False) -> dict:
     if not tiny:
         # what this run found becomes the record, only where no verdict got worse (the gate stays as it was)
         if not regressions:
-            VERDICTS.write_text(json.dumps({n: out[f"loop_{n}_verdict"] for n in RECORDS}, indent=1) + "\n")
+            VERDICTS.write_text(json.dumps({**recorded, **{n: out[f"loop_{n}_verdict"] for n in names}}, indent=1)
+                                + "\n")
         else:
             print("  [gate] verdicts worse than recorded: " + "; ".join(regressions), flush=True)
     return out

@@ -316,5 +316,5 @@ def graded(rec: Record, v: str) -> int:
     best on a clean record and, where the truth holds what the library cannot (a hidden hysteretic state),
     stand-ins that free-run new data better are as good as nothing."""
     if not rec.family:
-        return 2 if v == "nothing" or (v == "stand-in" and rec.has_effect) else 0
-    return {"found": 2, "nothing": 1, "stand-in": 1, "other": 0}[v]
+        return 2 if v == "nothing" or (v == "stand-in" and rec.has_effect) else -1 if v == "failed" else 0
+    return {"found": 2, "nothing": 1, "stand-in": 1, "other": 0, "failed": -1}[v]
