@@ -267,7 +267,7 @@ def _round_table(r: dict, k: int = 8) -> str:
         for i, (name, q) in enumerate(post.items()):
             lead = (f"<td>{html.escape(c['effect'])}</td><td>{html.escape(c['target'])}</td>"
                     f"<td>{_num(c.get('screened_log_bayes_factor'))}</td><td>{_num(c['log_bayes_factor'])}</td>"
-                    f"<td>{html.escape(_fate(c, added) + (', not kept: free-runs no better held out' if (c['effect'], c['target']) in refused else ''))}</td>"
+                    f"<td>{html.escape('supported by the evidence, not kept: its model free-runs no better held out' if (c['effect'], c['target']) in refused and (c['effect'], c['target']) not in added else _fate(c, added))}</td>"
                     if i == 0 else "<td></td>" * 5)
             out.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
                        f"<td>{'' if not q else '[' + _num(q.get('q005')) + ', ' + _num(q.get('q995')) + ']'}</td></tr>")
@@ -284,8 +284,9 @@ def _round_table(r: dict, k: int = 8) -> str:
     out.append("</table>")
     for x in r.get("replaced") or []:
         out.append(f"<p>This round replaced the declared {html.escape(x['parameter'])}*({html.escape(x['term'])}) "
-                   f"by {html.escape(x['by'])} (ln BF {_num(x['log_bayes_factor'])}), worth more than any "
-                   "addition above.</p>" if x.get("shape") else
+                   f"by {html.escape(x['by'])} (ln BF {_num(x['log_bayes_factor'])}): of the moves the evidence "
+                   "supported, the one taken by its free run on held-out data (see how the loop decided).</p>"
+                   if x.get("shape") else
                    f"<p>The declared {html.escape(x['parameter'])}*({html.escape(x['term'])}) was dropped: "
                    f"{html.escape(x['by'])} replaces it (ln BF {_num(x['log_bayes_factor'])}).</p>")
     if r.get("verdict"):

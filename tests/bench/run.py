@@ -746,7 +746,7 @@ def bench_validation(tiny: bool = False) -> dict:
     a full run fails when any is). Per record also ``loop_<r>_posterior_mean_free_run``,
     ``loop_<r>_noise_factor`` and ``loop_<r>_design``.
     """
-    from ardflow.ardcore.errors import LoopFailed
+    from ardflow.ardcore.errors import ArdflowError
     from ardflow.ardcore.loop.config import DiagnoseConfig
     from ardflow.ardcore.loop.diagnose import diagnose
 
@@ -769,7 +769,7 @@ def bench_validation(tiny: bool = False) -> dict:
             # --tiny: the fit, the measures and the reported model only (no round: the keys, not the figures)
             rep = diagnose(spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=0 if tiny else 3),
                            progress=lambda m: print("    " + m, flush=True))
-        except LoopFailed as exc:  # a record the loop fails on is a result of the bench (and a regression)
+        except ArdflowError as exc:  # a record the loop fails on (or cannot start on) is a result, and a regression
             out[f"loop_{name}_s"] = time.perf_counter() - t0
             out[f"loop_{name}_error"] = str(exc)
             out[f"loop_{name}_verdict"] = "failed"
