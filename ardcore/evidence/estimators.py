@@ -86,15 +86,27 @@ def _batch_se(log_terms: np.ndarray, batches: int = BATCHES) -> float:
     lm = np.array([logsumexp(p) - math.log(p.size) for p in parts])
     total = logsumexp(lm) - math.log(b)
     rel = np.exp(lm - total)
-    if rel.max() > DOMINANT * b:
-        # one batch carries the mean: the delta method's se saturates at 1 nat whatever the truth, a placeholder,
-        # and the estimate is as good as one draw; it has no error bar
-        return math.inf
     return float(np.std(rel, ddof=1) / math.sqrt(b))
 
 
 DOMINANT = 0.9
 """A batch that carries more than this share of a mean's weight makes its batch-means error meaningless."""
+
+DOMINATED = "one batch of draws carries the Chib-Jeliazkov mean"
+"""The warning of an evidence whose estimate rests on one batch of draws (:func:`dominated`)."""
+
+
+def dominated(log_terms: np.ndarray, batches: int = BATCHES) -> bool:
+    """Whether one batch carries more than :data:`DOMINANT` of ln(mean(exp(terms))): the estimate is then as good
+    as a handful of draws, and the delta method's error saturates at 1 nat whatever the truth (a placeholder,
+    not an error bar)."""
+    n = log_terms.size
+    b = max(2, min(batches, n // 10))
+    if n < 2 or not np.isfinite(log_terms).any():
+        return False
+    lm = np.array([logsumexp(p) - math.log(p.size) for p in np.array_split(log_terms, b)])
+    rel = np.exp(lm - (logsumexp(lm) - math.log(b)))
+    return bool(rel.max() > DOMINANT * b)
 
 
 def pooled_se(values: np.ndarray, within: np.ndarray, batches: int = BATCHES) -> float:
@@ -165,7 +177,7 @@ def _cj_chain(args):
     log_den = logsumexp(den) - math.log(den.size)
     se = math.sqrt(num_se ** 2 + _batch_se(den) ** 2)
     # ln p(x*|d) = ln p(z*|d) - ln|dx/dz|(x*)
-    return log_num - log_den - jac_star, se, den.size
+    return log_num - log_den - jac_star, se, den.size, dominated(num_terms) or dominated(den)
 
 
 def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
@@ -209,8 +221,8 @@ def iter_chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: in
         tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
                   proposal_se_ratio, int(seeds[c]), res.jump) for c in range(nc)]
         out = yield Batch(_cj_chain, tasks, Step("cj"))
-        n_eval += sum(j for _, _, j in out)
-        per = [ChainEvidence(lp_star - o, se, o) for o, se, _ in out]
+        n_eval += sum(o[2] for o in out)
+        per = [ChainEvidence(lp_star - o[0], o[1], o[0]) for o in out]
         valid = [p for p in per if math.isfinite(p.log_evidence) and p.log_evidence <= bound]
         if valid or attempt == 1 or not np.isfinite(res.lp).any():
             break
@@ -226,6 +238,8 @@ def iter_chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: in
     if not valid:
         raise SamplerError("Chib-Jeliazkov: no chain reached the mode of phi* (every estimate exceeds max ln L); "
                            "the sampler did not converge")
+    if any(o[3] for o, p in zip(out, per) if p in valid):
+        warnings.append(f"{DOMINATED} in a chain: its se is no error bar, and the estimate no result")
     vals = np.array([p.log_evidence for p in valid])
     per, nc = valid, len(valid)
     mean = float(vals.mean())

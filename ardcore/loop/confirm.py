@@ -15,6 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..data import Dataset
+from ..evidence.estimators import DOMINATED
 from ..effects.base import (Effect, augment, dynamic_states, shape_parameter_name, shape_prior, user_inputs,
                       with_columns)
 from ..model.declaration import ModelSpec
@@ -351,7 +352,7 @@ def _confirmation(sc: Screened, eff: Effect, shape: dict, fit: Fit, row: ModelFi
     # a shape picked by the screen's profile (a forcing frequency found in the spectrum) pays its Occam
     # factor; a fitted shape has paid it through its prior
     gain = arow.log_evidence - row.log_evidence - (0.0 if shape else sc.shape_occam)
-    why = arow.degenerate()
+    why = arow.degenerate() or next((f"{arow.name}: {w}" for w in arow.warnings if DOMINATED in str(w)), None)
     if not math.isfinite(gain) or why is not None:
         gain = -math.inf  # the re-selection failed (no evidence that is a result): it confirms nothing, and says so
     kept = [n for n in names if n in arow.kept]
