@@ -783,6 +783,7 @@ def bench_validation(tiny: bool = False) -> dict:
         out[f"loop_{name}_band_coverage"] = r["reported"]["free_run"].get("band_coverage")
         out[f"loop_{name}_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
         out[f"loop_{name}_replaced"] = [f"{x['parameter']}*({x['term']}) -> {x['by']}" for x in r["replaced"]]
+        out[f"loop_{name}_forms"] = [x.get("form") for x in r["replaced"]]
         out[f"loop_{name}_withheld"] = [a["effect"] + " -> " + a["target"] for a in r.get("withheld", [])]
         if rec.real:  # a measured record: no truth to find; its free run must stay as good as recorded
             out[f"loop_{name}_verdict"] = v = out[f"loop_{name}_free_run"]

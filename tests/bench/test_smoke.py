@@ -31,3 +31,27 @@ def test_bench_group_runs_at_tiny_size(group, tmp_path):
         assert key in res, f"{group}: {key} not written"
         assert isinstance(res[key], (int, float)) and not isinstance(res[key], bool), (key, res[key])
         assert math.isfinite(res[key]), (key, res[key])
+
+
+def test_the_gate_grades_what_the_loop_did():
+    """The regression gate's verdicts (tests.bench.validation): the planted family found beats nothing, which
+    beats something else; on a clean record nothing is best; stand-ins that free-run the test better are as
+    good as nothing only where the library cannot hold the truth; a simulated record is never graded as real."""
+    import numpy as np
+
+    from ardflow.ardcore.data import Dataset
+
+    from .validation import _split, graded, verdict
+
+    data = Dataset(np.arange(40.0), {"y": np.zeros(40)}, {})
+    planted = _split("p", None, data, True, False, "", ("cubic_stiffness", "form:power"))
+    clean = _split("c", None, data, False, False, "")
+    hidden = _split("h", None, data, True, False, "")
+    assert not planted.real and planted.family == ("cubic_stiffness", "form:power")
+    cubic, other = [{"effect": "cubic_stiffness(y)", "target": "v"}], [{"effect": "offset", "target": "v"}]
+    assert verdict(planted, cubic, []) == "found" and verdict(planted, [], [{"form": "power"}]) == "found"
+    assert verdict(planted, [], []) == "nothing" and verdict(planted, other, [], 1.0, 1.0) == "other"
+    assert graded(planted, "found") > graded(planted, "nothing") > graded(planted, "other") > graded(planted, "failed")
+    assert graded(clean, "nothing") > graded(clean, verdict(clean, other, [], 1.0, 0.5))
+    assert verdict(hidden, other, [], 1.0, 0.5) == "stand-in" and graded(hidden, "stand-in") == graded(hidden, "nothing")
+    assert graded(hidden, verdict(hidden, other, [], 1.0, 0.95)) < graded(hidden, "nothing")

@@ -100,7 +100,8 @@ def _simulate(truth, params: dict, t: np.ndarray, u: np.ndarray, seed: int, n_st
 
 def _split(name, spec, data, has_effect, design, physics, family=()) -> Record:
     k = int(round(EST * len(data)))
-    return Record(name, spec, data.slice(0, k), data.slice(k, None), has_effect, design, physics, tuple(family))
+    return Record(name, spec, data.slice(0, k), data.slice(k, None), has_effect, design, physics,
+                  family=tuple(family))
 
 
 def _against_linear(name: str, truth, values: dict, u: np.ndarray, seed: int):
@@ -137,7 +138,8 @@ def friction(n: int = 4000, seed: int = 12) -> Record:
         u[k0:k0 + 25] = rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 4.0)
     truth = _truth("-k*y - c*v - Fc*tanh(v/0.02) + b*u", ["k", "c", "Fc", "b", "sigma"], 2e-3)
     spec, data = _against_linear("friction", truth, {"k": 16.0, "c": 0.2, "Fc": 0.8, "b": 8.0, "sigma": 0.05}, u, seed)
-    return _split("friction", spec, data, True, False, "viscous and Coulomb friction, decaying to rest", ("friction",))
+    return _split("friction", spec, data, True, False, "viscous and Coulomb friction, decaying to rest",
+                  ("friction", "dry_friction", "coulomb_friction", "stribeck"))
 
 
 def saturation(n: int = 4000, seed: int = 13) -> Record:
@@ -282,7 +284,7 @@ def tanks(start: str) -> Record:
     test = read_dataset(examples / "data" / "cascaded_tanks.csv", time=spec.data.time, fs=spec.data.fs,
                         rename={"uVal": "u", "yVal": "y"}, columns=spec.data.columns)
     return Record(f"tanks_{start}", spec, est, test, True, False,
-                  f"real cascaded tanks, from the {'linear' if start == 'linear' else 'square-root'} model", True)
+                  f"real cascaded tanks, from the {'linear' if start == 'linear' else 'square-root'} model", real=True)
 
 
 def _lco_maker(name):
