@@ -120,11 +120,18 @@ def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | Non
                             m.fit(X=u_est[:cut, None], y=y_est[:cut, None])
                         except Exception:  # a grid point the library cannot fit is skipped, as a user would
                             continue
-                        scores.append((run(m, y_est[cut:], u_est[cut:]), (kind, lag, degree, n)))
-        if not scores:
+                        # scored on the validation block; one that diverges over the whole record is out
+                        val = run(m, y_est[cut:], u_est[cut:])
+                        scores.append((val if math.isfinite(run(m, y_est, u_est)) else math.inf, (kind, lag, degree, n)))
+        model = None
+        for val, cfg in sorted(scores, key=lambda s: s[0]):
+            m = make(*cfg)
+            m.fit(X=u_est[:, None], y=y_est[:, None])
+            if math.isfinite(run(m, y_est, u_est)):  # refitted on the whole record, it must still stay bounded
+                model = m
+                break
+        if model is None:
             return None
-        model = make(*min(scores, key=lambda s: s[0])[1])
-        model.fit(X=u_est[:, None], y=y_est[:, None])
     return {name: run(model, yt, ut) for name, (yt, ut) in tests.items()}
 
 
