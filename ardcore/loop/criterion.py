@@ -247,8 +247,7 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
     A measurement-noise level off by more than 2x goes in alone when it free-runs no worse held out (the noise
     rule: every other candidate was screened against a filter that took the misfit for process noise); if it
     does not, the candidates deferred behind it are judged now. Otherwise every move the evidence supports
-    (:func:`_moves`) is scored held out and, of those that improve on the current model, the one with the
-    highest evidence is taken."""
+    (:func:`_moves`) is scored held out and :meth:`Criterion.choose` takes one or none."""
     say, rec = ctx.say, rnd.record
     cur = crit.score(held)
     judged = {"round": rec["round"], "model": held.cand.label, "score": cur.to_json(), "moves": []}

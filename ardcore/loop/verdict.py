@@ -9,6 +9,7 @@ import numpy as np
 import sympy as sp
 
 from ..effects.base import Effect, oscillator_pairs
+from ..jsonio import number
 from ..model.declaration import ModelSpec
 
 
@@ -54,8 +55,7 @@ def unexplained(res, ranked: list, confirmed: list, col: str, config) -> str:
         parts.append("the innovations are white (Ljung-Box p = %.3g) with no spectral peak: "
                      "no evidence of a missing effect" % t["ljung_box_p"])
     else:
-        screened_out = ranked and not any(_finite(c["log_bayes_factor"]) and float(c["log_bayes_factor"])
-                                          > config.min_score for c in ranked)
+        screened_out = ranked and not any(number(c["log_bayes_factor"]) > config.min_score for c in ranked)
         # every confirmed candidate rejected by the full evidence (not merely unstable): the same conclusion
         rejected = confirmed and not any(c.get("survives") or c.get("stability") for c in confirmed)
         if screened_out or rejected:
@@ -100,15 +100,12 @@ def unexplained(res, ranked: list, confirmed: list, col: str, config) -> str:
 
 def _finite(x) -> bool:
     """Whether a number of the JSON records (infinities written "inf"/"-inf") is finite."""
-    try:
-        return math.isfinite(float(x))
-    except (TypeError, ValueError):
-        return False
+    return math.isfinite(number(x))
 
 
 def _nats(x) -> str:
     """A ln Bayes factor of the JSON records at one decimal ("-inf" as it is)."""
-    return f"{float(x):.1f}" if _finite(x) else str(x)
+    return f"{number(x):.1f}" if _finite(x) else str(x)
 
 
 def injected_share(res) -> dict:

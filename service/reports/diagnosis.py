@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ardflow.ardcore.jsonio import number
 from ardflow.ardcore.loop.result import Diagnosis
 
 from ardflow.service.reports.plots import pyplot, save_figure
@@ -60,7 +61,7 @@ def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
     colors = ["C2" if conf.get((x["effect"], x["target"]), {}).get("survives") else
               ("C1" if (x["effect"], x["target"]) in conf else "0.6") for x in c]
     # screened ln BF spans nats to tens of thousands: a signed log scale keeps both ends readable
-    v = np.array([_f(x["log_bayes_factor"]) for x in c])
+    v = np.array([number(x["log_bayes_factor"]) for x in c])
     v = np.where(np.isfinite(v), v, 0.0)  # a failed confirmation has no bar
     if not len(c):  # --max-rounds 0: nothing was screened
         ax.text(0.5, 0.5, "no candidates screened", ha="center", va="center", transform=ax.transAxes)
@@ -114,14 +115,6 @@ def _plot_free_run(arrays: dict, out: Path, label=str) -> Path:
            ylabel="PSD", title="spectra (compare these, not phase, for self-excited systems)")
     a2.legend(fontsize=9, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return save_figure(fig, out)
-
-
-def _f(x) -> float:
-    """A number of the JSON report as a float ("inf"/"-inf" as written for infinities, null as NaN)."""
-    try:
-        return float(x)
-    except (TypeError, ValueError):
-        return float("nan")
 
 
 def _num(x) -> str:
@@ -211,9 +204,9 @@ def _fate(c: dict, added: set) -> str:
         return "added"
     if not c.get("kept_terms"):
         return "rejected: ARD pruned its terms"
-    if not np.isfinite(_f(c["log_bayes_factor"])):
+    if not np.isfinite(number(c["log_bayes_factor"])):
         return "rejected: its re-selection gave no evidence that is a result"
-    if _f(c.get("adjusted_log_bayes_factor", c["log_bayes_factor"])) <= _f(c.get("threshold", 0)):
+    if number(c.get("adjusted_log_bayes_factor", c["log_bayes_factor"])) <= number(c.get("threshold", 0)):
         return f"rejected: ln BF below its threshold {c.get('threshold', 0):.1f} (3 + ln N)"
     if not (c.get("stability") or {}).get("stable", True):
         return "rejected: the two halves of the record disagree"
@@ -260,7 +253,7 @@ def _round_table(r: dict, k: int = 8) -> str:
     out = [f"<h3>Round {r['round']} (model {html.escape(str(r.get('model', '')))})</h3><table><tr><th>candidate</th>"
            "<th>equation</th><th>screened ln BF</th><th>confirmed ln BF</th><th>result</th><th>coefficient</th>"
            "<th>mean</th><th>99 % interval</th></tr>"]
-    confirmed = sorted(r.get("confirmed") or [], key=lambda c: -np.nan_to_num(_f(c["log_bayes_factor"]), nan=-np.inf))
+    confirmed = sorted(r.get("confirmed") or [], key=lambda c: -np.nan_to_num(number(c["log_bayes_factor"]), nan=-np.inf))
     refused = {(x["effect"], x["target"]) for x in r.get("refused") or []}
     for c in confirmed:
         post = {**(c.get("posterior") or {}), **(c.get("shape") or {})} or {"": {}}
@@ -276,7 +269,7 @@ def _round_table(r: dict, k: int = 8) -> str:
     for c in rest:
         out.append(f"<tr><td>{html.escape(c['effect'])}</td><td>{html.escape(c['target'])}</td>"
                    f"<td>{_num(c.get('log_bayes_factor'))}</td><td></td><td>"
-                   + ("screened only: below 3 nats" if _f(c.get("log_bayes_factor", 0)) < 3
+                   + ("screened only: below 3 nats" if number(c.get("log_bayes_factor", 0)) < 3
                       else "screened only: not among the best to confirm") +
                    "</td><td></td><td></td><td></td></tr>")
     if not confirmed and not rest:

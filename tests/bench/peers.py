@@ -219,11 +219,7 @@ class NARX:
     def fit(self, y, u, *, refit_samples: int = 20000, max_nfev: int = 60):
         """Least squares (one step ahead), then Levenberg-Marquardt on the free-run error of the first
         ``refit_samples`` samples, kept when it free-runs the estimation record better."""
-        F, target = self._features(y, u)
-        s = np.linalg.norm(F, axis=0)
-        s[s == 0] = 1
-        th, *_ = np.linalg.lstsq(F / s, target, rcond=None)
-        self.theta = th / s
+        self.least_squares(y, u)
         m = min(refit_samples, y.size)
         ys, us, k0 = y[:m], u[:m], max(self.na, self.nb)
         scale = np.where(self.theta != 0, np.abs(self.theta), 1.0)
@@ -241,20 +237,19 @@ class NARX:
             pass
         return self
 
+    def least_squares(self, y, u) -> "NARX":
+        """This model fitted by least squares (one step ahead) to ``y``, ``u``."""
+        G, target = self._features(y, u)
+        s = np.linalg.norm(G, axis=0)
+        s[s == 0] = 1
+        th, *_ = np.linalg.lstsq(G / s, target, rcond=None)
+        self.theta = th / s
+        return self
+
     def free_run_rms(self, y, u, init: int = 50) -> float:
         sim = _simulate_terms(self.theta, self.powers, y, u, self.na, self.nb)
         e = sim[init:] - y[init:]
         return float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else float("inf")
-
-
-def _least_squares(m: NARX, y, u) -> NARX:
-    """``m`` fitted by least squares (one step ahead) to ``y``, ``u``."""
-    G, target = m._features(y, u)
-    s = np.linalg.norm(G, axis=0)
-    s[s == 0] = 1
-    th, *_ = np.linalg.lstsq(G / s, target, rcond=None)
-    m.theta = th / s
-    return m
 
 
 def tuned_narx(y: np.ndarray, u: np.ndarray, *, degrees=(1, 2, 3), orders=(1, 2, 3, 4), validation: float = 0.2,
@@ -274,7 +269,7 @@ def tuned_narx(y: np.ndarray, u: np.ndarray, *, degrees=(1, 2, 3), orders=(1, 2,
         e = []
         for fit, val in folds:
             m = make()
-            m = m.fit(y[fit], u[fit]) if refit else _least_squares(m, y[fit], u[fit])
+            m = m.fit(y[fit], u[fit]) if refit else m.least_squares(y[fit], u[fit])
             e.append(m.free_run_rms(y[val], u[val]))
         return float(np.sqrt(np.mean(np.square(e))))
 
