@@ -98,7 +98,8 @@ class Confirmation:
         return self.screened.inflation
 
     def to_json(self) -> dict:
-        out = {"effect": self.effect, "target": self.target, "score": self.score,
+        out = {"effect": self.effect, "target": self.target, "screened_effect": self.screened.effect.name,
+               "score": self.score,
                "screened_log_bayes_factor": self.score, "log_evidence": self.log_evidence,
                "log_evidence_se": self.log_evidence_se, "log_bayes_factor": self.log_bayes_factor,
                "adjusted_log_bayes_factor": self.adjusted_log_bayes_factor, "inflation": self.inflation,

@@ -19,6 +19,8 @@ from ..model.priors import PriorSpec
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 Name = Annotated[str, Field(pattern=NAME_PATTERN)]
+PLAIN_TEXT = r"^[^$\x00-\x1f\x7f]*$"
+"""A unit or a label: printable text without '$' (math mode in the figures)."""
 
 
 class DataSpec(BaseModel):
@@ -38,10 +40,11 @@ class DataSpec(BaseModel):
     start: Optional[int] = Field(None, ge=0)
     stop: Optional[int] = Field(None, ge=1)
     every: Optional[int] = Field(None, ge=1, le=100_000, description="keep every n-th row (after start/stop)")
-    units: dict[Name, Annotated[str, Field(max_length=32)]] = Field(
+    # plain text: a '$' would switch the figures' renderer to math mode, where an unknown macro fails the report
+    units: dict[Name, Annotated[str, Field(max_length=32, pattern=PLAIN_TEXT)]] = Field(
         default_factory=dict, max_length=64, description="unit of each column and of time (t), for reports: "
                                                            "{'t': 's', 'y': 'V'}")
-    labels: dict[Name, Annotated[str, Field(max_length=80)]] = Field(
+    labels: dict[Name, Annotated[str, Field(max_length=80, pattern=PLAIN_TEXT)]] = Field(
         default_factory=dict, max_length=64, description="what each column is, for reports: "
                                                            "{'y': 'output voltage'}")
 

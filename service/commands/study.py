@@ -102,9 +102,15 @@ def cmd_select(a) -> int:
     from ardflow.workers.graph import prepare_store
     from ardflow.workers.store import StudyStore
 
+    from ardflow.ardcore.selection.validation import check_study, parse_models
+
     spec = load_spec(a.spec)
     if a.full:
         spec = full_settings(spec)
+    # every model becomes a kernel before anything is created: a typo is one line, not a worker's traceback
+    # and a half-made store
+    parse_models(spec)
+    check_study(spec)
     t0 = time.perf_counter()
     base = Path(a.spec).resolve().parent
 
@@ -155,6 +161,10 @@ def cmd_resume(a) -> int:
         return 0
     if (Path(a.store) / "CANCELLED").exists():
         raise SpecError(f"{a.store}: the study was cancelled; it is not resumed")
+    from ardflow.ardcore.selection.spec import StudySpec
+    from ardflow.ardcore.selection.validation import check_study
+
+    check_study(StudySpec.model_validate(store.meta["spec"]))  # a store made before specs were checked whole
     t0 = time.perf_counter()
     print(f"[ardflow] resuming study {store.meta['study_id']} in {store}", flush=True)
     summary = _run_on_dask(a, store)

@@ -15,7 +15,12 @@ from ardflow.ardcore.loop.result import Diagnosis
 from ardflow.service.reports.plots import pyplot, save_figure
 
 
-def _plot_tests(arrays: dict, col: str, out: Path) -> Path:
+def frequency_label(time_label: str) -> str:
+    """The frequency axis's label for a time axis labelled ``time_label`` (Hz when time is in seconds)."""
+    return "frequency [Hz]" if time_label.endswith("[s]") else "frequency [cycles per time unit]"
+
+
+def _plot_tests(arrays: dict, col: str, out: Path, time_label: str = "time") -> Path:
     """Innovation autocorrelation with 95 % bands and innovation spectrum with its peaks, before/after."""
     plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.8))
@@ -32,7 +37,7 @@ def _plot_tests(arrays: dict, col: str, out: Path) -> Path:
     band = arrays["before"]["tests"][col]["acf_band"]
     a1.axhspan(-band, band, color="0.85", label="95 % band (white)")
     a1.set(xlabel="lag [samples]", ylabel="autocorrelation", title="standardised innovations: whiteness")
-    a2.set(xlabel="frequency [cycles / time unit]", ylabel="PSD", title="innovation spectrum (peaks marked)")
+    a2.set(xlabel=frequency_label(time_label), ylabel="PSD", title="innovation spectrum (peaks marked)")
     a1.legend(fontsize=8)
     a2.legend(fontsize=8)
     return save_figure(fig, out)
@@ -57,9 +62,13 @@ def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
     plt = pyplot()
     c = report["candidates"][:k][::-1]
     fig, ax = plt.subplots(figsize=(8, 0.35 * len(c) + 1.2))
-    conf = {(x["effect"], x["target"]): x for x in report["confirmed"]}
-    colors = ["C2" if conf.get((x["effect"], x["target"]), {}).get("survives") else
-              ("C1" if (x["effect"], x["target"]) in conf else "0.6") for x in c]
+    # a confirmation names the effect as fitted (its shape refined), the screen as screened: matched by the latter
+    conf = {(x.get("screened_effect", x["effect"]), x["target"]): x for x in report["confirmed"]}
+    added = {(a["effect"], a["target"]) for a in report.get("added", [])}
+    colors = []
+    for x in c:
+        k = conf.get((x["effect"], x["target"]))
+        colors.append("0.6" if k is None else "C2" if (k["effect"], k["target"]) in added else "C1")
     # screened ln BF spans nats to tens of thousands: a signed log scale keeps both ends readable
     v = np.array([number(x["log_bayes_factor"]) for x in c])
     v = np.where(np.isfinite(v), v, 0.0)  # a failed confirmation has no bar
@@ -75,43 +84,56 @@ def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
            title="candidate effects of round 0, as screened")
     from matplotlib.patches import Patch
 
-    ax.legend(handles=[Patch(color="C2", label="confirmed and kept"), Patch(color="C1", label="confirmed, rejected"),
+    ax.legend(handles=[Patch(color="C2", label="confirmed and added"), Patch(color="C1", label="confirmed, not added"),
                        Patch(color="0.6", label="screened only")], fontsize=9, loc="upper left",
               bbox_to_anchor=(1.01, 1.0))
     return save_figure(fig, out)
 
 
+ZOOM_SAMPLES = 600
+"""How many samples of the test record the free-run figure shows in full (a few periods of a typical response)."""
+
+
 def _plot_free_run(arrays: dict, out: Path, label=str) -> Path:
-    """The free run before and after against the data, with its bands, and the spectra; ``label(column)`` is
-    an axis label with its unit (:meth:`DataSpec.axis_label`)."""
+    """The free run before and after: the error over the whole test record (where the improvement shows), a
+    zoom on :data:`ZOOM_SAMPLES` samples with the data and the bands (where the loudest stretch of the data is,
+    its span in the title), and the spectra; ``label(column)`` is an axis label with its unit
+    (:meth:`DataSpec.axis_label`)."""
     plt = pyplot()
     fr0 = arrays["before"]["free_run"]
-    fig, (a1, a2) = plt.subplots(2, 1, figsize=(11, 6))
-    t = fr0["t"]
-    n = min(t.size, 4000)
-    a1.plot(t[:n], fr0["y"][:n], "k", lw=0.8, label="data")
-    a1.plot(t[:n], fr0["y_free"][:n], "C3", lw=0.8, label="free run, before")
-    if "band" in fr0:
-        a1.fill_between(t[:n], fr0["band"][0][:n], fr0["band"][1][:n], color="C3", alpha=0.15, lw=0,
-                        label=f"90 % predictive band, before ({100 * fr0['band_coverage']:.0f} % of data inside)")
-    if "after" in arrays:
-        fr1 = arrays["after"]["free_run"]
-        if "band" in fr1:
-            a1.fill_between(fr1["t"][:n], fr1["band"][0][:n], fr1["band"][1][:n], color="C0", alpha=0.2, lw=0,
-                            label=f"90 % band, after ({100 * fr1['band_coverage']:.0f} % of data inside)")
-        a1.plot(fr1["t"][:n], fr1["y_free"][:n], "C0", lw=0.8, label="free run, after")
-    a1.set(xlabel=label("t"), ylabel=label(arrays.get("column", "y")),
-           title="free-run simulation against the (held-out) data")
+    fr1 = arrays["after"]["free_run"] if "after" in arrays else None
+    runs = [(fr0, "before", "C3")] + ([(fr1, "after", "C0")] if fr1 is not None else [])
+    fig, (a0, a1, a2) = plt.subplots(3, 1, figsize=(11, 9))
+    t, y = fr0["t"], fr0["y"]
+    ylab = label(arrays.get("column", "y"))
+    for fr, name, st in runs:
+        e = fr["y"] - fr["y_free"]
+        a0.plot(fr["t"], e, st, lw=0.5, label=f"{name}: RMS {float(fr['rms_error']):.4g}")
+    a0.set(xlabel=label("t"), ylabel=f"error: {ylab}", title=f"free-run error over the whole test record "
+           f"({t.size:,} samples, {t[0]:.6g} to {t[-1]:.6g})")
+    a0.legend(fontsize=9, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    n = min(t.size, ZOOM_SAMPLES)
+    yc = np.nan_to_num(y - np.nanmean(y))
+    k = int(np.argmax(np.convolve(yc ** 2, np.ones(n), mode="valid"))) if t.size > n else 0
+    z = slice(k, k + n)
+    a1.plot(t[z], y[z], "k", lw=0.9, label="data")
+    for fr, name, st in runs:
+        if "band" in fr:
+            a1.fill_between(fr["t"][z], fr["band"][0][z], fr["band"][1][z], color=st, alpha=0.15, lw=0,
+                            label=f"90 % band, {name} ({100 * fr['band_coverage']:.0f} % of the record inside)")
+        a1.plot(fr["t"][z], fr["y_free"][z], st, lw=0.8, label=f"free run, {name}")
+    a1.set(xlabel=label("t"), ylabel=ylab,
+           title=f"zoom: samples {k:,} to {k + n:,} of the test record (its loudest stretch)" if t.size > n
+           else "the whole test record")
     a1.legend(fontsize=9, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     from scipy import signal
 
     fs = 1.0 / float(np.median(np.diff(t)))
-    for y, lab, st in [(fr0["y"], "data", "k"), (fr0["y_free"], "before", "C3")] + (
-            [(arrays["after"]["free_run"]["y_free"], "after", "C0")] if "after" in arrays else []):
-        if np.all(np.isfinite(y)):
-            f, P = signal.welch(y - np.mean(y), fs=fs, nperseg=min(y.size, 4096))
+    for yy, lab, st in [(y, "data", "k")] + [(fr["y_free"], name, st) for fr, name, st in runs]:
+        if np.all(np.isfinite(yy)):
+            f, P = signal.welch(yy - np.mean(yy), fs=fs, nperseg=min(yy.size, 4096))
             a2.semilogy(f, P + 1e-300, st, lw=0.8, label=lab)
-    a2.set(xlabel="frequency [Hz]" if label("t").endswith("[s]") else "frequency [cycles per time unit]",
+    a2.set(xlabel=frequency_label(label("t")),
            ylabel="PSD", title="spectra (compare these, not phase, for self-excited systems)")
     a2.legend(fontsize=9, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return save_figure(fig, out)
@@ -322,7 +344,8 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
     arrays, j = {**diagnosis.arrays, "column": col}, diagnosis.to_json()
     figs = {
         "tests.png": ("whiteness and spectrum of the innovations, before and after", _plot_tests(arrays, col,
-                                                                                                 out / "tests.png")),
+                                                                                                 out / "tests.png",
+                                                                                                 label("t"))),
         "process_noise.png": ("process noise the filter had to inject, per state",
                               _plot_noise(arrays, data_t, out / "process_noise.png", label("t"))),
         "candidates.png": ("candidate effects ranked", _plot_candidates(diagnosis.report, out / "candidates.png")),

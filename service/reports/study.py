@@ -55,12 +55,20 @@ def write_report(store, out: str | Path | None = None) -> Path:
     it, _ = store.model_result(best)
     samples, _, _, names = store.read_samples(best, it)
     truth, ref_bounds = _truth(spec, best)
-    figs = _report_figures(store, spec, summary, (names, samples), out)
+    data = store.load_data()
+    col = "y" if "y" in data.columns else next(iter(data.columns))
+    try:
+        innovations = _best_innovations(spec, summary, data, col)
+    except Exception as exc:  # noqa: BLE001 - a check that cannot be computed must not cost the report
+        innovations = exc
+    figs = _report_figures(store, spec, summary, (names, samples), out, innovations)
     table10 = _comparison_table(summary)
     post_table = _posterior_table(names, samples, truth, ref_bounds)
     paper = _paper_section(summary, spec) if reference and {r["name"] for r in summary["models"]} <= set(TABLE10) \
         else ""
     warns = [f"<li>{html.escape(r['name'])}: {html.escape(w)}</li>" for r in summary["models"] for w in r["warnings"]]
+    warns += [f"<li class=warn>{html.escape(best)}: {html.escape(w)}</li>"
+              for w in self_checks(names, samples, truth, innovations)]
     body = [f"<h1>ardflow study {html.escape(spec.name)}</h1>",
             f"<p>{html.escape(spec.description)}</p>",
             f"<p>Data: {html.escape(str(summary['data'].get('source')))}, {summary['data'].get('n')} points. "
@@ -88,10 +96,45 @@ def _truth(spec, best: str) -> tuple[dict, dict | None]:
     return dict(spec.true_values), (FIG15_M2OPT_BOUNDS if (reference and best == "M2") else None)
 
 
-def _report_figures(store, spec, summary, draws: tuple, out: Path) -> list[tuple[str, str]]:
+INNOVATION_RMS_RANGE = (2 / 3, 1.5)
+"""The standardised innovations' RMS outside which the report warns: 1 when the filter's variances are right, far
+below when the declared noise is too large (or the process noise absorbs the data), far above when too small."""
+
+
+def self_checks(names: list, samples: np.ndarray, truth: dict, innovations) -> list[str]:
+    """What the report's own checks say is wrong with the best model: a true value the data were generated with
+    outside its 99 % posterior bounds, standardised innovations whose RMS is outside
+    :data:`INNOVATION_RMS_RANGE` (``innovations``: ``(innovations, variances)``, or why they could not be
+    computed)."""
+    out = []
+    for i, n in enumerate(names):
+        tv = truth.get(n)
+        if tv is None:
+            continue
+        lo, hi = np.quantile(samples[..., i].ravel(), [0.005, 0.995])
+        if not lo <= tv <= hi:
+            out.append(f"the true {n} = {tv:g} is outside its 99 % posterior bounds [{lo:.4g}, {hi:.4g}]: the "
+                       "model, its priors or its declared noise (the measurement noise std) do not match the data")
+    if isinstance(innovations, Exception):
+        out.append(f"the innovations could not be computed ({type(innovations).__name__}: {innovations})")
+        return out
+    innov, var = innovations
+    z = innov / np.sqrt(var)
+    z = z[np.isfinite(z)]
+    rms = float(np.sqrt(np.mean(z ** 2))) if z.size else math.nan
+    lo, hi = INNOVATION_RMS_RANGE
+    if not lo <= rms <= hi:
+        out.append(f"the standardised innovations have RMS {rms:.2f} (1 when the filter's variances are right): "
+                   "the declared measurement noise, or the model, does not match the data")
+    return out
+
+
+def _report_figures(store, spec, summary, draws: tuple, out: Path, innovations) -> list[tuple[str, str]]:
     """The report's figures, written to ``out``: (caption, file) each; ``draws``: the best model's parameter
-    names and posterior samples."""
+    names and posterior samples; ``innovations``: its innovations and their variances (or why there are
+    none). The paper's figure numbers are cited only for the paper's own problem."""
     reference = spec.data.generator == "reference"
+    cite = (lambda figs: f" ({figs})") if reference else (lambda figs: "")
     best = summary["best_model"]
     names, samples = draws
     truth, ref_bounds = _truth(spec, best)
@@ -104,33 +147,35 @@ def _report_figures(store, spec, summary, draws: tuple, out: Path) -> list[tuple
                     "Hz" if seconds else "cycles per time unit")
     plot_data_and_psd(data.t, data.columns[col], out / "data_psd.png", labels=labels,
                       cutoff=0.2295 if reference else None, tau_seconds=TAU_SECONDS if reference else None)
-    figs.append(("Data and its power spectral density (Figs. 2-3)", "data_psd.png"))
+    figs.append(("Data and its power spectral density" + cite("Figs. 2-3"), "data_psd.png"))
 
     plot_model_probabilities(summary["models"], out / "probabilities.png")
     figs.append(("Posterior probability of each candidate model (Eq. 7), with its ln evidence", "probabilities.png"))
     try:
-        plot_prediction(data.t, data.columns[col], *_best_innovations(spec, summary, data, col),
-                        out / "prediction.png", model=best, labels=labels)
+        if isinstance(innovations, Exception):
+            raise innovations
+        plot_prediction(data.t, data.columns[col], *innovations, out / "prediction.png", model=best, labels=labels)
         figs.append((f"Data against {best}'s one-step prediction, and the standardised residuals", "prediction.png"))
     except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not cost the report
         figs.append((f"(the prediction of {best} could not be drawn: {type(exc).__name__})", ""))
 
     histories = store.histories([r["name"] for r in summary["models"]])
     plot_evidence_history(histories, out / "evidence.png")
-    figs.append(("ln evidence, goodness of fit and information gain per maximisation trial (Figs. 8, 11-14)",
+    figs.append(("ln evidence, goodness of fit and information gain per maximisation trial" + cite("Figs. 8, 11-14"),
                  "evidence.png"))
     for cand in spec.models:
         ard = cand.ard_names
         if ard and histories.get(cand.label):
             f = f"ard_{cand.label}.png"
             plot_ard_bounds(histories[cand.label], ard, out / f)
-            figs.append((f"{cand.label}: prior and posterior 99 % bounds of the ARD parameters per trial (Fig. 9)", f))
+            figs.append((f"{cand.label}: prior and posterior 99 % bounds of the ARD parameters per trial" + cite("Fig. 9"),
+                         f))
 
     plot_marginals(names, samples, out / "marginals.png", truth, ref_bounds)
-    figs.append((f"{best} (optimal nested model): marginal posteriors, 99 % bounds, true values (Fig. 15)",
+    figs.append((f"{best} (optimal nested model): marginal posteriors, 99 % bounds, true values" + cite("Fig. 15"),
                  "marginals.png"))
     plot_joint(names, samples, out / "joint.png", truth)
-    figs.append((f"{best}: joint posteriors (Fig. 16)", "joint.png"))
+    figs.append((f"{best}: joint posteriors" + cite("Fig. 16"), "joint.png"))
     return figs
 
 

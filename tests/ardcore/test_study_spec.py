@@ -46,6 +46,9 @@ def mutate(fn):
     (lambda d: d["models"][0].update(model="M9"), "models.0", "unknown built-in model 'M9'"),
     (lambda d: d["models"][0].update(constants={"zz": 1.0}), "models.0", "'zz' is not a constant (constants: ["),
     (lambda d: d["models"][0].update(constants={"gamma": math.inf}), "models.0.constants.gamma", "finite"),
+    # a '$' puts the figures' text in math mode, where an unknown macro fails the report after the study ran
+    (lambda d: d["data"].update(labels={"y": "$\\undefinedmacro{x}$"}), "data.labels.y", "should match pattern"),
+    (lambda d: d["data"].update(units={"t": "$s$"}), "data.units.t", "should match pattern"),
 ])
 def test_bad_specs_name_the_field(tmp_path, change, field, msg):
     p = tmp_path / "spec.json"

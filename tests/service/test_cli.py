@@ -73,6 +73,18 @@ def test_errors_are_one_line_without_traceback(tmp_path, args, msg):
     assert msg in r.stderr and "Traceback" not in r.stderr
 
 
+def test_a_typo_in_a_model_is_one_line_and_creates_nothing(tmp_path):
+    spec = json.loads((ROOT / "examples" / "sec33.json").read_text())
+    m = json.loads(run("models", "M2", cwd=tmp_path).stdout)
+    m["drift"]["CM"] += " + zeta*theta"  # a symbol the model does not declare
+    spec["models"][0].update(model=m, fixed={"a5": 0.0, "a6": 0.0})
+    (tmp_path / "typo.json").write_text(json.dumps(spec))
+    r = run("select", "typo.json", "--out", "st", cwd=tmp_path)
+    assert r.returncode == 2 and "unknown name 'zeta'" in r.stderr, r.stderr
+    assert len((r.stdout + r.stderr).strip().splitlines()) == 1 and "Traceback" not in r.stderr
+    assert not (tmp_path / "st").exists()
+
+
 def _oscillator_spec(path: str) -> dict:
     """A quick Laplace study of the linear oscillator on the record at ``path``."""
     return {"name": "osc", "data": {"path": path}, "evidence": "laplace",

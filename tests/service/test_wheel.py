@@ -35,6 +35,8 @@ def fresh(tmp_path_factory):
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
                         "-w", str(tmp / "dist"), str(src)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
+    # a packaging warning (a data folder absent from `packages`) is what `make demo` shows a new user first
+    assert "warning" not in (r.stdout + r.stderr).lower(), (r.stdout + r.stderr)[-3000:]
     wheel = next((tmp / "dist").glob("ardflow-*.whl"))
     env_dir = tmp / "venv"
     venv.create(env_dir, with_pip=False)
