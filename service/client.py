@@ -3,8 +3,7 @@
     from ardflow.service.client import Client
     c = Client("http://127.0.0.1:8000", token="...")
     sid = c.submit("examples/sec33.json")
-    c.wait(sid)                       # progress on stderr
-    summary = c.summary(sid)
+    summary = c.wait(sid)             # progress on stderr, then the summary
     post = c.posterior(sid, "M2true", as_xarray=True)
 """
 
@@ -64,6 +63,9 @@ class Client:
                 detail = r.text
             if isinstance(detail, list):
                 detail = "; ".join(f"{'.'.join(d.get('loc', []))}: {d.get('msg')}" for d in detail)
+            if r.status_code == 401:
+                detail = (f"{detail}: give the token `ardflow serve` wrote (in its --root, runs/service/token by "
+                          "default) as ARDFLOW_TOKEN, --token or Client(token=...)")
             raise APIError(r.status_code, str(detail))
         return r
 
@@ -74,7 +76,8 @@ class Client:
     def upload(self, csv_path: str | Path) -> str:
         """Upload a CSV data set; returns its id (use it as ``data.dataset`` in a spec)."""
         body = Path(csv_path).read_bytes()
-        return self._check(self.http.post("/datasets", content=body, headers={"Content-Type": "text/csv"})).json()["id"]
+        return self._check(self.http.post("/datasets", content=body, params={"name": plain_name(csv_path)},
+                                          headers={"Content-Type": "text/csv"})).json()["id"]
 
     def submit(self, spec: dict | str | Path, csv: str | Path | None = None) -> str:
         """Submit a study (a dict or a JSON file); with ``csv`` the file is uploaded first. Returns the study id."""
@@ -101,7 +104,21 @@ class Client:
         return self._check(self.http.get(f"/studies/{sid}/figures/{name}")).content
 
     def wait(self, sid: str, *, poll_s: float = 2.0, timeout: float | None = None, progress: bool = True) -> dict:
-        """Block until the study ends; shows one progress line per model on stderr. Returns the final status."""
+        """Block until the study ends; shows one progress line per model on stderr.
+
+        Returns
+        -------
+        dict
+            The study's summary (:meth:`summary`, with ``"status": "done"``) when it finished; its final status
+            when it was cancelled.
+
+        Raises
+        ------
+        APIError
+            When the study failed (with its reason), or on a refused request.
+        TimeoutError
+            When ``timeout`` seconds pass first.
+        """
         def poll() -> dict | None:
             st = self.status(sid)
             if progress:
@@ -112,7 +129,8 @@ class Client:
                 raise APIError(500, f"study {sid} failed: {st.get('error')}")
             return st if st["status"] in FINAL else None
 
-        return _until(poll, poll_s, timeout, lambda: f"study {sid} still running after {timeout} s")
+        st = _until(poll, poll_s, timeout, lambda: f"study {sid} still running after {timeout} s")
+        return {**self.summary(sid), "status": "done"} if st["status"] == "done" else st
 
     def diagnose(self, sid: str, model: str | None = None, *, test_csv: str | Path | None = None,
                  wait: bool = True, poll_s: float = 2.0, timeout: float | None = None, **settings) -> dict:
@@ -195,13 +213,22 @@ class Client:
 
 
 def _progress_line(st: dict) -> str:
-    """One line for a study's status: per model its trials, best ln Z and ETA."""
+    """One line for a study's status: per model its trials (of the search's cap: it usually stops well before,
+    so no time left is promised), best ln Z and time so far."""
     parts = []
     for m, p in st["models"].items():
-        be, eta = p.get("best_log_evidence"), p.get("eta_s")
-        parts.append(f"{m}: {p.get('trials_done', 0)} trials" + (f", best ln Z {be:.2f}" if be is not None else "")
-                     + (f", eta <= {eta:.0f}s" if eta else ""))
+        be, cap, el = p.get("best_log_evidence"), p.get("max_trials"), p.get("elapsed_s")
+        parts.append(f"{m}: {p.get('trials_done', 0)}" + (f" of at most {cap}" if cap and p.get("stage") != "model_done"
+                                                         else "") + " trials"
+                     + (f", best ln Z {be:.2f}" if be is not None else "") + (f", {el:.0f} s" if el else ""))
     return " | ".join(parts)
+
+
+def plain_name(path: str | Path) -> str:
+    """A file's name as a data set's name: printable, without '$', at most 120 characters."""
+    import re
+
+    return re.sub(r"[$\x00-\x1f\x7f]", "", Path(path).name)[:120]
 
 
 def _until(poll, poll_s: float, timeout: float | None, what) -> dict:

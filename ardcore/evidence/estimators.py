@@ -368,9 +368,12 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         x, h, _, H = newton(f, x, 1e-3 * scale, polish)
     if H is None:
         H = fd_hessian(f, x, h)
-    sign, logdet = np.linalg.slogdet(H)
     lp, ll = target(x)
     warnings = []
+    if np.all(np.isfinite(H)):
+        sign, logdet = np.linalg.slogdet(H)
+    else:  # a curvature that could not be measured (a step out of the support): no determinant to take
+        sign, logdet = 0.0, math.nan
     if sign <= 0:
         warnings.append("Hessian at the MAP is not positive definite: Laplace evidence invalid")
     log_z = lp + 0.5 * d * math.log(2 * math.pi) - 0.5 * logdet

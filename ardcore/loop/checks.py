@@ -131,6 +131,29 @@ def savage_dickey(cand: CandidateSpec, row: ModelFit, mr, names: list[str]) -> f
     return float(sum(p.logpdf(0.0) for p in pri)) - ln_post0
 
 
+LAPLACE_MARGIN = 1000.0
+"""Nats a declared term's Laplace estimate (:func:`needed`) must show for it to stay without a refit: the
+Gaussian marginal is a rough guide where an effect can take the term's role through its shape, so only a term
+worth orders of magnitude more than any Occam factor is spared the refit (Silverbox's k and c: 10^5 nats)."""
+
+
+def needed(cand: CandidateSpec, row: ModelFit, name: str) -> float | None:
+    """The Laplace estimate of the ln Bayes factor for keeping the declared parameter ``name`` (its essential
+    prior) against fixing it at 0, from its marginal posterior taken Gaussian (mean m, sd s): the
+    likelihood lost at 0, (m/s)^2 / 2, less its Occam factor, -ln(p(m) sqrt(2 pi) s). A declared stiffness
+    whose posterior sits hundreds of sd from 0 is worth that many nats without a refit to say so; None
+    where it does not apply (no essential prior, no spread, 0 outside the prior's support: fixing it there is
+    not a nested model of this prior)."""
+    prior = cand.priors.get(name)
+    m, sd = row.mean.get(name), row.sd.get(name)
+    if prior is None or m is None or not sd or not math.isfinite(sd) or sd <= 0:
+        return None
+    lp = prior.logpdf(float(m))
+    if not math.isfinite(lp):
+        return None
+    return 0.5 * (m / sd) ** 2 + lp + 0.5 * math.log(2 * math.pi) + math.log(sd)
+
+
 def backward_check(ctx, held: Fit, earlier_added: list[Added], this_round: int, crit=None) -> Fit:
     """Effects added in earlier rounds that the later ones made redundant are dropped again.
 
@@ -165,7 +188,8 @@ def backward_check(ctx, held: Fit, earlier_added: list[Added], this_round: int, 
                   bmr.sampler, config.posterior) for x in earlier]
         fits = mapper(fit_task, tasks)
         gain = [row.log_evidence - frow.log_evidence for frow, _ in fits]
-        worth = [g / x.inflation if g > 0 else g for g, x in zip(gain, earlier)]
+        # a model without the effect that has no finite evidence cannot argue for dropping it
+        worth = [(g / x.inflation if g > 0 else g) if math.isfinite(g) else math.inf for g, x in zip(gain, earlier)]
         k = int(np.argmin([w - x.threshold for w, x in zip(worth, earlier)]))
         x = earlier[k]
         if worth[k] >= x.threshold:
@@ -306,8 +330,16 @@ def replace_laws(ctx, held: Fit, rounds: list, crit=None) -> Fit:
     new_params = brought(rounds)
     added = [(e, x.record["target"]) for e, x in zip(rnd.effects, rnd.added)]
     replaced = rnd.record.setdefault("replaced", [])
+    said = set()
     while True:
         rivals = declared_rivals(cand.model_spec(), added, new_params)
+        worth = {r.parameter: needed(cand, row, r.parameter) for r in rivals}
+        clear = [r for r in rivals if (worth[r.parameter] or -math.inf) >= LAPLACE_MARGIN and r.parameter not in said]
+        for r in clear:
+            say(f"  the declared {r.parameter}*({r.term}) in {r.target}'s equation stays beside {r.effect} without a "
+                f"refit (its posterior excludes 0: worth ~{worth[r.parameter]:.1f} nats by the Laplace estimate)")
+            said.add(r.parameter)
+        rivals = [r for r in rivals if (worth[r.parameter] or -math.inf) < LAPLACE_MARGIN]
         if not rivals:
             return Fit(cand, row, bmr, data)
         tasks = [(cand.model_copy(update={"fixed": {**cand.fixed, r.parameter: 0.0}}), data, spec, bmr.sampler,

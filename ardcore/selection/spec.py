@@ -3,6 +3,7 @@ sampler and maximiser settings (pydantic, strict: no extra fields, no NaN or inf
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated, Literal, Optional, Union
 
@@ -75,7 +76,13 @@ class DataSpec(BaseModel):
             if not p.exists():
                 raise SpecError(f"data.dataset: no uploaded data set {self.dataset!r}")
             ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
-            ds.meta["source"] = f"dataset:{self.dataset}"
+            ds.meta["source"] = f"uploaded data set {self.dataset}"
+            try:  # the name it was uploaded under, when the service recorded one
+                name = json.loads(p.with_suffix(".json").read_text()).get("name")
+            except (OSError, ValueError, AttributeError):
+                name = None
+            if isinstance(name, str) and name:
+                ds.meta["source"] = f"{name} (uploaded data set {self.dataset})"
         elif self.generator == "reference":
             from ..likelihood.simulate import simulate_reference
 

@@ -22,12 +22,12 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from ardflow.ardcore.errors import ArdflowError
-from ardflow.ardcore.selection.spec import StudySpec
+from ardflow.ardcore.selection.spec import PLAIN_TEXT, StudySpec
 
 from ardflow.service.api.auth import StudyAccess, TokenAuth
 from ardflow.service.api.guard import RequestGuard
@@ -133,6 +133,18 @@ class _Service:
     def forget(self, sid: str) -> None:
         self._recent.pop(sid, None)
 
+    def dataset_visible(self, did: str, owner: str) -> bool:
+        """Whether the uploaded data set ``did`` exists and ``owner`` may use it: it is owned like a study
+        (:meth:`StudyAccess.sees`; one without a readable owner record, the admins only)."""
+        d = self.reg.root / "datasets"
+        if not re.fullmatch(r"[a-f0-9]{16}", did or "") or not (d / f"{did}.csv").is_file():
+            return False
+        try:
+            meta = json.loads((d / f"{did}.json").read_text())
+        except (OSError, ValueError):
+            meta = {}
+        return self.access.sees(owner, meta if isinstance(meta, dict) else {})
+
 
 def create_app(settings: Settings, client) -> FastAPI:
     """The FastAPI app over a Dask ``client`` (which it never exposes)."""
@@ -220,10 +232,13 @@ def _service_router(c: _Service) -> APIRouter:
     def dashboard() -> DashboardLink:
         return DashboardLink(url=getattr(c.client, "dashboard_link", None))
 
-    @r.post(f"{v1}/datasets", response_model=DatasetInfo, status_code=201, dependencies=[Depends(c.auth)],
+    @r.post(f"{v1}/datasets", response_model=DatasetInfo, status_code=201,
               openapi_extra={"requestBody": {"content": {"text/csv": {"schema": {"type": "string"}}},
                                              "required": True}})
-    async def upload_dataset(request: Request) -> DatasetInfo:
+    async def upload_dataset(request: Request, owner: str = Depends(c.auth),
+                             name: str | None = Query(None, max_length=120, pattern=PLAIN_TEXT,
+                                                      description="what the reports call it (its file name)")
+                             ) -> DatasetInfo:
         body = await request.body()
         if len(body) > c.max_body:
             raise HTTPException(413, f"data set larger than {c.settings.c.max_body_mb:g} MB")
@@ -238,9 +253,9 @@ def _service_router(c: _Service) -> APIRouter:
             raise HTTPException(413, f"data set has more than {c.settings.max_upload_rows} rows")
         head = text.lstrip("\ufeff")[:70_000]  # the header line only: splitting the whole text would block
         header = head.splitlines()[0] if head.strip() else ""
-        for name in (h.strip().strip('"') for h in header.split(",")):
-            if not COLUMN_RE.match(name):
-                raise HTTPException(422, f"column name {name[:40]!r} is not allowed: letters, digits and "
+        for column in (h.strip().strip('"') for h in header.split(",")):
+            if not COLUMN_RE.match(column):
+                raise HTTPException(422, f"column name {column[:40]!r} is not allowed: letters, digits and "
                                          "underscores, starting with a letter (at most 64)")
         did = secrets.token_hex(8)
         tmp = c.reg.root / "datasets" / f".{did}.csv"
@@ -255,6 +270,10 @@ def _service_router(c: _Service) -> APIRouter:
         if n > c.settings.max_upload_rows:
             tmp.unlink(missing_ok=True)
             raise HTTPException(413, f"data set has more than {c.settings.max_upload_rows} rows")
+        from ardflow.ardcore.jsonio import atomic_write_text
+
+        # the owner first: a data set is never visible without one
+        atomic_write_text(c.reg.root / "datasets" / f"{did}.json", json.dumps({"owner": owner, "name": name}))
         tmp.replace(c.reg.root / "datasets" / f"{did}.csv")
         return DatasetInfo(id=did, rows=n, columns=["t", *columns])
 
@@ -271,6 +290,8 @@ def _submit_router(c: _Service) -> APIRouter:
         if spec.data.path is not None:
             raise HTTPException(422, "data.path is not accepted over the API: upload the data set "
                                      "(POST /v1/datasets) and give data.dataset")
+        if spec.data.dataset is not None and not c.dataset_visible(spec.data.dataset, owner):
+            raise HTTPException(422, f"data.dataset: no uploaded data set {spec.data.dataset!r}")  # another's: as for none
         with c.admission.slot(owner):
             return await _admitted(spec, owner)
 
@@ -383,7 +404,7 @@ def _diagnoses_router(c: _Service) -> APIRouter:
 
     @r.post(f"{v1}/studies/{{sid}}/diagnoses", response_model=DiagnosisStatus, status_code=202,
               dependencies=[Depends(c.access)])
-    def diagnose(sid: str, req: DiagnoseRequest) -> DiagnosisStatus:
+    def diagnose(sid: str, req: DiagnoseRequest, owner: str = Depends(c.auth)) -> DiagnosisStatus:
         meta = c.reg.meta(sid)
         if meta.get("status") != "done":
             raise HTTPException(409, f"study {sid} is {meta.get('status')}: diagnose a finished study")
@@ -392,7 +413,7 @@ def _diagnoses_router(c: _Service) -> APIRouter:
         model = req.model or summary.get("best_model")
         if model not in models:
             raise HTTPException(404, f"study {sid} has no model {model!r} (models: {models})")
-        if req.test_dataset and not (c.reg.root / "datasets" / f"{req.test_dataset}.csv").exists():
+        if req.test_dataset and not c.dataset_visible(req.test_dataset, owner):
             raise HTTPException(404, f"no uploaded data set {req.test_dataset!r}")
         d = _diag_dir(sid, model)
         if (d / "status.json").exists() and json.loads((d / "status.json").read_text())["status"] == "running":

@@ -361,7 +361,7 @@ class ProgressCache:
             out = e["models"]
             for ev in events:
                 m, x = ev.model, ev.event
-                p = out.setdefault(m, Progress(model=m))
+                p = out.setdefault(m, Progress(model=m, max_trials=e["max_trials"]))
                 if not isinstance(x, Note):
                     p.stage = x.stage
                 p.elapsed_s = max(0.0, float(ev.time if ev.time is not None else started) - started)

@@ -67,8 +67,10 @@ class Progress(BaseModel):
     best_log_evidence: Optional[float] = None
     rhat: Optional[list[Optional[float]]] = None
     trials_done: int = 0
+    max_trials: Optional[int] = Field(None, description="the ARD search's cap; it usually stops well before")
     elapsed_s: float = 0.0
-    eta_s: Optional[float] = None
+    eta_s: Optional[float] = Field(None, description="an upper bound on the time left (at the pace so far, if "
+                                                     "the search ran all max_trials); not an estimate")
 
 
 class StudyStatus(BaseModel):

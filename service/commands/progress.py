@@ -44,7 +44,8 @@ def print_table(summary: dict) -> None:
 
 class LiveProgress:
     """A progress callback: with an interactive terminal (and not ``CI``), a live bar per model (trials done
-    of the maximiser's ``max_trials``, an upper bound, with its ETA; the last trial's action and the best
+    of the maximiser's ``max_trials``, a cap the search usually stops well before, so no time left is shown;
+    the elapsed time, the last trial's action and the best
     ln Z); otherwise :func:`print_progress`'s lines. Use as a context manager around the run."""
 
     def __init__(self, max_trials: int = 60, *, live: bool | None = None):
@@ -64,14 +65,13 @@ class LiveProgress:
                     Progress,
                     TextColumn,
                     TimeElapsedColumn,
-                    TimeRemainingColumn,
                 )
             except ImportError:  # rich is optional: plain lines
                 self.live = False
                 return self
             self._progress = Progress(TextColumn("[bold]{task.fields[model]:<10}"), BarColumn(),
-                                      TextColumn("{task.completed:>3.0f}/{task.total:.0f} trials"),
-                                      TimeElapsedColumn(), TimeRemainingColumn(),
+                                      TextColumn("{task.completed:>3.0f} of at most {task.total:.0f} trials"),
+                                      TimeElapsedColumn(),
                                       TextColumn("{task.fields[status]}"), transient=False)
             self._progress.__enter__()
         return self

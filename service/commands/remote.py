@@ -83,10 +83,21 @@ def _client(a):
 
     a.url = a.url or os.environ.get("ARDFLOW_URL") or "http://127.0.0.1:8000"
     token = a.token or os.environ.get("ARDFLOW_TOKEN")
-    local = Path("runs/service/token")  # what `ardflow serve` generates with its default --root
-    if token is None and local.exists():
-        token = local.read_text().strip()
+    if token is None:
+        found = token_file()
+        token = found.read_text().strip() if found else None
     return Client(a.url, token=token)
+
+
+def token_file() -> Path | None:
+    """The token `ardflow serve` wrote with its default ``--root`` (``runs/service/token``), looked for in this
+    directory and each one above it (a user in a subfolder of the project finds it too), or None."""
+    here = Path.cwd().resolve()
+    for d in (here, *here.parents):
+        f = d / "runs" / "service" / "token"
+        if f.is_file():
+            return f
+    return None
 
 
 def cmd_submit(a) -> int:
@@ -97,8 +108,9 @@ def cmd_submit(a) -> int:
             sid = c.submit(a.spec, csv=a.csv)
             print(sid, flush=True)
             if a.wait:
-                c.wait(sid)
-                print_table(c.summary(sid))
+                done = c.wait(sid)
+                if "models" in done and isinstance(done["models"], list):
+                    print_table(done)
         except APIError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
@@ -111,24 +123,35 @@ def cmd_status(a) -> int:
     with _client(a) as c:
         try:
             st = c.status(a.id) if a.id else c.studies()
-            if getattr(a, "json", False):
-                print(json.dumps(st, indent=2))
-                return 0
             rows = [st] if a.id else st
             best = {r["id"]: _best(c, r) for r in rows if r["status"] == "done"}
+            if getattr(a, "json", False):
+                # what the table shows, as data: each study's models and, when done, its best model
+                for r in rows:
+                    if not r.get("models"):
+                        r["models"] = c.status(r["id"]).get("models", {})
+                    if r["id"] in best:
+                        r["best_model"], r["probability"] = best[r["id"]]
+                print(json.dumps(st, indent=2))
+                return 0
         except APIError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-    print(status_table(rows, best, time.time()))
+    print(status_table(rows, {k: _best_text(*v) for k, v in best.items()}, time.time()))
     return 0
 
 
-def _best(c, row: dict) -> str:
-    """'M2 (P 1.00)' for a finished study: its best model and that model's probability."""
+def _best(c, row: dict) -> tuple[str | None, float | None]:
+    """A finished study's best model and that model's probability."""
     s = c.summary(row["id"])
     p = {m["name"]: m.get("probability") for m in s.get("models", [])}
     b = s.get("best_model")
-    return f"{b} (P {p[b]:.2f})" if b in p and p[b] is not None else str(b)
+    return b, p.get(b)
+
+
+def _best_text(model, probability) -> str:
+    """'M2 (P 1.00)'."""
+    return f"{model} (P {probability:.2f})" if probability is not None else str(model)
 
 
 def _ago(seconds: float) -> str:
@@ -138,12 +161,13 @@ def _ago(seconds: float) -> str:
 
 def status_table(rows: list[dict], best: dict, now: float) -> str:
     """Studies as a table a person reads: id, state, best model with its probability (when done), when it
-    was submitted, the longest ETA of its models while it runs, and its error."""
-    head = f"{'study':<28s} {'state':<10s} {'best model':<16s} {'submitted':<16s} {'ETA':<10s}"
+    was submitted, how long its longest model has run while it runs (no time left is promised: the search
+    stops when the evidence stops rising), and its error."""
+    head = f"{'study':<28s} {'state':<10s} {'best model':<16s} {'submitted':<16s} {'running':<10s}"
     out = [head]
     for r in rows:
-        etas = [m.get("eta_s") for m in (r.get("models") or {}).values() if m.get("eta_s")]
-        eta = f"{max(etas) / 60:.0f} min" if etas and r["status"] == "running" else "-"
+        ran = [m.get("elapsed_s") for m in (r.get("models") or {}).values() if m.get("elapsed_s")]
+        eta = f"{max(ran) / 60:.0f} min" if ran and r["status"] == "running" else "-"
         out.append(f"{r['id']:<28s} {r['status']:<10s} {best.get(r['id'], '-'):<16s} "
                    f"{_ago(now - r.get('created', now)):<16s} {eta:<10s}"
                    + (f" {r['error']}" if r.get("error") else ""))

@@ -77,6 +77,7 @@ def test_submit_watch_summary_posterior(service, tmp_path):
         st = c.wait(sid, poll_s=0.3, timeout=300, progress=False)
         assert st["status"] == "done"
         s = c.summary(sid)
+        assert st == {**s, "status": "done"}  # wait returns the summary, as the README promises
         assert {r["name"] for r in s["models"]} == {"quad", "cubic"}
         assert abs(sum(r["probability"] for r in s["models"]) - 1) < 1e-9
         names, samples = c.posterior(sid, "quad")
@@ -120,7 +121,7 @@ def test_uploaded_csv_study(service, tmp_path):
     with Client(url, token=TOKEN) as c:
         sid = c.submit(spec, csv=csv)
         assert c.wait(sid, poll_s=0.3, timeout=300, progress=False)["status"] == "done"
-        assert c.summary(sid)["data"]["source"].startswith("dataset:")
+        assert c.summary(sid)["data"]["source"].startswith("d.csv (uploaded data set ")  # its name, not a hash
 
 
 def test_server_sent_events(service):
@@ -279,7 +280,15 @@ def test_cli_submit_status_fetch(service, tmp_path):
     sid = r.stdout.splitlines()[0].strip()
     r = subprocess.run(base + ["status", sid, "--json"] + common, cwd=ROOT, capture_output=True, text=True,
                        timeout=60)
-    assert r.returncode == 0 and json.loads(r.stdout)["status"] == "done"
+    st = json.loads(r.stdout)
+    assert r.returncode == 0 and st["status"] == "done" and st["best_model"] == "quad" and st["probability"] == 1.0
+    assert st["models"]["quad"]["trials_done"] >= 1
+    r = subprocess.run(base + ["status", "--json"] + common, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    row = next(x for x in json.loads(r.stdout) if x["id"] == sid)
+    assert row["best_model"] == "quad" and row["models"], row  # the listing as data: what the table shows
+    r = subprocess.run(base + ["status", "--url", url, "--token", "wrong"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2 and "HTTP 401" in r.stderr and "ARDFLOW_TOKEN" in r.stderr, r.stderr
     # for people: a table with the best model and its probability, when it was submitted
     r = subprocess.run(base + ["status"] + common, cwd=ROOT, capture_output=True, text=True, timeout=60)
     line = next(x for x in r.stdout.splitlines() if x.startswith(sid))

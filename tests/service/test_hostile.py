@@ -494,6 +494,14 @@ def test_studies_belong_to_the_token_that_made_them(hostile, tmp_path):
             r = c.request(method, f"{base}/studies/{a}{path}", headers=B, json={} if method == "POST" else None)
             assert r.status_code == 404 and "no study" in r.json()["detail"], (method, path, r.status_code)
         assert c.get(f"{base}/studies/{a}", headers=A).status_code == 200
+        # data sets are owned too: bob cannot study alice's upload (as for none), alice and the admin can
+        csv = b"t,y\n" + b"".join(f"{i},{i % 3}\n".encode() for i in range(30))
+        did = c.post(f"{base}/datasets", content=csv, headers={**A, "Content-Type": "text/csv"}).json()["id"]
+        on = dict(SPEC, seed=53, data={"dataset": did})
+        r = c.post(f"{base}/studies", json=on, headers=B)
+        assert r.status_code == 422 and "no uploaded data set" in r.json()["detail"], r.text
+        assert "no uploaded data set" not in c.post(f"{base}/studies", json=on, headers=R).text
+        assert "no uploaded data set" not in c.post(f"{base}/studies", json=dict(on, seed=54), headers=A).text
         assert c.post(f"{base}/studies/{a}/cancel", headers=R, json={}).json()["status"] == "cancelled"
         assert c.post(f"{base}/studies/{b}/cancel", headers=B, json={}).json()["status"] == "cancelled"
         app.state.runner.stop()

@@ -82,6 +82,8 @@ def test_page_submit_watch_report(service, tmp_path):
             row = f"tr[data-id='{sid}']"
             # live progress: per-model lines appear while it runs, then the status reaches done
             page.wait_for_selector(f"{row} .model", timeout=180_000)
+            # the first study replaces the "no studies yet" line: no row is left that is not a study's
+            assert page.locator("#studies tr:not([data-id])").count() == 0
             page.wait_for_selector(f"{row} td.status.done", timeout=300_000)
             assert page.locator(f"{row} .model").count() == 2
             assert "done" in page.inner_text(f"{row} .model >> nth=0")
@@ -97,6 +99,7 @@ def test_page_submit_watch_report(service, tmp_path):
             assert imgs and all(w > 0 for w in imgs), imgs
             assert "pagetest" in report.content() or "quad" in report.content()
             assert "Convergence (ArviZ)" in report.content()
+            assert "data.csv (uploaded data set" in report.content()  # the data set by its name, not its hash
         finally:
             browser.close()
     assert not errors, errors
