@@ -113,7 +113,13 @@ class _Service:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
-            self._parse_pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            from ardflow.workers.cluster import deaf_to_ctrl_c, die_with_parent
+
+            # the service stops its parser: a Ctrl-C in its terminal must not, and a killed service takes it along
+            with deaf_to_ctrl_c():
+                self._parse_pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                                       initializer=die_with_parent)
+                self._parse_pool.submit(int).result()  # started now, inside the ignoring window
         return await asyncio.get_running_loop().run_in_executor(self._parse_pool, fn, *args)
 
     def status(self, sid: str, progress: bool = True) -> StudyStatus:

@@ -16,6 +16,7 @@ from fastapi import HTTPException
 
 from ardflow.ardcore.events import BurninRound, ModelDone, Note, TrialDone
 from ardflow.ardcore.jsonio import to_jsonable
+from ardflow.workers.cluster import die_with_parent
 
 from ardflow.service.api.schemas import ID_RE, DiagnoseRequest, Progress, finite_or_none
 
@@ -151,19 +152,6 @@ class Registry:
         from ardflow.workers.store import StudyStore
 
         return StudyStore(self.study_dir(sid) / "store")
-
-
-def die_with_parent() -> None:
-    """In a child between fork and exec: the kernel sends it SIGTERM when the service dies (a SIGKILLed
-    service must not leave its drivers running; the store's driver lock refuses a second one anyway).
-    Linux only; elsewhere a no-op."""
-    import ctypes
-    import signal
-
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
 
 
 class Runner:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import sys
 import time
 from pathlib import Path
@@ -65,6 +66,9 @@ def cmd_serve(a) -> int:
         app = create_app(Settings(root=root, token=token, tokens=tokens, max_body_mb=a.max_body_mb,
                                   max_running=a.max_running, allowed_hosts=hosts), client)
         print(f"[ardflow] API on http://{a.host}:{a.port}/v1 (OpenAPI: /docs), registry {root.resolve()}", flush=True)
+        # uvicorn stops serving on SIGTERM, then raises the signal again: with this handler that ends in the
+        # `finally` and the cluster's exit below (stopping scheduler and workers), not in a bare kill
+        signal.signal(signal.SIGTERM, _stop)
         try:
             # X-Forwarded-* are believed only from the proxies named (never by default, loopback included)
             uvicorn.run(app, host=a.host, port=a.port, log_level="warning",
@@ -73,7 +77,13 @@ def cmd_serve(a) -> int:
                         http=with_header_deadline(a.header_timeout))
         finally:
             app.state.runner.stop()
+    print("[ardflow] service stopped (its scheduler, workers and drivers with it)", flush=True)
     return 0
+
+
+def _stop(signum, frame):
+    """SIGTERM: leave by the normal exits (every ``finally`` and context manager runs)."""
+    raise SystemExit(0)
 
 
 def _client(a):

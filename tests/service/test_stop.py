@@ -1,0 +1,97 @@
+"""Stopping ``ardflow serve`` in any way stops every process it started (scheduler, nannies, workers, the parser
+pool, drivers), quickly and quietly: a Ctrl-C in its terminal (SIGINT to the whole foreground process group),
+SIGTERM from a service manager, and SIGKILL of the service alone."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ardflow.service.client import Client
+
+from .test_api import ROOT, TOKEN, free_port
+
+
+def _descendants(pid: int) -> set[int]:
+    """Every living process below ``pid`` (by /proc's parent links)."""
+    parents = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+                parents[int(d.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+    out, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        kids = [c for c, pp in parents.items() if pp == p]
+        out.update(kids)
+        todo += kids
+    return out
+
+
+def _alive(pids: set[int]) -> set[int]:
+    alive = set()
+    for p in pids:
+        try:
+            state = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z":
+            alive.add(p)
+    return alive
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process tree from /proc")
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm", "sigkill"])
+def test_stopping_the_service_leaves_no_process_and_little_output(tmp_path, how):
+    port = free_port()
+    log = tmp_path / "serve.log"
+    with open(log, "w") as fh:
+        # its own session, as a terminal's foreground job would be: a Ctrl-C reaches every process of the group
+        p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root",
+                              str(tmp_path / "root"), "--workers", "2", "--token", TOKEN], cwd=ROOT, stdout=fh,
+                             stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        deadline = time.time() + 120
+        while True:
+            try:
+                with Client(f"http://127.0.0.1:{port}", token=TOKEN, timeout=2) as c:
+                    c.health()
+                    # an upload starts the parser pool too
+                    csv = tmp_path / "d.csv"
+                    csv.write_text("t,y\n" + "".join(f"{i},{i % 3}\n" for i in range(30)))
+                    c.upload(csv)
+                break
+            except Exception:
+                if time.time() > deadline:
+                    raise
+                time.sleep(0.3)
+        started = log.read_text().count("\n")
+        children = _descendants(p.pid)
+        assert len(children) >= 4, children  # scheduler, two nannies (with their workers), the parser pool
+        t0 = time.monotonic()
+        if how == "ctrl-c":
+            os.killpg(p.pid, signal.SIGINT)
+        else:
+            os.kill(p.pid, signal.SIGTERM if how == "sigterm" else signal.SIGKILL)
+        p.wait(timeout=30)
+        stopped = time.monotonic() - t0
+        deadline = time.time() + 20
+        while _alive(children) and time.time() < deadline:
+            time.sleep(0.2)
+        assert not _alive(children), [Path(f"/proc/{q}/cmdline").read_bytes()[:80] for q in _alive(children)]
+        if how != "sigkill":  # a killed process says nothing; its children go on SIGTERM from the kernel
+            after = log.read_text().splitlines()[started:]
+            assert stopped < 10, stopped
+            assert len(after) <= 3 and "Traceback" not in log.read_text(), after
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
