@@ -85,7 +85,7 @@ def cmd_demo(a) -> int:
     print_table(summary)
     from ardflow.service.reports.paper import check_label, reference_checks
 
-    print("\n[demo] checks against the paper (issue 'Main job'):")
+    print("\n[demo] checks against the paper (docs/worked-example.md):")
     for c in reference_checks(summary, spec.true_values):
         print(f"  [{check_label(c)}] {c['check']}: {c['detail']}"
               + (f"\n      documented difference: {c['documented']}" if c.get("documented") else ""))

@@ -208,6 +208,12 @@ def _tests_table(j: dict, col: str) -> str:
                    f"<td>{html.escape(fmt(a)) if a else '(nothing added)'}</td></tr>")
     out.append("</table><p class='note'>White innovations: Ljung-Box p above 0.01, about 5 % of the "
                "autocorrelations outside the band, no spectral peak.</p>")
+    qb, qa = number((b or {}).get("ljung_box")), number((a or {}).get("ljung_box"))
+    if a and np.isfinite(qb) and np.isfinite(qa) and qa > qb * (1 + 0.1):
+        out.append(f"<p class='warn'>The innovations are less white after the loop than before (Ljung-Box Q "
+                   f"{_num(qb)} -> {_num(qa)}). The loop judges a model by its free run on held-out data, not by "
+                   "its one-step prediction; a better model can leave the filter less process noise to absorb "
+                   "what it still lacks, and that shows here as structure in the innovations.</p>")
     return "".join(out)
 
 
@@ -235,8 +241,9 @@ def _fate(c: dict, added: set) -> str:
     return "not added: another candidate explained it better"
 
 
-def _model_section(m: dict, unit: str) -> list[str]:
-    """The one model the report stands for: its noise level and why, its free run and band, its parameters."""
+def _model_section(m: dict, unit: str, scales: dict) -> list[str]:
+    """The one model the report stands for: its noise level and why, its free run and band, its parameters
+    (``scales``: :func:`effect_scales`)."""
     if not m:
         return []
     fr = m.get("free_run") or {}
@@ -256,14 +263,34 @@ def _model_section(m: dict, unit: str) -> list[str]:
                "refitted on the whole record there, with the Laplace approximation of its posterior"
                + (f"; at the posterior mean the same structure free-runs at {_num(pm)} {unit}" if pm is not None
                   else ""))
-    rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{_num(q.get('mean'))}</td><td>{_num(q.get('sd'))}</td>"
-                   f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>"
-                   for k, q in (m.get("parameters") or {}).items())
+    rows = "".join(_parameter_row(k, q, scales.get(k, 1.0)) for k, q in (m.get("parameters") or {}).items())
     return [f"<h3>The model reported</h3><p>One model: {how}. Its free-run RMS error is "
             f"{_num(fr.get('rms_error'))} {unit}{cover}.</p>",
-            "<details><summary>Its parameters (as fitted, an added effect's coefficient on its normalised term)"
-            "</summary><table><tr><th>parameter</th><th>mean</th><th>sd</th>"
+            "<details><summary>Its parameters (in the model's units: an added effect's coefficient is on its "
+            "term as the effect writes it)</summary><table><tr><th>parameter</th><th>mean</th><th>sd</th>"
             f"<th>99 % interval</th></tr>{rows}</table></details>"]
+
+
+def _parameter_row(name: str, q: dict, scale: float) -> str:
+    """One parameter of the reported model in the model's units (``scale``: what its fitted value, on a
+    normalised term, is multiplied by); a parameter without spread was held, not estimated: 'held'."""
+    v = {k: (q[k] * scale if isinstance(q.get(k), (int, float)) else q.get(k)) for k in ("mean", "q005", "q995")}
+    sd = q.get("sd")
+    if not sd:
+        return f"<tr><td>{html.escape(name)}</td><td>{_num(v['mean'])}</td><td colspan='2'>held at this value</td></tr>"
+    lo, hi = sorted((v["q005"], v["q995"])) if None not in (v["q005"], v["q995"]) else (v["q005"], v["q995"])
+    return (f"<tr><td>{html.escape(name)}</td><td>{_num(v['mean'])}</td><td>{_num(abs(sd * scale))}</td>"
+            f"<td>[{_num(lo)}, {_num(hi)}]</td></tr>")
+
+
+def effect_scales(j: dict) -> dict:
+    """Each added effect's coefficient -> the scale of its normalised term (the confirmations' ``scales``): the
+    value in the model's units is the fitted one times it."""
+    out = {}
+    for r in j.get("rounds") or []:
+        for c in r.get("confirmed") or []:
+            out.update({k: float(v) for k, v in (c.get("scales") or {}).items() if isinstance(v, (int, float))})
+    return out
 
 
 def _round_table(r: dict, k: int = 8) -> str:
@@ -369,7 +396,8 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
         # the coefficient as its round confirmed it, in the model's units; the reported model's table below holds
         # the final fit's values of the same parameters (normalised terms, refitted beside later effects)
         body.append("<h2>Effects added</h2><p>Each coefficient as the round that added it confirmed it, in the "
-                    "model's physical units; the final values are under <i>The model reported</i>.</p>"
+                    "model's units; the final model's values, refitted beside everything added after it, are under "
+                    "<i>The model reported</i> in the same units.</p>"
                     "<table><tr><th>effect</th><th>equation</th><th>character</th>"
                     "<th>ln BF</th><th>coefficient</th><th>mean when added</th><th>99 % interval</th></tr>")
         for a in j["added"]:
@@ -392,7 +420,7 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
     body += [_round_table(r) for r in j.get("rounds", [])]
     body += ["<h2>Error before and after</h2>", _error_table(j, unit), fig("free_run.png")]
     body += _held_out_section(j)
-    body += _model_section(j.get("reported") or {}, unit)
+    body += _model_section(j.get("reported") or {}, unit, effect_scales(j))
     body += ["<h2>Residual tests before and after</h2>", _tests_table(j, col), fig("tests.png"),
              "<h2>Where the model needed help</h2>", fig("process_noise.png"), fig("candidates.png")]
     style = ("body{font-family:sans-serif;font-size:15px;max-width:1100px;margin:auto}img{max-width:100%}"

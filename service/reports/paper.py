@@ -24,7 +24,7 @@ FIG15_M2OPT_BOUNDS = {
 DOCUMENTED_DIFFERENCES = {
     ("M1", "a3"): "the paper keeps a3 in the quasi-steady M1; here the evidence prunes it on every seed tried "
                   "(a4 takes its role in a model without the aerodynamic lag), and an independent implementation "
-                  "agrees: an accepted, documented difference (README, 'Demo results')",
+                  "agrees: an accepted, documented difference (docs/select.md, 'Why M1 drops a3')",
 }
 """(model, term) -> why this project's result differs from the paper's and is accepted."""
 
@@ -35,7 +35,7 @@ def check_label(c: dict) -> str:
 
 
 def reference_checks(summary: dict, true_values: dict) -> list[dict]:
-    """The main job's must-show checks on a Section 3.6 summary (issue "Main job").
+    """The checks of a Section 3.6 summary against the paper (docs/worked-example.md, "What the paper reports").
 
     Returns a list of ``{"check", "passed", "detail", "documented"}``: P(M2opt) >= 0.99; a5 and a6 pruned
     in every model; a3 and a4 kept in every model; every true parameter inside M2opt's 99 % bounds. A

@@ -32,6 +32,12 @@ def test_diagnosis_report_rounds_errors_in_units_and_tests(tmp_path):
     model = html.split("<h3>The model reported</h3>", 1)[1].split("</details>", 1)[0]
     assert model.startswith("<p>One model:") and f"{rep['reported']['free_run']['rms_error']:.4g}" in model
     assert "<th>99 % interval</th>" in model
+    # one coefficient, one value: an added effect's coefficient in the model's units, as "Effects added" gives it
+    from ardflow.service.reports.diagnosis import effect_scales
+
+    scales = effect_scales(rep)
+    for p in (a for x in rep["added"] for a in x["posterior"]):
+        assert f"<td>{p}</td><td>{rep['reported']['parameters'][p]['mean'] * scales[p]:.4g}</td>" in model
     # the verdict first, at most three sentences
     verdict = html.split("<b>Verdict.</b>", 1)[1].split("</p>", 1)[0]
     assert 1 <= len(re.findall(r"[.!?](\s|$)", verdict.strip())) <= 3, verdict
@@ -64,3 +70,13 @@ def test_diagnosis_report_rounds_errors_in_units_and_tests(tmp_path):
     # every figure the page links exists
     for name in re.findall(r"<img src='([^']+)'", html):
         assert (tmp_path / name).stat().st_size > 1000, name
+
+
+def test_less_white_innovations_after_the_loop_are_said():
+    from ardflow.service.reports.diagnosis import _tests_table
+
+    before, after = {"ljung_box": 3.6e4, "ljung_box_p": 0.0}, {"ljung_box": 6.1e4, "ljung_box_p": 0.0}
+    text = _tests_table({"tests_before": {"y": before}, "tests_after": {"y": after}}, "y")
+    assert "less white after the loop" in text and "3.6e+04 -> 6.1e+04" in text
+    text = _tests_table({"tests_before": {"y": after}, "tests_after": {"y": before}}, "y")
+    assert "less white" not in text

@@ -239,7 +239,7 @@ def test_report_for_any_study(tmp_path, thread_cluster):
     assert len(imgs) >= 6 and all((page.parent / f).stat().st_size > 1000 for f in imgs)
     assert "http" not in text  # no network assets
     assert "Model comparison" in text and "true inside" in text
-    assert "Fig." not in text  # the paper's figure numbers belong to the paper's own problem
+    assert "Fig." not in text and "issue" not in text.lower()  # the paper's figures and the project's issues are not the user's
     shown = load_page(page)  # headless Chromium, network cut off
     assert len(shown["images"]) == len(imgs)
     assert all(i["complete"] and i["width"] > 100 for i in shown["images"]), shown["images"]
