@@ -17,6 +17,11 @@ class SpecError(ArdflowError, ValueError):
     """A study or simulation specification is invalid."""
 
 
+class Damaged(ArdflowError):
+    """A stored file cannot be read whole (cut short, garbled or removed): the message says which and what is
+    still readable."""
+
+
 class FitError(ArdflowError):
     """A model could not be fitted to its data (no finite likelihood anywhere the search reached)."""
 

@@ -153,13 +153,18 @@ class Client:
             d = self.diagnosis(sid, st["model"])
             if d["status"] == "failed":
                 raise APIError(500, f"diagnosis failed: {d.get('error')}")
-            return d if d["status"] != "running" else None
+            return d if d["status"] not in ("queued", "running") else None
 
         return _until(poll, poll_s, timeout, lambda: f"diagnosis of {st['model']} still running after {timeout} s")
 
     def diagnosis(self, sid: str, model: str) -> dict:
-        """State (``running``/``done``/``failed``) and, when done, the ``report`` of a diagnosis."""
+        """State (``queued``/``running``/``done``/``failed``/``cancelled``) and, when done, the ``report`` of a
+        diagnosis."""
         return self._check(self.http.get(f"/studies/{sid}/diagnoses/{model}")).json()
+
+    def cancel_diagnosis(self, sid: str, model: str) -> dict:
+        """Stop a queued or running diagnosis."""
+        return self._check(self.http.post(f"/studies/{sid}/diagnoses/{model}/cancel", json={})).json()
 
     def diagnosis_figure(self, sid: str, model: str, name: str = "free_run.png") -> bytes:
         """A PNG of a finished diagnosis (tests, process_noise, candidates, free_run)."""

@@ -6,7 +6,6 @@ import asyncio
 import contextlib
 import functools
 import signal
-import threading
 
 
 class ClusterClient:
@@ -65,13 +64,15 @@ def deaf_to_ctrl_c():
     (:func:`die_with_parent`: a killed service takes them along). This process stops them in order. Outside the main thread (where no signal handler can be set) only the latter applies."""
     start = asyncio.create_subprocess_exec
     asyncio.create_subprocess_exec = functools.partial(start, start_new_session=True, preexec_fn=die_with_parent)
-    main = threading.current_thread() is threading.main_thread()
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+    try:
+        old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: no handler can be set here
+        old = None
     try:
         yield
     finally:
         asyncio.create_subprocess_exec = start
-        if main:
+        if old is not None:
             signal.signal(signal.SIGINT, old)
 
 

@@ -149,7 +149,7 @@ def inference_groups(store, model: str, *, log_likelihood: bool = False,
     """
     store = store if isinstance(store, StudyStore) else StudyStore(store)
     it, row = _best(store, model)
-    samples, lp, ll, names = store.read_samples(model, it)
+    samples, lp, ll, names = store.finished_samples(model, it)
     nc, nd, _ = samples.shape
     if max_draws is None and log_likelihood:
         max_draws = MAX_POINTWISE_DRAWS

@@ -192,7 +192,10 @@ class StudyStore:
 
         dg = self.group("r")["data"]
         cols = {k: np.asarray(dg[k][:]) for k in dg.array_keys() if k != "t"}
-        return Dataset(np.asarray(dg["t"][:]), cols, {"source": f"{self.url}/data"})
+        # named as the study names its data (a file, an uploaded data set's name, a generator), not by the
+        # store's place on this machine
+        source = (self.meta.get("data") or {}).get("source") or f"{self.url}/data"
+        return Dataset(np.asarray(dg["t"][:]), cols, {"source": source})
 
     def write_summary(self, summary: StudySummary, *, done: bool = True) -> None:
         """Write the summary; with ``done`` the study's status becomes ``done`` (a driver that renders a
@@ -274,6 +277,27 @@ class StudyStore:
         ll = np.asarray(tg["log_likelihood"][:])
         return (np.asarray(tg["samples"][:]), np.asarray(tg["log_prior"][:]) + ll, ll,
                 [str(x) for x in tg["param"][:]])
+
+    def finished_samples(self, model: str, iteration: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+        """:meth:`read_samples` of a finished trial, checked whole: a chunk cut short or garbled, or one removed
+        (zarr would fill it in silently), raises :class:`~ardcore.errors.Damaged` naming the trial and how much
+        of it is missing, never a NaN passed on as a draw (every draw of a finished trial is finite)."""
+        from ardflow.ardcore.errors import Damaged
+
+        where = f"model {model!r}, trial {iteration}"
+        try:
+            samples, lp, ll, names = self.read_samples(model, iteration)
+        except KeyError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - whatever the codec or the file system raises on a damaged chunk
+            raise Damaged(f"the stored draws of {where} cannot be read ({type(exc).__name__}): the store is "
+                          "damaged; the summary and the report stay readable") from None
+        bad = int(np.sum(~np.isfinite(samples).all(axis=-1)) + np.sum(~np.isfinite(ll)))
+        if bad:
+            raise Damaged(f"the stored draws of {where} are damaged: {bad} of {samples.shape[0] * samples.shape[1]} "
+                          "draws missing or not finite (a chunk removed or overwritten); the summary and the report "
+                          "stay readable")
+        return samples, lp, ll, names
 
     def finish_trial(self, model: str, iteration: int, trial: dict) -> None:
         tg = self.group()[self.trial_path(model, iteration)]

@@ -22,7 +22,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
@@ -234,17 +234,26 @@ def _service_router(c: _Service) -> APIRouter:
             n = 0
         return Health(status="ok" if n else "degraded", version="0.1.0", workers=n)
 
-    @r.get(f"{v1}/dashboard", response_model=DashboardLink, dependencies=[Depends(c.auth)])
-    def dashboard() -> DashboardLink:
+    @r.get(f"{v1}/dashboard", response_model=DashboardLink)
+    def dashboard(owner: str = Depends(c.auth)) -> DashboardLink:
+        # the dashboard names the scheduler, and a client of the scheduler runs code as the service: the
+        # cluster is the operator's (an admin, or the one user of a single-token service), never a user's
+        if len(c.auth.tokens) > 1 and owner not in c.access.admins:
+            return DashboardLink(url=None)
         return DashboardLink(url=getattr(c.client, "dashboard_link", None))
 
     @r.post(f"{v1}/datasets", response_model=DatasetInfo, status_code=201,
               openapi_extra={"requestBody": {"content": {"text/csv": {"schema": {"type": "string"}}},
-                                             "required": True}})
-    async def upload_dataset(request: Request, owner: str = Depends(c.auth),
-                             name: str | None = Query(None, max_length=120, pattern=PLAIN_TEXT,
-                                                      description="what the reports call it (its file name)")
-                             ) -> DatasetInfo:
+                                             "required": True},
+                             "parameters": [{"name": "name", "in": "query", "required": False,
+                                             "description": "what the reports call it (its file name)",
+                                             "schema": {"type": "string", "maxLength": 120,
+                                                        "pattern": PLAIN_TEXT}}]})
+    async def upload_dataset(request: Request, owner: str = Depends(c.auth)) -> DatasetInfo:
+        # read by hand: the body is CSV, and every refusal of this route is one message (the `detail` string)
+        name = request.query_params.get("name")
+        if name is not None and (len(name) > 120 or not re.fullmatch(PLAIN_TEXT, name)):
+            raise HTTPException(422, "name: at most 120 printable characters, without '$'")
         body = await request.body()
         if len(body) > c.max_body:
             raise HTTPException(413, f"data set larger than {c.settings.c.max_body_mb:g} MB")
@@ -387,8 +396,19 @@ def _studies_router(c: _Service) -> APIRouter:
     @r.delete(f"{v1}/studies/{{sid}}", status_code=204, dependencies=[Depends(c.access)])
     def delete(sid: str) -> Response:
         m = c.reg.meta(sid)
-        if m.get("status") not in FINAL or sid in c.runner.running():
+        if m.get("status") not in FINAL:
             raise HTTPException(409, f"study {sid} is {m.get('status')}: cancel it first")
+        # a study reads done a moment before its driver has exited (it writes the report last): wait for it
+        deadline = time.monotonic() + 15
+        while sid in c.runner.running() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        if sid in c.runner.running():
+            raise HTTPException(409, f"study {sid} is {m.get('status')} and its driver is still writing its report: "
+                                     "delete it again in a few seconds", headers={"Retry-After": "5"})
+        busy = c.runner.diagnosing(sid)
+        if busy:
+            raise HTTPException(409, f"a diagnosis of {busy[0]} is running in study {sid}: cancel it first "
+                                     f"(POST .../diagnoses/{busy[0]}/cancel)")
         shutil.rmtree(c.reg.study_dir(sid), ignore_errors=True)
         c.progress_cache.forget(sid)
         c.forget(sid)
@@ -422,21 +442,41 @@ def _diagnoses_router(c: _Service) -> APIRouter:
         if req.test_dataset and not c.dataset_visible(req.test_dataset, owner):
             raise HTTPException(404, f"no uploaded data set {req.test_dataset!r}")
         d = _diag_dir(sid, model)
-        if (d / "status.json").exists() and json.loads((d / "status.json").read_text())["status"] == "running":
-            raise HTTPException(409, f"a diagnosis of {model} is already running")
+        now = (c.runner.diagnosis_status(d) or {}).get("status")
+        if now in ("queued", "running"):
+            raise HTTPException(409, f"a diagnosis of {model} is already {now}")
         c.runner.diagnose(sid, model, req)
-        return DiagnosisStatus(model=model, status="running")
+        return DiagnosisStatus(model=model, status=c.runner.diagnosis_status(d)["status"])
+
+    @r.post(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/cancel", response_model=DiagnosisStatus,
+            dependencies=[Depends(c.access)])
+    def cancel_diagnosis(sid: str, model: str) -> DiagnosisStatus:
+        d = _diag_dir(sid, model)
+        st = c.runner.diagnosis_status(d)
+        if st is None:
+            raise HTTPException(404, f"no diagnosis of {model!r} in study {sid}")
+        if st["status"] not in ("queued", "running"):
+            raise HTTPException(409, f"the diagnosis of {model} is already {st['status']}")
+        c.runner.cancel_diagnosis(sid, model)
+        return DiagnosisStatus(model=model, status="cancelled")
 
     @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}", dependencies=[Depends(c.access)])
     def diagnosis(sid: str, model: str) -> JSONResponse:
         d = _diag_dir(sid, model)
-        if not (d / "status.json").exists():
+        st = c.runner.diagnosis_status(d)
+        if st is None:
             raise HTTPException(404, f"no diagnosis of {model!r} in study {sid} (POST .../diagnoses first)")
-        st = json.loads((d / "status.json").read_text())
         body = {"model": model, **st}
         if st["status"] == "done":
-            body["report"] = json.loads((d / "diagnosis.json").read_text())
-            body["figures"] = sorted(p.name for p in d.glob("*.png"))
+            try:
+                f = c.reg.file(d / "diagnosis.json")
+                if f is None:
+                    raise OSError("not a file of the study")
+                body["report"] = json.loads(f.read_text())
+            except (OSError, ValueError) as exc:
+                body.update(status="failed", error=f"its report (diagnosis.json) cannot be read ({type(exc).__name__}): "
+                                                   "start it again")
+            body["figures"] = sorted(p.name for p in d.glob("*.png") if c.reg.file(p))
         return JSONResponse(body)
 
     @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/report/{{name}}", dependencies=[Depends(c.access)],
@@ -444,18 +484,20 @@ def _diagnoses_router(c: _Service) -> APIRouter:
     def diagnosis_report(sid: str, model: str, name: str):
         """The diagnosis report (``diagnosis.html``) and its figures, beside each other as the report links them."""
         d = _diag_dir(sid, model)
-        if not re.match(r"^[a-z_]{1,40}\.(png|html)$", name) or not (d / name).is_file():
+        f = c.reg.file(d / name) if re.match(r"^[a-z_]{1,40}\.(png|html)$", name) else None
+        if f is None:
             raise HTTPException(404, f"no diagnosis report file {name!r} (a diagnosis writes it when it finishes)")
         kind = "text/html; charset=utf-8" if name.endswith(".html") else "image/png"
-        return Response((d / name).read_bytes(), media_type=kind)
+        return Response(f.read_bytes(), media_type=kind)
 
     @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/figures/{{name}}", dependencies=[Depends(c.access)],
              responses={200: {"content": {"image/png": {}}}})
     def diagnosis_figure(sid: str, model: str, name: str):
         d = _diag_dir(sid, model)
-        if not re.match(r"^[a-z_]{1,40}\.png$", name) or not (d / name).exists():
+        f = c.reg.file(d / name) if re.match(r"^[a-z_]{1,40}\.png$", name) else None
+        if f is None:
             raise HTTPException(404, f"no figure {name!r}")
-        return Response((d / name).read_bytes(), media_type="image/png")
+        return Response(f.read_bytes(), media_type="image/png")
 
     return r
 

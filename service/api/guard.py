@@ -86,6 +86,21 @@ def _duplicate_key(body: bytes) -> str | None:
     return None
 
 
+def _hardened(send):
+    """``send`` with every answer marked: never sniffed into another type, never framed by another origin (an
+    HTML page that sets its own policy keeps it; the others get ``frame-ancestors 'none'``)."""
+    async def out(msg):
+        if msg["type"] == "http.response.start":
+            have = {k.lower() for k, _ in msg.get("headers", [])}
+            extra = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"DENY")]
+            if b"content-security-policy" not in have:
+                extra.append((b"content-security-policy", b"frame-ancestors 'none'"))
+            msg = {**msg, "headers": [*msg.get("headers", []), *(h for h in extra if h[0] not in have)]}
+        await send(msg)
+
+    return out
+
+
 class RequestGuard:
     """ASGI middleware: body-size limit, Host allow-list, Content-Type of POST bodies."""
 
@@ -98,6 +113,7 @@ class RequestGuard:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
+        send = _hardened(send)
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
         if self.allowed_hosts is not None:
             host = headers.get("host", "")

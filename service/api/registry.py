@@ -7,6 +7,7 @@ import logging
 import math
 import os
 import re
+import secrets
 import threading
 import time
 from pathlib import Path
@@ -87,6 +88,20 @@ class Registry:
             text = re.sub(re.escape(root) + r"/studies/([^/\s'\"]+)/?", r"study \1: ", text)
             text = text.replace(root, "<registry>")
         return text
+
+    def file(self, path: Path) -> Path | None:
+        """``path`` when it is a regular file under this registry reached without a symbolic link (a link placed
+        in a study, to the token registry or any file outside, is never followed), else None."""
+        try:
+            rel = path.absolute().relative_to(self.root.absolute())
+        except ValueError:
+            return None
+        p = self.root.absolute()
+        for part in rel.parts:
+            p = p / part
+            if p.is_symlink():
+                return None
+        return p if p.is_file() else None
 
     def owner(self, sid: str) -> str | None:
         """Who submitted ``sid`` (None when its entry cannot be read). An entry's owner never changes: cached."""
@@ -172,13 +187,21 @@ class Runner:
         self.threads: dict[str, threading.Thread] = {}
         self.procs: dict[str, Any] = {}
         self.queue: list[str] = []
+        self.diag_queue: list[tuple] = []  # (sid, model, request): diagnoses waiting for a free slot
         self.lock = threading.RLock()
         self.closing = False
         self.peak_running = 0
+        self.instance = secrets.token_hex(8)  # which service started a diagnosis: another's died with it
 
     def running(self) -> list[str]:
+        """The studies whose driver runs now."""
         with self.lock:
-            return [s for s, t in self.threads.items() if t.is_alive()]
+            return [s for s, t in self.threads.items() if t.is_alive() and "/" not in s]
+
+    def busy(self) -> int:
+        """Drivers and diagnoses running now: together at most ``max_running``."""
+        with self.lock:
+            return sum(t.is_alive() for t in self.threads.values())
 
     def start(self, sid: str) -> None:
         """Queue ``sid``; it starts when fewer than ``max_running`` drivers run."""
@@ -189,14 +212,20 @@ class Runner:
 
     def _pump(self) -> None:
         with self.lock:
-            while self.queue and not self.closing and len(self.running()) < self.max_running:
-                sid = self.queue.pop(0)
-                if self.registry.status(sid)["status"] in ("cancelled", DAMAGED):
-                    continue
-                th = threading.Thread(target=self._run, args=(sid,), name=f"study-{sid}", daemon=True)
-                self.threads[sid] = th
+            while (self.queue or self.diag_queue) and not self.closing and self.busy() < self.max_running:
+                if self.queue:
+                    sid = self.queue.pop(0)
+                    if self.registry.status(sid)["status"] in ("cancelled", DAMAGED):
+                        continue
+                    key, th = sid, threading.Thread(target=self._run, args=(sid,), name=f"study-{sid}", daemon=True)
+                else:
+                    sid, model, req = self.diag_queue.pop(0)
+                    key = f"{sid}/diagnose/{model}"
+                    th = threading.Thread(target=self._diagnose, args=(sid, model, req), name=f"diagnose-{key}",
+                                          daemon=True)
+                self.threads[key] = th
                 th.start()
-                self.peak_running = max(self.peak_running, len(self.running()))
+                self.peak_running = max(self.peak_running, self.busy())
 
     def _run(self, sid: str) -> None:
         try:
@@ -275,35 +304,91 @@ class Runner:
                 p.kill()
 
     def diagnose(self, sid: str, model: str, req: "DiagnoseRequest") -> None:
-        """``ardflow diagnose STORE --model M --out studies/<id>/diagnoses/<M>`` in a child process."""
+        """Queue ``ardflow diagnose STORE --model M --out studies/<id>/diagnoses/<M>``: a job like a study's
+        driver, started when fewer than ``max_running`` drivers and diagnoses run."""
+        out = self.registry.study_dir(sid) / "diagnoses" / model
+        out.mkdir(parents=True, exist_ok=True)
+        with self.lock:
+            write_diagnosis_status(out, {"status": "queued", "queued": time.time(), "service": self.instance})
+            self.diag_queue.append((sid, model, req))
+        self._pump()
+
+    def _diagnose(self, sid: str, model: str, req: "DiagnoseRequest") -> None:
         import subprocess
         import sys
 
         reg = self.registry
         out = reg.study_dir(sid) / "diagnoses" / model
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "status.json").write_text(json.dumps({"status": "running", "started": time.time()}))
-        cmd = [sys.executable, "-m", "ardflow.service.cli", "diagnose", str(reg.store(sid)), "--model", model,
-               "--out", str(out), "--top-k", str(req.top_k), "--max-rounds", str(req.max_rounds)]
-        if req.test_dataset:
-            cmd += ["--test-data", str(reg.root / "datasets" / f"{req.test_dataset}.csv")]
-
-        def run():
+        key = f"{sid}/diagnose/{model}"
+        try:
+            with self.lock:
+                if (self.diagnosis_status(out) or {}).get("status") != "queued":  # cancelled meanwhile
+                    return
+                write_diagnosis_status(out, {"status": "running", "started": time.time(), "service": self.instance})
+            cmd = [sys.executable, "-m", "ardflow.service.cli", "diagnose", str(reg.store(sid)), "--model", model,
+                   "--out", str(out), "--top-k", str(req.top_k), "--max-rounds", str(req.max_rounds)]
+            if req.test_dataset:
+                cmd += ["--test-data", str(reg.root / "datasets" / f"{req.test_dataset}.csv")]
             with open(out / "diagnose.log", "w") as logf:
                 p = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      preexec_fn=die_with_parent)
-                self.procs[f"{sid}/diagnose/{model}"] = p
+                self.procs[key] = p
                 rc = p.wait()
-            if self.closing:
+            if self.closing or (self.diagnosis_status(out) or {}).get("status") == "cancelled":
                 return
             if rc == 0 and (out / "diagnosis.json").exists():
                 st = {"status": "done"}
             else:
                 tail = (out / "diagnose.log").read_text()[-2000:].strip().splitlines()
-                st = {"status": "failed", "error": tail[-1] if tail else f"exit {rc}"}
-            (out / "status.json").write_text(json.dumps(st))
+                st = {"status": "failed", "error": reg.public(tail[-1] if tail else f"exit {rc}")}
+            write_diagnosis_status(out, st)
+        finally:
+            with self.lock:
+                self.threads.pop(key, None)
+            self._pump()
 
-        threading.Thread(target=run, name=f"diagnose-{sid}-{model}", daemon=True).start()
+    def diagnosing(self, sid: str) -> list[str]:
+        """The models of ``sid`` whose diagnosis is queued or runs now."""
+        pre = f"{sid}/diagnose/"
+        with self.lock:
+            return [m for s, m, _ in self.diag_queue if s == sid] + [
+                k[len(pre):] for k, t in self.threads.items() if k.startswith(pre) and t.is_alive()]
+
+    def cancel_diagnosis(self, sid: str, model: str) -> None:
+        """Stop the diagnosis of ``model`` in ``sid``: marked cancelled durably, then its process ended."""
+        out = self.registry.study_dir(sid) / "diagnoses" / model
+        with self.lock:
+            write_diagnosis_status(out, {"status": "cancelled"})
+            self.diag_queue = [q for q in self.diag_queue if q[:2] != (sid, model)]
+        p = self.procs.get(f"{sid}/diagnose/{model}")
+        if p is not None and p.poll() is None:
+            p.terminate()
+            try:
+                p.wait(self.cancel_grace_s)
+            except Exception:  # noqa: BLE001 - subprocess.TimeoutExpired: it did not stop in time
+                p.kill()
+
+    def diagnosis_status(self, folder: Path) -> dict | None:
+        """The status of the diagnosis in ``folder`` (None when none was started): ``running``, ``done`` or
+        ``failed`` with its ``error``. A status file that cannot be read (a write cut short by a full disk) is a
+        failed diagnosis saying so; one left ``running`` by a service that has since stopped (its process died
+        with it) is failed with that reason, so it can be started again."""
+        f = folder / "status.json"
+        if not f.exists() and not f.is_symlink():
+            return None
+        try:
+            if self.registry.file(f) is None:
+                raise OSError("not a file of the study")
+            st = json.loads(f.read_text())
+            if not isinstance(st, dict) or st.get("status") not in ("queued", "running", "done", "failed", "cancelled"):
+                raise ValueError(f"status {str(st)[:40]!r}")
+        except (OSError, ValueError) as exc:
+            return {"status": "failed", "error": f"its status file cannot be read ({_why(exc)}): start it again"}
+        if st["status"] in ("queued", "running") and st.get("service") != self.instance:
+            return {"status": "failed", "error": f"the service stopped while it was {st['status']}: start it again"}
+        if st["status"] == "done" and not (folder / "diagnosis.json").is_file():
+            return {"status": "failed", "error": "its report is missing: start it again"}
+        return {k: v for k, v in st.items() if k != "service"}
 
     def stop(self) -> None:
         self.closing = True
@@ -311,6 +396,13 @@ class Runner:
         for p in self.procs.values():
             if p.poll() is None:
                 p.terminate()
+
+
+def write_diagnosis_status(folder: Path, st: dict) -> None:
+    """Write a diagnosis's ``status.json`` whole or not at all."""
+    from ardflow.ardcore.jsonio import atomic_write_text
+
+    atomic_write_text(folder / "status.json", json.dumps(st))
 
 
 # ------------------------------------------------------------------ progress

@@ -11,6 +11,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import JSONResponse, Response
 
+from ardflow.ardcore.errors import Damaged
 from ardflow.service.api.auth import StudyAccess
 from ardflow.service.api.registry import Registry
 from ardflow.service.api.schemas import API_VERSION, ID_RE, finite_or_none
@@ -51,7 +52,11 @@ def _results(reg: Registry, access: StudyAccess) -> APIRouter:
         text = reg.store(sid).read_text("summary.json")
         if text is None:
             raise HTTPException(409, f"study {sid} has no summary yet (status {reg.readable(sid).get('status')})")
-        return JSONResponse(json.loads(text))
+        try:
+            return JSONResponse(json.loads(text))
+        except ValueError as exc:
+            raise HTTPException(409, f"study {sid}'s summary (summary.json) is damaged ({type(exc).__name__}); its "
+                                     "draws stay readable per model (GET .../posterior/MODEL)") from None
 
     @r.get(f"{v1}/studies/{{sid}}/posterior/{{model}}", dependencies=[Depends(access)],
              responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}})
@@ -63,9 +68,11 @@ def _results(reg: Registry, access: StudyAccess) -> APIRouter:
             raise HTTPException(422, "max_draws must be between 1 and 1000000")
         it = _best_trial(reg, sid, model)
         try:
-            samples, lp, ll, names = reg.store(sid).read_samples(model, it)
+            samples, lp, ll, names = reg.store(sid).finished_samples(model, it)
         except (KeyError, FileNotFoundError):
             raise HTTPException(409, f"model {model!r} of study {sid} has no stored samples") from None
+        except Damaged as exc:
+            raise HTTPException(409, str(exc)) from None
         if format == "npz":
             buf = io.BytesIO()
             np.savez_compressed(buf, names=np.array(names), samples=samples, log_posterior=lp, log_likelihood=ll)
@@ -92,7 +99,7 @@ def _results(reg: Registry, access: StudyAccess) -> APIRouter:
 
         try:
             ig = inference_groups(reg.store(sid), model, log_likelihood=log_likelihood, max_draws=max_draws)
-        except LookupError as exc:
+        except (LookupError, Damaged) as exc:
             raise HTTPException(409, str(exc)) from None
         return Response(ig.to_npz(), media_type="application/octet-stream",
                         headers={"Content-Disposition": f'attachment; filename="{sid}_{model}_arviz.npz"'})
@@ -126,11 +133,12 @@ def _figures(reg: Registry, access: StudyAccess) -> APIRouter:
         """The study's report (``report.html``) and its figures (PNG), as written when the study finished."""
         meta = reg.readable(sid)
         d = reg.store(sid).path / "report"
-        if not re.match(r"^[A-Za-z0-9_]{1,60}\.(png|html)$", name) or not (d / name).is_file():
+        f = reg.file(d / name) if re.match(r"^[A-Za-z0-9_]{1,60}\.(png|html)$", name) else None
+        if f is None:
             if meta.get("status") != "done":
                 raise HTTPException(409, f"study {sid} is {meta.get('status')}: the report is written when it finishes")
             raise HTTPException(404, f"no report file {name!r}")
         kind = "text/html; charset=utf-8" if name.endswith(".html") else "image/png"
-        return Response((d / name).read_bytes(), media_type=kind)
+        return Response(f.read_bytes(), media_type=kind)
 
     return r

@@ -138,7 +138,7 @@ def cmd_status(a) -> int:
             if getattr(a, "json", False):
                 # what the table shows, as data: each study's models and, when done, its best model
                 for r in rows:
-                    if not r.get("models"):
+                    if not r.get("models") and r["status"] != "damaged":
                         r["models"] = c.status(r["id"]).get("models", {})
                     if r["id"] in best:
                         r["best_model"], r["probability"] = best[r["id"]]
@@ -152,8 +152,14 @@ def cmd_status(a) -> int:
 
 
 def _best(c, row: dict) -> tuple[str | None, float | None]:
-    """A finished study's best model and that model's probability."""
-    s = c.summary(row["id"])
+    """A finished study's best model and that model's probability (None, None when its summary cannot be read:
+    a damaged study is listed, not a failed listing)."""
+    from ardflow.service.client import APIError
+
+    try:
+        s = c.summary(row["id"])
+    except APIError:
+        return None, None
     p = {m["name"]: m.get("probability") for m in s.get("models", [])}
     b = s.get("best_model")
     return b, p.get(b)
@@ -161,7 +167,7 @@ def _best(c, row: dict) -> tuple[str | None, float | None]:
 
 def _best_text(model, probability) -> str:
     """'M2 (P 1.00)'."""
-    return f"{model} (P {probability:.2f})" if probability is not None else str(model)
+    return f"{model} (P {probability:.2f})" if probability is not None else ("-" if model is None else str(model))
 
 
 def _ago(seconds: float) -> str:

@@ -53,7 +53,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
     reference = spec.data.generator == "reference"
     best = summary["best_model"]
     it, _ = store.model_result(best)
-    samples, _, _, names = store.read_samples(best, it)
+    samples, _, _, names = store.finished_samples(best, it)
     truth, ref_bounds = _truth(spec, best)
     data = store.load_data()
     col = "y" if "y" in data.columns else next(iter(data.columns))

@@ -108,6 +108,24 @@ def test_submit_watch_summary_posterior(service, tmp_path):
         with pytest.raises(APIError) as e:
             c._check(c.http.get(f"/studies/{sid}/report/../meta.json"))
         assert e.value.status == 404
+        # damaged files: a garbled chunk of draws, a removed one, a garbage summary: each a 409 that says
+        # damaged, never a 500 and never NaN passed on as draws
+        by_model = {}
+        for model in ("quad", "cubic"):  # the chunks of the draws each model reports (its best trial's)
+            it = c._check(c.http.get(f"/studies/{sid}/posterior/{model}", params={"max_draws": 1})).json()["iteration"]
+            trial = root / "studies" / sid / "store" / "models" / model / "trials" / f"{it:03d}" / "samples"
+            by_model[model] = sorted(p for p in trial.rglob("*") if p.is_file() and p.name != "zarr.json")
+            assert by_model[model], trial
+        by_model["quad"][0].write_bytes(by_model["quad"][0].read_bytes()[:7])  # cut short
+        by_model["cubic"][0].unlink()  # removed: zarr would fill it in silently
+        for model in ("quad", "cubic"):
+            for path in (f"/studies/{sid}/posterior/{model}", f"/studies/{sid}/posterior/{model}?format=npz",
+                         f"/studies/{sid}/inference_data/{model}"):
+                r = c.http.get(path)
+                assert r.status_code == 409 and "damaged" in r.json()["detail"], (path, r.status_code, r.text[:200])
+        (root / "studies" / sid / "store" / "summary.json").write_text("{garbage")
+        r = c.http.get(f"/studies/{sid}/summary")
+        assert r.status_code == 409 and "damaged" in r.json()["detail"], r.text
 
 
 def test_uploaded_csv_study(service, tmp_path):
@@ -307,7 +325,7 @@ def test_diagnose_over_http(service, tmp_path):
     """Fit a linear oscillator to Duffing data over the API, then close the loop over the API."""
     from tests.ardcore.test_diagnose import duffing_free_decay, duffing_spec
 
-    url, _ = service
+    url, root = service
     data = duffing_free_decay(-4.0, 3)
     est, held = tmp_path / "est.csv", tmp_path / "held.csv"
     data.slice(0, 1000).to_csv(est)
@@ -328,3 +346,32 @@ def test_diagnose_over_http(service, tmp_path):
         assert rep["n_test"] == len(data) - 1000
         assert set(d["figures"]) >= {"tests.png", "free_run.png", "candidates.png", "process_noise.png"}
         assert c.diagnosis_figure(sid, d["model"], "free_run.png")[:8] == b"\x89PNG\r\n\x1a\n"
+        # no server path in what a user reads: the data are named as the study names them
+        assert rep["data"].startswith("est.csv (uploaded data set ") and str(root) not in json.dumps(rep)
+        # a damaged status file (a write cut short) and one left "running" by a service that stopped are
+        # failed diagnoses that say so, never a 500 and never "running" forever; a new one can be started
+        status = root / "studies" / sid / "diagnoses" / d["model"] / "status.json"
+        for text, why in (("", "cannot be read"), ('{"status": "runn', "cannot be read"),
+                          ('{"status": "running", "service": "gone"}', "service stopped while it was running")):
+            status.write_text(text)
+            got = c._check(c.http.get(f"/studies/{sid}/diagnoses/{d['model']}")).json()
+            assert got["status"] == "failed" and why in got["error"], got
+        again = c.diagnose(sid, top_k=1, max_rounds=1, poll_s=0.5, timeout=300)
+        assert again["status"] == "done"
+        # a symbolic link placed in a study is never followed, to a file outside or inside the registry
+        outside = tmp_path / "secret.html"
+        outside.write_text("secret")
+        diag = status.parent
+        for link, target in ((diag / "leak.png", outside), (diag / "evil.html", outside),
+                             (root / "studies" / sid / "store" / "report" / "evil.html", outside),
+                             (diag / "twin.png", diag / "free_run.png")):
+            link.symlink_to(target)
+        for path in (f"/studies/{sid}/diagnoses/{d['model']}/figures/leak.png",
+                     f"/studies/{sid}/diagnoses/{d['model']}/figures/twin.png",
+                     f"/studies/{sid}/diagnoses/{d['model']}/report/evil.html", f"/studies/{sid}/report/evil.html"):
+            r = c.http.get(path)
+            assert r.status_code == 404 and b"secret" not in r.content, (path, r.status_code)
+        assert "leak.png" not in c.diagnosis(sid, d["model"])["figures"]
+        status.unlink()
+        status.symlink_to(outside)
+        assert c.diagnosis(sid, d["model"])["status"] == "failed"

@@ -15,6 +15,7 @@ import pytest
 
 from ardflow.service.api.schemas import Settings
 from ardflow.service.api.app import create_app
+from ardflow.service.client import APIError, Client
 
 from .test_api import ROOT, SPEC, TOKEN, Server, ServiceProcess, free_port, served
 
@@ -494,6 +495,9 @@ def test_studies_belong_to_the_token_that_made_them(hostile, tmp_path):
             r = c.request(method, f"{base}/studies/{a}{path}", headers=B, json={} if method == "POST" else None)
             assert r.status_code == 404 and "no study" in r.json()["detail"], (method, path, r.status_code)
         assert c.get(f"{base}/studies/{a}", headers=A).status_code == 200
+        # the dashboard (and with it the scheduler's address) is the operator's, not a user's
+        assert c.get(f"{base}/dashboard", headers=A).json()["url"] is None
+        assert c.get(f"{base}/dashboard", headers=R).json()["url"]
         # data sets are owned too: bob cannot study alice's upload (as for none), alice and the admin can
         csv = b"t,y\n" + b"".join(f"{i},{i % 3}\n".encode() for i in range(30))
         did = c.post(f"{base}/datasets", content=csv, headers={**A, "Content-Type": "text/csv"}).json()["id"]
@@ -577,3 +581,45 @@ def test_a_json_body_with_a_repeated_key_is_refused(hostile):
     assert '"n_chains": 3, "n_chains": 4' in nested
     r = httpx.post(f"{url}/v1/studies", content=nested, headers={**H, "Content-Type": "application/json"}, timeout=60)
     assert r.status_code == 422 and "n_chains" in r.json()["detail"]
+
+
+def test_diagnoses_are_jobs_like_studies(hostile, tmp_path):
+    """A diagnosis takes a slot of --max-running like a study's driver (a study submitted meanwhile waits),
+    it can be cancelled, and its study cannot be deleted under it."""
+    from tests.ardcore.test_diagnose import duffing_free_decay, duffing_spec
+
+    _, _, _, dc = hostile
+    port = free_port()
+    app = create_app(Settings(root=tmp_path, token=TOKEN, max_running=1), dc)
+    rec = duffing_free_decay(-4.0, 3)
+    csv = tmp_path / "est.csv"
+    rec.slice(0, 1000).to_csv(csv)
+    spec = duffing_spec().model_dump(mode="json", exclude_none=True)
+    spec.update(name="osc", data={})
+    with Server(app, port), Client(f"http://127.0.0.1:{port}", token=TOKEN) as c:
+        sid = c.submit(spec, csv=csv)
+        assert c.wait(sid, poll_s=0.3, timeout=300, progress=False)["status"] == "done"
+        d = c.diagnose(sid, top_k=2, max_rounds=3, wait=False)
+        model = d["model"]
+        deadline = time.time() + 30
+        while c.diagnosis(sid, model)["status"] != "running" and time.time() < deadline:
+            time.sleep(0.1)
+        assert c.diagnosis(sid, model)["status"] == "running"
+        other = c.submit(dict(SPEC, seed=71))
+        time.sleep(1.5)
+        assert c.status(other)["status"] == "queued"  # the one slot is the diagnosis's
+        with pytest.raises(APIError) as e:
+            c._check(c.http.delete(f"/studies/{sid}"))
+        assert e.value.status == 409 and "diagnosis" in e.value.message
+        with pytest.raises(APIError) as e:
+            c.diagnose(sid, model, wait=False)
+        assert e.value.status == 409 and "already running" in e.value.message
+        assert c.cancel_diagnosis(sid, model)["status"] == "cancelled"
+        assert c.diagnosis(sid, model)["status"] == "cancelled"
+        deadline = time.time() + 30
+        while c.status(other)["status"] == "queued" and time.time() < deadline:
+            time.sleep(0.2)
+        assert c.status(other)["status"] in ("running", "done")  # the slot went to the waiting study
+        c.cancel(other)
+        c._check(c.http.delete(f"/studies/{sid}"))
+        app.state.runner.stop()

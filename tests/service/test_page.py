@@ -44,6 +44,11 @@ def test_page_headers_and_session(service):
     csp = r.headers["content-security-policy"]
     assert "script-src 'nonce-" in csp and "__NONCE__" not in r.text
     assert "http://" not in r.text.replace(service, "") and "https://" not in r.text  # no CDN
+    # every answer, JSON, HTML or an error, is never sniffed and never framed by another origin
+    for path in ("/", "/v1/health", "/v1/studies", "/v1/no-such-route"):
+        h = httpx.get(service + path).headers
+        assert h["x-content-type-options"] == "nosniff" and h["x-frame-options"] == "DENY", (path, h)
+        assert "frame-ancestors 'none'" in h["content-security-policy"], (path, h)
     with httpx.Client(base_url=service) as c:
         assert c.get("/v1/studies").status_code == 401
         assert c.post("/v1/session", json={"token": "wrong"}).status_code == 401
