@@ -1,5 +1,6 @@
 """Who is calling: API tokens (header ``X-API-Token`` or ``Authorization: Bearer``) and, for the study page,
-the same token held in an HttpOnly, SameSite=Strict cookie set by ``POST /v1/session``."""
+a session id (not the token) held in an HttpOnly, SameSite=Strict cookie set by ``POST /v1/session`` and
+revoked by ``DELETE /v1/session``."""
 
 from __future__ import annotations
 
@@ -21,6 +22,21 @@ class TokenAuth:
 
     def __init__(self, tokens: dict[str, str]):
         self.tokens = dict(tokens)
+        # the page's sign-ins: a random session id (the cookie) -> its owner; the token itself never leaves
+        # the sign-in request, and signing out revokes the id (a restart signs everyone out)
+        self.sessions: dict[str, str] = {}
+
+    def open_session(self, owner: str) -> str:
+        """A new session id for ``owner`` (what the page's cookie holds)."""
+        import secrets
+
+        sid = secrets.token_urlsafe(32)
+        self.sessions[sid] = owner
+        return sid
+
+    def close_session(self, sid: str | None) -> None:
+        """Revoke a session id: its cookie authenticates nothing from now on."""
+        self.sessions.pop(sid or "", None)
 
     @property
     def required(self) -> bool:
@@ -40,8 +56,8 @@ class TokenAuth:
         given = request.headers.get("x-api-token")
         if given is None:
             h = request.headers.get("authorization", "")
-            given = h[7:] if h.lower().startswith("bearer ") else request.cookies.get(COOKIE)
-        owner = self.owner(given)
+            given = h[7:] if h.lower().startswith("bearer ") else None
+        owner = self.owner(given) if given is not None else self.sessions.get(request.cookies.get(COOKIE) or "")
         if owner is None:
             raise HTTPException(401, "missing or wrong API token", headers={"WWW-Authenticate": "Bearer"})
         return owner

@@ -49,7 +49,8 @@ def _cookie_only(headers: dict) -> bool:
     return any(part.strip().startswith(COOKIE + "=") for part in headers.get("cookie", "").split(";"))
 
 
-def _same_origin(headers: dict) -> bool:
+def same_origin(headers: dict) -> bool:
+    """Whether a browser says the request comes from this host and port (``Origin``, ``Sec-Fetch-Site``)."""
     site = headers.get("sec-fetch-site")
     if site is not None and site not in ("same-origin", "none"):
         return False
@@ -127,7 +128,7 @@ class RequestGuard:
             if int(cl) > self.max_body:
                 return await _answer(send, 413, f"request body larger than {self.max_body / 2**20:g} MB")
         method = scope.get("method", "GET")
-        if method in STATE_CHANGES and _cookie_only(headers) and not _same_origin(headers):
+        if method in STATE_CHANGES and _cookie_only(headers) and not same_origin(headers):
             return await _answer(send, 403, "cross-site request refused: a change made with the page's sign-in "
                                             "cookie must come from the page itself (Origin / Sec-Fetch-Site)")
         if method == "POST" or (method in ("PUT", "PATCH") and (cl not in (None, "0")

@@ -2,7 +2,8 @@
 
 One HTML file (``page.html``: no CDN, no build step). It talks to the same ``/v1`` API as every other
 client; a browser cannot put the token in a header of a link or an ``EventSource``, so
-``POST /v1/session`` puts it in an HttpOnly, SameSite=Strict cookie that :class:`TokenAuth` also reads.
+``POST /v1/session`` exchanges it for a session id in an HttpOnly, SameSite=Strict cookie that
+:class:`TokenAuth` also reads (``DELETE /v1/session`` revokes it).
 Cross-site requests carry no such cookie, and every POST must be JSON (:mod:`.guard`), so a foreign page
 cannot act with it.
 """
@@ -17,6 +18,7 @@ from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel, Field
 
 from ardflow.service.api.auth import COOKIE, TokenAuth
+from ardflow.service.api.guard import same_origin
 from ardflow.service.api.schemas import API_VERSION
 
 PAGE = Path(__file__).with_name("page.html")
@@ -42,16 +44,23 @@ def page_router(auth: TokenAuth) -> APIRouter:
 
     @r.post(f"/{API_VERSION}/session", status_code=204)
     def sign_in(req: SessionRequest, request: Request) -> Response:
-        if auth.required and auth.owner(req.token) is None:
+        headers = {k.lower(): v for k, v in request.headers.items()}
+        if ("origin" in headers or "sec-fetch-site" in headers) and not same_origin(headers):
+            # a foreign page must not sign a browser in (login CSRF): only the page itself, or a client
+            # that is not a browser (no Origin at all)
+            raise HTTPException(403, "cross-site sign-in refused: sign in from the study page itself")
+        owner = auth.owner(req.token) if auth.required else "anonymous"
+        if owner is None:
             raise HTTPException(401, "wrong API token")
         resp = Response(status_code=204)
         if auth.required:
-            resp.set_cookie(COOKIE, req.token, httponly=True, samesite="strict", path="/",
+            resp.set_cookie(COOKIE, auth.open_session(owner), httponly=True, samesite="strict", path="/",
                             secure=request.url.scheme == "https")
         return resp
 
     @r.delete(f"/{API_VERSION}/session", status_code=204)
-    def sign_out() -> Response:
+    def sign_out(request: Request) -> Response:
+        auth.close_session(request.cookies.get(COOKIE))
         resp = Response(status_code=204)
         resp.delete_cookie(COOKIE, path="/")
         return resp

@@ -52,14 +52,21 @@ def test_page_headers_and_session(service):
     with httpx.Client(base_url=service) as c:
         assert c.get("/v1/studies").status_code == 401
         assert c.post("/v1/session", json={"token": "wrong"}).status_code == 401
+        # a foreign page cannot sign a browser in (login CSRF)
+        r = c.post("/v1/session", json={"token": TOKEN}, headers={"Origin": "http://evil.example"})
+        assert r.status_code == 403 and "set-cookie" not in r.headers
         r = c.post("/v1/session", json={"token": TOKEN})
         assert r.status_code == 204
         cookie = r.headers["set-cookie"].lower()
         assert "httponly" in cookie and "samesite=strict" in cookie
+        session = c.cookies.get("ardflow_token")
+        assert session and TOKEN not in r.headers["set-cookie"]  # the cookie is a session, not the token
         assert c.get("/v1/studies").status_code == 200  # the cookie authenticates
         assert c.delete("/v1/session").status_code == 403  # a cookie change without the page's Origin
         assert c.delete("/v1/session", headers={"Origin": service}).status_code == 204
         assert c.get("/v1/studies").status_code == 401
+    # signing out revokes the session: its cookie, replayed, authenticates nothing
+    assert httpx.get(service + "/v1/studies", cookies={"ardflow_token": session}).status_code == 401
 
 
 def test_page_submit_watch_report(service, tmp_path):
