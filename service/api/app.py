@@ -22,7 +22,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
@@ -100,6 +100,7 @@ class _Service:
             tokens.setdefault("default", settings.token)
         self.auth = TokenAuth(tokens)
         self._recent: dict[str, tuple[float, StudyStatus]] = {}
+        self._final: dict[str, tuple] = {}  # finished studies' listing rows and their files' times (:meth:`listed`)
         self.admission = Admission(self.reg, self.runner, settings)
         self.access = StudyAccess(self.auth, self.reg, settings.admins)
 
@@ -138,6 +139,24 @@ class _Service:
 
     def forget(self, sid: str) -> None:
         self._recent.pop(sid, None)
+        self._final.pop(sid, None)
+
+    def listed(self, sid: str) -> StudyStatus:
+        """A study's status for the listing (without progress): a finished one is kept while its two files of
+        record (``meta.json`` and the store's ``zarr.json``) are unchanged, checked by their times (a stat each,
+        not a read); a file changed or damaged since is read again."""
+        d = self.reg.study_dir(sid)
+        try:
+            stamp = ((d / "meta.json").stat().st_mtime_ns, (d / "store" / "zarr.json").stat().st_mtime_ns)
+        except OSError:
+            stamp = None
+        hit = self._final.get(sid)
+        if hit is not None and stamp is not None and hit[0] == stamp:
+            return hit[1]
+        st = self.status(sid, progress=False)
+        if st.status in FINAL and stamp is not None:
+            self._final[sid] = (stamp, st)
+        return st
 
     def dataset_visible(self, did: str, owner: str) -> bool:
         """Whether the uploaded data set ``did`` exists and ``owner`` may use it: it is owned like a study
@@ -351,9 +370,17 @@ def _studies_router(c: _Service) -> APIRouter:
     v1 = f"/{API_VERSION}"
 
     @r.get(f"{v1}/studies", response_model=list[StudyStatus])
-    def list_studies(owner: str = Depends(c.auth)) -> list[StudyStatus]:
-        # the caller's own studies (an admin's: all)
-        return [c.status(m["id"], progress=False) for m in c.reg.metas() if c.access.sees(owner, m)]
+    def list_studies(owner: str = Depends(c.auth), limit: int = Query(200, ge=1, le=10_000),
+                     offset: int = Query(0, ge=0)) -> list[StudyStatus]:
+        """The caller's own studies (an admin's: all), newest first, ``limit`` of them from ``offset``. Found by
+        the registry's index of owners (:meth:`Registry.entry`): another user's files are not read."""
+        mine = []
+        for sid in c.reg.ids():
+            who, created = c.reg.entry(sid)
+            if c.access.sees(owner, {"owner": who}):
+                mine.append((-created, sid))
+        mine.sort()
+        return [c.listed(sid) for _, sid in mine[offset:offset + limit]]
 
     @r.get(f"{v1}/studies/{{sid}}", response_model=StudyStatus, dependencies=[Depends(c.access)])
     async def status(sid: str) -> StudyStatus:
@@ -412,6 +439,7 @@ def _studies_router(c: _Service) -> APIRouter:
         shutil.rmtree(c.reg.study_dir(sid), ignore_errors=True)
         c.progress_cache.forget(sid)
         c.forget(sid)
+        c.reg.drop(sid)
         return Response(status_code=204)
 
     return r

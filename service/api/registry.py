@@ -50,7 +50,7 @@ class Registry:
         self.root = Path(root)
         (self.root / "studies").mkdir(parents=True, exist_ok=True)
         (self.root / "datasets").mkdir(parents=True, exist_ok=True)
-        self._owners: dict[str, str | None] = {}
+        self._owners: dict[str, tuple] = {}  # sid -> (owner, created): :meth:`entry`
 
     def study_dir(self, sid: str) -> Path:
         if not ID_RE.match(sid):
@@ -105,12 +105,23 @@ class Registry:
 
     def owner(self, sid: str) -> str | None:
         """Who submitted ``sid`` (None when its entry cannot be read). An entry's owner never changes: cached."""
+        return self.entry(sid)[0]
+
+    def entry(self, sid: str) -> tuple[str | None, float]:
+        """``(owner, created)`` of ``sid``: what never changes in an entry, read once and kept (the listing's
+        index: a user's studies are found without reading anyone else's files). ``(None, 0)`` when the entry
+        cannot be read (then read again next time: it may be being written)."""
         if sid not in self._owners:
             try:
-                self._owners[sid] = json.loads((self.study_dir(sid) / "meta.json").read_text()).get("owner")
-            except (OSError, ValueError, AttributeError, HTTPException):
-                return None
+                m = json.loads((self.study_dir(sid) / "meta.json").read_text())
+                self._owners[sid] = (m.get("owner"), float(m.get("created", 0.0)))
+            except (OSError, ValueError, AttributeError, TypeError, HTTPException):
+                return None, 0.0
         return self._owners[sid]
+
+    def drop(self, sid: str) -> None:
+        """Forget a deleted study's entry."""
+        self._owners.pop(sid, None)
 
     def readable(self, sid: str) -> dict:
         """:meth:`meta` of a study whose files can be read; a damaged one is a 409 that says so."""

@@ -36,6 +36,8 @@ HEADLINE = [
     ("loop_pendulum_rad", "... after `ardflow diagnose`", "rad", ".3g"),
     ("api_status_p99_ms", "service: status p99 while 50 studies are submitted and a 500k-row upload runs",
      "ms", ".0f"),
+    ("api_listing_user_p99_ms", "service: a user's listing p99, 1,000 studies in the registry", "ms", ".0f"),
+    ("api_listing_admin_p99_ms", "... the admin's (first page, 200 studies)", "ms", ".0f"),
 ]
 
 

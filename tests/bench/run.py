@@ -397,6 +397,67 @@ def bench_api(tiny: bool = False) -> dict:
             "api_queued_seen": peak["queued"], "api_submitted": len(ids)}
 
 
+def bench_listing(tiny: bool = False) -> dict:
+    """``GET /v1/studies`` with 1,000 finished studies in the registry (real ``ardflow serve`` over HTTP): a user
+    who owns 10 of them, and the admin who sees every one (the first page, 200), each listing 200 times in a row.
+
+    Keys: api_listing_studies (the registry's size), api_listing_user_p50_ms / _p99_ms, api_listing_admin_p50_ms /
+    _p99_ms. The registry is written directly (each study a registry entry and a store that says done), the way
+    a long-running service's registry looks; the service is started on it as after a restart.
+    """
+    import signal
+    import socket
+    import subprocess
+    import tempfile
+
+    import httpx
+
+    from ardflow.workers.store import StudyStore
+
+    n, n_mine, n_req = (40, 4, 20) if tiny else (1000, 10, 200)
+    root = Path(tempfile.mkdtemp())
+    tokens = {"admin": "bench-admin", "mine": "bench-mine", "other": "bench-other"}
+    for i in range(n):
+        sid = f"listed-{i:08x}"
+        d = root / "studies" / sid
+        d.mkdir(parents=True)
+        (d / "meta.json").write_text(json.dumps({"id": sid, "name": "listed", "created": 1.7e9 + i,
+                                                 "owner": "mine" if i % (n // n_mine) == 0 else "other"}))
+        StudyStore(d / "store").update_meta(study_id=sid, status="done")
+    tokens_file = root.parent / f"{root.name}-tokens.json"
+    tokens_file.write_text(json.dumps(tokens))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root", str(root),
+                          "--tokens-file", str(tokens_file), "--workers", "1"],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    base = f"http://127.0.0.1:{port}/v1"
+    out = {"api_listing_studies": n}
+    try:
+        for _ in range(600):
+            try:
+                if httpx.get(f"{base}/health", timeout=1).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                time.sleep(0.2)
+        for who in ("user", "admin"):
+            h = {"X-API-Token": tokens["mine" if who == "user" else "admin"]}
+            with httpx.Client(headers=h, timeout=60) as c:
+                got = c.get(f"{base}/studies").json()
+                assert len(got) == (n_mine if who == "user" else min(n, 200)), len(got)
+                lat = []
+                for _ in range(n_req):
+                    t0 = time.perf_counter()
+                    c.get(f"{base}/studies").raise_for_status()
+                    lat.append((time.perf_counter() - t0) * 1e3)
+            out[f"api_listing_{who}_p50_ms"] = float(np.percentile(lat, 50))
+            out[f"api_listing_{who}_p99_ms"] = float(np.percentile(lat, 99))
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+    return out
+
+
 def _study(args: list[str], out: Path) -> dict:
     """Run an ardflow command that writes a Section 3.6 study to ``out`` (fresh); wall time and results."""
     import shutil
@@ -840,7 +901,8 @@ def _save_partial(res: dict) -> None:
     path.write_text(json.dumps(old, indent=2))
 
 
-BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "study": bench_study,
+BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "listing": bench_listing,
+           "study": bench_study,
            "posterior": bench_posterior, "posterior_full": bench_posterior_full,
            "loop": bench_loop, "validation": bench_validation, "fresh": bench_fresh}
 
@@ -851,6 +913,7 @@ CONTRACT = {
     "dask": ["dask_samples_per_s_1w", "dask_samples_per_s_2w", "dask_scaling_2w", "dask_overhead",
              "store_mb_per_1e6_samples"],
     "api": ["api_status_p95_ms", "api_status_p99_ms", "api_upload_s", "api_errors", "api_rss_mb", "api_max_drivers"],
+    "listing": ["api_listing_studies", "api_listing_user_p99_ms", "api_listing_admin_p99_ms"],
     "study": ["study_demo_s", "study_demo_evaluations", "study_demo_min_ess", "study_demo_max_rhat", "study_full_s",
               "study_full_min_ess", "study_full_max_rhat"],
     "posterior": ["evidence_se_ratio", "posterior_M2_ess_per_evaluation",

@@ -490,6 +490,9 @@ def test_studies_belong_to_the_token_that_made_them(hostile, tmp_path):
         assert [s["id"] for s in c.get(f"{base}/studies", headers=A).json()] == [a]
         assert [s["id"] for s in c.get(f"{base}/studies", headers=B).json()] == [b]
         assert {s["id"] for s in c.get(f"{base}/studies", headers=R).json()} == {a, b}
+        # paged, newest first
+        assert [s["id"] for s in c.get(f"{base}/studies?limit=1", headers=R).json()] == [b]
+        assert [s["id"] for s in c.get(f"{base}/studies?limit=1&offset=1", headers=R).json()] == [a]
         for method, path in (("GET", ""), ("GET", "/summary"), ("GET", "/events"), ("GET", "/figures/evidence.png"),
                              ("GET", "/posterior/quad"), ("POST", "/cancel"), ("DELETE", "")):
             r = c.request(method, f"{base}/studies/{a}{path}", headers=B, json={} if method == "POST" else None)
