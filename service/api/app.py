@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import functools
 import json
 import logging
@@ -129,6 +130,9 @@ class _Service:
         if hit is not None and now - hit[0] < self.STATUS_TTL:
             return hit[1]
         m = self.reg.meta(sid)
+        if m.get("status") in ("queued", "running") and sid in self.runner.lost:
+            # its driver died and its failure could not be written (a full disk): said here until it can be
+            m = {**m, "status": "failed", "error": self.runner.lost[sid]}
         live = progress and m["status"] != "damaged"
         st = StudyStatus(id=sid, name=m.get("name", sid), status=m.get("status", "unknown"),
                          created=m.get("created", 0.0), error=m.get("error"),
@@ -201,6 +205,14 @@ def _error_handlers(app: FastAPI) -> None:
         # never a traceback to the caller; the log keeps it
         log.exception("unexpected error on %s %s", request.method, request.url.path)
         return JSONResponse({"detail": f"internal error ({type(exc).__name__}); see the service log"}, 500)
+
+    @app.exception_handler(OSError)
+    async def disk(request: Request, exc: OSError):
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            # nothing half-written stays behind (each writer cleans up or writes atomically): the caller may retry
+            return JSONResponse({"detail": "the service's disk is full: nothing was changed; try again when its "
+                                           "operator has made room"}, 507)
+        return await unexpected(request, exc)
 
     @app.exception_handler(RequestValidationError)
     async def bad_request(request: Request, exc: RequestValidationError):

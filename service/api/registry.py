@@ -199,6 +199,7 @@ class Runner:
         self.procs: dict[str, Any] = {}
         self.queue: list[str] = []
         self.diag_queue: list[tuple] = []  # (sid, model, request): diagnoses waiting for a free slot
+        self.lost: dict[str, str] = {}  # studies failed whose store could not record it (a full disk): why
         self.lock = threading.RLock()
         self.closing = False
         self.peak_running = 0
@@ -273,9 +274,15 @@ class Runner:
             if st == "cancelled" or (rc == 0 and st == "done"):
                 return
             # the driver stopped without finishing (killed, out of memory, an error): its store says why
-            tail = log_path.read_text()[-2000:].strip().splitlines()
-            store.update_meta(status="failed",
-                              error=store.meta.get("error") or (tail[-1] if tail else f"driver exit {rc}"))
+            try:
+                tail = log_path.read_text()[-2000:].strip().splitlines()
+                why = store.meta.get("error") or (tail[-1] if tail else f"driver exit {rc}")
+            except (OSError, ValueError) as exc:
+                why = f"driver exit {rc} ({_why(exc)})"
+            try:
+                store.update_meta(status="failed", error=why)
+            except OSError as exc:  # a full disk: the store cannot say it, the service does (Runner.lost)
+                self.lost[sid] = f"{why} (and its failure could not be recorded: {_why(exc)})"
 
     def cancel(self, sid: str) -> None:
         """Mark ``sid`` cancelled durably, then stop its driver (cooperatively, then by force)."""

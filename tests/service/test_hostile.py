@@ -626,3 +626,49 @@ def test_diagnoses_are_jobs_like_studies(hostile, tmp_path):
         c.cancel(other)
         c._check(c.http.delete(f"/studies/{sid}"))
         app.state.runner.stop()
+
+
+def test_a_full_disk_is_a_507_and_a_failed_study_never_running(hostile, tmp_path, monkeypatch):
+    """ENOSPC at the writes (simulated: the test runner has no tmpfs to fill): a submission and a cancel answer
+    507 and leave nothing half-made; a study whose driver died and whose failure could not be written reads
+    failed, not running."""
+    import errno
+
+    from ardflow.ardcore import jsonio
+    from ardflow.service.api.registry import Registry
+    from ardflow.workers.store import StudyStore
+
+    _, _, _, dc = hostile
+    port = free_port()
+    app = create_app(Settings(root=tmp_path, token=TOKEN, max_running=1), dc)
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with Server(app, port), httpx.Client(timeout=60, headers=H) as c:
+        base = f"http://127.0.0.1:{port}/v1"
+        sid = c.post(f"{base}/studies", json=dict(SPEC, seed=81, maximiser=dict(SPEC["maximiser"], max_trials=40),
+                                                  sampler=dict(SPEC["sampler"], n_stationary=4000))).json()["id"]
+        with monkeypatch.context() as m:
+            m.setattr(Registry, "write_meta", full)
+            r = c.post(f"{base}/studies", json=dict(SPEC, seed=82))
+            assert r.status_code == 507 and "disk is full" in r.json()["detail"], r.text
+            assert sorted(p.name for p in (tmp_path / "studies").iterdir()) == [sid]  # nothing half-made
+        deadline = time.time() + 60
+        while c.get(f"{base}/studies/{sid}").json()["status"] != "running" and time.time() < deadline:
+            time.sleep(0.2)
+        with monkeypatch.context() as m:
+            m.setattr(jsonio, "atomic_write_text", full)
+            r = c.post(f"{base}/studies/{sid}/cancel", json={})
+            assert r.status_code == 507 and "disk is full" in r.json()["detail"], r.text
+        with monkeypatch.context() as m:
+            real = StudyStore.update_meta
+            m.setattr(StudyStore, "update_meta", lambda self, **kw: full() if kw.get("status") == "failed"
+                      else real(self, **kw))
+            app.state.runner.procs[sid].kill()  # the driver dies (as of ENOSPC) and its failure cannot be written
+            deadline = time.time() + 30
+            while c.get(f"{base}/studies/{sid}").json()["status"] == "running" and time.time() < deadline:
+                time.sleep(0.2)
+            st = c.get(f"{base}/studies/{sid}").json()
+            assert st["status"] == "failed" and "could not be recorded" in st["error"], st
+        app.state.runner.stop()
