@@ -32,7 +32,7 @@ from ardflow.ardcore.selection.spec import PLAIN_TEXT, StudySpec
 
 from ardflow.service.api.auth import StudyAccess, TokenAuth
 from ardflow.service.api.guard import RequestGuard
-from ardflow.service.api.page import page_router
+from ardflow.service.api.page import docs_router, page_router
 from ardflow.service.api.results import results_router
 from ardflow.service.api.validate import Rejected, check_budget, check_models
 from ardflow.service.api.schemas import (
@@ -166,8 +166,8 @@ class _Service:
         """Whether the uploaded data set ``did`` exists and ``owner`` may use it: it is owned like a study
         (:meth:`StudyAccess.sees`; one without a readable owner record, the admins only)."""
         d = self.reg.root / "datasets"
-        if not re.fullmatch(r"[a-f0-9]{16}", did or "") or not (d / f"{did}.csv").is_file():
-            return False
+        if not re.fullmatch(r"[a-f0-9]{16}", did or "") or self.reg.file(d / f"{did}.csv") is None:
+            return False  # none, or a symbolic link placed among the uploads: never read
         try:
             meta = json.loads((d / f"{did}.json").read_text())
         except (OSError, ValueError):
@@ -184,14 +184,15 @@ def create_app(settings: Settings, client) -> FastAPI:
     for name in ("ardflow.workers.graph", "ardflow.workers.store", "ardflow.workers.inference"):
         import_module(name)
     c = _Service(settings, client)
-    app = FastAPI(title="ardflow", version="0.1.0",
+    # the API docs come from the installed Swagger UI (page.docs_router), never from a CDN on the cookie's origin
+    app = FastAPI(title="ardflow", version="0.1.0", docs_url=None, redoc_url=None,
                   description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")
     app.state.registry, app.state.runner, app.state.settings = c.reg, c.runner, settings
     app.add_middleware(RequestGuard, max_body=c.max_body, allowed_hosts=settings.allowed_hosts,
                        csv_paths=(f"/{API_VERSION}/datasets",))
     _error_handlers(app)
     for router in (_service_router(c), _submit_router(c), _studies_router(c), _diagnoses_router(c),
-                   results_router(c.reg, c.access), page_router(c.auth)):
+                   results_router(c.reg, c.access), page_router(c.auth), docs_router()):
         app.include_router(router)
     _reattach(c.reg, c.runner)
     return app

@@ -66,3 +66,32 @@ def page_router(auth: TokenAuth) -> APIRouter:
         return resp
 
     return r
+
+
+def docs_router() -> APIRouter:
+    """``GET /docs``: Swagger UI over ``/openapi.json``, its script and style served from the installed
+    ``swagger-ui-bundle`` package (``/docs/assets/...``): the page of the API's docs loads nothing from another
+    origin, which could otherwise run script beside the sign-in cookie."""
+    import swagger_ui_bundle
+    from fastapi.openapi.docs import get_swagger_ui_html
+
+    assets = Path(swagger_ui_bundle.swagger_ui_path)
+    files = {"swagger-ui-bundle.js": "text/javascript", "swagger-ui.css": "text/css",
+             "favicon-32x32.png": "image/png"}
+    r = APIRouter()
+
+    @r.get("/docs", response_class=HTMLResponse, include_in_schema=False)
+    def docs() -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url="/openapi.json", title="ardflow API",
+                                   swagger_js_url="/docs/assets/swagger-ui-bundle.js",
+                                   swagger_css_url="/docs/assets/swagger-ui.css",
+                                   swagger_favicon_url="/docs/assets/favicon-32x32.png")
+
+    @r.get("/docs/assets/{name}", include_in_schema=False)
+    def asset(name: str) -> Response:
+        if name not in files:
+            raise HTTPException(404, f"no {name!r}")
+        return Response((assets / name).read_bytes(), media_type=files[name],
+                        headers={"Cache-Control": "public, max-age=86400"})
+
+    return r

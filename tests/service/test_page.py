@@ -4,6 +4,7 @@ sign in, submit a spec and a CSV through the form, watch the live progress reach
 from __future__ import annotations
 
 import json
+import re
 import os
 import signal
 
@@ -44,6 +45,12 @@ def test_page_headers_and_session(service):
     csp = r.headers["content-security-policy"]
     assert "script-src 'nonce-" in csp and "__NONCE__" not in r.text
     assert "http://" not in r.text.replace(service, "") and "https://" not in r.text  # no CDN
+    # the API docs load nothing from another origin (Swagger UI from the installed package)
+    docs = httpx.get(service + "/docs")
+    assert docs.status_code == 200 and "cdn" not in docs.text.lower()
+    for src in re.findall(r"(?:src|href)=['\"]([^'\"]+)['\"]", docs.text):
+        assert src.startswith("/"), src
+        assert httpx.get(service + src).status_code == 200, src
     # every answer, JSON, HTML or an error, is never sniffed and never framed by another origin
     for path in ("/", "/v1/health", "/v1/studies", "/v1/no-such-route"):
         h = httpx.get(service + path).headers
