@@ -141,8 +141,39 @@ def _iid_log_mean_se(log_terms: np.ndarray) -> float:
     return float(w.std(ddof=1) / m / math.sqrt(w.size)) if m > 0 and w.size > 1 else math.inf
 
 
+COLLAPSED = "the posterior has collapsed"
+"""The warning of a posterior far narrower than its own density says (:func:`collapse_drops`)."""
+
+COLLAPSE_NATS = 0.5
+"""The least drop of the log posterior 3 marginal sd either side of its mode that a Gaussian posterior cannot
+show: there it is 4.5 nats times (marginal / conditional sd)^2 >= 4.5; below 0.5 the reported sd is at least
+three times too small."""
+
+
+def collapse_drops(target, center: np.ndarray, lp_center: float, sd: np.ndarray) -> list[float]:
+    """Per parameter, how far the log posterior falls 3 ``sd`` (the draws' marginal sd) from ``center`` (the
+    mode), on the side where it falls further (a bound or a skew on one side does not hide the other): 4.5 nats
+    or more for a posterior the draws describe (:data:`COLLAPSE_NATS`). Chains that never left a tiny
+    neighbourhood (a proposal far too small, a likelihood with kinks at the scale of their steps) report a
+    spread the posterior's own density contradicts: it has barely changed that far out."""
+    out = []
+    for i in range(center.size):
+        if not (np.isfinite(sd[i]) and sd[i] > 0):
+            out.append(0.0)
+            continue
+        drops = []
+        for sign in (1.0, -1.0):
+            x = np.array(center, dtype=float)
+            x[i] += sign * 3.0 * sd[i]
+            v = target(x).log_posterior
+            drops.append(lp_center - v if np.isfinite(v) else math.inf)
+        out.append(float(max(drops)))
+    return out
+
+
 def _cj_chain(args):
     target, samples, lp, phi_star, lp_star, cov, J, se_ratio, seed, *rest = args
+    probe = rest[1] if len(rest) > 1 else None
     # the chains moved in unconstrained coordinates z with the fixed proposal q (the random walk N(z, cov),
     # mixed with the independence proposal ``jump`` when there is one; :mod:`.transform`, :class:`Jump`):
     # the ordinate is taken there, with the target's density in z (times |dx/dz|), and mapped back below
@@ -177,7 +208,8 @@ def _cj_chain(args):
     log_den = logsumexp(den) - math.log(den.size)
     se = math.sqrt(num_se ** 2 + _batch_se(den) ** 2)
     # ln p(x*|d) = ln p(z*|d) - ln|dx/dz|(x*)
-    return log_num - log_den - jac_star, se, den.size, dominated(num_terms) or dominated(den)
+    drops = collapse_drops(target, np.asarray(phi_star, float), lp_star, probe) if probe is not None else None
+    return log_num - log_den - jac_star, se, den.size, dominated(num_terms) or dominated(den), drops
 
 
 def chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: int,
@@ -217,9 +249,11 @@ def iter_chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: in
     warnings = []
     phi_star, lp_star, ll_star = res.phi_star, res.lp_star, float(res.ll_star)
     n_eval = 0
+    # the draws' marginal spread, probed once (by the first chain's task) against the posterior's density
+    sd = res.samples.reshape(-1, res.samples.shape[-1]).std(axis=0)
     for attempt in range(2):
         tasks = [(target, res.samples[c], res.lp[c], phi_star, lp_star, res.proposal_cov, n_proposal,
-                  proposal_se_ratio, int(seeds[c]), res.jump) for c in range(nc)]
+                  proposal_se_ratio, int(seeds[c]), res.jump, sd if c == 0 else None) for c in range(nc)]
         out = yield Batch(_cj_chain, tasks, Step("cj"))
         n_eval += sum(o[2] for o in out)
         per = [ChainEvidence(lp_star - o[0], o[1], o[0]) for o in out]
@@ -240,6 +274,13 @@ def iter_chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: in
                            "the sampler did not converge")
     if any(o[3] for o, p in zip(out, per) if p in valid):
         warnings.append(f"{DOMINATED} in a chain: its se is no error bar, and the estimate no result")
+    drops = out[0][4] if len(out[0]) > 4 and out[0][4] is not None else []
+    narrow = [(n, d) for n, d in zip(target.names, drops) if d < COLLAPSE_NATS]
+    if narrow:
+        warnings.append(f"{COLLAPSED}: 3 sd from its mode the log posterior falls by only "
+                        + ", ".join(f"{d:.2g} nats for {n}" for n, d in narrow[:5])
+                        + " (at least 4.5 for draws that describe it): the chains never left a small neighbourhood, "
+                          "their intervals and this evidence are no result")
     vals = np.array([p.log_evidence for p in valid])
     per, nc = valid, len(valid)
     mean = float(vals.mean())

@@ -109,6 +109,11 @@ class ModelFit:
         evidence states no Monte Carlo error: its 0 is not a defect.)"""
         if not math.isfinite(self.log_evidence):
             return f"{self.name}: the evidence is not a finite number (ln Z = {self.log_evidence})"
+        from ..evidence.estimators import COLLAPSED
+
+        collapsed = next((str(w) for w in self.warnings if COLLAPSED in str(w)), None)
+        if collapsed:
+            return f"{self.name}: {collapsed}"
         if any("not positive definite" in str(w) for w in self.warnings):
             return (f"{self.name}: the likelihood's curvature at the optimum is not positive definite, so its Laplace "
                     "evidence and posterior sd are not a result")

@@ -19,6 +19,7 @@ from typing import Callable, Generator
 
 import numpy as np
 
+from ..evidence.estimators import COLLAPSED
 from ..evidence.evaluate import EvidenceEvaluator, EvidenceSettings
 from .maximiser import MaximiserResult, iter_maximise, posterior_summary
 from ..data import Dataset
@@ -129,7 +130,8 @@ def iter_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: i
         q995={k: v["q995"] for k, v in post.items()},
         rhat=dict(zip(res.names, map(float, res.rhat))),
         diagnostics=_diagnostics(res),
-        converged=bool(getattr(res, "quality_met", True)),
+        # draws whose spread the posterior's density contradicts are not converged, whatever R-hat says
+        converged=bool(getattr(res, "quality_met", True)) and not any(COLLAPSED in w for w in best.evidence.warnings),
         iterations=len(mr.history),
         sampled_trials=sum(1 for t in mr.history if t.sampled),
         reweighted_trials=sum(1 for t in mr.history if not t.sampled),

@@ -280,3 +280,44 @@ def test_a_mean_carried_by_one_batch_is_recognised():
     spiky = rng.normal(0.0, 0.5, 2000)
     spiky[1234] = 40.0
     assert dominated(spiky) and abs(_batch_se(spiky) - 1.0) < 1e-6
+
+
+def _chains_from(target, start, cov, n=3000, chains=4):
+    """Random-walk chains all started at ``start`` with the fixed proposal ``cov``, as a SamplerResult."""
+    from ardflow.ardcore.sampling.adaptation import rhat
+    from ardflow.ardcore.sampling.chains import ChainState, run_round
+    from ardflow.ardcore.sampling.config import SamplerResult
+
+    S, LP, LL, states = [], [], [], []
+    for c in range(chains):
+        lp, ll = target(np.array(start))
+        st = ChainState(c, list(start), lp, ll, np.random.PCG64(c).state, list(start), lp, ll)
+        r = run_round(target, st, cov, n, adaptive=False)
+        S.append(r.samples), LP.append(r.lp), LL.append(r.ll), states.append(r.state)
+    best = max(states, key=lambda q: q.best_lp)
+    return SamplerResult(target.names, np.stack(S), np.stack(LP), np.stack(LL), np.array(best.best_x), best.best_lp,
+                         best.best_ll, cov, states, rhat(S), [], 0, True, 0.3, 0.3, 0)
+
+
+def test_collapsed_chains_are_caught_and_are_no_result():
+    """Chains started at one point with a proposal far too small never leave a tiny neighbourhood: their spread
+    is 10^4 times narrower than the posterior's. The evidence says so and the fit is no result; chains that
+    describe the posterior raise nothing."""
+    from ardflow.ardcore.evidence.estimators import COLLAPSED
+    from ardflow.ardcore.selection.fit import ModelFit
+
+    names = ["p0", "p1", "p2"]
+    target = FunctionTarget(names, JointPrior(names, {n: Normal(sd=10.0) for n in names}),
+                            GaussianLoglik(np.zeros(3), np.eye(3)))
+    stuck = _chains_from(target, [0.3, -0.2, 0.1], np.eye(3) * 1e-10)
+    assert stuck.samples.reshape(-1, 3).std(0).max() < 1e-3
+    ev = chib_jeliazkov(target, stuck, n_proposal=1000, seed=3)
+    bad = [w for w in ev.warnings if COLLAPSED in w]
+    assert bad and all(n in bad[0] for n in names), ev.warnings
+    fit = ModelFit(name="m", log_evidence=ev.log_evidence, log_evidence_se=max(ev.log_evidence_se, 0.1),
+                   goodness_of_fit=0.0, information_gain=0.0, evidence_method="chib-jeliazkov",
+                   sd={n: 1e-5 for n in names}, warnings=list(ev.warnings))
+    assert fit.degenerate() and COLLAPSED in fit.degenerate()
+    healthy = _chains_from(target, [0.3, -0.2, 0.1], np.eye(3) * 2.38 ** 2 / 3, n=6000)
+    ev = chib_jeliazkov(target, healthy, n_proposal=1000, seed=3)
+    assert not [w for w in ev.warnings if COLLAPSED in w], ev.warnings
