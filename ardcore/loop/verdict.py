@@ -153,6 +153,12 @@ def headline(report: dict, col: str, unit: str = "") -> str:
                 "explains.")
     else:
         left = f" The innovations left are white (Ljung-Box p = {p:.2f})."
+        z = number((report.get("after") or before).get("standardized_rms"))
+        lo, hi = INNOVATION_RMS_RANGE
+        if math.isfinite(z) and not lo <= z <= hi:
+            # white, but not of the size the filter expects: its noise model is wrong, the model is not adequate
+            left = (f" The innovations left are white (Ljung-Box p = {p:.2f}) but their standardised RMS is {z:.2f} "
+                    "(1 when the filter's variances are right): the declared noise does not match the data.")
         rel = ((report.get("reported") or {}).get("free_run") or after["free_run"]).get("relative_rms_error")
         if isinstance(rel, (int, float)) and rel > POOR_FREE_RUN:
             # white innovations say the filter predicts one step; its process noise may cover what is missing
@@ -160,6 +166,11 @@ def headline(report: dict, col: str, unit: str = "") -> str:
                     "output's spread: the process noise covers what the model lacks.")
     return f"{what} {error}{left}"
 
+
+INNOVATION_RMS_RANGE = (2 / 3, 1.5)
+"""Standardised innovations whose RMS lies outside this range are reported (here and in a study's report): 1
+when the filter's variances are right, far below when the declared noise is too large or the measurement noise
+is coloured (pre-filtered), far above when it is too small."""
 
 POOR_FREE_RUN = 0.2
 """A free run whose RMS error exceeds this share of the output's spread is not called adequate by the headline,

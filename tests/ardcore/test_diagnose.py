@@ -396,6 +396,10 @@ def test_headline_is_three_sentences_that_agree_with_the_tests():
     # white innovations with a poor free run: the headline says the process noise covers what is missing
     poor = dict(white, before={"free_run": {"rms_error": 0.9, "relative_rms_error": 0.45}, "log_evidence": 10.0})
     assert "misses 45% of the output's spread" in headline(poor, "y", "V")
+    # white innovations of the wrong size: the declared noise does not match the data, and the headline says so
+    small = dict(white, before={**white["before"], "standardized_rms": 0.28})
+    assert "standardised RMS is 0.28" in headline(small, "y", "V") and "does not match" in headline(small, "y", "V")
+    assert "standardised" not in headline(dict(white, before={**white["before"], "standardized_rms": 1.1}), "y")
     # with no round run nothing was screened, and the headline does not claim the library was tried
     assert headline(dict(white, rounds=[]), "y", "V").startswith("Nothing was screened (no round was run)")
     added = dict(base, added=[{"effect": "sqrt_outflow(h)", "target": "h"}],
