@@ -12,6 +12,10 @@ from ardflow.service.commands.local import EXAMPLES, parse_assignments
 from ardflow.service.commands.progress import LiveProgress, print_table
 
 
+
+CHECKS_TITLE = "checks against the paper (docs/worked-example.md)"
+"""The heading of the demo's checks: the user's words, never the project's issue names."""
+
 def full_settings(spec):
     """The paper-scale sampler settings (docs/method.md section 5): the engine's defaults."""
     from ardflow.ardcore.sampling.config import SamplerConfig
@@ -85,7 +89,7 @@ def cmd_demo(a) -> int:
     print_table(summary)
     from ardflow.service.reports.paper import check_label, reference_checks
 
-    print("\n[demo] checks against the paper (docs/worked-example.md):")
+    print(f"\n[demo] {CHECKS_TITLE}:")
     for c in reference_checks(summary, spec.true_values):
         print(f"  [{check_label(c)}] {c['check']}: {c['detail']}"
               + (f"\n      documented difference: {c['documented']}" if c.get("documented") else ""))

@@ -58,17 +58,24 @@ def _plot_noise(arrays: dict, t: np.ndarray, out: Path, time_label: str = "time"
     return save_figure(fig, out)
 
 
+def candidate_fates(report: dict, candidates: list) -> list[str]:
+    """Per screened candidate: ``added`` (confirmed and in the model), ``confirmed`` (confirmed, not added) or
+    ``screened`` (never confirmed). A confirmation names the effect as fitted (its shape refined), the screen as
+    screened: they are matched by the latter."""
+    conf = {(x.get("screened_effect", x["effect"]), x["target"]): x for x in report["confirmed"]}
+    added = {(a["effect"], a["target"]) for a in report.get("added", [])}
+    out = []
+    for x in candidates:
+        k = conf.get((x["effect"], x["target"]))
+        out.append("screened" if k is None else "added" if (k["effect"], k["target"]) in added else "confirmed")
+    return out
+
+
 def _plot_candidates(report: dict, out: Path, k: int = 12) -> Path:
     plt = pyplot()
     c = report["candidates"][:k][::-1]
     fig, ax = plt.subplots(figsize=(8, 0.35 * len(c) + 1.2))
-    # a confirmation names the effect as fitted (its shape refined), the screen as screened: matched by the latter
-    conf = {(x.get("screened_effect", x["effect"]), x["target"]): x for x in report["confirmed"]}
-    added = {(a["effect"], a["target"]) for a in report.get("added", [])}
-    colors = []
-    for x in c:
-        k = conf.get((x["effect"], x["target"]))
-        colors.append("0.6" if k is None else "C2" if (k["effect"], k["target"]) in added else "C1")
+    colors = [{"added": "C2", "confirmed": "C1", "screened": "0.6"}[f] for f in candidate_fates(report, c)]
     # screened ln BF spans nats to tens of thousands: a signed log scale keeps both ends readable
     v = np.array([number(x["log_bayes_factor"]) for x in c])
     v = np.where(np.isfinite(v), v, 0.0)  # a failed confirmation has no bar

@@ -80,3 +80,34 @@ def test_less_white_innovations_after_the_loop_are_said():
     assert "less white after the loop" in text and "3.6e+04 -> 6.1e+04" in text
     text = _tests_table({"tests_before": {"y": after}, "tests_after": {"y": before}}, "y")
     assert "less white" not in text
+
+
+def test_a_candidate_confirmed_under_its_refined_shape_keeps_its_colour():
+    """The screen names a shaped candidate by its screened shape, the confirmation by its refined one: the
+    figure matches them, and tells added from confirmed-not-added from screened-only."""
+    from ardflow.service.reports.diagnosis import candidate_fates
+
+    report = {"confirmed": [{"effect": "dry_friction(v,vs=6.5)", "screened_effect": "dry_friction(v,vs=7)",
+                             "target": "v"},
+                            {"effect": "cubic_damping(v)", "screened_effect": "cubic_damping(v)", "target": "v"}],
+              "added": [{"effect": "dry_friction(v,vs=6.5)", "target": "v"}]}
+    screened = [{"effect": "dry_friction(v,vs=7)", "target": "v"}, {"effect": "cubic_damping(v)", "target": "v"},
+                {"effect": "offset", "target": "v"}]
+    assert candidate_fates(report, screened) == ["added", "confirmed", "screened"]
+
+
+def test_progress_promises_no_time_left_and_the_demo_speaks_the_users_words():
+    from ardflow.service.client import _progress_line
+    from ardflow.service.commands.study import CHECKS_TITLE
+    from ardflow.service.reports.paper import reference_checks
+
+    st = {"models": {"M2": {"trials_done": 3, "max_trials": 60, "elapsed_s": 40.0, "eta_s": 760.0,
+                            "stage": "trial", "best_log_evidence": 1.5}}}
+    line = _progress_line(st)
+    assert "3 of at most 60 trials" in line and "eta" not in line.lower() and "left" not in line
+    summary = {"models": [{"name": "M1", "probability": 0.0, "pruned": ["a3", "a5", "a6"], "kept": ["a4"]},
+                          {"name": "M2", "probability": 1.0, "pruned": ["a5", "a6"], "kept": ["a3", "a4"],
+                           "q005": {}, "q995": {}}]}
+    text = CHECKS_TITLE + " ".join(str(c) for c in reference_checks(summary, {}))
+    assert "documented difference" in text or "docs/" in text
+    assert "issue" not in text.lower() and "README" not in text
