@@ -246,6 +246,15 @@ class NARX:
         self.theta = th / s
         return self
 
+    def bounded(self, y, u, starts: int = 16) -> bool:
+        """Whether the free run stays finite over ``y``, ``u`` from each of ``starts`` points spread over it."""
+        n = y.size
+        for k in range(0, n - max(self.na, self.nb) - 1, max(1, n // starts)):
+            sim = _simulate_terms(self.theta, self.powers, y[k:], u[k:], self.na, self.nb)
+            if not np.all(np.isfinite(sim)):
+                return False
+        return True
+
     def free_run_rms(self, y, u, init: int = 50) -> float:
         sim = _simulate_terms(self.theta, self.powers, y, u, self.na, self.nb)
         e = sim[init:] - y[init:]
@@ -286,5 +295,12 @@ def tuned_narx(y: np.ndarray, u: np.ndarray, *, degrees=(1, 2, 3), orders=(1, 2,
                 first.append((score(lambda: NARX(na, nb, d, list(terms))), (na, nb, d, terms)))
     ranked = sorted([f for f in first if math.isfinite(f[0])], key=lambda f: f[0]) or first
     second = [(score(lambda c=c: NARX(c[0], c[1], c[2], list(c[3])), refit=True), c) for _, c in ranked[:finalists]]
-    na, nb, d, terms = min(second, key=lambda f: f[0])[1]
+    # the winner refitted on the whole record must stay bounded there from any start (a user re-chooses a
+    # model whose free run blows up; the test record starts elsewhere): else the next one
+    order = [c for _, c in sorted(second, key=lambda f: f[0])] + [c for _, c in ranked[finalists:]]
+    for na, nb, d, terms in order:
+        m = NARX(na, nb, d, list(terms)).fit(y, u)
+        if m.bounded(y, u):
+            return m
+    na, nb, d, terms = order[0]
     return NARX(na, nb, d, list(terms)).fit(y, u)
