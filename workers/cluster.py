@@ -18,7 +18,7 @@ class ClusterClient:
     def __enter__(self):
         import os
 
-        from distributed import Client
+        from distributed import Client, Security
 
         if self.scheduler:
             self.cluster = None
@@ -27,7 +27,7 @@ class ClusterClient:
             n = self.workers or os.cpu_count() or 1
             with deaf_to_ctrl_c():
                 self._start(n)
-            self.client = Client(self.cluster)
+            self.client = Client(self.cluster, security=getattr(self.cluster, "security", None) or Security())
             # compute yields to the driver, the API and the scheduler on a shared machine
             self.client.run(os.nice, 10)
         print(f"[ardflow] Dask dashboard: {self.client.dashboard_link}", flush=True)
@@ -37,11 +37,15 @@ class ClusterClient:
         """The embedded cluster with ``n`` workers (the dashboard has no authentication: loopback only)."""
         if self.scheduler_process:
             # the service's scheduler in its own process (Dask's SubprocessCluster): it would otherwise share
-            # the API's interpreter lock, and every task of every study would delay a status read
+            # the API's interpreter lock, and every task of every study would delay a status read. Its comms
+            # are TLS with certificates only this service holds: a client of the scheduler runs code as the
+            # service, and loopback alone does not keep the other users of a shared host out
             from distributed.deploy.subprocess import SubprocessCluster
 
+            security = private_tls()
             self.cluster = SubprocessCluster(host="127.0.0.1", n_workers=n, threads_per_worker=1,
-                                             dashboard_address="127.0.0.1:8787", silence_logs=40)
+                                             dashboard_address="127.0.0.1:8787", silence_logs=40,
+                                             scheduler_kwargs={"protocol": "tls://"}, security=security)
         else:
             from distributed import LocalCluster
 
@@ -90,3 +94,44 @@ def die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+
+
+TLS_ENV = "DASK_DISTRIBUTED__COMM__"
+"""The prefix of the Dask settings :func:`private_tls` exports to this process's children."""
+
+
+def private_tls():
+    """TLS for the service's own cluster: a fresh certificate authority and certificate (Dask's
+    ``Security.temporary``), written 0600 into a 0700 folder and exported as Dask settings to this process's
+    environment, which its scheduler, workers and study drivers inherit (and nobody else can read). Encryption
+    is required: a client without the certificate is refused by the scheduler."""
+    import atexit
+    import os
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    import dask
+    from distributed import Security
+
+    sec = Security.temporary()
+    folder = Path(tempfile.mkdtemp(prefix="ardflow-tls-"))  # 0700 by mkdtemp
+    atexit.register(shutil.rmtree, folder, True)
+    files = {}
+    for name in ("ca_file", "client_cert", "client_key", "scheduler_cert", "scheduler_key", "worker_cert",
+                 "worker_key"):
+        f = folder / f"{name}.pem"
+        fd = os.open(f, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(getattr(sec, f"tls_{name}"))
+        files[name] = str(f)
+    env = {"REQUIRE_ENCRYPTION": "True", "TLS__CA_FILE": files["ca_file"]}
+    for who in ("client", "scheduler", "worker"):
+        env[f"TLS__{who.upper()}__CERT"] = files[f"{who}_cert"]
+        env[f"TLS__{who.upper()}__KEY"] = files[f"{who}_key"]
+    os.environ.update({TLS_ENV + k: v for k, v in env.items()})
+    dask.config.refresh()
+    return Security(require_encryption=True, tls_ca_file=files["ca_file"], tls_client_cert=files["client_cert"],
+                    tls_client_key=files["client_key"], tls_scheduler_cert=files["scheduler_cert"],
+                    tls_scheduler_key=files["scheduler_key"], tls_worker_cert=files["worker_cert"],
+                    tls_worker_key=files["worker_key"])

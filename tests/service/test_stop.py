@@ -49,31 +49,59 @@ def _alive(pids: set[int]) -> set[int]:
     return alive
 
 
-@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process tree from /proc")
-@pytest.mark.parametrize("how", ["ctrl-c", "sigterm", "sigkill"])
-def test_stopping_the_service_leaves_no_process_and_little_output(tmp_path, how):
+def _serve(tmp_path: Path, log: Path) -> tuple[subprocess.Popen, int]:
+    """``ardflow serve`` in its own session (as a terminal's foreground job is: a Ctrl-C reaches every process
+    of the group), its output in ``log``; returns it with its port once it answers and its parser pool runs."""
     port = free_port()
-    log = tmp_path / "serve.log"
     with open(log, "w") as fh:
-        # its own session, as a terminal's foreground job would be: a Ctrl-C reaches every process of the group
         p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root",
                               str(tmp_path / "root"), "--workers", "2", "--token", TOKEN], cwd=ROOT, stdout=fh,
                              stderr=subprocess.STDOUT, start_new_session=True)
+    deadline = time.time() + 120
+    while True:
+        try:
+            with Client(f"http://127.0.0.1:{port}", token=TOKEN, timeout=2) as c:
+                c.health()
+                # an upload starts the parser pool too
+                csv = tmp_path / "d.csv"
+                csv.write_text("t,y\n" + "".join(f"{i},{i % 3}\n" for i in range(30)))
+                c.upload(csv)
+            return p, port
+        except Exception:
+            if time.time() > deadline or p.poll() is not None:
+                os.killpg(p.pid, signal.SIGKILL)
+                raise
+            time.sleep(0.3)
+
+
+def test_no_one_but_the_service_reaches_its_scheduler(tmp_path):
+    """The scheduler's address is no key to it: its comms are TLS with the service's own certificates, so a
+    plain client and a client with certificates of its own are both refused."""
+    import json
+    import urllib.request
+
+    from distributed import Client as DaskClient, Security
+
+    p, port = _serve(tmp_path, tmp_path / "serve.log")
     try:
-        deadline = time.time() + 120
-        while True:
-            try:
-                with Client(f"http://127.0.0.1:{port}", token=TOKEN, timeout=2) as c:
-                    c.health()
-                    # an upload starts the parser pool too
-                    csv = tmp_path / "d.csv"
-                    csv.write_text("t,y\n" + "".join(f"{i},{i % 3}\n" for i in range(30)))
-                    c.upload(csv)
-                break
-            except Exception:
-                if time.time() > deadline:
-                    raise
-                time.sleep(0.3)
+        with Client(f"http://127.0.0.1:{port}", token=TOKEN) as c:
+            link = c._check(c.http.get("/dashboard")).json()["url"]  # the one user of a single-token service
+        ident = json.load(urllib.request.urlopen(link.replace("/status", "/json/identity.json"), timeout=10))
+        addr = ident["address"]
+        assert addr.startswith("tls://127.0.0.1:") and ident["n_workers"] == 2, ident
+        for a, sec in ((addr, None), (addr.replace("tls://", "tcp://"), None), (addr, Security.temporary())):
+            with pytest.raises(Exception):
+                DaskClient(a, timeout=5, security=sec).run(os.getpid)
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process tree from /proc")
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm", "sigkill"])
+def test_stopping_the_service_leaves_no_process_and_little_output(tmp_path, how):
+    log = tmp_path / "serve.log"
+    p, _ = _serve(tmp_path, log)
+    try:
         started = log.read_text().count("\n")
         children = _descendants(p.pid)
         assert len(children) >= 4, children  # scheduler, two nannies (with their workers), the parser pool
