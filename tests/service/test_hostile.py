@@ -672,3 +672,23 @@ def test_a_full_disk_is_a_507_and_a_failed_study_never_running(hostile, tmp_path
             st = c.get(f"{base}/studies/{sid}").json()
             assert st["status"] == "failed" and "could not be recorded" in st["error"], st
         app.state.runner.stop()
+
+
+def test_delete_right_after_done_and_a_linked_data_set(hostile, tmp_path):
+    """A study deleted the moment it reads done is deleted (its driver is waited for, never 'cancel it
+    first' while cancel says 'already done'); a data set id that is a symbolic link placed among the uploads
+    is no data set, and nothing of the linked file is echoed."""
+    url, root, _, _ = hostile
+    with httpx.Client(timeout=120, headers=H) as c:
+        sid = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=91)).json()["id"]
+        deadline = time.time() + 300
+        while c.get(f"{url}/v1/studies/{sid}").json()["status"] != "done" and time.time() < deadline:
+            time.sleep(0.05)
+        r = c.delete(f"{url}/v1/studies/{sid}")
+        assert r.status_code == 204, r.text
+        secret = tmp_path / "secret.csv"
+        secret.write_text("t,y\nSECRET-LINE,1\n")
+        did = "ab" * 8
+        (root / "datasets" / f"{did}.csv").symlink_to(secret)
+        r = c.post(f"{url}/v1/studies", json=dict(SPEC, seed=92, data={"dataset": did}))
+        assert r.status_code == 422 and "no uploaded data set" in r.text and "SECRET" not in r.text, r.text
