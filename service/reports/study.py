@@ -98,7 +98,7 @@ def _truth(spec, best: str) -> tuple[dict, dict | None]:
 
 
 COLOURED = ("expected on the reference data: its measurement noise is low-pass filtered, so it is coloured and "
-            "smaller than the white noise the EKF declares (docs/worked-example.md, the measurement pipeline)")
+            "smaller than the white noise the EKF declares; see docs/worked-example.md, the measurement pipeline")
 """Why the reference problem's standardised innovations are far below 1 (said beside that warning)."""
 
 
