@@ -14,6 +14,7 @@ class ClusterClient:
 
     def __init__(self, scheduler: str | None, workers: int | None, *, scheduler_process: bool = False):
         self.scheduler, self.workers, self.scheduler_process = scheduler, workers, scheduler_process
+        self.env: dict = {}  # what a process must have in its environment to be a client of this cluster
 
     def __enter__(self):
         import os
@@ -30,6 +31,7 @@ class ClusterClient:
             self.client = Client(self.cluster, security=getattr(self.cluster, "security", None) or Security())
             # compute yields to the driver, the API and the scheduler on a shared machine
             self.client.run(os.nice, 10)
+        self.client.ardflow_env = dict(self.env)  # for the processes the service starts as clients (drivers)
         print(f"[ardflow] Dask dashboard: {self.client.dashboard_link}", flush=True)
         return self.client
 
@@ -42,10 +44,11 @@ class ClusterClient:
             # service, and loopback alone does not keep the other users of a shared host out
             from distributed.deploy.subprocess import SubprocessCluster
 
-            security = private_tls()
-            self.cluster = SubprocessCluster(host="127.0.0.1", n_workers=n, threads_per_worker=1,
-                                             dashboard_address="127.0.0.1:8787", silence_logs=40,
-                                             scheduler_kwargs={"protocol": "tls://"}, security=security)
+            security, self.env = private_tls()
+            with exported(self.env):  # the scheduler and workers inherit it as they start, this process does not keep it
+                self.cluster = SubprocessCluster(host="127.0.0.1", n_workers=n, threads_per_worker=1,
+                                                 dashboard_address="127.0.0.1:8787", silence_logs=40,
+                                                 scheduler_kwargs={"protocol": "tls://"}, security=security)
         else:
             from distributed import LocalCluster
 
@@ -102,16 +105,16 @@ TLS_ENV = "DASK_DISTRIBUTED__COMM__"
 
 def private_tls():
     """TLS for the service's own cluster: a fresh certificate authority and certificate (Dask's
-    ``Security.temporary``), written 0600 into a 0700 folder and exported as Dask settings to this process's
-    environment, which its scheduler, workers and study drivers inherit (and nobody else can read). Encryption
-    is required: a client without the certificate is refused by the scheduler."""
+    ``Security.temporary``), written 0600 into a 0700 folder. Returns the ``Security`` of this process's client
+    and the Dask settings (environment variables) its scheduler, workers and study drivers are started with;
+    this process's own configuration is left alone (other clusters it runs stay plain). Encryption is required:
+    a client without the certificate is refused by the scheduler."""
     import atexit
     import os
     import shutil
     import tempfile
     from pathlib import Path
 
-    import dask
     from distributed import Security
 
     sec = Security.temporary()
@@ -129,9 +132,25 @@ def private_tls():
     for who in ("client", "scheduler", "worker"):
         env[f"TLS__{who.upper()}__CERT"] = files[f"{who}_cert"]
         env[f"TLS__{who.upper()}__KEY"] = files[f"{who}_key"]
-    os.environ.update({TLS_ENV + k: v for k, v in env.items()})
-    dask.config.refresh()
     return Security(require_encryption=True, tls_ca_file=files["ca_file"], tls_client_cert=files["client_cert"],
                     tls_client_key=files["client_key"], tls_scheduler_cert=files["scheduler_cert"],
                     tls_scheduler_key=files["scheduler_key"], tls_worker_cert=files["worker_cert"],
-                    tls_worker_key=files["worker_key"])
+                    tls_worker_key=files["worker_key"]), {TLS_ENV + k: v for k, v in env.items()}
+
+
+@contextlib.contextmanager
+def exported(env: dict):
+    """``env`` in this process's environment for the time of the ``with`` (the children started in it inherit
+    it), then as it was."""
+    import os
+
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v

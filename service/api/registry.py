@@ -263,7 +263,8 @@ class Runner:
             p = subprocess.Popen(["nice", "-n", "5", sys.executable, "-m", "ardflow.service.cli", "resume", str(store),
                                   "--scheduler", self.client.scheduler.address],
                                  stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                 env={**os.environ, "ARDFLOW_MAX_TASK_S": str(self.max_task_s)},
+                                 env={**os.environ, **getattr(self.client, "ardflow_env", {}),
+                                      "ARDFLOW_MAX_TASK_S": str(self.max_task_s)},
                                  preexec_fn=die_with_parent)
             self.procs[sid] = p
             rc = p.wait()

@@ -286,8 +286,6 @@ def bench_api(tiny: bool = False) -> dict:
     import asyncio
     import json as _json
     import signal
-    import socket
-    import subprocess
     import tempfile
 
     import httpx
@@ -296,16 +294,8 @@ def bench_api(tiny: bool = False) -> dict:
     n_submit, n_clients, n_polls = (2, 2, 3) if tiny else (50, 20, 40)
     # three users submit (each under the per-token limit of 20); the admin's token polls every study
     users = {f"user{i}": f"bench-user-{i}" for i in range(3)}
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     root = Path(tempfile.mkdtemp())
-    tokens_file = root.parent / f"{root.name}-tokens.json"
-    tokens_file.write_text(json.dumps({"admin": token, **users}))
-    p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root", str(root),
-                          "--tokens-file", str(tokens_file), "--max-running", str(max_running)],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    base = f"http://127.0.0.1:{port}/v1"
+    p, base = _serve(root, {"admin": token, **users}, "--max-running", str(max_running))
     h = {"X-API-Token": token}
 
     def rss_mb() -> float:
@@ -318,12 +308,6 @@ def bench_api(tiny: bool = False) -> dict:
         return float("nan")
 
     try:
-        for _ in range(600):
-            try:
-                if httpx.get(f"{base}/health", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                time.sleep(0.2)
         spec = _json.loads((Path(__file__).resolve().parents[2] / "examples" / "sec33.json").read_text())
         ids: list[str] = []
         lat: list[float] = []
@@ -397,6 +381,31 @@ def bench_api(tiny: bool = False) -> dict:
             "api_queued_seen": peak["queued"], "api_submitted": len(ids)}
 
 
+def _serve(root: Path, tokens: dict, *args: str) -> tuple[subprocess.Popen, str]:
+    """``ardflow serve`` on ``root`` with ``tokens`` (owner -> token) and ``args``, in its own session; returns
+    the process and its API's base URL once it answers (the caller kills its process group)."""
+    import socket
+
+    import httpx
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    tokens_file = root.parent / f"{root.name}-tokens.json"
+    tokens_file.write_text(json.dumps(tokens))
+    p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root", str(root),
+                          "--tokens-file", str(tokens_file), *args],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    base = f"http://127.0.0.1:{port}/v1"
+    for _ in range(600):
+        try:
+            if httpx.get(f"{base}/health", timeout=1).status_code == 200:
+                break
+        except httpx.HTTPError:
+            time.sleep(0.2)
+    return p, base
+
+
 def bench_listing(tiny: bool = False) -> dict:
     """``GET /v1/studies`` with 1,000 finished studies in the registry (real ``ardflow serve`` over HTTP): a user
     who owns 10 of them, and the admin who sees every one (the first page, 200), each listing 200 times in a row.
@@ -406,8 +415,6 @@ def bench_listing(tiny: bool = False) -> dict:
     a long-running service's registry looks; the service is started on it as after a restart.
     """
     import signal
-    import socket
-    import subprocess
     import tempfile
 
     import httpx
@@ -424,23 +431,9 @@ def bench_listing(tiny: bool = False) -> dict:
         (d / "meta.json").write_text(json.dumps({"id": sid, "name": "listed", "created": 1.7e9 + i,
                                                  "owner": "mine" if i % (n // n_mine) == 0 else "other"}))
         StudyStore(d / "store").update_meta(study_id=sid, status="done")
-    tokens_file = root.parent / f"{root.name}-tokens.json"
-    tokens_file.write_text(json.dumps(tokens))
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root", str(root),
-                          "--tokens-file", str(tokens_file), "--workers", "1"],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    base = f"http://127.0.0.1:{port}/v1"
+    p, base = _serve(root, tokens, "--workers", "1")
     out = {"api_listing_studies": n}
     try:
-        for _ in range(600):
-            try:
-                if httpx.get(f"{base}/health", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                time.sleep(0.2)
         for who in ("user", "admin"):
             h = {"X-API-Token": tokens["mine" if who == "user" else "admin"]}
             with httpx.Client(headers=h, timeout=60) as c:
