@@ -62,7 +62,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
         innovations = _best_innovations(spec, summary, data, col)
     except Exception as exc:  # noqa: BLE001 - a check that cannot be computed must not cost the report
         innovations = exc
-    figs = _report_figures(store, spec, summary, (names, samples), out, innovations)
+    figs = _report_figures(store, spec, summary, (names, samples), out, (data, innovations))
     table10 = _comparison_table(summary)
     post_table = _posterior_table(names, samples, truth, ref_bounds)
     paper = _paper_section(summary, spec) if reference and {r["name"] for r in summary["models"]} <= set(TABLE10) \
@@ -130,16 +130,16 @@ def self_checks(names: list, samples: np.ndarray, truth: dict, innovations, why:
     return out
 
 
-def _report_figures(store, spec, summary, draws: tuple, out: Path, innovations) -> list[tuple[str, str]]:
+def _report_figures(store, spec, summary, draws: tuple, out: Path, record: tuple) -> list[tuple[str, str]]:
     """The report's figures, written to ``out``: (caption, file) each; ``draws``: the best model's parameter
-    names and posterior samples; ``innovations``: its innovations and their variances (or why there are
-    none). The paper's figure numbers are cited only for the paper's own problem."""
+    names and posterior samples; ``record``: the study's data (read once, by :func:`write_report`) and the best
+    model's innovations with their variances (or why there are none). The paper's figure numbers are cited only for the paper's own problem."""
     reference = spec.data.generator == "reference"
     cite = (lambda figs: f" ({figs})") if reference else (lambda figs: "")
     best = summary["best_model"]
     names, samples = draws
     truth, ref_bounds = _truth(spec, best)
-    data = store.load_data()
+    data, innovations = record
     figs: list[tuple[str, str]] = []
     col = "y" if "y" in data.columns else next(iter(data.columns))
     # names and units as the spec declares them (data.units, data.labels)
