@@ -9,6 +9,9 @@ VENV := .venv
 DEMO_ARGS ?=
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# setuptools announces every editable install of a package-dir layout with a ten-line
+# "Editable installation" notice (information only: ardflow.* maps to the top-level folders)
+EDITABLE_ENV := PYTHONWARNINGS="ignore:Editable installation"
 
 .PHONY: venv demo test test-slow bench clean
 
@@ -17,7 +20,7 @@ $(STAMP): pyproject.toml
 	  echo "error: Python >= 3.12 not found. Install it with 'pyenv install 3.12.1' (looked in $(PYENV_ROOT)/versions/3.12.1, pyenv, PATH)." >&2; exit 1; fi
 	@test -x $(PY) || $(PY312) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test,bench]'
+	$(EDITABLE_ENV) $(PY) -m pip install -q -e '.[test,bench]'
 	@touch $(STAMP)
 
 venv: $(STAMP)

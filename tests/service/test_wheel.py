@@ -7,6 +7,7 @@ ardflow), which keeps the test offline and fast; the wheel itself is installed b
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -102,3 +103,22 @@ def test_wheel_runs_a_study_and_starts_the_demo(fresh):
     finally:
         os.killpg(p.pid, signal.SIGKILL)
         p.wait()
+
+
+def test_editable_install_is_quiet(fresh, tmp_path):
+    """`make venv`'s editable install, with the Makefile's environment, prints no packaging warning."""
+    env_dir, _, env = fresh
+    src = env_dir.parent / "src"
+    setting = re.search(r'^EDITABLE_ENV := PYTHONWARNINGS="([^"]+)"', (ROOT / "Makefile").read_text(), re.M)
+    assert setting, "the Makefile no longer sets EDITABLE_ENV"
+    target = tmp_path / "editable"
+    venv.create(target, with_pip=False)
+    py = target / "bin" / "python"
+    purelib = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                             capture_output=True, text=True, check=True).stdout.strip()
+    Path(purelib, "deps.pth").write_text(str(env_dir.parent / "deps") + "\n")  # setuptools for the build
+    r = subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "-q",
+                        "--no-deps", "--no-build-isolation", "-e", str(src)],
+                       capture_output=True, text=True, timeout=300, env={**env, "PYTHONWARNINGS": setting.group(1)})
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "warning" not in (r.stdout + r.stderr).lower(), (r.stdout + r.stderr)[-3000:]
