@@ -41,26 +41,72 @@ class Dataset:
         Named data columns, each of shape (n,). NaN marks a missing
         observation (allowed in observed columns only).
     meta : dict
-        Free-form provenance (source file, sidecar contents, ...).
+        Free-form provenance (source file, sidecar contents, ...). Several records carry
+        ``meta["records"]``: one dict per record (``name``, ``source``, ``t0``: its own first time,
+        ``initial_mean`` / ``initial_std``: its initial-state prior by state name).
+    starts : tuple of int
+        First row of each record (``(0,)`` for one record). Records are separate experiments: the
+        filter starts each from its initial-state prior, and the time axis joins them with a gap of one
+        sample interval (see :func:`join_records`).
     """
 
     t: np.ndarray
     columns: dict[str, np.ndarray]
     meta: dict = field(default_factory=dict)
+    starts: tuple = (0,)
 
     def __post_init__(self):
         self.t = np.ascontiguousarray(self.t, dtype=float)
         self.columns = {k: np.ascontiguousarray(v, dtype=float) for k, v in self.columns.items()}
+        self.starts = tuple(int(s) for s in self.starts)
         _validate(self.t, self.columns, self.meta.get("source", "data set"))
+        if not self.starts or self.starts[0] != 0 or any(b <= a for a, b in zip(self.starts, self.starts[1:])) \
+                or self.starts[-1] >= self.t.size:
+            raise DataError(f"{self.meta.get('source', 'data set')}: record starts {list(self.starts)} must "
+                            f"begin at 0 and increase within the {self.t.size} rows")
 
     def __len__(self) -> int:
         return self.t.size
 
+    @property
+    def n_records(self) -> int:
+        return len(self.starts)
+
+    def record_slices(self) -> list[slice]:
+        """The rows of each record."""
+        ends = list(self.starts[1:]) + [self.t.size]
+        return [slice(a, b) for a, b in zip(self.starts, ends)]
+
+    def record(self, r: int) -> "Dataset":
+        """Record ``r`` alone, on its own time axis."""
+        s = self.record_slices()[r]
+        info = (self.meta.get("records") or [{}] * self.n_records)[r]
+        t = self.t[s] - self.t[s][0] + info.get("t0", self.t[s][0])
+        meta = {k: v for k, v in self.meta.items() if k != "records"}
+        meta.update({k: v for k, v in info.items() if k in ("source", "initial_mean", "initial_std")})
+        if self.n_records > 1:
+            meta["records"] = [dict(info)]
+        return Dataset(t, {k: v[s].copy() for k, v in self.columns.items()}, meta)
+
     def slice(self, start: int | None = None, stop: int | None = None) -> "Dataset":
-        """Rows ``start:stop`` as a new data set."""
+        """Rows ``start:stop`` as a new data set (the records that begin inside it keep their starts; rows
+        before the first of them are a record of their own)."""
         s = slice(start, stop)
-        return Dataset(self.t[s].copy(), {k: v[s].copy() for k, v in self.columns.items()},
-                       dict(self.meta, slice=[start, stop]))
+        a, b, _ = s.indices(self.t.size)
+        inside = [r for r, x in enumerate(self.starts) if a < x < b]
+        first = max([r for r, x in enumerate(self.starts) if x <= a], default=0)
+        keep = [first] + inside
+        meta = dict(self.meta, slice=[start, stop])
+        if a != self.starts[first]:  # cut inside a record: its declared initial state is not this row's
+            for k in ("initial_mean", "initial_std"):
+                meta.pop(k, None)
+        if self.meta.get("records"):
+            meta["records"] = [dict(self.meta["records"][r]) for r in keep]
+            if a != self.starts[first]:  # cut inside a record: its declared initial state is not this row's
+                for k in ("initial_mean", "initial_std"):
+                    meta["records"][0].pop(k, None)
+        return Dataset(self.t[s].copy(), {k: v[s].copy() for k, v in self.columns.items()}, meta,
+                       (0, *(self.starts[r] - a for r in inside)))
 
     def arrays(self, observed: list[str], inputs: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Contiguous ``(t, Y, U)`` for a model's observed and input columns.
@@ -98,6 +144,39 @@ class Dataset:
         with open(path, "w", newline="") as fh:
             fh.write(",".join(names) + "\n")
             np.savetxt(fh, M, delimiter=",", fmt="%.17g")
+
+
+def join_records(records: list[Dataset], names: list[str] | None = None) -> Dataset:
+    """Several records (separate experiments) as one :class:`Dataset` with their ``starts``.
+
+    Every record must have the same columns. Record ``r``'s times are shifted to begin one sample
+    interval (its own first) after the previous record ends, so the joined axis increases; each record's
+    own first time is kept as ``meta["records"][r]["t0"]``. One record is returned unchanged.
+    """
+    if len(records) == 1:
+        return records[0]
+    cols = list(records[0].columns)
+    for r, ds in enumerate(records[1:], 1):
+        if sorted(ds.columns) != sorted(cols):
+            raise DataError(f"record {r} ({ds.meta.get('source', '?')}) has columns {sorted(ds.columns)}; "
+                            f"record 0 has {sorted(cols)}: every record needs the same columns")
+    ts, starts, info, end = [], [], [], None
+    for r, ds in enumerate(records):
+        t = ds.t - ds.t[0]
+        if end is not None:
+            t = t + end + (ds.t[1] - ds.t[0])
+        else:
+            t = t + ds.t[0]
+        starts.append(sum(len(x) for x in records[:r]))
+        ts.append(t)
+        end = t[-1]
+        entry = {"name": (names[r] if names else None) or f"record {r}", "source": ds.meta.get("source"),
+                 "t0": float(ds.t[0]), "n": len(ds)}
+        entry.update({k: dict(ds.meta[k]) for k in ("initial_mean", "initial_std") if ds.meta.get(k)})
+        info.append(entry)
+    joined = {c: np.concatenate([ds.columns[c] for ds in records]) for c in cols}
+    source = " + ".join(str(e["source"]) for e in info)
+    return Dataset(np.concatenate(ts), joined, {"source": source, "records": info}, tuple(starts))
 
 
 def _validate(t: np.ndarray, columns: dict[str, np.ndarray], src: str) -> None:

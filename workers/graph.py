@@ -249,7 +249,7 @@ def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None 
                   datasets: Path | None = None, study_id: str | None = None) -> StudyStore:
     """Create the store with the spec and the data set (a new study id unless given); a data set the models
     cannot be fitted to is refused first (:meth:`StudySpec.check_data`)."""
-    data = spec.data.load(base, datasets)
+    data = spec.load_data(base, datasets)
     spec.check_data(data)
     store = StudyStore.create(store_path, spec.model_dump(mode="json"), data)
     meta = store.meta

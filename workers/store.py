@@ -44,6 +44,10 @@ class StoreBusy(ArdflowError):
     """Another driver holds this study's store."""
 
 
+DATA_META = ("records", "initial_mean", "initial_std")
+"""What of a data set's ``meta`` the store keeps beside its columns (with its record ``starts``)."""
+
+
 class StudyStore:
     """Read and write one study's store (a local directory).
 
@@ -138,6 +142,9 @@ class StudyStore:
             dg.create_array("t", data=np.asarray(data.t), dimension_names=["time"])
             for k, v in data.columns.items():
                 dg.create_array(k, data=np.asarray(v), dimension_names=["time"])
+            # several records: where each starts, and each one's name, own time origin and initial state
+            dg.attrs["ardflow"] = to_jsonable({"starts": list(data.starts), **{
+                k: data.meta[k] for k in DATA_META if data.meta.get(k)}})
         return s
 
     def exists(self) -> bool:
@@ -195,7 +202,9 @@ class StudyStore:
         # named as the study names its data (a file, an uploaded data set's name, a generator), not by the
         # store's place on this machine
         source = (self.meta.get("data") or {}).get("source") or f"{self.url}/data"
-        return Dataset(np.asarray(dg["t"][:]), cols, {"source": source})
+        extra = dict(dg.attrs.get("ardflow", {}))  # absent in stores written before records existed
+        meta = {"source": source, **{k: extra[k] for k in DATA_META if k in extra}}
+        return Dataset(np.asarray(dg["t"][:]), cols, meta, tuple(extra.get("starts", (0,))))
 
     def write_summary(self, summary: StudySummary, *, done: bool = True) -> None:
         """Write the summary; with ``done`` the study's status becomes ``done`` (a driver that renders a

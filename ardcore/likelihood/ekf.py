@@ -47,6 +47,8 @@ class FilterResult:
     filtered_cov: np.ndarray
     forecast_cov: np.ndarray | None = None
     transition: np.ndarray | None = None
+    starts: tuple = (0,)
+    """First row of each record (the filter restarts there)."""
 
     @property
     def standardized(self) -> np.ndarray:
@@ -179,20 +181,21 @@ class Likelihood:
         self.data = data
         self.substeps = int(substeps)
         self.t, self.Y, self.U = data.arrays(model.spec.observed_columns, model.spec.inputs)
+        self.records = record_priors(data, model.state_names, model.spec.name)
         self._ekf = model._mod.ekf
 
     def __call__(self, phi) -> float:
         p = self.model._phi(phi)
         return float(self._ekf(p, self.t, self.Y, self.U, self.substeps, False,
-                               _EMPTY2, _EMPTY3, _EMPTY2, _EMPTY2, _EMPTY2))
+                               _EMPTY2, _EMPTY3, _EMPTY2, _EMPTY2, _EMPTY2, *self.records))
 
     def filter(self, phi) -> FilterResult:
         p = self.model._phi(phi)
         n, nx, m = self.t.size, len(self.model.state_names), self.Y.shape[1]
         XF, PF, XP = np.full((n, nx), np.nan), np.full((n, nx, nx), np.nan), np.full((n, nx), np.nan)
         IN, SV = np.full((n, m), np.nan), np.full((n, m), np.nan)
-        ll = self._ekf(p, self.t, self.Y, self.U, self.substeps, True, XF, PF, XP, IN, SV)
-        return FilterResult(float(ll), IN, SV, XP, XF, PF)
+        ll = self._ekf(p, self.t, self.Y, self.U, self.substeps, True, XF, PF, XP, IN, SV, *self.records)
+        return FilterResult(float(ll), IN, SV, XP, XF, PF, starts=self.data.starts)
 
     def trace(self, phi) -> FilterResult:
         """:meth:`filter` plus forecast covariances and transitions (what a smoother needs)."""
@@ -201,8 +204,26 @@ class Likelihood:
         XF, PF, XP = np.full((n, nx), np.nan), np.full((n, nx, nx), np.nan), np.full((n, nx), np.nan)
         PP, PHI = np.full((n, nx, nx), np.nan), np.full((n, nx, nx), np.nan)
         IN, SV = np.full((n, m), np.nan), np.full((n, m), np.nan)
-        ll = self.model._mod.ekf_trace(p, self.t, self.Y, self.U, self.substeps, XF, PF, XP, PP, PHI, IN, SV)
-        return FilterResult(float(ll), IN, SV, XP, XF, PF, PP, PHI)
+        ll = self.model._mod.ekf_trace(p, self.t, self.Y, self.U, self.substeps, XF, PF, XP, PP, PHI, IN, SV,
+                                       *self.records)
+        return FilterResult(float(ll), IN, SV, XP, XF, PF, PP, PHI, starts=self.data.starts)
+
+
+def record_priors(data: Dataset, states: list[str], model: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The kernel's record arguments: each record's first row (and the end), and its initial-state mean and
+    std by state (NaN: the model's own). A record's initial state named for a state the model lacks is an
+    error."""
+    K = data.n_records
+    starts = np.array([*data.starts, len(data)], dtype=np.int64)
+    M0, S0 = np.full((K, len(states)), np.nan), np.full((K, len(states)), np.nan)
+    for r, info in enumerate(data.meta.get("records") or [data.meta]):
+        for key, out in (("initial_mean", M0), ("initial_std", S0)):
+            for name, v in (info.get(key) or {}).items():
+                if name not in states:
+                    raise ModelError(f"{info.get('name', f'record {r}')}: {key} names {name!r}, not a state of "
+                                     f"model {model!r} (states: {states})")
+                out[r, states.index(name)] = float(v)
+    return starts, M0, S0
 
 
 @dataclass
@@ -230,7 +251,10 @@ def rts_smooth(fr: FilterResult) -> SmootherResult:
     n, nx = XF.shape
     XS, PS = XF.copy(), PF.copy()
     W = np.zeros((n, nx))
+    first = set(fr.starts)
     for k in range(n - 2, -1, -1):
+        if k + 1 in first:  # the next record starts afresh: this one's last row is its own smoothed end
+            continue
         # C = P_k^a Phi^T (P_{k+1}^f)^-1, through a least-squares solve (P^f can be singular in noiseless directions)
         C = np.linalg.lstsq(PP[k + 1].T, (PF[k] @ PHI[k + 1].T).T, rcond=1e-12)[0].T
         d = XS[k + 1] - XP[k + 1]

@@ -26,7 +26,7 @@ import sympy as sp
 from .printing import Emitter, symbol_names
 from .declaration import ModelSpec
 
-KERNEL_VERSION = "7"
+KERNEL_VERSION = "8"
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
 
@@ -242,7 +242,7 @@ class _KernelWriter:
     def ekf_function(self, trace: bool, step: list, phi_step: list, xstep: list, upd: list) -> list[str]:
         n = self.n
         if trace:
-            head = ["def ekf_trace(p, t, Y, U, nsub, XF, PF, XP, PP, PHI, INNOV, SVAR):",
+            head = ["def ekf_trace(p, t, Y, U, nsub, XF, PF, XP, PP, PHI, INNOV, SVAR, RSTART, M0REC, S0REC):",
                     '    """ekf() that always records, plus forecast covariances PP and interval transitions PHI."""',
                     "    want = True"]
             reset = [f"            F{i}_{j} = {1.0 if i == j else 0.0}" for i in range(n) for j in range(n)]
@@ -250,8 +250,10 @@ class _KernelWriter:
             rec = [f"            PP[k, {i}, {j}] = P{min(i, j)}_{max(i, j)}" for i in range(n) for j in range(n)]
             rec += [f"            PHI[k, {i}, {j}] = F{i}_{j}" for i in range(n) for j in range(n)]
         else:
-            head = ["def ekf(p, t, Y, U, nsub, want, XF, PF, XP, INNOV, SVAR):",
-                    '    """EKF log-likelihood; with want=True also fills forecasts XP, filtered XF/PF, innovations."""']
+            head = ["def ekf(p, t, Y, U, nsub, want, XF, PF, XP, INNOV, SVAR, RSTART, M0REC, S0REC):",
+                    '    """EKF log-likelihood; with want=True also fills forecasts XP, filtered XF/PF, innovations.',
+                    "    Each record (rows RSTART[r]:RSTART[r + 1]) starts from the initial prior, its mean and std",
+                    '    replaced where M0REC[r] / S0REC[r] are not NaN."""']
             reset, body, rec = [], step + xstep, []
         return [
             "@njit(cache=True, nogil=True, error_model='numpy')",
@@ -260,8 +262,17 @@ class _KernelWriter:
             *self.init_lines,
             *([f"    F{i}_{j} = {1.0 if i == j else 0.0}" for i in range(n) for j in range(n)] if trace else []),
             "    ll = 0.0",
+            "    _rec = 0",
             "    for k in range(t.shape[0]):",
-            "        if k > 0:",
+            "        if k == RSTART[_rec]:",
+            *["        " + line for line in self.init_lines],
+            *[ln for i in range(n) for ln in (
+                f"            if M0REC[_rec, {i}] == M0REC[_rec, {i}]:",
+                f"                x{i} = M0REC[_rec, {i}]",
+                f"            if S0REC[_rec, {i}] == S0REC[_rec, {i}]:",
+                f"                P{i}_{i} = S0REC[_rec, {i}] * S0REC[_rec, {i}]")],
+            "            _rec += 1",
+            "        else:",
             "            dt = (t[k] - t[k - 1]) / nsub",
             *self.interval_inputs("            "),
             *reset,

@@ -25,9 +25,11 @@ PLAIN_TEXT = r"^[^$\x00-\x1f\x7f]*$"
 
 
 class DataSpec(BaseModel):
-    """Where the data come from: a file, or a documented generator."""
+    """Where the data come from: a file, or a documented generator. A study of several records (separate
+    experiments of one system) gives a list of these, each with its own initial state and constants."""
 
     model_config = _STRICT
+    name: Optional[str] = Field(None, max_length=80, pattern=PLAIN_TEXT, description="the record's name")
     path: Optional[str] = Field(None, max_length=4096, description="CSV, NPZ or MAT file")
     dataset: Optional[str] = Field(None, pattern=r"^[a-f0-9]{16}$",
                                    description="id of a data set uploaded to the service (REST API)")
@@ -48,6 +50,14 @@ class DataSpec(BaseModel):
     labels: dict[Name, Annotated[str, Field(max_length=80, pattern=PLAIN_TEXT)]] = Field(
         default_factory=dict, max_length=64, description="what each column is, for reports: "
                                                            "{'y': 'output voltage'}")
+    initial_mean: dict[Name, float] = Field(default_factory=dict, max_length=64,
+                                            description="this record's initial state mean, by state (default: "
+                                                        "the model's)")
+    initial_std: dict[Name, Annotated[float, Field(gt=0)]] = Field(
+        default_factory=dict, max_length=64, description="this record's initial state std, by state")
+    constants: dict[Name, float] = Field(default_factory=dict, max_length=64,
+                                         description="values held for the whole record (an airspeed, an input "
+                                                     "level), given to the model as input columns of that name")
 
     def axis_label(self, column: str) -> str:
         """``"output voltage y [V]"``: the column's declared label and unit (the reference problem's own
@@ -107,6 +117,13 @@ class DataSpec(BaseModel):
             ds = Dataset(ds.t[::k].copy(), {c: v[::k].copy() for c, v in ds.columns.items()}, dict(ds.meta))
         if self.units:
             ds.meta["units"] = {**ds.meta.get("units", {}), **self.units}
+        for name, v in self.constants.items():
+            if name in ds.columns:
+                raise DataError(f"{ds.meta.get('source', 'data')}: constant {name!r} is also a column")
+            ds.columns[name] = np.full(len(ds), float(v))
+        for k in ("initial_mean", "initial_std"):
+            if getattr(self, k):
+                ds.meta[k] = dict(getattr(self, k))
         return ds
 
 
@@ -205,7 +222,9 @@ class StudySpec(BaseModel):
     model_config = _STRICT
     name: Name = "study"
     description: str = Field("", max_length=4000)
-    data: DataSpec
+    data: Union[DataSpec, Annotated[list[DataSpec], Field(min_length=1, max_length=64)]] = Field(
+        description="one record, or a list of records (separate experiments of one system: the likelihood is "
+                    "the sum over records, each filtered from its own start)")
     models: list[CandidateSpec] = Field(min_length=1, max_length=16)
     evidence: Literal["chib-jeliazkov", "laplace"] = "chib-jeliazkov"
     sampler: SamplerConfig = Field(default_factory=SamplerConfig)
@@ -226,17 +245,39 @@ class StudySpec(BaseModel):
                                      "needs a proper one (uniform, normal or lognormal)")
         return self
 
+    @property
+    def records(self) -> list[DataSpec]:
+        """The data's records (one for a single data spec)."""
+        return list(self.data) if isinstance(self.data, list) else [self.data]
+
+    @property
+    def naming(self) -> DataSpec:
+        """The record whose units and labels name the columns in reports (the first)."""
+        return self.records[0]
+
+    def load_data(self, base: Path | None = None, datasets: Path | None = None) -> Dataset:
+        """The study's data: its one record, or its records joined (:func:`~ardcore.data.join_records`)."""
+        from ..data import join_records
+
+        recs = self.records
+        loaded = [r.load(base, datasets) for r in recs]
+        return join_records(loaded, [r.name or f"record {i}" for i, r in enumerate(recs)])
+
     def check_data(self, data) -> None:
         """Refuse a data set no candidate can be fitted to: each candidate's observed columns present with at
         least one value, its inputs present and complete (:meth:`Dataset.arrays`). Raises DataError naming
         the candidate and the column."""
         from ..errors import DataError
 
+        from ..likelihood.ekf import record_priors
+        from ..errors import ModelError
+
         for i, m in enumerate(self.models):
             ms = m.model_spec()
             try:
                 data.arrays(ms.observed_columns, ms.inputs)
-            except DataError as exc:
+                record_priors(data, list(ms.states), ms.name)
+            except (DataError, ModelError) as exc:
                 raise DataError(f"models[{i}] ({m.label}): {exc}") from None
 
 

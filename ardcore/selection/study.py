@@ -175,7 +175,7 @@ def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[Mod
     :mod:`workers.store`).
     """
     t0 = time.perf_counter()
-    data = spec.data.load(base)
+    data = spec.load_data(base)
     rows, results = [], {}
     for i, cand in enumerate(spec.models):
         row, mr = run_candidate(cand, data, spec, i, hooks=CandidateHooks(map_fn, progress, cancel))

@@ -334,11 +334,12 @@ def _submit_router(c: _Service) -> APIRouter:
 
     @r.post(f"{v1}/studies", response_model=StudyCreated, status_code=202)
     async def submit(spec: StudySpec, owner: str = Depends(c.auth)) -> StudyCreated:
-        if spec.data.path is not None:
-            raise HTTPException(422, "data.path is not accepted over the API: upload the data set "
-                                     "(POST /v1/datasets) and give data.dataset")
-        if spec.data.dataset is not None and not c.dataset_visible(spec.data.dataset, owner):
-            raise HTTPException(422, f"data.dataset: no uploaded data set {spec.data.dataset!r}")  # another's: as for none
+        for rec in spec.records:
+            if rec.path is not None:
+                raise HTTPException(422, "data.path is not accepted over the API: upload the data set "
+                                         "(POST /v1/datasets) and give data.dataset")
+            if rec.dataset is not None and not c.dataset_visible(rec.dataset, owner):
+                raise HTTPException(422, f"data.dataset: no uploaded data set {rec.dataset!r}")  # another's: as for none
         with c.admission.slot(owner):
             return await _admitted(spec, owner)
 

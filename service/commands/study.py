@@ -202,7 +202,7 @@ def cmd_diagnose(a) -> int:
         store = None
         spec = load_spec(src)
         base = src.resolve().parent
-        data = spec.data.load(base)
+        data = spec.load_data(base)
         default = None
     name = a.model or (default if len(spec.models) > 1 else None)
     if name:
@@ -214,14 +214,14 @@ def cmd_diagnose(a) -> int:
         raise SpecError(f"the spec has {len(spec.models)} models: choose one with --model")
     test = None
     if a.test_data:
-        d = spec.data
+        d = spec.naming
         rename = parse_assignments(a.test_rename, "--test-rename") if a.test_rename else d.rename
         test = read_dataset(a.test_data, time=d.time, fs=d.fs, rename=rename, columns=d.columns)
     elif a.test_start is not None or a.test_stop is not None:
-        if spec.data.path is None:
-            raise SpecError("--test-start/--test-stop need a spec whose data come from a file (data.path)")
+        if len(spec.records) > 1 or spec.naming.path is None:
+            raise SpecError("--test-start/--test-stop need a spec whose data come from one file (data.path)")
         # the same loader as the estimation data (slice, then the same decimation)
-        test = spec.data.model_copy(update={"start": a.test_start, "stop": a.test_stop}).load(base)
+        test = spec.naming.model_copy(update={"start": a.test_start, "stop": a.test_stop}).load(base)
     cfg = DiagnoseConfig(top_k=a.top_k, max_rounds=a.max_rounds)
     t0 = time.perf_counter()
     fit = None
@@ -242,7 +242,7 @@ def cmd_diagnose(a) -> int:
         # the folder is not named: the service passes its own paths, which its users must not see
         raise LoopFailed(f"{exc} to diagnosis.json in the --out folder", exc.partial) from None
     path = write_diagnosis(rep, data.t, a.out, col=spec.models[0].model_spec().observed_columns[0],
-                           label=spec.data.axis_label)
+                           label=spec.naming.axis_label)
     print(f"\n{rep.report.get('headline', '')}\n\n{rep.verdict}")
     print(f"\nreport: {path} and {Path(a.out) / 'diagnosis.html'}  ({time.perf_counter() - t0:.1f} s)")
     return 0

@@ -51,7 +51,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
     out = Path(out) if out is not None else Path(store.path) / "report"
     out.mkdir(parents=True, exist_ok=True)
     spec = StudySpec.model_validate(store.meta["spec"])
-    reference = spec.data.generator == "reference"
+    reference = spec.naming.generator == "reference"
     best = summary["best_model"]
     it, _ = store.model_result(best)
     samples, _, _, names = store.finished_samples(best, it)
@@ -93,7 +93,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
 
 def _truth(spec, best: str) -> tuple[dict, dict | None]:
     """The true values a generated data set declares, and the paper's 99 % bounds for its own model M2."""
-    reference = spec.data.generator == "reference"
+    reference = spec.naming.generator == "reference"
     return dict(spec.true_values), (FIG15_M2OPT_BOUNDS if (reference and best == "M2") else None)
 
 
@@ -134,7 +134,7 @@ def _report_figures(store, spec, summary, draws: tuple, out: Path, record: tuple
     """The report's figures, written to ``out``: (caption, file) each; ``draws``: the best model's parameter
     names and posterior samples; ``record``: the study's data (read once, by :func:`write_report`) and the best
     model's innovations with their variances (or why there are none). The paper's figure numbers are cited only for the paper's own problem."""
-    reference = spec.data.generator == "reference"
+    reference = spec.naming.generator == "reference"
     cite = (lambda figs: f" ({figs})") if reference else (lambda figs: "")
     best = summary["best_model"]
     names, samples = draws
@@ -143,8 +143,8 @@ def _report_figures(store, spec, summary, draws: tuple, out: Path, record: tuple
     figs: list[tuple[str, str]] = []
     col = "y" if "y" in data.columns else next(iter(data.columns))
     # names and units as the spec declares them (data.units, data.labels)
-    seconds = spec.data.units.get("t") == "s"
-    labels = Labels(f"{spec.name}: {spec.data.axis_label(col)}", spec.data.axis_label("t"), spec.data.axis_label(col),
+    seconds = spec.naming.units.get("t") == "s"
+    labels = Labels(f"{spec.name}: {spec.naming.axis_label(col)}", spec.naming.axis_label("t"), spec.naming.axis_label(col),
                     "Hz" if seconds else "cycles per time unit")
     plot_data_and_psd(data.t, data.columns[col], out / "data_psd.png", labels=labels,
                       cutoff=0.2295 if reference else None, tau_seconds=TAU_SECONDS if reference else None)

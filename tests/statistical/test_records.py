@@ -1,0 +1,158 @@
+"""Several records in one study: the summed likelihood, the evidence and what a pair of records identifies,
+against exact answers (linear-Gaussian models, where the Kalman filter is exact)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from ardflow.ardcore.data import Dataset, join_records
+from ardflow.ardcore.evidence.estimators import chib_jeliazkov, laplace
+from ardflow.ardcore.likelihood.ekf import compile_model
+from ardflow.ardcore.likelihood.posterior import ModelPosterior
+from ardflow.ardcore.likelihood.simulate import simulate_model
+from ardflow.ardcore.model.declaration import ModelSpec
+from ardflow.ardcore.model.priors import Normal
+from ardflow.ardcore.sampling.config import SamplerConfig
+from ardflow.ardcore.sampling.driver import sample
+
+A, Q, R, NSUB = 0.8, 0.3, 0.1, 5
+SPEC = ModelSpec(
+    name="lin_param", states=["x"], inputs=["u"],
+    drift={"x": "-a*x + b1*u + b2"}, diffusion={"x": "q"},
+    observations=[{"column": "y", "expr": "x + c", "noise_std": "r"}],
+    parameters=["b1", "b2", "c"], constants={"a": A, "q": Q, "r": R},
+    initial_std={"x": 1.0}, substeps=NSUB, integrator="euler", input_hold="zoh")
+TRUE = {"b1": 1.5, "b2": -0.4, "c": 0.3}
+PRIOR_MEAN, PRIOR_SD = np.zeros(3), np.array([2.0, 1.0, 1.0])
+
+
+def two_records():
+    """Two experiments of one system: different lengths, sample intervals and inputs; the second starts
+    from a declared initial state (x = 2 +- 0.5), the first from the model's (0 +- 1)."""
+    out = []
+    for seed, n, dt, w, x0 in ((11, 150, 0.1, 0.9, 0.0), (21, 120, 0.05, 2.3, 2.0)):
+        t = 3.0 + np.arange(n) * dt
+        rng = np.random.default_rng(seed)
+        u = np.sin(w * t) + 0.5 * rng.standard_normal(n)
+        out.append(simulate_model(SPEC, TRUE, t, seed=seed + 1, nsub=20, inputs={"u": u}, x0=[x0]))
+    out[1].meta.update(initial_mean={"x": 2.0}, initial_std={"x": 0.5})
+    return out
+
+
+def kalman_records(records, theta_mean, theta_sd):
+    """Exact ln p(d): a Kalman filter on [x, b1, b2, c] (the parameters as static states, fixed when their
+    sd is 0) through the records in turn; at each record's start x is reset to its initial prior and
+    forgets its correlation with the parameters, which carry over."""
+    m = np.concatenate([[0.0], theta_mean])
+    P = np.diag(np.concatenate([[1.0], np.asarray(theta_sd, dtype=float) ** 2]))
+    H = np.array([1.0, 0.0, 0.0, 1.0])
+    ll = 0.0
+    for ds in records:
+        m[0] = ds.meta.get("initial_mean", {}).get("x", 0.0)
+        P[0, :] = P[:, 0] = 0.0
+        P[0, 0] = ds.meta.get("initial_std", {}).get("x", 1.0) ** 2
+        t, y, u = ds.t, ds.columns["y"], ds.columns["u"]
+        for k in range(len(t)):
+            if k:
+                h = (t[k] - t[k - 1]) / NSUB
+                F = np.eye(4)
+                F[0, 0], F[0, 1], F[0, 2] = 1 - A * h, u[k - 1] * h, h
+                Qm = np.zeros((4, 4))
+                Qm[0, 0] = Q**2 * h
+                for _ in range(NSUB):
+                    m = F @ m
+                    P = F @ P @ F.T + Qm
+            S = H @ P @ H + R**2
+            e = y[k] - H @ m
+            K = P @ H / S
+            m = m + K * e
+            P = P - np.outer(K, K) * S
+            ll += -0.5 * (math.log(2 * math.pi * S) + e * e / S)
+    return ll
+
+
+def test_joined_records_restart_the_filter_and_sum_exactly():
+    recs = two_records()
+    joined = join_records(recs, ["first", "second"])
+    assert joined.starts == (0, 150) and len(joined) == 270 and np.all(np.diff(joined.t) > 0)
+    theta = np.array([TRUE[k] for k in ("b1", "b2", "c")])
+    cm = compile_model(SPEC)
+    each = [cm.loglik(theta, r) for r in recs]
+    both = cm.loglik(theta, joined)
+    assert both == pytest.approx(sum(each), abs=1e-9)
+    assert both == pytest.approx(kalman_records(recs, theta, np.zeros(3)), abs=1e-8)
+    # the second record's declared initial state matters: without it the sum changes
+    plain = join_records([recs[0], Dataset(recs[1].t, recs[1].columns, {"source": "x"})])
+    assert abs(cm.loglik(theta, plain) - both) > 1.0
+    # concatenating the records as one (what users did before) is a different, wrong likelihood
+    glued = Dataset(joined.t, joined.columns, {"source": "glued"})
+    assert abs(cm.loglik(theta, glued) - both) > 1.0
+    # each record comes back on its own time axis with its own initial state
+    back = joined.record(1)
+    assert np.allclose(back.t, recs[1].t) and back.meta["initial_mean"] == {"x": 2.0}
+    assert cm.loglik(theta, back) == pytest.approx(each[1], abs=1e-9)
+    # the smoother does not smooth across the records' boundary
+    from ardflow.ardcore.likelihood.ekf import rts_smooth
+
+    fr = cm.bind(joined).trace(theta)
+    sm = rts_smooth(fr)
+    assert np.isfinite(sm.smoothed).all() and fr.starts == (0, 150)
+    one = rts_smooth(cm.bind(recs[0]).trace(theta))
+    assert np.allclose(sm.smoothed[:150], one.smoothed, atol=1e-10)
+
+
+def test_joint_evidence_of_two_records_is_the_exact_marginal_likelihood():
+    recs = two_records()
+    joined = join_records(recs)
+    priors = {k: Normal(mean=m, sd=s) for k, m, s in zip(["b1", "b2", "c"], PRIOR_MEAN, PRIOR_SD)}
+    target = ModelPosterior(SPEC, priors, joined)
+    exact = kalman_records(recs, PRIOR_MEAN, PRIOR_SD)
+    lap, _, _ = laplace(target, np.zeros(3), np.ones(3))
+    assert lap.log_evidence == pytest.approx(exact, abs=1e-5)
+    cfg = SamplerConfig(n_chains=4, round_size=500, n_stationary=3000, n_proposal=3000)
+    res = sample(target, cfg, seed=31)
+    ev = chib_jeliazkov(target, res, n_proposal=cfg.n_proposal, seed=32)
+    assert abs(ev.log_evidence - exact) < max(0.15, 4 * ev.log_evidence_se), (ev.log_evidence, exact)
+
+
+GAIN = ModelSpec(
+    name="gain_by_speed", states=["x"], inputs=["u", "V"],
+    drift={"x": "-a*x + (k0 + k1*V)*u"}, diffusion={"x": "q"},
+    observations=[{"column": "y", "expr": "x", "noise_std": "r"}],
+    parameters=["k0", "k1"], constants={"a": 1.0, "q": 0.05, "r": 0.05},
+    initial_std={"x": 0.1}, substeps=4, integrator="euler", input_hold="zoh")
+
+
+def test_two_conditions_identify_what_neither_does_alone():
+    """A gain k0 + k1 V measured at two airspeeds V: each record fixes one combination, the pair fixes both.
+    The pair's posterior precision is the sum of the records' minus the prior's (the model is linear-Gaussian
+    in k0, k1, so this is exact, and Laplace is the posterior)."""
+    from ardflow.ardcore.selection.spec import DataSpec
+
+    t = np.arange(400) * 0.05
+    rng = np.random.default_rng(5)
+    u = np.sin(1.3 * t) + 0.3 * rng.standard_normal(t.size)
+    recs = []
+    for V, seed in ((1.0, 6), (3.0, 7)):
+        ds = simulate_model(GAIN, {"k0": 0.5, "k1": 0.4}, t, seed=seed, nsub=8,
+                            inputs={"u": u, "V": np.full(t.size, V)})
+        recs.append(ds)
+    priors = {"k0": Normal(mean=0.0, sd=3.0), "k1": Normal(mean=0.0, sd=3.0)}
+    prior_prec = np.diag([1 / 9.0, 1 / 9.0])
+
+    def cov(data):
+        _, _, c = laplace(ModelPosterior(GAIN, priors, data), np.array([0.3, 0.3]), np.array([0.1, 0.1]))
+        return c
+
+    ca, cb, cab = cov(recs[0]), cov(recs[1]), cov(join_records(recs))
+    predicted = np.linalg.inv(np.linalg.inv(ca) + np.linalg.inv(cb) - prior_prec)
+    sd = lambda c: np.sqrt(np.diag(c))  # noqa: E731
+    # alone, k1 is barely narrower than its prior (sd 3): one record sees only k0 + V k1
+    assert sd(ca)[1] > 0.5 and sd(cb)[1] > 0.5
+    assert sd(cab)[1] < 0.05 * min(sd(ca)[1], sd(cb)[1])
+    assert sd(cab) == pytest.approx(sd(predicted), rel=0.02)
+    # the airspeed reaches the model as a record constant of the data spec (an input column of that name)
+    spec = DataSpec(generator="appendix_a", constants={"V": 2.5}, initial_mean={"x": 1.0})
+    loaded = spec.load()
+    assert np.all(loaded.columns["V"] == 2.5) and loaded.meta["initial_mean"] == {"x": 1.0}
