@@ -161,7 +161,9 @@ def _service_commands(sub) -> None:
         s = sub.add_parser(name, help=hlp)
         if name == "submit":
             s.add_argument("spec")
-            s.add_argument("--csv", default=None, help="upload this CSV as the study's data set")
+            s.add_argument("--csv", default=None, action="append",
+                           help="upload this CSV as the study's data set (repeat it, one per record, for a study of "
+                                "several records)")
             s.add_argument("--wait", action="store_true")
         elif name == "status":
             s.add_argument("id", nargs="?")

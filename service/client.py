@@ -79,13 +79,28 @@ class Client:
         return self._check(self.http.post("/datasets", content=body, params={"name": plain_name(csv_path)},
                                           headers={"Content-Type": "text/csv"})).json()["id"]
 
-    def submit(self, spec: dict | str | Path, csv: str | Path | None = None) -> str:
-        """Submit a study (a dict or a JSON file); with ``csv`` the file is uploaded first. Returns the study id."""
+    def submit(self, spec: dict | str | Path, csv: str | Path | list | None = None) -> str:
+        """Submit a study (a dict or a JSON file); with ``csv`` the file is uploaded first. Returns the study id.
+
+        ``csv`` may be a list, one file per record: each replaces the source of the spec's record in the same
+        place (a spec with one data entry gives its settings to every record, named after its file)."""
         if not isinstance(spec, dict):
             spec = json.loads(Path(spec).read_text())
         if csv is not None:
-            spec = dict(spec, data={**{k: v for k, v in spec.get("data", {}).items() if k not in ("path", "generator")},
-                                    "dataset": self.upload(csv)})
+            files = list(csv) if isinstance(csv, (list, tuple)) else [csv]
+            data = spec.get("data", {})
+            given = data if isinstance(data, list) else [data] * len(files)
+            if len(given) != len(files):
+                from ardflow.ardcore.errors import SpecError
+
+                raise SpecError(f"the spec has {len(given)} records and {len(files)} CSV files: give one per record")
+            records = []
+            for f, rec in zip(files, given):
+                rec = {k: v for k, v in rec.items() if k not in ("path", "generator", "dataset")}
+                if len(files) > 1:
+                    rec.setdefault("name", plain_name(f)[:80])
+                records.append({**rec, "dataset": self.upload(f)})
+            spec = dict(spec, data=records if isinstance(data, list) or len(files) > 1 else records[0])
         return self._check(self.http.post("/studies", json=spec)).json()["id"]
 
     def studies(self) -> list[dict]:

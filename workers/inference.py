@@ -162,6 +162,12 @@ def inference_groups(store, model: str, *, log_likelihood: bool = False,
     cand = _candidate(store, model)
     cols = cand.model_spec().observed_columns
     groups["observed_data"] = {c: data.columns[c] for c in cols}
+    # which record each observation belongs to: LOO read per record, or a record's pointwise terms summed
+    # for leave-one-record-out
+    record = np.zeros(len(data), dtype=np.int64)
+    for r, sl in enumerate(data.record_slices()):
+        record[sl] = r
+    groups["constant_data"] = {"record": record}
     if log_likelihood:
         groups["log_likelihood"] = pointwise_log_likelihood(cand, row, data, samples, names)
     attrs = {"model": model, "iteration": it, "thin": step,
@@ -175,7 +181,9 @@ def inference_groups(store, model: str, *, log_likelihood: bool = False,
         attrs["max_rhat"] = float(np.max(np.asarray(rec["rhat"], float)))
     if rec.get("warnings"):
         attrs["warnings"] = "; ".join(map(str, rec["warnings"]))
-    return InferenceGroups(groups, {c: ["time"] for c in cols}, {"time": data.t}, attrs)
+    attrs["records"] = json.dumps([str(x.get("name") or f"record {i}")
+                                   for i, x in enumerate(data.meta.get("records") or [{}])])
+    return InferenceGroups(groups, {**{c: ["time"] for c in cols}, "record": ["time"]}, {"time": data.t}, attrs)
 
 
 def to_inference_data(store, model: str, *, log_likelihood: bool = False, max_draws: int | None = None):
@@ -214,8 +222,14 @@ def psis_loo(dt) -> dict:
         k_high = int(np.sum(np.asarray(res.pareto_k).ravel() > 0.7))
         p_loo = float(res.p)
     n = elpd_i.size
-    return {"elpd_loo": float(elpd_i.sum()), "elpd_se": float(np.sqrt(n * np.var(elpd_i))), "p_loo": p_loo,
-            "pareto_k_high": k_high, "n": n, "n_constant": int(const.sum()), "elpd_i": elpd_i}
+    out = {"elpd_loo": float(elpd_i.sum()), "elpd_se": float(np.sqrt(n * np.var(elpd_i))), "p_loo": p_loo,
+           "pareto_k_high": k_high, "n": n, "n_constant": int(const.sum()), "elpd_i": elpd_i}
+    if "constant_data" in dt.children and "record" in dt["constant_data"].data_vars:
+        rec = np.asarray(dt["constant_data"]["record"].values).ravel()
+        names = json.loads(dt.attrs.get("records", "[]")) or [f"record {r}" for r in range(int(rec.max()) + 1)]
+        if len(names) > 1:
+            out["elpd_records"] = {names[r]: float(elpd_i[rec == r].sum()) for r in range(len(names))}
+    return out
 
 
 def loo_beside_evidence(store, *, max_draws: int = MAX_POINTWISE_DRAWS) -> list[dict]:

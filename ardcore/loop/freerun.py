@@ -70,6 +70,9 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
     ``band`` holds the pointwise 5 % and 95 % quantiles, ``band_coverage`` the share of data inside
     it, ``draws_rms_error`` the median RMS error of the draws' deterministic free runs.
     """
+    if data.n_records > 1:
+        return _joined([free_run(spec, phi, data.slice(sl.start, sl.stop), init_samples=init_samples,
+                                 substeps=substeps, band=band) for sl in data.record_slices()], data)
     # the initial filter starts from a prior that agrees with this record's start (a test record in mid motion)
     spec, _ = recentred(spec, data)
     out = _free_run_one(spec, phi, data, init_samples=init_samples, substeps=substeps)
@@ -93,6 +96,32 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
         out["band_factor"] = factor
         if calibration is not None:
             out["band_calibration"] = calibration
+    return out
+
+
+def _joined(parts: list[dict], data: Dataset) -> dict:
+    """The free runs of several records (each from its own start) as one: the series end to end, the errors
+    and the band's coverage over every record's points, and each record's own under ``records``."""
+    names = [str(x.get("name") or f"record {r}") for r, x in enumerate(data.meta.get("records") or [{}] * len(parts))]
+    n = np.array([p["n"] for p in parts], dtype=float)
+    w = n / n.sum()
+    out = {"n": int(n.sum()), "start": parts[0]["start"],
+           "starts": [int(sl.start + p["start"]) for sl, p in zip(data.record_slices(), parts)]}
+    for k in ("t", "y", "y_free"):
+        out[k] = np.concatenate([p[k] for p in parts])
+    out["rms_error"] = float(np.sqrt(np.sum(w * np.array([p["rms_error"] for p in parts]) ** 2)))
+    y = out["y"]
+    out["rms_data"] = float(np.sqrt(np.nanmean((y - np.nanmean(y)) ** 2)))
+    out["relative_rms_error"] = out["rms_error"] / out["rms_data"] if out["rms_data"] > 0 else float("nan")
+    if all("band" in p for p in parts):
+        out["band"] = tuple(np.concatenate([p["band"][i] for p in parts]) for i in (0, 1))
+        out["band_coverage"] = float(np.sum(w * np.array([p["band_coverage"] for p in parts])))
+        out["band_halfwidth_rms"] = float(np.sqrt(np.sum(w * np.array([p["band_halfwidth_rms"] for p in parts]) ** 2)))
+        out["draws_rms_error"] = float(np.sum(w * np.array([p["draws_rms_error"] for p in parts])))
+        out["n_draws"] = min(p["n_draws"] for p in parts)
+        out["band_factor"] = parts[0]["band_factor"]
+    out["records"] = [{"name": nm, **{k: v for k, v in p.items() if isinstance(v, (int, float, str))}}
+                      for nm, p in zip(names, parts)]
     return out
 
 

@@ -216,8 +216,16 @@ def held_out_blocks(data: Dataset, column: str, share: float) -> dict[str, tuple
     n = len(data)
     m = int(round(n * share))
     y = np.nan_to_num(data.columns[column] - np.nanmean(data.columns[column]))
-    power = np.convolve(y ** 2, np.ones(m), mode="valid")
-    k = int(np.argmax(power))
+    recs = data.record_slices()
+    # several records: each block lies inside one (a free run starts within a record and never crosses into the
+    # next experiment), no longer than the shortest record
+    m = min([m] + [sl.stop - sl.start for sl in recs])
+    best, k = -np.inf, 0
+    for sl in recs:
+        power = np.convolve(y[sl] ** 2, np.ones(m), mode="valid")
+        j = int(np.argmax(power))
+        if power[j] > best:
+            best, k = power[j], sl.start + j
     return {"start": (0, m), "end": (n - m, n), "loudest": (k, k + m)}
 
 
@@ -265,7 +273,8 @@ def held_out_free_runs(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: i
         # the block is free-run from the state the refit's filter holds after the record up to it (and the block's
         # first init_samples, as a test record is): a slow state no sensor sees (an upper tank's level) is then
         # known at the block's start, and the block scores the model, not its initial guess
-        errors[name] = _held_out_rms(spec, {1.0: fits[name]}, data.slice(0, b), a + settings.init_samples,
+        first = max(x for x in data.starts if x <= a)  # the block's record: its free run starts there
+        errors[name] = _held_out_rms(spec, {1.0: fits[name]}, data.slice(first, b), a - first + settings.init_samples,
                                      substeps)[1.0]
     return HeldOut(blocks, fits, errors)
 

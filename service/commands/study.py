@@ -271,6 +271,8 @@ def cmd_loo(a) -> int:
     for r in rows:
         print(f"{r['model']:<12s} {r['log_evidence']:12.2f} {r['probability'] or 0:9.3g} {r['elpd_loo']:12.2f} "
               f"{r['elpd_se']:6.1f} {r['elpd_diff']:8.2f} {r['diff_se']:8.2f} {r['p_loo']:7.2f} {r['pareto_k_high']:6d}")
+        for name, v in (r.get("elpd_records") or {}).items():
+            print(f"{'':<12s} {'':>12s} {'':>9s} {v:12.2f}  on {name}")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=2))
     return 0

@@ -74,6 +74,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
             f"<p>{html.escape(spec.description)}</p>",
             f"<p>Data: {html.escape(str(summary['data'].get('source')))}, {summary['data'].get('n')} points. "
             f"Best model: <b>{html.escape(best)}</b>. Wall time {summary['wall_s']:.0f} s.</p>",
+            _records_table(data, innovations, col, best),
             "<h2>Model comparison</h2>", table10,
             f"<h2>Posterior of {html.escape(best)}</h2>", post_table, _convergence_table(summary), paper,
             "<h2>Warnings</h2><ul>" + ("".join(warns) or "<li>none</li>") + "</ul>",
@@ -89,6 +90,32 @@ def write_report(store, out: str | Path | None = None) -> Path:
     path = out / "report.html"
     path.write_text(page)
     return path
+
+
+def record_name(data, r: int) -> str:
+    """Record ``r``'s name as the spec gives it."""
+    return str(((data.meta.get("records") or [{}] * data.n_records)[r]).get("name") or f"record {r}")
+
+
+def _records_table(data, innovations, col: str, best: str) -> str:
+    """A study of several records: each record's source, length, and how the best model's one-step prediction
+    fits it (its RMS error in the data's units, the standardised innovations' RMS); empty for one record."""
+    if data.n_records < 2:
+        return ""
+    rows = []
+    for r, sl in enumerate(data.record_slices()):
+        info = data.meta["records"][r]
+        fit = "", ""
+        if not isinstance(innovations, Exception):
+            e, v = innovations[0][sl], innovations[1][sl]
+            ok = np.isfinite(e) & np.isfinite(v)
+            fit = (f"{np.sqrt(np.mean(e[ok] ** 2)):.4g}", f"{np.sqrt(np.mean(e[ok] ** 2 / v[ok])):.2f}") if ok.any() \
+                else ("", "")
+        rows.append(f"<tr><td>{html.escape(record_name(data, r))}</td><td>{html.escape(str(info.get('source')))}</td>"
+                    f"<td>{sl.stop - sl.start}</td><td>{fit[0]}</td><td>{fit[1]}</td></tr>")
+    return (f"<h2>Records</h2><p>Each record is filtered from its own initial state; the parameters are shared."
+            f"</p><table><tr><th>record</th><th>source</th><th>points</th><th>{html.escape(best)}: one-step RMS "
+            f"error of {html.escape(col)}</th><th>standardised innovation RMS</th></tr>{''.join(rows)}</table>")
 
 
 def _truth(spec, best: str) -> tuple[dict, dict | None]:
@@ -152,13 +179,18 @@ def _report_figures(store, spec, summary, draws: tuple, out: Path, record: tuple
 
     plot_model_probabilities(summary["models"], out / "probabilities.png")
     figs.append(("Posterior probability of each candidate model (Eq. 7), with its ln evidence", "probabilities.png"))
-    try:
-        if isinstance(innovations, Exception):
-            raise innovations
-        plot_prediction(data.t, data.columns[col], *innovations, out / "prediction.png", model=best, labels=labels)
-        figs.append((f"Data against {best}'s one-step prediction, and the standardised residuals", "prediction.png"))
-    except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not cost the report
-        figs.append((f"(the prediction of {best} could not be drawn: {type(exc).__name__})", ""))
+    several = data.n_records > 1
+    for r, rows in enumerate(data.record_slices()):
+        f = f"prediction_{r}.png" if several else "prediction.png"
+        name = f" on {record_name(data, r)}" if several else ""
+        try:
+            if isinstance(innovations, Exception):
+                raise innovations
+            plot_prediction(data.record(r).t, data.columns[col][rows], *(a[rows] for a in innovations), out / f,
+                            model=best + name, labels=labels)
+            figs.append((f"Data against {best}'s one-step prediction{name}, and the standardised residuals", f))
+        except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not cost the report
+            figs.append((f"(the prediction of {best}{name} could not be drawn: {type(exc).__name__})", ""))
 
     histories = store.histories([r["name"] for r in summary["models"]])
     plot_evidence_history(histories, out / "evidence.png")

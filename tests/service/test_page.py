@@ -33,7 +33,7 @@ def _sign_in_and_submit(page, spec, csv) -> str:
     page.click("#signin button")
     page.wait_for_selector("#main:not([hidden])")
     page.set_input_files("#spec", str(spec))
-    page.set_input_files("#csv", str(csv))
+    page.set_input_files("#csv", [str(c) for c in csv] if isinstance(csv, list) else str(csv))
     page.click("#submit button")
     page.wait_for_selector("#msg:has-text('submitted')", timeout=60_000)
     return page.inner_text("#msg").split("submitted: ")[1].strip()
@@ -77,11 +77,14 @@ def test_page_headers_and_session(service):
 
 
 def test_page_submit_watch_report(service, tmp_path):
+    """Two records, one CSV each, submitted through the form: the study fits both, the report shows each."""
     sync_api = pytest.importorskip("playwright.sync_api")
     exe = chromium_path()
     data = DataSpec.model_validate(SPEC["data"]).load()
-    csv = tmp_path / "data.csv"
-    data.to_csv(csv)
+    half = len(data) // 2
+    csv = [tmp_path / "first.csv", tmp_path / "second.csv"]
+    data.slice(0, half).to_csv(csv[0])
+    data.slice(half, None).to_csv(csv[1])
     spec = tmp_path / "spec.json"
     spec.write_text(json.dumps(dict(SPEC, name="pagetest")))
     errors: list[str] = []
@@ -118,14 +121,20 @@ def test_page_submit_watch_report(service, tmp_path):
             assert imgs and all(w > 0 for w in imgs), imgs
             assert "pagetest" in report.content() or "quad" in report.content()
             assert "Convergence (ArviZ)" in report.content()
-            assert "data.csv (uploaded data set" in report.content()  # the data set by its name, not its hash
+            # each record by its name (not its hash), with its own fit and its own prediction figure
+            text = report.content()
+            assert "first.csv (uploaded data set" in text and "second.csv (uploaded data set" in text
+            assert "<h2>Records</h2>" in text and report.locator("img[src^='prediction_']").count() == 2
         finally:
             browser.close()
     assert not errors, errors
     # the study ran on the uploaded data set, not on the spec's generator
     with httpx.Client(base_url=service, headers={"X-API-Token": TOKEN}) as c:
         meta = c.get(f"/v1/studies/{sid}/summary").json()
-        assert meta["spec"]["data"].get("dataset") and not meta["spec"]["data"].get("generator")
+        records = meta["spec"]["data"]
+        assert len(records) == 2 and all(r.get("dataset") and not r.get("generator") for r in records)
+        assert [r["name"] for r in records] == ["first.csv", "second.csv"]
+        assert meta["data"]["n"] == len(data)
 
 
 def test_page_submit_done_diagnose_reports_delete(service, tmp_path):
