@@ -103,7 +103,8 @@ def _study_commands(sub) -> None:
     s.add_argument("--test-start", type=int, help="first row of the held-out record for the free run "
                                                   "(rows of the same file; default: the estimation data)")
     s.add_argument("--test-stop", type=int, help="end row of the held-out record")
-    s.add_argument("--test-data", help="held-out record in its own file (same columns as the data)")
+    s.add_argument("--test-data", action="append",
+                   help="held-out record in its own file (same columns as the data); repeat it for several records")
     s.add_argument("--test-rename", action="append", metavar="OLD=NEW",
                    help="renaming of the held-out file's columns (default: the spec's data.rename); e.g. "
                         "--test-rename uVal=u --test-rename yVal=y for a file that holds both records")

@@ -147,7 +147,7 @@ class Client:
         st = _until(poll, poll_s, timeout, lambda: f"study {sid} still running after {timeout} s")
         return {**self.summary(sid), "status": "done"} if st["status"] == "done" else st
 
-    def diagnose(self, sid: str, model: str | None = None, *, test_csv: str | Path | None = None,
+    def diagnose(self, sid: str, model: str | None = None, *, test_csv: str | Path | list | None = None,
                  wait: bool = True, poll_s: float = 2.0, timeout: float | None = None, **settings) -> dict:
         """Close the loop on a model of a finished study; with ``wait`` returns the finished diagnosis.
 
@@ -160,7 +160,9 @@ class Client:
         if model:
             body["model"] = model
         if test_csv:
-            body["test_dataset"] = self.upload(test_csv)
+            files = list(test_csv) if isinstance(test_csv, (list, tuple)) else [test_csv]
+            ids = [self.upload(f) for f in files]
+            body["test_dataset"] = ids if len(ids) > 1 else ids[0]
         st = self._check(self.http.post(f"/studies/{sid}/diagnoses", json=body)).json()
         if not wait:
             return st

@@ -87,12 +87,17 @@ def _errors(res: Residuals, fr: dict, row: ModelFit, col: str) -> dict:
             "band_coverage", "band_halfwidth_rms", "draws_rms_error", "n_draws", "band_factor", "band_calibration")
     # the first innovations carry the initial-state uncertainty, not the model's error
     skip = min(10, max(0, res.raw_innovations.shape[0] // 10))
-    return {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[skip:, 0] ** 2))),
-            # what the model had to be pushed by (smoothed process noise, per unit time), per dynamic state
-            "injected_noise_rms": {s: float(np.sqrt(np.nanmean(r ** 2))) for s, r in res.process_noise_rate.items()},
-            "standardized_rms": t["rms"], "ljung_box": t["ljung_box"], "ljung_box_p": t["ljung_box_p"],
-            "free_run": {k: fr[k] for k in keep if k in fr},
-            "log_evidence": row.log_evidence, "log_evidence_se": row.log_evidence_se}
+    out = {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[skip:, 0] ** 2))),
+           # what the model had to be pushed by (smoothed process noise, per unit time), per dynamic state
+           "injected_noise_rms": {s: float(np.sqrt(np.nanmean(r ** 2))) for s, r in res.process_noise_rate.items()},
+           "standardized_rms": t["rms"], "ljung_box": t["ljung_box"], "ljung_box_p": t["ljung_box_p"],
+           "free_run": {k: fr[k] for k in keep if k in fr},
+           "log_evidence": row.log_evidence, "log_evidence_se": row.log_evidence_se}
+    if res.records:  # several estimation records: each one's innovation tests
+        out["records"] = [dict(r) for r in res.records]
+    if fr.get("records"):  # several test records: each one's free run
+        out["free_run"]["records"] = fr["records"]
+    return out
 
 
 def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None,
@@ -130,7 +135,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
 
     if len(spec.models) != 1:
         raise SpecError(f"diagnose: the spec must have exactly one model (it has {len(spec.models)})")
-    test_data = test_data or data
+    test_data = spec.held_out(test_data) if test_data is not None else data
     _check_columns(spec.models[0].model_spec(), data, test_data)
     spec, notes = _informed_start(spec, data, base, say)
     cand = spec.models[0]

@@ -115,6 +115,7 @@ class Residuals:
     loglik: float
     states: tuple = ()               # names of the smoothed columns
     dt: float = 1.0                  # median sample interval
+    records: tuple = ()              # several records: each one's name and its first channel's tests
 
 
 def _diagnostic_spec(spec: ModelSpec, states: list[str]) -> tuple[ModelSpec, list[str]]:
@@ -139,6 +140,13 @@ def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig,
     e = fr.standardized
     fund = dominant_frequency(data.columns[spec.observed_columns[0]], fs)
     tests = {c: residual_tests(e[:, j], fs, config, fundamental=fund) for j, c in enumerate(spec.observed_columns)}
+    records = ()
+    if data.n_records > 1:  # each experiment's own whiteness: one record's structure is not averaged away
+        info = data.meta.get("records") or [{}] * data.n_records
+        records = tuple({"name": str(x.get("name") or f"record {r}"),
+                         **{k: v for k, v in residual_tests(e[sl, 0], fs, config).items()
+                            if k in ("n", "rms", "ljung_box", "ljung_box_p")}}
+                        for r, (x, sl) in enumerate(zip(info, data.record_slices())))
     dyn = dynamic_states(spec)
     dspec, qnames = _diagnostic_spec(spec, dyn)
     dcm = compile_model(dspec)
@@ -165,4 +173,4 @@ def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig,
     rates = {s: sm.process_noise[1:, spec.states.index(s)] / dt for s in dyn}
     noise_std = {s: q0.get(f"q_diag_{s}") for s in dyn}
     return Residuals(e, fr.innovations, sm.smoothed, rates, noise_std, tests, fr.loglik, tuple(spec.states),
-                     float(np.median(dt)))
+                     float(np.median(dt)), records)

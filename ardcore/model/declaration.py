@@ -99,7 +99,7 @@ class ModelSpec(BaseModel):
     observations: list[Observation] = Field(min_length=1, max_length=8)
     parameters: list[Name] = Field(default_factory=list, max_length=64)
     constants: dict[Name, float] = Field(default_factory=dict, max_length=128)
-    inputs: list[Name] = Field(default_factory=list, max_length=8)
+    inputs: list[Name] = Field(default_factory=list, max_length=24)
     initial_mean: dict[Name, ExprLike] = Field(default_factory=dict)
     initial_std: dict[Name, ExprLike] = Field(default_factory=dict)
     fixed: dict[Name, float] = Field(default_factory=dict)

@@ -136,6 +136,11 @@ def appendix_a_data(seed: int, n: int = 100) -> Dataset:
                    {"source": f"appendix_a(seed={seed})", "true_params": {"a0": 3.0, "a1": 5.0, "gamma": 0.3}})
 
 
+RECORD_INPUT = "record_"
+"""Prefix of the record indicator inputs ``record_0``, ``record_1``, ... (1 in that record, 0 elsewhere) that
+per-record parameters are written over."""
+
+
 class ArdSettings(BaseModel):
     model_config = _STRICT
     prune_alpha: Optional[float] = Field(None, gt=0, description="pruning threshold for this parameter")
@@ -154,13 +159,17 @@ class CandidateSpec(BaseModel):
         default_factory=dict, max_length=64,
         description="overrides of the model's known constants (e.g. the declared measurement-noise std 'gamma')")
     substeps: Optional[int] = Field(None, ge=1, le=10000)
+    per_record: list[Name] = Field(default_factory=list, max_length=16, description=(
+        "parameters with one value per record (an offset, a sensor gain): in a study of K records each becomes "
+        "K parameters NAME_0 ... NAME_K-1 with NAME's prior; the others are shared"))
 
     @model_validator(mode="after")
     def _check(self):
         spec = self.resolved()  # applies `constants` (unknown names rejected there; NaN by the schema)
         params = set(spec.parameters)
         label = self.label
-        for where, names in (("priors", self.priors), ("ard", self.ard_names), ("fixed", self.fixed)):
+        for where, names in (("priors", self.priors), ("ard", self.ard_names), ("fixed", self.fixed),
+                             ("per_record", self.per_record)):
             for n in names:
                 if n not in params:
                     raise ValueError(f"model {label}: {where}: {n!r} is not a parameter of the model "
@@ -176,7 +185,41 @@ class CandidateSpec(BaseModel):
         fixed_ard = set(self.fixed) & set(self.ard_names)
         if fixed_ard:
             raise ValueError(f"model {label}: {sorted(fixed_ard)[0]!r} is both fixed and ARD")
+        if set(self.fixed) & set(self.per_record):
+            raise ValueError(f"model {label}: {sorted(set(self.fixed) & set(self.per_record))[0]!r} is both fixed "
+                             "and per record")
         return self
+
+    def for_records(self, k: int) -> "CandidateSpec":
+        """This candidate on ``k`` records: each ``per_record`` parameter P becomes P_0 ... P_k-1, one per record,
+        each with P's prior (or ARD setting), and P a derived quantity ``P_0*record_0 + ...`` over the record
+        indicator inputs ``record_r`` (1 in record r, 0 elsewhere: :meth:`StudySpec.load_data` adds them).
+        Unchanged without ``per_record`` or for one record (its one value is the shared one)."""
+        if not self.per_record or k < 2:
+            return self
+        ms = self.resolved()
+        names = set(self.per_record)
+        copies = {p: [f"{p}_{r}" for r in range(k)] for p in self.per_record}
+        taken = set(ms.parameters) | set(ms.inputs) | set(ms.constants) | set(ms.derived) | set(ms.states)
+        for p, cs in copies.items():
+            clash = [c for c in cs if c in taken]
+            if clash:
+                raise ValueError(f"model {self.label}: per_record {p!r} needs the name {clash[0]!r}, which the model "
+                                 "already uses")
+        indicators = [f"{RECORD_INPUT}{r}" for r in range(k)]
+        params = [c for p in ms.parameters for c in (copies[p] if p in names else [p])]
+        derived = {p: " + ".join(f"{c}*{i}" for c, i in zip(copies[p], indicators)) for p in self.per_record}
+        model = ms.model_dump(mode="json")
+        model.update(parameters=params, derived={**derived, **ms.derived},
+                     inputs=ms.inputs + [i for i in indicators if i not in ms.inputs], constants=ms.constants)
+        spread = lambda d: {c: v for p, v in d.items() for c in (copies[p] if p in names else [p])}  # noqa: E731
+        ard = spread(self.ard) if isinstance(self.ard, dict) else [c for p in self.ard for c in (
+            copies[p] if p in names else [p])]
+        return CandidateSpec.model_validate({
+            **self.model_dump(mode="json", exclude={"model", "constants", "per_record", "priors", "ard"}),
+            "name": self.label, "model": model,
+            "priors": {k2: v.model_dump(mode="json") for k2, v in spread(self.priors).items()},
+            "ard": ard if isinstance(ard, list) else {k2: v.model_dump(mode="json") for k2, v in ard.items()}})
 
     @property
     def ard_names(self) -> list[str]:
@@ -234,6 +277,9 @@ class StudySpec(BaseModel):
 
     @model_validator(mode="after")
     def _unique(self):
+        if any(m.per_record for m in self.models) and len(self.records) > 1:
+            # written out once: the stored spec shows the parameters that ran, and validating it again is a no-op
+            self.models = [m.for_records(len(self.records)) for m in self.models]
         labels = [m.label for m in self.models]
         if len(set(labels)) != len(labels):
             raise ValueError("models: candidate names must be unique (set 'name')")
@@ -261,7 +307,22 @@ class StudySpec(BaseModel):
 
         recs = self.records
         loaded = [r.load(base, datasets) for r in recs]
+        used = {i for m in self.models for i in m.model_spec().inputs if i.startswith(RECORD_INPUT)}
+        for r, ds in enumerate(loaded):
+            for i in sorted(used):  # the per-record parameters' indicators (CandidateSpec.for_records)
+                ds.columns[i] = np.full(len(ds), float(i == f"{RECORD_INPUT}{r}"))
         return join_records(loaded, [r.name or f"record {i}" for i, r in enumerate(recs)])
+
+    def held_out(self, ds: Dataset) -> Dataset:
+        """A held-out record (a further experiment) as the models take it: a per-record parameter takes the
+        records' mean there (each indicator ``record_r`` = 1/K), the best guess for an experiment not fitted."""
+        used = sorted({i for m in self.models for i in m.model_spec().inputs if i.startswith(RECORD_INPUT)})
+        if not used or all(i in ds.columns for i in used):
+            return ds
+        cols = dict(ds.columns)
+        for i in used:
+            cols.setdefault(i, np.full(len(ds), 1.0 / len(used)))
+        return Dataset(ds.t, cols, dict(ds.meta), ds.starts)
 
     def check_data(self, data) -> None:
         """Refuse a data set no candidate can be fitted to: each candidate's observed columns present with at

@@ -481,8 +481,9 @@ def _diagnoses_router(c: _Service) -> APIRouter:
         model = req.model or summary.get("best_model")
         if model not in models:
             raise HTTPException(404, f"study {sid} has no model {model!r} (models: {models})")
-        if req.test_dataset and not c.dataset_visible(req.test_dataset, owner):
-            raise HTTPException(404, f"no uploaded data set {req.test_dataset!r}")
+        for ds in req.test_datasets:
+            if not c.dataset_visible(ds, owner):
+                raise HTTPException(404, f"no uploaded data set {ds!r}")
         d = _diag_dir(sid, model)
         now = (c.runner.diagnosis_status(d) or {}).get("status")
         if now in ("queued", "running"):

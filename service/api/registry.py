@@ -346,8 +346,8 @@ class Runner:
                 write_diagnosis_status(out, {"status": "running", "started": time.time(), "service": self.instance})
             cmd = [sys.executable, "-m", "ardflow.service.cli", "diagnose", str(reg.store(sid)), "--model", model,
                    "--out", str(out), "--top-k", str(req.top_k), "--max-rounds", str(req.max_rounds)]
-            if req.test_dataset:
-                cmd += ["--test-data", str(reg.root / "datasets" / f"{req.test_dataset}.csv")]
+            for ds in req.test_datasets:
+                cmd += ["--test-data", str(reg.root / "datasets" / f"{ds}.csv")]
             with open(out / "diagnose.log", "w") as logf:
                 p = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      preexec_fn=die_with_parent)

@@ -5,11 +5,14 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import Any, Optional
+from typing import Annotated, Any, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from ardflow.ardcore.loop.config import DiagnoseConfig
+
+DatasetId = Annotated[str, Field(pattern=r"^[a-f0-9]{16}$")]
+"""An uploaded data set's id."""
 
 API_VERSION = "v1"
 ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
@@ -92,8 +95,14 @@ class DiagnoseRequest(BaseModel):
     top_k: int = DiagnoseConfig.model_fields["top_k"]
     max_rounds: int = Field(DiagnoseConfig.model_fields["max_rounds"].default, ge=1, le=10,
                             description=DiagnoseConfig.model_fields["max_rounds"].description)
-    test_dataset: Optional[str] = Field(None, pattern=r"^[a-f0-9]{16}$",
-                                        description="uploaded held-out record for the free run")
+    test_dataset: Optional[Union[DatasetId, Annotated[list[DatasetId], Field(min_length=1, max_length=16)]]] = Field(
+        None, description="uploaded held-out record for the free run, or a list of them (one per record)")
+
+    @property
+    def test_datasets(self) -> list[str]:
+        """The held-out records' data set ids (none, one or several)."""
+        t = self.test_dataset
+        return [] if t is None else [t] if isinstance(t, str) else list(t)
 
 
 class DiagnosisStatus(BaseModel):

@@ -216,7 +216,11 @@ def cmd_diagnose(a) -> int:
     if a.test_data:
         d = spec.naming
         rename = parse_assignments(a.test_rename, "--test-rename") if a.test_rename else d.rename
-        test = read_dataset(a.test_data, time=d.time, fs=d.fs, rename=rename, columns=d.columns)
+        from ardflow.ardcore.data import join_records
+
+        files = a.test_data if isinstance(a.test_data, list) else [a.test_data]
+        test = join_records([read_dataset(f, time=d.time, fs=d.fs, rename=rename, columns=d.columns) for f in files],
+                            [Path(f).name for f in files])
     elif a.test_start is not None or a.test_stop is not None:
         if len(spec.records) > 1 or spec.naming.path is None:
             raise SpecError("--test-start/--test-stop need a spec whose data come from one file (data.path)")

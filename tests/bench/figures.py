@@ -27,6 +27,7 @@ HEADLINE = [
     ("study_full_s", "`--full` (paper-scale settings), wall time", "s", ".0f"),
     ("fresh_demo_s", "`make demo` on a clean clone (venv, install, cold kernel cache)", "s", ".0f"),
     ("ekf_m2_ms", "EKF log-likelihood of M2 on 5000 points", "ms", ".2f"),
+    ("records_cost_ratio", "a likelihood on 4 records in one kernel call / 4 single-record calls (M2)", "", ".2f"),
     ("evidence_se_ratio", "reported evidence se / seed-to-seed spread (1 = honest)", "", ".2f"),
     ("loop_silverbox_multisine_before_mv", "Silverbox, user's linear model: free run on the multisine test", "mV", ".3g"),
     ("loop_silverbox_multisine_mv", "... after `ardflow diagnose`", "mV", ".3g"),

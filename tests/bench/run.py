@@ -118,6 +118,29 @@ def bench_ekf(tiny: bool = False) -> dict:
     }
 
 
+def bench_records(tiny: bool = False, k: int = 4) -> dict:
+    """A study of ``k`` equal records: one likelihood evaluation of the joined records (one kernel call) against
+    ``k`` single-record evaluations (M2 on ``k`` seeds of the reference data), in the same run."""
+    from ardflow.ardcore.data import join_records
+    from ardflow.ardcore.likelihood.ekf import compile_model
+    from ardflow.ardcore.likelihood.simulate import simulate_reference
+    from ardflow.ardcore.model.library import AERO_TRUE, builtin
+
+    recs = [simulate_reference(s) for s in range(1, k + 1)]
+    if tiny:
+        recs = [r.slice(0, 500) for r in recs]
+    cm = compile_model(builtin("M2"))
+    p = np.array([AERO_TRUE[n] for n in cm.param_names])
+    singles = [cm.bind(r, substeps=10) for r in recs]
+    joined = cm.bind(join_records(recs), substeps=10)
+    assert abs(joined(p) - sum(f(p) for f in singles)) < 1e-8 * abs(joined(p))
+    rep, num = (1, 2) if tiny else (15, 10)
+    one = _median_ms(lambda: [f(p) for f in singles], repeats=rep, number=num)
+    all_ = _median_ms(lambda: joined(p), repeats=rep, number=num)
+    return {"records_k": k, "records_single_ms": one, "records_joined_ms": all_,
+            "records_cost_ratio": all_ / one}
+
+
 def silverbox_substep_table(tiny: bool = False) -> dict:
     """Sub-step convergence on Silverbox: ln L on the estimation segment and the multisine free-run error of a
     Duffing model with input feedthrough (parameters fitted once by the loop, rounded), per scheme and hold."""
@@ -894,7 +917,7 @@ def _save_partial(res: dict) -> None:
     path.write_text(json.dumps(old, indent=2))
 
 
-BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "listing": bench_listing,
+BENCHES = {"ekf": bench_ekf, "records": bench_records, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "listing": bench_listing,
            "study": bench_study,
            "posterior": bench_posterior, "posterior_full": bench_posterior_full,
            "loop": bench_loop, "validation": bench_validation, "fresh": bench_fresh}
@@ -902,6 +925,7 @@ BENCHES = {"ekf": bench_ekf, "engine": bench_engine, "dask": bench_dask, "api": 
 
 CONTRACT = {
     "ekf": ["ekf_m2_ms", "ekf_speedup", "ekf_vs_handwritten", "ekf_compile_first_call_s", "ekf_cached_first_call_s"],
+    "records": ["records_cost_ratio"],
     "engine": ["evidence_sd_nats", "evidence_se_mean", "mcmc_samples_per_s"],
     "dask": ["dask_samples_per_s_1w", "dask_samples_per_s_2w", "dask_scaling_2w", "dask_overhead",
              "store_mb_per_1e6_samples"],

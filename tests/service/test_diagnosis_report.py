@@ -85,7 +85,7 @@ def test_less_white_innovations_after_the_loop_are_said():
 def test_a_candidate_confirmed_under_its_refined_shape_keeps_its_colour():
     """The screen names a shaped candidate by its screened shape, the confirmation by its refined one: the
     figure matches them, and tells added from confirmed-not-added from screened-only."""
-    from ardflow.service.reports.diagnosis import candidate_fates
+    from ardflow.service.reports.diagnosis_figures import candidate_fates
 
     report = {"confirmed": [{"effect": "dry_friction(v,vs=6.5)", "screened_effect": "dry_friction(v,vs=7)",
                              "target": "v"},

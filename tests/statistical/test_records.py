@@ -161,8 +161,8 @@ def test_two_conditions_identify_what_neither_does_alone():
 @pytest.mark.slow
 def test_diagnose_two_records_and_a_held_out_one(tmp_path):
     """`ardflow diagnose` on a study of two records (a Duffing oscillator swept at two amplitudes, the user's
-    model linear) with a third record held out: the cubic stiffness is found on the pair, the held-out
-    record's free-run error falls, and the report is written."""
+    model linear) with two further records held out: the cubic stiffness is found on the pair, the held-out
+    records' free-run errors fall, and the report shows each record."""
     import json
 
     from ardflow.service.cli import main
@@ -171,7 +171,7 @@ def test_diagnose_two_records_and_a_held_out_one(tmp_path):
     truth = _truth("-k*y - c*v - k3*y**3 + b*u", ["k", "c", "k3", "b", "sigma"], 2e-3)
     values = {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}
     files = []
-    for i, (amp, seed) in enumerate(((1.0, 1), (1.8, 2), (1.4, 3))):
+    for i, (amp, seed) in enumerate(((1.0, 1), (1.8, 2), (1.4, 3), (0.8, 4))):
         t = np.arange(1500) * 0.02
         u = amp * np.sin(2 * np.pi * np.cumsum(0.3 + 0.9 * t / t[-1]) * 0.02) if i < 2 \
             else amp * _noise_input(np.random.default_rng(seed), t.size)
@@ -182,10 +182,52 @@ def test_diagnose_two_records_and_a_held_out_one(tmp_path):
             "models": [{"model": _linear_oscillator(2e-3), "priors": OSC_PRIORS}]}
     (tmp_path / "spec.json").write_text(json.dumps(spec))
     out = tmp_path / "diag"
-    assert main(["diagnose", str(tmp_path / "spec.json"), "--test-data", str(files[2]), "--out", str(out),
-                 "--max-rounds", "2"]) == 0
+    assert main(["diagnose", str(tmp_path / "spec.json"), "--test-data", str(files[2]), "--test-data", str(files[3]),
+                 "--out", str(out), "--max-rounds", "2"]) == 0
     rep = json.loads((out / "diagnosis.json").read_text())
     assert "cubic_stiffness" in {a["effect"].split("(")[0] for a in rep["added"]}, rep["added"]
     before, after = rep["before"]["free_run"]["rms_error"], rep["after"]["free_run"]["rms_error"]
     assert after < 0.2 * before, (before, after)
-    assert (out / "diagnosis.html").exists()
+    # each record: the estimation records' innovation tests, the test records' free runs
+    assert [r["name"] for r in rep["after"]["records"]] == ["sweep at 1.0", "sweep at 1.8"]
+    runs = rep["after"]["free_run"]["records"]
+    assert [r["name"] for r in runs] == ["run2.csv", "run3.csv"]
+    assert all(r["rms_error"] < 0.3 * b["rms_error"] for r, b in zip(runs, rep["before"]["free_run"]["records"]))
+    assert "<h3>Each record</h3>" in (out / "diagnosis.html").read_text()
+
+
+def test_a_per_record_parameter_is_one_per_record_and_its_evidence_exact():
+    """An offset that differs between two records (``per_record``): it becomes one parameter per record, each
+    with the offset's prior; the Laplace evidence is the exact marginal likelihood of the linear-Gaussian model
+    y = a0 + a1 x + offset_r + noise, and each record's offset is recovered."""
+    from scipy.stats import multivariate_normal as mvn
+
+    from ardflow.ardcore.selection.spec import StudySpec
+
+    gamma, sd = 0.3, {"a0": 3.0, "a1": 3.0, "off": 1.0}
+    study = StudySpec.model_validate({
+        "name": "offsets", "evidence": "laplace",
+        "data": [{"generator": "appendix_a", "seed": 1, "name": "one"}, {"generator": "appendix_a", "seed": 2}],
+        "models": [{"model": {"name": "line", "states": ["z"], "drift": {"z": "0*z"}, "inputs": ["x"],
+                              "observations": [{"column": "y", "expr": "a0 + a1*x + off", "noise_std": str(gamma)}],
+                              "parameters": ["a0", "a1", "off"]},
+                    "priors": {k: {"kind": "normal", "mean": 0.0, "sd": v} for k, v in sd.items()},
+                    "per_record": ["off"]}]})
+    cand = study.models[0]
+    assert cand.model_spec().free_parameters == ["a0", "a1", "off_0", "off_1"]
+    # validating the stored spec again changes nothing
+    again = StudySpec.model_validate(study.model_dump(mode="json")).models[0]
+    assert again.model_spec().free_parameters == cand.model_spec().free_parameters
+    data = study.load_data()
+    shift = np.where(np.arange(len(data)) < data.starts[1], 1.0, -1.0)  # the records' offsets: +1 and -1
+    data.columns["y"] = data.columns["y"] + shift
+    X = np.column_stack([np.ones(len(data)), data.columns["x"], data.columns["record_0"], data.columns["record_1"]])
+    S0 = np.diag([sd["a0"] ** 2, sd["a1"] ** 2, sd["off"] ** 2, sd["off"] ** 2])
+    exact = mvn(np.zeros(len(data)), gamma**2 * np.eye(len(data)) + X @ S0 @ X.T).logpdf(data.columns["y"])
+    priors = {k: Normal(mean=0.0, sd=sd[k.split("_")[0]]) for k in cand.model_spec().free_parameters}
+    lap, mode, _ = laplace(ModelPosterior(cand.model_spec(), priors, data), np.zeros(4), np.ones(4))
+    assert lap.log_evidence == pytest.approx(exact, abs=1e-5)
+    assert mode[2] - mode[3] == pytest.approx(2.0, abs=0.25)
+    # a further experiment takes the records' mean offset
+    held = study.held_out(Dataset(np.arange(20.0), {"x": np.linspace(0, 2, 20), "y": np.zeros(20)}))
+    assert np.all(held.columns["record_0"] == 0.5) and np.all(held.columns["record_1"] == 0.5)
