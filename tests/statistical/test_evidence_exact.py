@@ -15,7 +15,7 @@ from ardflow.ardcore.model.declaration import ModelSpec
 from ardflow.ardcore.likelihood.posterior import FunctionTarget, ModelPosterior
 from ardflow.ardcore.model.priors import JointPrior, Normal
 
-from .targets import GaussianLoglik, correlated_cov
+from .targets import GaussianLoglik, augmented_kalman, correlated_cov
 
 CFG = SamplerConfig(n_chains=4, round_size=500, n_stationary=5000, n_proposal=5000)
 
@@ -85,35 +85,6 @@ def test_conjugate_regression_laplace_exact_and_cj():
     assert ev.goodness_of_fit - ev.log_evidence == pytest.approx(ev.information_gain)
 
 
-def augmented_kalman_evidence(t, y, u, system, prior_mean, prior_sd, x_sd):
-    """Exact ln p(d): Kalman filter on [x, b1, b2, c] with the parameters as static states; ``system`` is
-    (a, q, r, nsub): the decay rate, process and measurement noise, and the Euler sub-steps."""
-    a, q, r, nsub = system
-    m = np.concatenate([[0.0], prior_mean])
-    P = np.diag(np.concatenate([[x_sd**2], np.asarray(prior_sd) ** 2]))
-    H = np.array([1.0, 0.0, 0.0, 1.0])
-    ll = 0.0
-    for k in range(len(t)):
-        if k:
-            h = (t[k] - t[k - 1]) / nsub
-            F = np.eye(4)
-            F[0, 0] = 1 - a * h
-            F[0, 1] = u[k - 1] * h
-            F[0, 2] = h
-            Q = np.zeros((4, 4))
-            Q[0, 0] = q**2 * h
-            for _ in range(nsub):
-                m = F @ m
-                P = F @ P @ F.T + Q
-        S = H @ P @ H + r**2
-        e = y[k] - H @ m
-        K = P @ H / S
-        m = m + K * e
-        P = P - np.outer(K, K) * S
-        ll += -0.5 * (math.log(2 * math.pi * S) + e * e / S)
-    return ll
-
-
 def test_linear_gaussian_state_space_cj_within_015_nats():
     a, q, r, nsub = 0.8, 0.3, 0.1, 5
     spec = ModelSpec(
@@ -122,7 +93,7 @@ def test_linear_gaussian_state_space_cj_within_015_nats():
         observations=[{"column": "y", "expr": "x + c", "noise_std": "r"}],
         parameters=["b1", "b2", "c"], constants={"a": a, "q": q, "r": r},
         initial_std={"x": 1.0}, substeps=nsub,
-        integrator="euler", input_hold="zoh")  # the discretisation augmented_kalman_evidence is written for
+        integrator="euler", input_hold="zoh")  # the discretisation augmented_kalman is written for
     n = 200
     t = np.arange(n) * 0.1
     rng = np.random.default_rng(11)
@@ -133,7 +104,7 @@ def test_linear_gaussian_state_space_cj_within_015_nats():
     prior_mean, prior_sd = np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.0, 1.0])
     priors = {k: Normal(mean=m, sd=s) for k, m, s in zip(["b1", "b2", "c"], prior_mean, prior_sd)}
     target = ModelPosterior(spec, priors, ds)
-    exact = augmented_kalman_evidence(t, ds.columns["y"], u, (a, q, r, nsub), prior_mean, prior_sd, 1.0)
+    exact = augmented_kalman([ds], (a, q, r, nsub), prior_mean, prior_sd)
     lap, _, _ = laplace(target, np.zeros(3), np.ones(3))
     assert lap.log_evidence == pytest.approx(exact, abs=1e-5)
     res = sample(target, CFG, seed=13)

@@ -2,6 +2,7 @@
 against exact answers (linear-Gaussian models, where the Kalman filter is exact)."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,8 @@ from ardflow.ardcore.model.declaration import ModelSpec
 from ardflow.ardcore.model.priors import Normal
 from ardflow.ardcore.sampling.config import SamplerConfig
 from ardflow.ardcore.sampling.driver import sample
+
+from .targets import augmented_kalman
 
 A, Q, R, NSUB = 0.8, 0.3, 0.1, 5
 SPEC = ModelSpec(
@@ -41,35 +44,8 @@ def two_records():
 
 
 def kalman_records(records, theta_mean, theta_sd):
-    """Exact ln p(d): a Kalman filter on [x, b1, b2, c] (the parameters as static states, fixed when their
-    sd is 0) through the records in turn; at each record's start x is reset to its initial prior and
-    forgets its correlation with the parameters, which carry over."""
-    m = np.concatenate([[0.0], theta_mean])
-    P = np.diag(np.concatenate([[1.0], np.asarray(theta_sd, dtype=float) ** 2]))
-    H = np.array([1.0, 0.0, 0.0, 1.0])
-    ll = 0.0
-    for ds in records:
-        m[0] = ds.meta.get("initial_mean", {}).get("x", 0.0)
-        P[0, :] = P[:, 0] = 0.0
-        P[0, 0] = ds.meta.get("initial_std", {}).get("x", 1.0) ** 2
-        t, y, u = ds.t, ds.columns["y"], ds.columns["u"]
-        for k in range(len(t)):
-            if k:
-                h = (t[k] - t[k - 1]) / NSUB
-                F = np.eye(4)
-                F[0, 0], F[0, 1], F[0, 2] = 1 - A * h, u[k - 1] * h, h
-                Qm = np.zeros((4, 4))
-                Qm[0, 0] = Q**2 * h
-                for _ in range(NSUB):
-                    m = F @ m
-                    P = F @ P @ F.T + Qm
-            S = H @ P @ H + R**2
-            e = y[k] - H @ m
-            K = P @ H / S
-            m = m + K * e
-            P = P - np.outer(K, K) * S
-            ll += -0.5 * (math.log(2 * math.pi * S) + e * e / S)
-    return ll
+    """Exact ln p(d) of :data:`SPEC` on ``records`` (:func:`targets.augmented_kalman`)."""
+    return augmented_kalman(records, (A, Q, R, NSUB), theta_mean, theta_sd)
 
 
 def test_joined_records_restart_the_filter_and_sum_exactly():
@@ -231,3 +207,33 @@ def test_a_per_record_parameter_is_one_per_record_and_its_evidence_exact():
     # a further experiment takes the records' mean offset
     held = study.held_out(Dataset(np.arange(20.0), {"x": np.linspace(0, 2, 20), "y": np.zeros(20)}))
     assert np.all(held.columns["record_0"] == 0.5) and np.all(held.columns["record_1"] == 0.5)
+
+
+def test_the_store_keeps_the_records_and_reads_stores_written_before_them(tmp_path):
+    import zarr
+
+    from ardflow.workers.store import StudyStore
+
+    recs = two_records()
+    joined = join_records(recs, ["first", "second"])
+    store = StudyStore.create(tmp_path / "st", {"name": "x"}, joined)
+    back = store.load_data()
+    assert back.starts == (0, 150) and [r["name"] for r in back.meta["records"]] == ["first", "second"]
+    assert back.meta["records"][1]["initial_mean"] == {"x": 2.0}
+    theta = np.array([TRUE[k] for k in ("b1", "b2", "c")])
+    assert compile_model(SPEC).loglik(theta, back) == pytest.approx(compile_model(SPEC).loglik(theta, joined), abs=1e-9)
+    # a store written before records existed has no record attributes: one record
+    old = StudyStore.create(tmp_path / "old", {"name": "x"}, recs[0])
+    g = zarr.open_group(str(tmp_path / "old" / "data"), mode="a")
+    g.attrs.clear()
+    assert old.load_data().starts == (0,) and len(old.load_data()) == 150
+
+
+def test_the_tanks_example_is_two_real_records():
+    from ardflow.ardcore.selection.spec import load_spec
+
+    root = Path(__file__).resolve().parents[2]
+    spec = load_spec(root / "examples" / "tanks_records.json")
+    data = spec.load_data(root / "examples")
+    assert data.starts == (0, 1024) and [r["name"] for r in data.meta["records"]] == ["estimation", "validation"]
+    spec.check_data(data)
