@@ -486,6 +486,7 @@ def _study(args: list[str], out: Path) -> dict:
                    stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
     s = json.loads((out / "summary.json").read_text())
+    eff = study_efficiency(out, wall)
     spec = json.loads((ROOT / "examples" / "sec36.json").read_text())
     return {"wall_s": wall,
             "evidence_se": {r["name"]: r["log_evidence_se"] for r in s["models"]},
@@ -501,7 +502,35 @@ def _study(args: list[str], out: Path) -> dict:
             "table": [{k: r.get(k) for k in ("name", "log_evidence", "log_evidence_se", "goodness_of_fit",
                                              "information_gain", "probability", "kept", "pruned")}
                       for r in s["models"]],
+            "efficiency": eff["efficiency"], "likelihood_s": eff["likelihood_s"], "efficiency_models": eff["per_model"],
             **_store_convergence(out)}
+
+
+def study_efficiency(out: Path, wall: float, cores: int | None = None) -> dict:
+    """The share of the hardware a finished study spent in likelihoods: (sum over models of its evaluations x that
+    model's single-core likelihood time on the study's data) / (cores x wall). The likelihood time is the median of
+    repeated calls of the candidate's full model (its ARD terms at their posterior means or 0), measured here on
+    one core; 1 means the study did nothing but evaluate likelihoods on every core."""
+    from ardflow.ardcore.likelihood.ekf import compile_model
+    from ardflow.ardcore.selection.spec import StudySpec
+    from ardflow.workers.store import StudyStore
+
+    store = StudyStore(next(p.parent for p in out.rglob("zarr.json") if (p.parent / "models").is_dir()))
+    spec = StudySpec.model_validate(store.meta["spec"])
+    data = store.load_data()
+    summary = json.loads((out / "summary.json").read_text())
+    work, per_model = 0.0, {}
+    for r in summary["models"]:
+        cand = next(c for c in spec.models if c.label == r["name"])
+        ms = cand.model_spec()
+        lik = compile_model(ms).bind(data, cand.substeps)
+        phi = np.array([float((r.get("mean") or {}).get(p, (r.get("map") or {}).get(p, 0.0))) for p in ms.free_parameters])
+        lik(phi)
+        ms_each = _median_ms(lambda: lik(phi), repeats=7, number=10)
+        per_model[r["name"]] = {"evaluations": int(r.get("n_evaluations", 0)), "likelihood_ms": ms_each}
+        work += int(r.get("n_evaluations", 0)) * ms_each / 1e3
+    cores = cores or os.cpu_count() or 1
+    return {"efficiency": work / (cores * wall), "likelihood_s": work, "per_model": per_model}
 
 
 def _store_convergence(out: Path) -> dict:
@@ -931,7 +960,8 @@ CONTRACT = {
              "store_mb_per_1e6_samples"],
     "api": ["api_status_p95_ms", "api_status_p99_ms", "api_upload_s", "api_errors", "api_rss_mb", "api_max_drivers"],
     "listing": ["api_listing_studies", "api_listing_user_p99_ms", "api_listing_admin_p99_ms"],
-    "study": ["study_demo_s", "study_demo_evaluations", "study_demo_min_ess", "study_demo_max_rhat", "study_full_s",
+    "study": ["study_demo_s", "study_demo_evaluations", "study_demo_min_ess", "study_demo_max_rhat", "study_demo_efficiency",
+              "study_full_s",
               "study_full_min_ess", "study_full_max_rhat"],
     "posterior": ["evidence_se_ratio", "posterior_M2_ess_per_evaluation",
                   "posterior_M2_ess_per_evaluation_random_walk"],
