@@ -327,9 +327,10 @@ def test_diagnose_over_http(service, tmp_path):
 
     url, root = service
     data = duffing_free_decay(-4.0, 3)
-    est, held = tmp_path / "est.csv", tmp_path / "held.csv"
+    est, held = tmp_path / "est.csv", [tmp_path / "held1.csv", tmp_path / "held2.csv"]
     data.slice(0, 1000).to_csv(est)
-    data.slice(1000, None).to_csv(held)
+    data.slice(1000, 1250).to_csv(held[0])  # two held-out records, each free-run from its own start
+    data.slice(1250, None).to_csv(held[1])
     spec = duffing_spec().model_dump(mode="json", exclude_none=True)
     spec["name"] = "osc"
     spec["data"] = {}
@@ -344,6 +345,7 @@ def test_diagnose_over_http(service, tmp_path):
         assert rep["added"][0]["effect"] == "cubic_stiffness(y)" and rep["added"][0]["character"] == "hardening"
         assert rep["after"]["free_run"]["rms_error"] < rep["before"]["free_run"]["rms_error"]
         assert rep["n_test"] == len(data) - 1000
+        assert [r["name"] for r in rep["after"]["free_run"]["records"]] == ["held1.csv", "held2.csv"]
         assert set(d["figures"]) >= {"tests.png", "free_run.png", "candidates.png", "process_noise.png"}
         assert c.diagnosis_figure(sid, d["model"], "free_run.png")[:8] == b"\x89PNG\r\n\x1a\n"
         # no server path in what a user reads: the data are named as the study names them
