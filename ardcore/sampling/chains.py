@@ -19,6 +19,7 @@ from .transform import free_coordinates
 @dataclass(frozen=True)
 class Step:
     """Which step of a trial a batch of per-chain tasks is: ``kind`` is ``"start"`` (start optimisation),
+    ``"warm"`` (a warm-started chain's first density),
     ``"burnin"`` (``index``: the 1-based round), ``"stationary"`` (``index``: the first draw of the round)
     or ``"cj"`` (Chib-Jeliazkov ordinates). Orchestrators route on it (burn-in tasks report to the trial's
     coordinator, stationary tasks write their draws) and name their tasks after it; plain maps ignore it."""

@@ -96,6 +96,17 @@ class _Counted:
         return getattr(self.target, name)
 
 
+def _warm_task(args):
+    """The first of ``points`` with a finite posterior density (else the last), with its density: a warm-started
+    chain's position (its place in the warm trial, then the best point, then that point unmoved)."""
+    target, points = args
+    for x in points:
+        lp, ll = target(x)
+        if lp > -math.inf:
+            break
+    return x, lp, ll
+
+
 def _start_task(args):
     target, x0, scale, maxfev, seed, overdispersion = args
     target = _Counted(target)
@@ -227,15 +238,11 @@ def iter_initial_states(target, config: SamplerConfig, *, seed: int, warm: Sampl
     n_eval = nc
     if warm is not None:
         X, fallbacks, cov = warm_positions(target, warm, scale)
-        states = []
-        for c in range(nc):
-            x = X[c % len(X)]
-            lp, ll = target(x)
-            for x in ([] if lp > -math.inf else fallbacks):  # the best point, then it unmoved
-                lp, ll = target(x)
-                if lp > -math.inf:
-                    break
-            states.append(ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll))
+        # evaluated where the chains run: the driver would otherwise compile (or load) every new structure's
+        # kernel itself before a single chain could start
+        res = yield Batch(_warm_task, [(target, [X[c % len(X)], *fallbacks]) for c in range(nc)], Step("warm"))
+        states = [ChainState(c, x.tolist(), lp, ll, np.random.PCG64(child[c]).state, x.tolist(), lp, ll)
+                  for c, (x, lp, ll) in enumerate(res)]
     elif starts is None:
         pts = initial_points(target.prior, nc, np.random.default_rng(child[nc]))
         tasks = [(target, pts[c], scale, config.start_maxfev, child[c].generate_state(1)[0] + c,
