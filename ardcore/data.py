@@ -61,6 +61,10 @@ class Dataset:
     def __len__(self) -> int:
         return self.t.size
 
+    def with_columns(self, columns: dict) -> "Dataset":
+        """The same rows, records and provenance with ``columns`` (every column: pass the old ones to keep them)."""
+        return Dataset(self.t, columns, dict(self.meta), self.starts)
+
     @property
     def n_records(self) -> int:
         return len(self.starts)

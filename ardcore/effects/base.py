@@ -158,7 +158,7 @@ def _unused(base: str, taken: set) -> str:
 def with_columns(data: Dataset, eff: Effect) -> Dataset:
     """``data`` plus the input columns ``eff`` needs on its time grid."""
     cols = eff.columns_for(data.t, data.columns)
-    return Dataset(data.t, {**data.columns, **cols}, dict(data.meta)) if cols else data
+    return data.with_columns({**data.columns, **cols}) if cols else data
 
 
 def user_inputs(spec: ModelSpec) -> list[str]:

@@ -268,7 +268,7 @@ def held_out_free_runs(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: i
         cols = {k: (v.copy() if k in spec.observed_columns else v) for k, v in data.columns.items()}
         for o in spec.observed_columns:
             cols[o][a:b] = np.nan
-        fits[name] = _fit(model.bind(Dataset(data.t, cols, data.meta), substeps), phi, noise, 1.0, names,
+        fits[name] = _fit(model.bind(data.with_columns(cols), substeps), phi, noise, 1.0, names,
                           settings.maxfun, L)
         # the block is free-run from the state the refit's filter holds after the record up to it (and the block's
         # first init_samples, as a test record is): a slow state no sensor sees (an upper tank's level) is then

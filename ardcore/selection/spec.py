@@ -323,7 +323,7 @@ class StudySpec(BaseModel):
         cols = dict(ds.columns)
         for i in used:
             cols.setdefault(i, np.full(len(ds), 1.0 / len(used)))
-        return Dataset(ds.t, cols, dict(ds.meta), ds.starts)
+        return ds.with_columns(cols)
 
     def check_data(self, data) -> None:
         """Refuse a data set no candidate can be fitted to: each candidate's observed columns present with at

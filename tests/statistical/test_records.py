@@ -58,6 +58,12 @@ def test_joined_records_restart_the_filter_and_sum_exactly():
     both = cm.loglik(theta, joined)
     assert both == pytest.approx(sum(each), abs=1e-9)
     assert both == pytest.approx(kalman_records(recs, theta, np.zeros(3)), abs=1e-8)
+    # what the loop does to a data set (an effect's input columns, a block's observations hidden) keeps its records
+    from ardflow.ardcore.effects.base import with_columns
+    from ardflow.ardcore.effects.families import candidate_effects
+
+    forcing = next(e for e in candidate_effects(SPEC, frequencies=[0.5]) if e.columns_for(joined.t, joined.columns))
+    assert with_columns(joined, forcing).starts == joined.starts
     # the second record's declared initial state matters: without it the sum changes
     plain = join_records([recs[0], Dataset(recs[1].t, recs[1].columns, {"source": "x"})])
     assert abs(cm.loglik(theta, plain) - both) > 1.0
