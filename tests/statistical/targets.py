@@ -72,3 +72,21 @@ def augmented_kalman(records, system, theta_mean, theta_sd, x_sd=1.0):
             P = P - np.outer(K, K) * S
             ll += -0.5 * (math.log(2 * math.pi * S) + e * e / S)
     return ll
+
+
+LINEAR_SYSTEM = (0.8, 0.3, 0.1, 5)
+"""(a, q, r, nsub) of :func:`linear_gaussian_spec`: the decay rate, process and measurement noise, sub-steps."""
+
+
+def linear_gaussian_spec():
+    """dx = (-a x + b1 u + b2) dt + q dW, y = x + c + N(0, r^2) at :data:`LINEAR_SYSTEM`, discretised as
+    :func:`augmented_kalman` is written for (Euler sub-steps, inputs held): its Kalman filter is exact."""
+    from ardflow.ardcore.model.declaration import ModelSpec
+
+    a, q, r, nsub = LINEAR_SYSTEM
+    return ModelSpec(
+        name="lin_param", states=["x"], inputs=["u"],
+        drift={"x": "-a*x + b1*u + b2"}, diffusion={"x": "q"},
+        observations=[{"column": "y", "expr": "x + c", "noise_std": "r"}],
+        parameters=["b1", "b2", "c"], constants={"a": a, "q": q, "r": r},
+        initial_std={"x": 1.0}, substeps=nsub, integrator="euler", input_hold="zoh")

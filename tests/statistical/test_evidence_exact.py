@@ -11,11 +11,10 @@ from ardflow.ardcore.evidence.estimators import chib_jeliazkov, laplace
 from ardflow.ardcore.model.library import builtin
 from ardflow.ardcore.sampling.config import SamplerConfig
 from ardflow.ardcore.sampling.driver import Runtime, Start, sample
-from ardflow.ardcore.model.declaration import ModelSpec
 from ardflow.ardcore.likelihood.posterior import FunctionTarget, ModelPosterior
 from ardflow.ardcore.model.priors import JointPrior, Normal
 
-from .targets import GaussianLoglik, augmented_kalman, correlated_cov
+from .targets import LINEAR_SYSTEM, GaussianLoglik, augmented_kalman, correlated_cov, linear_gaussian_spec
 
 CFG = SamplerConfig(n_chains=4, round_size=500, n_stationary=5000, n_proposal=5000)
 
@@ -86,14 +85,7 @@ def test_conjugate_regression_laplace_exact_and_cj():
 
 
 def test_linear_gaussian_state_space_cj_within_015_nats():
-    a, q, r, nsub = 0.8, 0.3, 0.1, 5
-    spec = ModelSpec(
-        name="lin_param", states=["x"], inputs=["u"],
-        drift={"x": "-a*x + b1*u + b2"}, diffusion={"x": "q"},
-        observations=[{"column": "y", "expr": "x + c", "noise_std": "r"}],
-        parameters=["b1", "b2", "c"], constants={"a": a, "q": q, "r": r},
-        initial_std={"x": 1.0}, substeps=nsub,
-        integrator="euler", input_hold="zoh")  # the discretisation augmented_kalman is written for
+    spec = linear_gaussian_spec()
     n = 200
     t = np.arange(n) * 0.1
     rng = np.random.default_rng(11)
@@ -104,7 +96,7 @@ def test_linear_gaussian_state_space_cj_within_015_nats():
     prior_mean, prior_sd = np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.0, 1.0])
     priors = {k: Normal(mean=m, sd=s) for k, m, s in zip(["b1", "b2", "c"], prior_mean, prior_sd)}
     target = ModelPosterior(spec, priors, ds)
-    exact = augmented_kalman([ds], (a, q, r, nsub), prior_mean, prior_sd)
+    exact = augmented_kalman([ds], LINEAR_SYSTEM, prior_mean, prior_sd)
     lap, _, _ = laplace(target, np.zeros(3), np.ones(3))
     assert lap.log_evidence == pytest.approx(exact, abs=1e-5)
     res = sample(target, CFG, seed=13)

@@ -1,7 +1,6 @@
 """Several records in one study: the summed likelihood, the evidence and what a pair of records identifies,
 against exact answers (linear-Gaussian models, where the Kalman filter is exact)."""
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -17,15 +16,9 @@ from ardflow.ardcore.model.priors import Normal
 from ardflow.ardcore.sampling.config import SamplerConfig
 from ardflow.ardcore.sampling.driver import sample
 
-from .targets import augmented_kalman
+from .targets import LINEAR_SYSTEM, augmented_kalman, linear_gaussian_spec
 
-A, Q, R, NSUB = 0.8, 0.3, 0.1, 5
-SPEC = ModelSpec(
-    name="lin_param", states=["x"], inputs=["u"],
-    drift={"x": "-a*x + b1*u + b2"}, diffusion={"x": "q"},
-    observations=[{"column": "y", "expr": "x + c", "noise_std": "r"}],
-    parameters=["b1", "b2", "c"], constants={"a": A, "q": Q, "r": R},
-    initial_std={"x": 1.0}, substeps=NSUB, integrator="euler", input_hold="zoh")
+SPEC = linear_gaussian_spec()
 TRUE = {"b1": 1.5, "b2": -0.4, "c": 0.3}
 PRIOR_MEAN, PRIOR_SD = np.zeros(3), np.array([2.0, 1.0, 1.0])
 
@@ -45,7 +38,7 @@ def two_records():
 
 def kalman_records(records, theta_mean, theta_sd):
     """Exact ln p(d) of :data:`SPEC` on ``records`` (:func:`targets.augmented_kalman`)."""
-    return augmented_kalman(records, (A, Q, R, NSUB), theta_mean, theta_sd)
+    return augmented_kalman(records, LINEAR_SYSTEM, theta_mean, theta_sd)
 
 
 def test_joined_records_restart_the_filter_and_sum_exactly():
