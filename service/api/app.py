@@ -33,10 +33,11 @@ from ardflow.ardcore.selection.spec import PLAIN_TEXT, StudySpec
 from ardflow.service.api.auth import StudyAccess, TokenAuth
 from ardflow.service.api.guard import RequestGuard
 from ardflow.service.api.page import docs_router, page_router
+from ardflow.service.api.diagnoses import diagnoses_router
 from ardflow.service.api.results import results_router
 from ardflow.service.api.validate import Rejected, check_budget, check_models
 from ardflow.service.api.schemas import (
-    API_VERSION, FINAL, DashboardLink, DatasetInfo, DiagnoseRequest, DiagnosisStatus, Health, Settings, StudyCreated, StudyStatus,
+    API_VERSION, FINAL, DashboardLink, DatasetInfo, Health, Settings, StudyCreated, StudyStatus,
 )
 from ardflow.service.api.registry import ProgressCache, Registry, Runner
 
@@ -191,7 +192,7 @@ def create_app(settings: Settings, client) -> FastAPI:
     app.add_middleware(RequestGuard, max_body=c.max_body, allowed_hosts=settings.allowed_hosts,
                        csv_paths=(f"/{API_VERSION}/datasets",))
     _error_handlers(app)
-    for router in (_service_router(c), _submit_router(c), _studies_router(c), _diagnoses_router(c),
+    for router in (_service_router(c), _submit_router(c), _studies_router(c), diagnoses_router(c),
                    results_router(c.reg, c.access), page_router(c.auth), docs_router()):
         app.include_router(router)
     _reattach(c.reg, c.runner)
@@ -455,92 +456,6 @@ def _studies_router(c: _Service) -> APIRouter:
         c.forget(sid)
         c.reg.drop(sid)
         return Response(status_code=204)
-
-    return r
-
-
-def _diagnoses_router(c: _Service) -> APIRouter:
-    """The closed loop on a finished study's model: start it, read its report and figures."""
-    r = APIRouter()
-    v1 = f"/{API_VERSION}"
-
-    def _diag_dir(sid: str, model: str) -> Path:
-        if not re.match(r"^[A-Za-z][A-Za-z0-9_]{0,31}$", model):
-            raise HTTPException(404, f"no model {model!r}")
-        c.reg.readable(sid)
-        return c.reg.study_dir(sid) / "diagnoses" / model
-
-    @r.post(f"{v1}/studies/{{sid}}/diagnoses", response_model=DiagnosisStatus, status_code=202,
-              dependencies=[Depends(c.access)])
-    def diagnose(sid: str, req: DiagnoseRequest, owner: str = Depends(c.auth)) -> DiagnosisStatus:
-        meta = c.reg.meta(sid)
-        if meta.get("status") != "done":
-            raise HTTPException(409, f"study {sid} is {meta.get('status')}: diagnose a finished study")
-        summary = c.reg.store(sid).meta.get("summary") or {}
-        models = [r["name"] for r in summary.get("models", [])]
-        model = req.model or summary.get("best_model")
-        if model not in models:
-            raise HTTPException(404, f"study {sid} has no model {model!r} (models: {models})")
-        for ds in req.test_datasets:
-            if not c.dataset_visible(ds, owner):
-                raise HTTPException(404, f"no uploaded data set {ds!r}")
-        d = _diag_dir(sid, model)
-        now = (c.runner.diagnosis_status(d) or {}).get("status")
-        if now in ("queued", "running"):
-            raise HTTPException(409, f"a diagnosis of {model} is already {now}")
-        c.runner.diagnose(sid, model, req)
-        return DiagnosisStatus(model=model, status=c.runner.diagnosis_status(d)["status"])
-
-    @r.post(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/cancel", response_model=DiagnosisStatus,
-            dependencies=[Depends(c.access)])
-    def cancel_diagnosis(sid: str, model: str) -> DiagnosisStatus:
-        d = _diag_dir(sid, model)
-        st = c.runner.diagnosis_status(d)
-        if st is None:
-            raise HTTPException(404, f"no diagnosis of {model!r} in study {sid}")
-        if st["status"] not in ("queued", "running"):
-            raise HTTPException(409, f"the diagnosis of {model} is already {st['status']}")
-        c.runner.cancel_diagnosis(sid, model)
-        return DiagnosisStatus(model=model, status="cancelled")
-
-    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}", dependencies=[Depends(c.access)])
-    def diagnosis(sid: str, model: str) -> JSONResponse:
-        d = _diag_dir(sid, model)
-        st = c.runner.diagnosis_status(d)
-        if st is None:
-            raise HTTPException(404, f"no diagnosis of {model!r} in study {sid} (POST .../diagnoses first)")
-        body = {"model": model, **st}
-        if st["status"] == "done":
-            try:
-                f = c.reg.file(d / "diagnosis.json")
-                if f is None:
-                    raise OSError("not a file of the study")
-                body["report"] = json.loads(f.read_text())
-            except (OSError, ValueError) as exc:
-                body.update(status="failed", error=f"its report (diagnosis.json) cannot be read ({type(exc).__name__}): "
-                                                   "start it again")
-            body["figures"] = sorted(p.name for p in d.glob("*.png") if c.reg.file(p))
-        return JSONResponse(body)
-
-    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/report/{{name}}", dependencies=[Depends(c.access)],
-             responses={200: {"content": {"text/html": {}, "image/png": {}}}})
-    def diagnosis_report(sid: str, model: str, name: str):
-        """The diagnosis report (``diagnosis.html``) and its figures, beside each other as the report links them."""
-        d = _diag_dir(sid, model)
-        f = c.reg.file(d / name) if re.match(r"^[a-z_]{1,40}\.(png|html)$", name) else None
-        if f is None:
-            raise HTTPException(404, f"no diagnosis report file {name!r} (a diagnosis writes it when it finishes)")
-        kind = "text/html; charset=utf-8" if name.endswith(".html") else "image/png"
-        return Response(f.read_bytes(), media_type=kind)
-
-    @r.get(f"{v1}/studies/{{sid}}/diagnoses/{{model}}/figures/{{name}}", dependencies=[Depends(c.access)],
-             responses={200: {"content": {"image/png": {}}}})
-    def diagnosis_figure(sid: str, model: str, name: str):
-        d = _diag_dir(sid, model)
-        f = c.reg.file(d / name) if re.match(r"^[a-z_]{1,40}\.png$", name) else None
-        if f is None:
-            raise HTTPException(404, f"no figure {name!r}")
-        return Response(f.read_bytes(), media_type="image/png")
 
     return r
 
