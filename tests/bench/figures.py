@@ -24,6 +24,7 @@ HEADLINE = [
     ("study_demo_evaluations", "... likelihood evaluations", "", ",.0f"),
     ("study_demo_max_rhat", "... worst rank R-hat of a reported posterior (target <= 1.01)", "", ".3f"),
     ("study_demo_min_ess", "... smallest bulk/tail ESS of a reported posterior (target >= 400)", "", ".0f"),
+    ("study_demo_efficiency", "... share of the cores' time spent in likelihoods (target 0.85)", "", ".2f"),
     ("study_full_s", "`--full` (paper-scale settings), wall time", "s", ".0f"),
     ("fresh_demo_s", "`make demo` on a clean clone (venv, install, cold kernel cache)", "s", ".0f"),
     ("ekf_m2_ms", "EKF log-likelihood of M2 on 5000 points", "ms", ".2f"),
