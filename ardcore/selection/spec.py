@@ -11,8 +11,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .config import MaximiserConfig
-from ..data import DATA_ENV, Dataset, external_path
-from ..formats import read_dataset
+from ..data import DATA_ENV, Dataset, external_path, read_dataset
 from ..errors import DataError, SpecError, did_you_mean
 from ..model.library import builtin
 from ..sampling.config import SamplerConfig

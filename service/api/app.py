@@ -238,7 +238,7 @@ def read_upload(path: str, text: str) -> tuple[int, list[str]]:
     parser process)."""
     import os
 
-    from ardflow.ardcore.formats import read_dataset
+    from ardflow.ardcore.data import read_dataset
 
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w") as fh:

@@ -107,14 +107,14 @@ def cmd_loglik(a) -> int:
 
 
 def _read_data(a):
-    from ardflow.ardcore.formats import read_dataset
+    from ardflow.ardcore.data import read_dataset
 
     rename = parse_assignments(getattr(a, "rename", None), "--rename")
     return read_dataset(a.data, fs=getattr(a, "fs", None), rename=rename)
 
 
 def cmd_data(a) -> int:
-    from ardflow.ardcore.formats import read_columns
+    from ardflow.ardcore.data import read_columns
 
     if a.action == "check":
         ds = _read_data(a)

@@ -179,7 +179,7 @@ def cmd_resume(a) -> int:
 
 def cmd_diagnose(a) -> int:
     """Close the loop on one model of a study spec or of a finished study store."""
-    from ardflow.ardcore.formats import read_dataset
+    from ardflow.ardcore.data import read_dataset
     from ardflow.ardcore.loop.config import DiagnoseConfig
     from ardflow.ardcore.loop.diagnose import diagnose
     from ardflow.ardcore.errors import LoopFailed, SpecError

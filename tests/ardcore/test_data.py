@@ -3,8 +3,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ardflow.ardcore.data import SILVERBOX_SPLITS, Dataset, load_pendulum, load_silverbox
-from ardflow.ardcore.formats import read_dataset
+from ardflow.ardcore.data import (SILVERBOX_SPLITS, Dataset, load_pendulum, load_silverbox, read_dataset)
 from ardflow.ardcore.errors import DataError
 
 

@@ -275,7 +275,7 @@ def tanks(start: str) -> Record:
     (``"sqrt"``, ``examples/tanks_sqrt.json``)."""
     from pathlib import Path
 
-    from ardflow.ardcore.formats import read_dataset
+    from ardflow.ardcore.data import read_dataset
     from ardflow.ardcore.selection.spec import load_spec
 
     examples = Path(__file__).resolve().parents[2] / "examples"
