@@ -28,8 +28,7 @@
 When no move is taken, the result says so and describes the residual
 structure that remains (spectral peaks, the states that needed noise).
 
-Rooms: what a round measures of a model (the errors before and after) in :mod:`ardcore.loop.measure`, the
-residuals and their tests in :mod:`ardcore.loop.residuals`, the free run and its
+Rooms: the residuals and their tests live in :mod:`ardcore.loop.residuals`, the free run and its
 prediction band in :mod:`ardcore.loop.freerun`, the evidence screen in :mod:`ardcore.screening.screen` (its EKF score machinery in :mod:`ardcore.screening.score`),
 the library in :mod:`ardcore.effects.base`, the confirmations (re-selection, halves check, joint
 fit, process pool) in :mod:`ardcore.loop.confirm`, the criterion and the round's decision in
@@ -56,11 +55,11 @@ from ..jsonio import to_jsonable
 from .criterion import Criterion, Move, decide, held_out_record, stable
 from .simulation_fit import reported_model
 from .result import Diagnosis, FittedModel, LoopRound
-from .freerun import fitted
+from .freerun import Band, fitted, free_run, posterior_draws
 from .initial import data_informed_initial
 from .config import DiagnoseConfig, LoopContext
 from ..model.declaration import ModelSpec
-from .measure import figure_arrays, measure, strip_tests
+from .residuals import Residuals, residuals
 from ..selection.fit import ModelFit
 from ..selection.spec import StudySpec
 from ..selection.study import run_candidate
@@ -69,6 +68,36 @@ from .verdict import character, headline, unexplained
 
 
 # --------------------------------------------------------------------------- fit, free run, loop
+
+
+def _measure(ctx: LoopContext, held: Fit, fspec, phi, test, rnd: int) -> tuple[Residuals, dict, dict]:
+    """The fitted model's residuals on the estimation data, its free run (with a band) on the test record
+    and the errors reported for both; ``fspec, phi``: the held model with its pruned terms fixed, at its
+    posterior mean."""
+    config = ctx.config
+    res = residuals(fspec, phi, held.data, config, substeps=held.cand.substeps)
+    fr = free_run(fspec, phi, test, init_samples=config.init_samples, substeps=held.cand.substeps,
+                  band=Band(posterior_draws(held.mr, fspec, config.band_draws, seed=rnd), seed=rnd))
+    return res, fr, _errors(res, fr, held.row, ctx.column)
+
+
+def _errors(res: Residuals, fr: dict, row: ModelFit, col: str) -> dict:
+    t = res.tests[col]
+    keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error",
+            "band_coverage", "band_halfwidth_rms", "draws_rms_error", "n_draws", "band_factor", "band_calibration")
+    # the first innovations carry the initial-state uncertainty, not the model's error
+    skip = min(10, max(0, res.raw_innovations.shape[0] // 10))
+    out = {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[skip:, 0] ** 2))),
+           # what the model had to be pushed by (smoothed process noise, per unit time), per dynamic state
+           "injected_noise_rms": {s: float(np.sqrt(np.nanmean(r ** 2))) for s, r in res.process_noise_rate.items()},
+           "standardized_rms": t["rms"], "ljung_box": t["ljung_box"], "ljung_box_p": t["ljung_box_p"],
+           "free_run": {k: fr[k] for k in keep if k in fr},
+           "log_evidence": row.log_evidence, "log_evidence_se": row.log_evidence_se}
+    if res.records:  # several estimation records: each one's innovation tests
+        out["records"] = [dict(r) for r in res.records]
+    if fr.get("records"):  # several test records: each one's free run
+        out["free_run"]["records"] = fr["records"]
+    return out
 
 
 def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None,
@@ -127,14 +156,14 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         for rnd in range(config.max_rounds + 1):
             fspec, phi = fitted(held.cand, held.row)
             say(f"round {rnd}: {held.cand.label} ln Z = {held.row.log_evidence:.3f}; computing residuals")
-            res, fr, err = measure(ctx, held, fspec, phi, cur_test, rnd)
+            res, fr, err = _measure(ctx, held, fspec, phi, cur_test, rnd)
             if first is None:
                 initial = FittedModel(fspec, phi, (), held.cand.substeps)
-                first = {"before": err, "tests_before": strip_tests(res.tests), "noise_std_before": res.noise_std,
+                first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
                          "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes}
-                arrays["before"] = figure_arrays(res, fr)
+                arrays["before"] = _arrays(res, fr)
             else:
-                arrays["after"] = figure_arrays(res, fr)
+                arrays["after"] = _arrays(res, fr)
                 rounds[-1].record["after"] = err
             if rnd == config.max_rounds:
                 break
@@ -328,7 +357,7 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
         out["headline"] = headline(out, col, unit)
         return out
     a, b = out["after"], out["before"]
-    out["tests_after"] = strip_tests(arrays["after"]["tests"])
+    out["tests_after"] = _strip(arrays["after"]["tests"])
     out["parameter_shifts"] = shifts = parameter_shifts(first["base_fit"], row)
     out["verdict"] = (("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
                                                   f"{x['log_bayes_factor']:.1f}"
@@ -393,3 +422,20 @@ def parameter_shifts(before: dict, after: ModelFit) -> dict:
         if sd > 0 and abs(after.mean[k] - m0) > SHIFT_Z * sd:
             out[k] = {"before": float(m0), "after": float(after.mean[k]), "z": abs(after.mean[k] - m0) / sd}
     return out
+
+
+def _strip(tests: dict) -> dict:
+    """JSON part of the tests (the spectrum arrays go to the figures)."""
+    out = {}
+    for c, t in tests.items():
+        d = {k: v for k, v in t.items() if k not in ("spectrum", "acf")}
+        d["acf"] = [float(x) for x in t["acf"]]
+        d["spectral_peaks"] = t["spectrum"]["peaks"]
+        out[c] = d
+    return out
+
+
+def _arrays(res: Residuals, fr: dict) -> dict:
+    return {"tests": res.tests, "innovations": res.innovations, "process_noise_rate": res.process_noise_rate,
+            "free_run": fr}
+
