@@ -63,7 +63,7 @@ from .residuals import Residuals, residuals
 from ..selection.fit import ModelFit
 from ..selection.spec import StudySpec
 from ..selection.study import run_candidate
-from .verdict import character, headline, unexplained
+from .verdict import character, headline, latest_forms, parameter_shifts, shape_words, unexplained, withheld_words
 
 
 
@@ -332,7 +332,7 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
     added = [a for a in records if not a.get("removed")]
     removed = [a for a in records if a.get("removed")]
     kept = rounds
-    replaced = _latest_forms([x for r in kept for x in r.get("replaced", [])])
+    replaced = latest_forms([x for r in kept for x in r.get("replaced", [])])
     # what the evidence supported and the criterion refused, each once (its latest judgement), unless taken later
     taken = {(a["effect"], a["target"]) for a in records} | {(x["by"], "") for x in replaced}
     withheld = list({(x["effect"], x["target"]): x for r in rounds for x in r.get("refused", [])
@@ -352,7 +352,7 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
     col = spec.models[0].model_spec().observed_columns[0]
     unit = (data.meta.get("units") or {}).get(col, "")
     if not added and not replaced:
-        out["verdict"] = (_withheld(withheld, first) if withheld else
+        out["verdict"] = (withheld_words(withheld, first) if withheld else
                           rounds[0].get("verdict", "nothing added") if rounds else "no rounds run")
         out["headline"] = headline(out, col, unit)
         return out
@@ -367,60 +367,15 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
                       f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
                       f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
                       + "".join(f"; the declared term {x['parameter']}*({x['term']}) of the {x['target']} "
-                                f"equation is replaced by {x['by']}" + _shape(x)
+                                f"equation is replaced by {x['by']}" + shape_words(x)
                                 + f" (ln BF {x['log_bayes_factor']:.1f})" for x in replaced)
                       + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
                                 f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
                       + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "
                                 f"absorbed part of what was missing" for k, v in shifts.items())
                       + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else "")
-                      + (f"; {_withheld(withheld, first)}" if withheld else ""))
+                      + (f"; {withheld_words(withheld, first)}" if withheld else ""))
     out["headline"] = headline(out, col, unit)
-    return out
-
-
-def _withheld(withheld: list, first: dict) -> str:
-    """Why effects the evidence supported are not in the model reported (:mod:`.criterion`)."""
-    h = first["held_out"]
-    return (", ".join(x["effect"] for x in withheld) + " not kept: the evidence supported "
-            + ("it" if len(withheld) == 1 else "them") + ", but on held-out blocks of the estimation record the model "
-            "reported free-runs as well or better without " + ("it" if len(withheld) == 1 else "them")
-            + f" (RMS error {h['overall'][-1]:.4g})")
-
-
-def _latest_forms(replaced: list) -> list:
-    """The laws replaced, each once in the form the final model holds (a law whose form changed again in a
-    later round says which forms it took before, ``earlier``)."""
-    latest: dict = {}
-    for x in replaced:
-        key = (x["parameter"], x["term"])
-        if key in latest and x.get("form") and latest[key].get("form"):
-            x = {**x, "earlier": [*latest[key].get("earlier", []), latest[key]["form"]]}
-        latest[key] = x
-    return list(latest.values())
-
-
-def _shape(x: dict) -> str:
-    """``, e_a = 1.49 +- 0.02`` for a law replaced by another form, else nothing."""
-    e = x.get("shape")
-    return f", {e['name']} = {e['mean']:.3g} +- {e['sd']:.2g}" if e else ""
-
-
-SHIFT_Z = 3.0
-"""A declared parameter that moves by more than this many posterior sd once the effects are in is reported."""
-
-
-def parameter_shifts(before: dict, after: ModelFit) -> dict:
-    """The model's own parameters that moved by more than ``SHIFT_Z`` posterior sd (the larger of the two fits')
-    between the first fit and the final one: before the effects were added they stood in for them (a
-    stiffness that took up part of a free-play), which a user reading the first fit alone would not know."""
-    out = {}
-    for k, m0 in before["mean"].items():
-        if k not in after.mean:
-            continue
-        sd = max(float(before["sd"].get(k, 0.0)), float(after.sd.get(k, 0.0)))
-        if sd > 0 and abs(after.mean[k] - m0) > SHIFT_Z * sd:
-            out[k] = {"before": float(m0), "after": float(after.mean[k]), "z": abs(after.mean[k] - m0) / sd}
     return out
 
 

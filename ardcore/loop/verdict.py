@@ -1,5 +1,6 @@
-"""What the closed loop says about a model: the character of an added term and the verdict when nothing is
-added (used by :func:`ardcore.loop.diagnose.diagnose`)."""
+"""What the closed loop says about a model: the character of an added term, the verdict when nothing is
+added, the report's words for what was withheld or replaced, and the declared parameters that moved (used by
+:func:`ardcore.loop.diagnose.diagnose`)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import sympy as sp
 from ..effects.base import Effect, oscillator_pairs
 from ..jsonio import number
 from ..model.declaration import ModelSpec
+from ..selection.fit import ModelFit
 
 
 _ODD = ("cubic_stiffness", "quintic_stiffness", "saturation", "sine_stiffness")
@@ -182,3 +184,48 @@ def _not_kept(report: dict) -> str:
     names = [x["effect"] for x in report["withheld"]]
     return (", ".join(names) + (" was" if len(names) == 1 else " were") + " supported by the evidence but not kept "
             f"(on held-out data the model reported free-runs as well or better without {'it' if len(names) == 1 else 'them'})")
+
+
+def withheld_words(withheld: list, first: dict) -> str:
+    """Why effects the evidence supported are not in the model reported (:mod:`.criterion`)."""
+    h = first["held_out"]
+    return (", ".join(x["effect"] for x in withheld) + " not kept: the evidence supported "
+            + ("it" if len(withheld) == 1 else "them") + ", but on held-out blocks of the estimation record the model "
+            "reported free-runs as well or better without " + ("it" if len(withheld) == 1 else "them")
+            + f" (RMS error {h['overall'][-1]:.4g})")
+
+
+def latest_forms(replaced: list) -> list:
+    """The laws replaced, each once in the form the final model holds (a law whose form changed again in a
+    later round says which forms it took before, ``earlier``)."""
+    latest: dict = {}
+    for x in replaced:
+        key = (x["parameter"], x["term"])
+        if key in latest and x.get("form") and latest[key].get("form"):
+            x = {**x, "earlier": [*latest[key].get("earlier", []), latest[key]["form"]]}
+        latest[key] = x
+    return list(latest.values())
+
+
+def shape_words(x: dict) -> str:
+    """``, e_a = 1.49 +- 0.02`` for a law replaced by another form, else nothing."""
+    e = x.get("shape")
+    return f", {e['name']} = {e['mean']:.3g} +- {e['sd']:.2g}" if e else ""
+
+
+SHIFT_Z = 3.0
+"""A declared parameter that moves by more than this many posterior sd once the effects are in is reported."""
+
+
+def parameter_shifts(before: dict, after: ModelFit) -> dict:
+    """The model's own parameters that moved by more than ``SHIFT_Z`` posterior sd (the larger of the two fits')
+    between the first fit and the final one: before the effects were added they stood in for them (a
+    stiffness that took up part of a free-play), which a user reading the first fit alone would not know."""
+    out = {}
+    for k, m0 in before["mean"].items():
+        if k not in after.mean:
+            continue
+        sd = max(float(before["sd"].get(k, 0.0)), float(after.sd.get(k, 0.0)))
+        if sd > 0 and abs(after.mean[k] - m0) > SHIFT_Z * sd:
+            out[k] = {"before": float(m0), "after": float(after.mean[k]), "z": abs(after.mean[k] - m0) / sd}
+    return out

@@ -13,7 +13,7 @@ from fastapi.responses import JSONResponse, Response
 
 from ardflow.workers.cluster import die_with_parent
 
-from ardflow.service.api.schemas import API_VERSION, DiagnoseRequest, DiagnosisStatus
+from ardflow.service.api.schemas import API_VERSION, DiagnoseRequest, DiagnosisStatus, reason
 
 
 def job_key(sid: str, model: str) -> str:
@@ -96,8 +96,6 @@ class DiagnosisJobs:
         ``failed`` with its ``error``. A status file that cannot be read (a write cut short by a full disk) is a
         failed diagnosis saying so; one left ``running`` by a service that has since stopped (its process died
         with it) is failed with that reason, so it can be started again."""
-        from ardflow.service.api.registry import _why
-
         f = folder / "status.json"
         if not f.exists() and not f.is_symlink():
             return None
@@ -108,7 +106,7 @@ class DiagnosisJobs:
             if not isinstance(st, dict) or st.get("status") not in ("queued", "running", "done", "failed", "cancelled"):
                 raise ValueError(f"status {str(st)[:40]!r}")
         except (OSError, ValueError) as exc:
-            return {"status": "failed", "error": f"its status file cannot be read ({_why(exc)}): start it again"}
+            return {"status": "failed", "error": f"its status file cannot be read ({reason(exc)}): start it again"}
         if st["status"] in ("queued", "running") and st.get("service") != self.instance:
             return {"status": "failed", "error": f"the service stopped while it was {st['status']}: start it again"}
         if st["status"] == "done" and not (folder / "diagnosis.json").is_file():

@@ -20,7 +20,7 @@ from ardflow.ardcore.jsonio import to_jsonable
 from ardflow.workers.cluster import die_with_parent
 
 from ardflow.service.api.diagnoses import DiagnosisJobs, job_key
-from ardflow.service.api.schemas import ID_RE, Progress, finite_or_none
+from ardflow.service.api.schemas import ID_RE, Progress, finite_or_none, reason
 
 log = logging.getLogger("ardflow.service")
 
@@ -29,12 +29,6 @@ LIFECYCLE = ("status", "error")
 
 DAMAGED = "damaged"
 """The status of a study whose registry entry or store cannot be read."""
-
-
-def _why(exc: Exception) -> str:
-    """What went wrong reading a file, without the server's paths."""
-    text = str(exc).splitlines()[0][:160] if str(exc) else ""
-    return f"{type(exc).__name__}: {re.sub(r'(/[^/ ]+)+/?', '<file>', text)}" if text else type(exc).__name__
 
 
 def _mtime(p: Path) -> float:
@@ -74,7 +68,7 @@ class Registry:
                 raise ValueError("not a JSON object")
         except (OSError, ValueError) as exc:
             return {"id": sid, "name": sid, "created": _mtime(p), "status": DAMAGED,
-                    "error": f"its registry entry (meta.json) cannot be read: {_why(exc)}"}
+                    "error": f"its registry entry (meta.json) cannot be read: {reason(exc)}"}
         m = {k: v for k, v in m.items() if k not in LIFECYCLE}
         st = self.status(sid)
         return {**m, **st, "error": self.public(st["error"])}
@@ -151,7 +145,7 @@ class Registry:
                 break
             except Exception as exc:  # noqa: BLE001 - whatever a damaged zarr.json raises, the study is damaged
                 if attempt:  # (read twice: a driver may be rewriting the file this instant)
-                    return {"status": DAMAGED, "error": f"its store cannot be read: {_why(exc)}"}
+                    return {"status": DAMAGED, "error": f"its store cannot be read: {reason(exc)}"}
                 time.sleep(0.05)
         if store.read_text("CANCELLED") is not None:
             return {"status": "cancelled", "error": None}
@@ -280,11 +274,11 @@ class Runner(DiagnosisJobs):
                 tail = log_path.read_text()[-2000:].strip().splitlines()
                 why = store.meta.get("error") or (tail[-1] if tail else f"driver exit {rc}")
             except (OSError, ValueError) as exc:
-                why = f"driver exit {rc} ({_why(exc)})"
+                why = f"driver exit {rc} ({reason(exc)})"
             try:
                 store.update_meta(status="failed", error=why)
             except OSError as exc:  # a full disk: the store cannot say it, the service does (Runner.lost)
-                self.lost[sid] = f"{why} (and its failure could not be recorded: {_why(exc)})"
+                self.lost[sid] = f"{why} (and its failure could not be recorded: {reason(exc)})"
 
     def cancel(self, sid: str) -> None:
         """Mark ``sid`` cancelled durably, then stop its driver (cooperatively, then by force)."""

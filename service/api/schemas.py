@@ -127,3 +127,7 @@ def finite_or_none(x):
     return x
 
 
+def reason(exc: Exception) -> str:
+    """What went wrong reading a file, as a user may read it: without the server's paths."""
+    text = str(exc).splitlines()[0][:160] if str(exc) else ""
+    return f"{type(exc).__name__}: {re.sub(r'(/[^/ ]+)+/?', '<file>', text)}" if text else type(exc).__name__

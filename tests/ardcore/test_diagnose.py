@@ -247,7 +247,7 @@ def test_screen_finds_the_flow_between_two_tanks():
 
 
 def test_parameter_shifts_name_what_the_first_fit_let_stand_in():
-    from ardflow.ardcore.loop.diagnose import parameter_shifts
+    from ardflow.ardcore.loop.verdict import parameter_shifts
     from ardflow.ardcore.selection.fit import ModelFit
 
     before = {"mean": {"k": 35.45, "c": 0.026, "sigma": 0.9}, "sd": {"k": 0.2, "c": 0.001, "sigma": 0.01}}
