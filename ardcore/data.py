@@ -81,10 +81,18 @@ class Dataset:
         ends = list(self.starts[1:]) + [self.t.size]
         return [slice(a, b) for a, b in zip(self.starts, ends)]
 
+    def record_info(self) -> list[dict]:
+        """What ``meta["records"]`` says of each record (empty dicts where nothing is declared)."""
+        return self.meta.get("records") or [{}] * self.n_records
+
+    def record_names(self) -> list[str]:
+        """Each record's name (``record r`` where none is given)."""
+        return [str(x.get("name") or f"record {r}") for r, x in enumerate(self.record_info())]
+
     def record(self, r: int) -> "Dataset":
         """Record ``r`` alone, on its own time axis."""
         s = self.record_slices()[r]
-        info = (self.meta.get("records") or [{}] * self.n_records)[r]
+        info = self.record_info()[r]
         t = self.t[s] - self.t[s][0] + info.get("t0", self.t[s][0])
         meta = {k: v for k, v in self.meta.items() if k != "records"}
         meta.update({k: v for k, v in info.items() if k in ("source", "initial_mean", "initial_std")})
@@ -101,14 +109,12 @@ class Dataset:
         first = max([r for r, x in enumerate(self.starts) if x <= a], default=0)
         keep = [first] + inside
         meta = dict(self.meta, slice=[start, stop])
-        if a != self.starts[first]:  # cut inside a record: its declared initial state is not this row's
-            for k in ("initial_mean", "initial_std"):
-                meta.pop(k, None)
         if self.meta.get("records"):
             meta["records"] = [dict(self.meta["records"][r]) for r in keep]
-            if a != self.starts[first]:  # cut inside a record: its declared initial state is not this row's
-                for k in ("initial_mean", "initial_std"):
-                    meta["records"][0].pop(k, None)
+        if a != self.starts[first]:  # cut inside a record: its declared initial state is not this row's
+            for d in (meta, *meta.get("records", [])[:1]):
+                d.pop("initial_mean", None)
+                d.pop("initial_std", None)
         return Dataset(self.t[s].copy(), {k: v[s].copy() for k, v in self.columns.items()}, meta,
                        (0, *(self.starts[r] - a for r in inside)))
 

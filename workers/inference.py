@@ -181,8 +181,7 @@ def inference_groups(store, model: str, *, log_likelihood: bool = False,
         attrs["max_rhat"] = float(np.max(np.asarray(rec["rhat"], float)))
     if rec.get("warnings"):
         attrs["warnings"] = "; ".join(map(str, rec["warnings"]))
-    attrs["records"] = json.dumps([str(x.get("name") or f"record {i}")
-                                   for i, x in enumerate(data.meta.get("records") or [{}])])
+    attrs["records"] = json.dumps(data.record_names())
     return InferenceGroups(groups, {**{c: ["time"] for c in cols}, "record": ["time"]}, {"time": data.t}, attrs)
 
 

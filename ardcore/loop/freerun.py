@@ -102,7 +102,7 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
 def _joined(parts: list[dict], data: Dataset) -> dict:
     """The free runs of several records (each from its own start) as one: the series end to end, the errors
     and the band's coverage over every record's points, and each record's own under ``records``."""
-    names = [str(x.get("name") or f"record {r}") for r, x in enumerate(data.meta.get("records") or [{}] * len(parts))]
+    names = data.record_names()
     n = np.array([p["n"] for p in parts], dtype=float)
     w = n / n.sum()
     out = {"n": int(n.sum()), "start": parts[0]["start"],

@@ -142,11 +142,9 @@ def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig,
     tests = {c: residual_tests(e[:, j], fs, config, fundamental=fund) for j, c in enumerate(spec.observed_columns)}
     records = ()
     if data.n_records > 1:  # each experiment's own whiteness: one record's structure is not averaged away
-        info = data.meta.get("records") or [{}] * data.n_records
-        records = tuple({"name": str(x.get("name") or f"record {r}"),
-                         **{k: v for k, v in residual_tests(e[sl, 0], fs, config).items()
-                            if k in ("n", "rms", "ljung_box", "ljung_box_p")}}
-                        for r, (x, sl) in enumerate(zip(info, data.record_slices())))
+        records = tuple({"name": name, **{k: v for k, v in residual_tests(e[sl, 0], fs, config).items()
+                                          if k in ("n", "rms", "ljung_box", "ljung_box_p")}}
+                        for name, sl in zip(data.record_names(), data.record_slices()))
     dyn = dynamic_states(spec)
     dspec, qnames = _diagnostic_spec(spec, dyn)
     dcm = compile_model(dspec)

@@ -3,7 +3,6 @@ sampler and maximiser settings (pydantic, strict: no extra fields, no NaN or inf
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Literal, Optional, Union
 
@@ -86,13 +85,9 @@ class DataSpec(BaseModel):
             if not p.exists():
                 raise SpecError(f"data.dataset: no uploaded data set {self.dataset!r}")
             ds = read_dataset(p, time=self.time, fs=self.fs, rename=self.rename, columns=self.columns)
-            ds.meta["source"] = f"uploaded data set {self.dataset}"
-            try:  # the name it was uploaded under, when the service recorded one
-                name = json.loads(p.with_suffix(".json").read_text()).get("name")
-            except (OSError, ValueError, AttributeError):
-                name = None
-            if isinstance(name, str) and name:
-                ds.meta["source"] = f"{name} (uploaded data set {self.dataset})"
+            name = uploaded_name(ds)
+            ds.meta["source"] = f"{name} (uploaded data set {self.dataset})" if name else \
+                f"uploaded data set {self.dataset}"
         elif self.generator == "reference":
             from ..likelihood.simulate import simulate_reference
 
@@ -125,6 +120,14 @@ class DataSpec(BaseModel):
             if getattr(self, k):
                 ds.meta[k] = dict(getattr(self, k))
         return ds
+
+
+def uploaded_name(ds: Dataset) -> str | None:
+    """The name a data set was uploaded to the service under, when the service recorded one (beside the file,
+    in the sidecar :func:`~ardcore.data.read_dataset` reads into ``meta["sidecar"]``)."""
+    side = ds.meta.get("sidecar")
+    name = side.get("name") if isinstance(side, dict) else None
+    return name if isinstance(name, str) and name else None
 
 
 def appendix_a_data(seed: int, n: int = 100) -> Dataset:
@@ -307,16 +310,20 @@ class StudySpec(BaseModel):
 
         recs = self.records
         loaded = [r.load(base, datasets) for r in recs]
-        used = {i for m in self.models for i in m.model_spec().inputs if i.startswith(RECORD_INPUT)}
         for r, ds in enumerate(loaded):
-            for i in sorted(used):  # the per-record parameters' indicators (CandidateSpec.for_records)
+            for i in self.record_inputs:  # the per-record parameters' indicators (CandidateSpec.for_records)
                 ds.columns[i] = np.full(len(ds), float(i == f"{RECORD_INPUT}{r}"))
-        return join_records(loaded, [r.name or f"record {i}" for i, r in enumerate(recs)])
+        return join_records(loaded, [r.name for r in recs])
+
+    @property
+    def record_inputs(self) -> list[str]:
+        """The record indicator inputs the candidates' per-record parameters are written over (none without)."""
+        return sorted({i for m in self.models for i in m.model_spec().inputs if i.startswith(RECORD_INPUT)})
 
     def held_out(self, ds: Dataset) -> Dataset:
         """A held-out record (a further experiment) as the models take it: a per-record parameter takes the
         records' mean there (each indicator ``record_r`` = 1/K), the best guess for an experiment not fitted."""
-        used = sorted({i for m in self.models for i in m.model_spec().inputs if i.startswith(RECORD_INPUT)})
+        used = self.record_inputs
         if not used or all(i in ds.columns for i in used):
             return ds
         cols = dict(ds.columns)
@@ -328,10 +335,8 @@ class StudySpec(BaseModel):
         """Refuse a data set no candidate can be fitted to: each candidate's observed columns present with at
         least one value, its inputs present and complete (:meth:`Dataset.arrays`). Raises DataError naming
         the candidate and the column."""
-        from ..errors import DataError
-
+        from ..errors import DataError, ModelError
         from ..likelihood.ekf import record_priors
-        from ..errors import ModelError
 
         for i, m in enumerate(self.models):
             ms = m.model_spec()

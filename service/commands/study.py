@@ -217,10 +217,11 @@ def cmd_diagnose(a) -> int:
         d = spec.naming
         rename = parse_assignments(a.test_rename, "--test-rename") if a.test_rename else d.rename
         from ardflow.ardcore.data import join_records
+        from ardflow.ardcore.selection.spec import uploaded_name
 
         files = a.test_data if isinstance(a.test_data, list) else [a.test_data]
         held = [read_dataset(f, time=d.time, fs=d.fs, rename=rename, columns=d.columns) for f in files]
-        test = join_records(held, [_uploaded_name(h) or Path(f).name for h, f in zip(held, files)])
+        test = join_records(held, [uploaded_name(h) or Path(f).name for h, f in zip(held, files)])
     elif a.test_start is not None or a.test_stop is not None:
         if len(spec.records) > 1 or spec.naming.path is None:
             raise SpecError("--test-start/--test-stop need a spec whose data come from one file (data.path)")
@@ -250,13 +251,6 @@ def cmd_diagnose(a) -> int:
     print(f"\n{rep.report.get('headline', '')}\n\n{rep.verdict}")
     print(f"\nreport: {path} and {Path(a.out) / 'diagnosis.html'}  ({time.perf_counter() - t0:.1f} s)")
     return 0
-
-
-def _uploaded_name(ds) -> str | None:
-    """The name a data set was uploaded to the service under (its sidecar file keeps it), if any."""
-    side = ds.meta.get("sidecar")
-    name = side.get("name") if isinstance(side, dict) else None
-    return name if isinstance(name, str) and name else None
 
 
 def cmd_loo(a) -> int:

@@ -92,26 +92,20 @@ def write_report(store, out: str | Path | None = None) -> Path:
     return path
 
 
-def record_name(data, r: int) -> str:
-    """Record ``r``'s name as the spec gives it."""
-    return str(((data.meta.get("records") or [{}] * data.n_records)[r]).get("name") or f"record {r}")
-
-
 def _records_table(data, innovations, col: str, best: str) -> str:
     """A study of several records: each record's source, length, and how the best model's one-step prediction
     fits it (its RMS error in the data's units, the standardised innovations' RMS); empty for one record."""
     if data.n_records < 2:
         return ""
     rows = []
-    for r, sl in enumerate(data.record_slices()):
-        info = data.meta["records"][r]
+    for name, info, sl in zip(data.record_names(), data.record_info(), data.record_slices()):
         fit = "", ""
         if not isinstance(innovations, Exception):
             e, v = innovations[0][sl], innovations[1][sl]
             ok = np.isfinite(e) & np.isfinite(v)
             fit = (f"{np.sqrt(np.mean(e[ok] ** 2)):.4g}", f"{np.sqrt(np.mean(e[ok] ** 2 / v[ok])):.2f}") if ok.any() \
                 else ("", "")
-        rows.append(f"<tr><td>{html.escape(record_name(data, r))}</td><td>{html.escape(str(info.get('source')))}</td>"
+        rows.append(f"<tr><td>{html.escape(name)}</td><td>{html.escape(str(info.get('source')))}</td>"
                     f"<td>{sl.stop - sl.start}</td><td>{fit[0]}</td><td>{fit[1]}</td></tr>")
     return (f"<h2>Records</h2><p>Each record is filtered from its own initial state; the parameters are shared."
             f"</p><table><tr><th>record</th><th>source</th><th>points</th><th>{html.escape(best)}: one-step RMS "
@@ -180,9 +174,9 @@ def _report_figures(store, spec, summary, draws: tuple, out: Path, record: tuple
     plot_model_probabilities(summary["models"], out / "probabilities.png")
     figs.append(("Posterior probability of each candidate model (Eq. 7), with its ln evidence", "probabilities.png"))
     several = data.n_records > 1
-    for r, rows in enumerate(data.record_slices()):
+    for r, (rec, rows) in enumerate(zip(data.record_names(), data.record_slices())):
         f = f"prediction_{r}.png" if several else "prediction.png"
-        name = f" on {record_name(data, r)}" if several else ""
+        name = f" on {rec}" if several else ""
         try:
             if isinstance(innovations, Exception):
                 raise innovations
