@@ -40,7 +40,7 @@ from ardflow.ardcore.sampling.driver import Runtime, Start, continuation, contin
 from ardflow.ardcore.selection.fit import ModelFit
 from ardflow.ardcore.selection.maximiser import MaximiserResult, Trial
 from ardflow.ardcore.selection.spec import StudySpec
-from ardflow.ardcore.selection.study import CandidateHooks, compare, iter_candidate
+from ardflow.ardcore.selection.study import CandidateHooks, compare, iter_study_candidate
 
 from .coordinator import ActorPool, wait_connected
 from ardflow.ardcore.jsonio import decode_alpha, to_jsonable
@@ -198,7 +198,7 @@ def fit_model(store: StudyStore, spec: StudySpec, data, index: int, hooks: Candi
 
 
 def iter_fit(store: StudyStore, spec: StudySpec, data, index: int, hooks: CandidateHooks):
-    """One candidate's ARD evidence maximisation (:func:`~ardcore.selection.study.iter_candidate`, the same
+    """One candidate's ARD evidence maximisation (:func:`~ardcore.selection.study.iter_study_candidate`, the same
     generator of chain tasks) with its trials recorded in ``store``: the history as each trial finishes, the
     result and best iteration at the end; the same layout whatever runs the chains. Returns its
     :class:`ModelFit`."""
@@ -210,7 +210,12 @@ def iter_fit(store: StudyStore, spec: StudySpec, data, index: int, hooks: Candid
         history.append(tr.to_dict())
         store.set_model_attrs(model, history=history)
 
-    row, mr = yield from iter_candidate(cand, data, spec, index, hooks=replace(hooks, on_trial=on_trial))
+    row, mr = yield from iter_study_candidate(cand, data, spec, index, hooks=replace(hooks, on_trial=on_trial))
+    if mr is None:  # refused: no chain could fit it; the comparison says why
+        store.set_model_attrs(model, result=row, history=history)
+        if hooks.progress:
+            hooks.progress(ModelEvent(cand.label, ModelDone(row.log_evidence)))
+        return row
     best_iteration = mr.best.iteration
     if spec.evidence == "laplace":
         # Laplace trials sample nothing; the posterior drawn at psi_opt gets a trial group of its own

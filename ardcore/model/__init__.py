@@ -5,5 +5,5 @@ The modules are the interface: import from them (``from ardflow.ardcore.model.co
 """
 
 __all__ = [
-    "codegen", "declaration", "expr", "library", "printing", "priors",
+    "codegen", "declaration", "expr", "kinks", "library", "printing", "priors",
 ]

@@ -86,6 +86,12 @@ class ModelSpec(BaseModel):
     input_hold : {"foh", "zoh"}
         How inputs vary between samples. ``"foh"`` (default): linearly interpolated (first-order
         hold). ``"zoh"``: held at the previous sample, which delays them by half a sample.
+    kinks : {"smooth", "exact"}
+        How the filter treats ``abs``, ``sign``, ``max`` and ``min`` of the states. ``"smooth"`` (default):
+        their expectation over the filter's own spread of the argument (:mod:`ardcore.model.kinks`), so the
+        log-likelihood is smooth at the posterior's scale. ``"exact"``: as written, with d sign/dx = 0 (the
+        paper's models keep it so that their reference results are unchanged). Simulations use the exact
+        model either way.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -106,6 +112,7 @@ class ModelSpec(BaseModel):
     substeps: int = Field(10, ge=1, le=10000)
     integrator: Literal["rk4", "euler"] = "rk4"
     input_hold: Literal["foh", "zoh"] = "foh"
+    kinks: Literal["smooth", "exact"] = "smooth"
 
     @field_validator("constants", "fixed")
     @classmethod
@@ -194,7 +201,7 @@ class ModelSpec(BaseModel):
         return symbolic(self)
 
 
-def _sign_derivative_zero(e: sp.Expr) -> sp.Expr:
+def sign_derivative_zero(e: sp.Expr) -> sp.Expr:
     # Decision (docs/method.md section 2): d sign(x)/dx = 0 in Jacobians.
     return e.replace(lambda a: isinstance(a, sp.DiracDelta), lambda a: sp.S.Zero)
 
@@ -311,8 +318,8 @@ def symbolic(spec: ModelSpec) -> SymbolicModel:
     """
     pm = parse_model(spec)
     drift = [sp.expand(f, deep=False) for f in pm.drift]
-    J = sp.Matrix([[_sign_derivative_zero(sp.diff(f, x)) for x in pm.states] for f in drift])
-    H = sp.Matrix([[_sign_derivative_zero(sp.diff(h, x)) for x in pm.states] for h in pm.obs])
+    J = sp.Matrix([[sign_derivative_zero(sp.diff(f, x)) for x in pm.states] for f in drift])
+    H = sp.Matrix([[sign_derivative_zero(sp.diff(h, x)) for x in pm.states] for h in pm.obs])
     params = [sp.Symbol(p, real=True) for p in spec.free_parameters]
     return SymbolicModel(pm.states, tuple(params), pm.inputs, tuple(drift), J, pm.diffusion, pm.obs, H,
                          pm.obs_std, pm.init_mean, pm.init_std)

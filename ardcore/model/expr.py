@@ -24,8 +24,14 @@ FUNCTIONS = {
     "sin": sp.sin,
     "cos": sp.cos,
     "tanh": sp.tanh,
+    # written with abs, so the filter smooths them as it smooths abs (ardcore.model.kinks)
+    "max": lambda a, b: (a + b + sp.Abs(a - b)) / 2,
+    "min": lambda a, b: (a + b - sp.Abs(a - b)) / 2,
 }
 """Functions allowed in model expressions."""
+
+ARITY = {"max": 2, "min": 2}
+"""Arguments of the functions that do not take one."""
 
 CONSTANTS = {"pi": sp.pi}
 
@@ -166,9 +172,11 @@ class _Whitelist:
         if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
             raise ModelError(f"{where}: function {_token(node.func, text)!r} is not allowed "
                              f"(allowed: {', '.join(sorted(FUNCTIONS))})")
-        if node.keywords or len(node.args) != 1:
-            raise ModelError(f"{where}: {node.func.id}() takes exactly one argument")
-        return _finite_result(FUNCTIONS[node.func.id](self.visit(node.args[0])), node, text, where)
+        arity = ARITY.get(node.func.id, 1)
+        if node.keywords or len(node.args) != arity:
+            count = "one argument" if arity == 1 else f"{arity} arguments"
+            raise ModelError(f"{where}: {node.func.id}() takes exactly {count}")
+        return _finite_result(FUNCTIONS[node.func.id](*map(self.visit, node.args)), node, text, where)
 
 
 def _check_size(tree: ast.AST, where: str) -> None:

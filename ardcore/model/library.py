@@ -44,7 +44,7 @@ def aero_m1() -> ModelSpec:
         observations=_OBS_THETA,
         parameters=["a1", "a2", "a3", "a4", "a5", "a6", "sigma"],
         constants={**{k: AERO_CONSTANTS[k] for k in ("c1", "c2", "c3", "c4", "c5")}, "gamma": AERO_GAMMA_EKF},
-        initial_std={"theta": 0.01, "dtheta": 0.01}, integrator="euler",
+        initial_std={"theta": 0.01, "dtheta": 0.01}, integrator="euler", kinks="exact",
     )
 
 
@@ -59,7 +59,7 @@ def aero_m2() -> ModelSpec:
         observations=_OBS_THETA,
         parameters=["B", "a1", "a2", "a3", "a4", "a5", "a6", "sigma"],
         constants={**AERO_CONSTANTS, "gamma": AERO_GAMMA_EKF},
-        initial_std=_INIT_STD, integrator="euler",
+        initial_std=_INIT_STD, integrator="euler", kinks="exact",
     )
 
 
@@ -83,7 +83,7 @@ def aero_m3() -> ModelSpec:
         observations=_OBS_THETA,
         parameters=["A", "B1", "B2", "a1", "a2", "a3", "a4", "a5", "a6", "sigma"],
         constants={**AERO_CONSTANTS, "kappa": 0.5, "gamma": AERO_GAMMA_EKF},
-        initial_std={**_INIT_STD, "w": 0.01}, integrator="euler",
+        initial_std={**_INIT_STD, "w": 0.01}, integrator="euler", kinks="exact",
     )
 
 

@@ -18,6 +18,15 @@ class Printer(PythonCodePrinter):
     def _print_sign(self, e):
         return f"_sign({self._print(e.args[0])})"
 
+    def _print_SmoothAbs(self, e):
+        return f"_sabs({self._print(e.args[0])}, {self._print(e.args[1])})"
+
+    def _print_SmoothSign(self, e):
+        return f"_ssign({self._print(e.args[0])}, {self._print(e.args[1])})"
+
+    def _print_SmoothDelta(self, e):
+        return f"_sdelta({self._print(e.args[0])}, {self._print(e.args[1])})"
+
     def _print_Abs(self, e):
         return f"abs({self._print(e.args[0])})"
 

@@ -14,6 +14,10 @@ from dataclasses import asdict, dataclass, field, fields
 from ..jsonio import decode_alpha, to_jsonable
 
 
+NO_FIT = "could not be fitted"
+"""The warning of a candidate no chain could fit (:meth:`ModelFit.failed`)."""
+
+
 @dataclass(frozen=True)
 class ModelFit:
     """A candidate's ARD evidence maximisation, summarised.
@@ -97,6 +101,12 @@ class ModelFit:
         return {"mean": self.mean[name] * scale, "sd": self.sd[name] * scale,
                 "q005": self.q005[name] * scale, "q995": self.q995[name] * scale}
 
+    @classmethod
+    def failed(cls, name: str, reason: str, wall_s: float = 0.0) -> "ModelFit":
+        """A candidate that could not be fitted at all (no chain found a finite posterior): no evidence, and the
+        reason as its warning, so that the comparison refuses it (:meth:`degenerate`)."""
+        return cls(name, math.nan, math.nan, wall_s=wall_s, converged=False, warnings=[f"{NO_FIT}: {reason}"])
+
     def summary(self, keys) -> dict:
         """The attributes ``keys`` as a dict (a report's excerpt)."""
         return {k: getattr(self, k) for k in keys}
@@ -108,7 +118,8 @@ class ModelFit:
         positive definite (its log-determinant, and so ln Z and every sd, are then placeholders). (A Laplace
         evidence states no Monte Carlo error: its 0 is not a defect.)"""
         if not math.isfinite(self.log_evidence):
-            return f"{self.name}: the evidence is not a finite number (ln Z = {self.log_evidence})"
+            failed = next((str(w) for w in self.warnings if str(w).startswith(NO_FIT)), None)
+            return f"{self.name}: {failed or f'the evidence is not a finite number (ln Z = {self.log_evidence})'}"
         from ..evidence.estimators import COLLAPSED
 
         collapsed = next((str(w) for w in self.warnings if COLLAPSED in str(w)), None)

@@ -23,11 +23,12 @@ from ..evidence.estimators import COLLAPSED
 from ..evidence.evaluate import EvidenceEvaluator, EvidenceSettings
 from .maximiser import MaximiserResult, iter_maximise, posterior_summary
 from ..data import Dataset
+from ..errors import FitError
 from ..events import ModelEvent, ProgressEvent, TrialDone
 from .fit import ModelFit
 from .summary import ComparedModel, StudySummary
 from ..jsonio import to_jsonable
-from ..sampling.chains import Map, run, serial_map
+from ..sampling.chains import Map, SamplerError, run, serial_map
 from ..sampling.driver import Runtime
 from .spec import (
     CandidateSpec,
@@ -76,6 +77,18 @@ def run_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: in
     """
     return run(iter_candidate(cand, data, spec, index, hooks=hooks, warm=warm, final_posterior=final_posterior),
                hooks.map_fn)
+
+
+def iter_study_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *,
+                         hooks: CandidateHooks = CandidateHooks()) -> Generator:
+    """:func:`iter_candidate` as a study runs it: a candidate that no chain can fit (no finite posterior where
+    the starts reach) is refused with the reason (:meth:`ModelFit.failed`) and the study compares the others.
+    Returns (:class:`ModelFit`, :class:`MaximiserResult` or None when refused)."""
+    t0 = time.perf_counter()
+    try:
+        return (yield from iter_candidate(cand, data, spec, index, hooks=hooks))
+    except (SamplerError, FitError) as exc:
+        return ModelFit.failed(cand.label, str(exc), time.perf_counter() - t0), None
 
 
 def iter_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: int, *,
@@ -159,11 +172,27 @@ def _diagnostics(res) -> dict:
 
 
 def compare(fits: list[ModelFit], spec: StudySpec, data_meta: dict, wall_s: float) -> StudySummary:
-    """The comparison of the optimal nested models (Eq. 7): the study's :class:`StudySummary`."""
-    probs, psd = model_probabilities([f.log_evidence for f in fits], [f.log_evidence_se for f in fits],
+    """The comparison of the optimal nested models (Eq. 7): the study's :class:`StudySummary`.
+
+    A fit that is no result (:meth:`ModelFit.degenerate`: an evidence that is not a finite number, a collapsed
+    posterior, chains that never moved) is refused with its reason and takes no part: the others are compared
+    among themselves.
+
+    Raises
+    ------
+    FitError
+        When no candidate gave a result (a summary is never "done" on evidences that are not numbers).
+    """
+    refused = [f.degenerate() for f in fits]
+    ok = [i for i, why in enumerate(refused) if why is None]
+    if not ok:
+        raise FitError("no candidate gave a result: " + "; ".join(refused))
+    probs, psd = model_probabilities([fits[i].log_evidence for i in ok], [fits[i].log_evidence_se for i in ok],
                                      seed=spec.seed)
-    return StudySummary(spec.name, dict(data_meta), tuple(ComparedModel(f, p, s) for f, p, s in zip(fits, probs, psd)),
-                        max(fits, key=lambda f: f.log_evidence).name, spec.seed, wall_s, spec.model_dump(mode="json"))
+    prob, sd = dict(zip(ok, probs)), dict(zip(ok, psd))
+    models = tuple(ComparedModel(f, prob.get(i, 0.0), sd.get(i, 0.0), refused[i]) for i, f in enumerate(fits))
+    best = max((fits[i] for i in ok), key=lambda f: f.log_evidence).name
+    return StudySummary(spec.name, dict(data_meta), models, best, spec.seed, wall_s, spec.model_dump(mode="json"))
 
 
 def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[ModelEvent], None] | None = None,
@@ -178,10 +207,11 @@ def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[Mod
     data = spec.load_data(base)
     rows, results = [], {}
     for i, cand in enumerate(spec.models):
-        row, mr = run_candidate(cand, data, spec, i, hooks=CandidateHooks(map_fn, progress, cancel))
+        row, mr = run(iter_study_candidate(cand, data, spec, i, hooks=CandidateHooks(map_fn, progress, cancel)),
+                      map_fn)
         rows.append(row)
-        results[cand.label] = mr
+        results[cand.label] = mr.history if mr is not None else []
     summary = compare(rows, spec, {"source": data.meta.get("source"), "n": len(data)},
                       time.perf_counter() - t0).to_json()
-    summary["_history"] = to_jsonable({k: [t.to_dict() for t in mr.history] for k, mr in results.items()})
+    summary["_history"] = to_jsonable({k: [t.to_dict() for t in history] for k, history in results.items()})
     return summary

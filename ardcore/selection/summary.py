@@ -26,9 +26,13 @@ class ComparedModel:
     fit: ModelFit
     probability: float
     probability_sd: float
+    refused: str | None = None
+    """Why the fit is no result (:meth:`ModelFit.degenerate`): it takes no part in the comparison (probability
+    0), and the reason is reported instead."""
 
     def to_json(self) -> dict:
-        return {**self.fit.to_json(), "probability": self.probability, "probability_sd": self.probability_sd}
+        return {**self.fit.to_json(), "probability": self.probability, "probability_sd": self.probability_sd,
+                "refused": self.refused}
 
 
 @dataclass(frozen=True)
@@ -93,7 +97,7 @@ class StudySummary:
         if schema > SCHEMA:
             raise DataError(f"this summary.json has schema version {schema}, written by a newer ardflow; this "
                             f"one reads versions up to {SCHEMA}: upgrade ardflow to read it")
-        models = tuple(ComparedModel(ModelFit.from_json(r), r.get("probability"), r.get("probability_sd"))
-                       for r in d["models"])
+        models = tuple(ComparedModel(ModelFit.from_json(r), r.get("probability"), r.get("probability_sd"),
+                                     r.get("refused")) for r in d["models"])
         return cls(d["study"], dict(d.get("data") or {}), models, d["best_model"], int(d.get("seed", 0)),
                    float(d.get("wall_s", 0.0)), dict(d.get("spec") or {}), d.get("study_id"))

@@ -10,15 +10,23 @@ import sys
 from ardflow.ardcore.events import BurninRound, ModelDone, ModelEvent, Note, TrialDone
 
 
+def done_words(log_evidence: float) -> str:
+    """How a finished model reads: its ln Z, or that it is no result (the summary says why)."""
+    if math.isfinite(log_evidence):
+        return f"done: ln Z = {log_evidence:.3f}"
+    return "refused: no result (the summary says why)"
+
+
 def print_progress(ev: ModelEvent) -> None:
     """One line per event of a running study (stdout, flushed)."""
     m, p = ev.model, ev.event
     if isinstance(p, ModelDone):
-        print(f"[{m}] done: ln Z = {p.log_evidence:.3f}", flush=True)
+        print(f"[{m}] {done_words(p.log_evidence)}", flush=True)
     elif isinstance(p, TrialDone):
         mark = "accepted" if p.accepted else "rejected"
-        print(f"[{m}] trial {p.iteration:>3}  {p.action:<40s} ln Z = {p.log_evidence:.3f} "
-              f"+- {p.log_evidence_se:.3f}  {mark}", flush=True)
+        value = (f"ln Z = {p.log_evidence:.3f} +- {p.log_evidence_se:.3f}  {mark}" if math.isfinite(p.log_evidence)
+                 else "ln Z is not a number: no result")
+        print(f"[{m}] trial {p.iteration:>3}  {p.action:<40s} {value}", flush=True)
     elif isinstance(p, Note):
         print(f"[{m}]   {p.message}", flush=True)
     elif isinstance(p, BurninRound) and (p.round == 1 or p.round % 5 == 0):
@@ -33,6 +41,9 @@ def print_table(summary: dict) -> None:
     print(f"\n{'model':<12s} {'ln Z':>12s} {'se':>7s} {'GoF':>12s} {'EIG':>8s} {'P(M|d)':>8s} {'R-hat':>6s} "
           f"{'ESS':>6s}  kept / pruned")
     for r in summary["models"]:
+        if r.get("refused"):  # no result: its numbers are not printed as if they were one
+            print(f"{r['name']:<12s} refused: {r['refused']}")
+            continue
         # the reported draws as ArviZ judged them: the worst R-hat and the smallest bulk or tail ESS
         rh, ess, _, _ = Quality().worst(r.get("diagnostics") or {})
         print(f"{r['name']:<12s} {r['log_evidence']:12.3f} {r['log_evidence_se']:7.3f} {r['goodness_of_fit']:12.3f} "
@@ -99,6 +110,6 @@ class LiveProgress:
             self._progress.update(task, status=f"burn-in round {p.round}: max R-hat {p.max_rhat:.2f}")
         elif isinstance(p, ModelDone):
             self._progress.update(task, completed=self.max_trials, total=self.max_trials,
-                                  status=f"done: ln Z = {p.log_evidence:.3f}")
+                                  status=done_words(p.log_evidence))
         elif isinstance(p, Note):
             self._progress.console.print(f"[{m}]   {p.message}")

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
+import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from ardflow.ardcore.jsonio import is_pruned
@@ -216,6 +216,11 @@ def plot_prediction(t: np.ndarray, y: np.ndarray, innovations: np.ndarray, innov
     return save_figure(fig, out)
 
 
+def _number(x) -> bool:
+    """A finite number (a missing value, JSON null, or a NaN is written as a word instead)."""
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
 def plot_model_probabilities(rows: list[dict], out: str | Path) -> Path:
     """P(M|d) of each candidate, with its ln evidence and standard error written on its bar."""
     plt = pyplot()
@@ -224,8 +229,10 @@ def plot_model_probabilities(rows: list[dict], out: str | Path) -> Path:
     p = [float(r.get("probability") or 0.0) for r in rows]
     ax.barh(names, p, color=["C2" if v == max(p) else "C7" for v in p])
     for i, r in enumerate(rows):
-        ax.text(min(p[i], 0.62) + 0.01, i, f"P = {p[i]:.3f}   ln Z = {r['log_evidence']:.2f} ± "
-                f"{r['log_evidence_se']:.2f}", va="center", fontsize=9)
+        z, se = r.get("log_evidence"), r.get("log_evidence_se")
+        words = ("refused: no result" if r.get("refused") or not _number(z)
+                 else f"P = {p[i]:.3f}   ln Z = {z:.2f} ± " + (f"{se:.2f}" if _number(se) else "unknown"))
+        ax.text(min(p[i], 0.62) + 0.01, i, words, va="center", fontsize=9)
     ax.set(xlim=(0, 1), xlabel="posterior model probability P(M|d) (equal prior odds)",
            title="which model the data support")
     ax.invert_yaxis()

@@ -29,6 +29,8 @@ def _fmt(x, nd=3):
     if x is None:
         return "-"
     if isinstance(x, float):
+        if not math.isfinite(x):
+            return "not a number" if x != x else ("infinite" if x > 0 else "minus infinite")
         return f"{x:.{nd}f}" if abs(x) < 1e5 else f"{x:.{nd}e}"
     return html.escape(str(x))
 
@@ -236,11 +238,15 @@ def _comparison_table(summary: dict) -> str:
             f"<td class=l>{html.escape(r['name'])}</td>",
             f"<td>{_fmt(r['goodness_of_fit'])}</td>", f"<td>{_fmt(r['information_gain'])}</td>",
             f"<td>{_fmt(r['log_evidence'])} &plusmn; {_fmt(r['log_evidence_se'])}</td>",
-            f"<td>{_fmt(r['probability'], 4)}</td>",
+            (f"<td class=warn title='{html.escape(r['refused'], quote=True)}'>refused</td>" if r.get("refused")
+             else f"<td>{_fmt(r['probability'], 4)}</td>"),
             f"<td class=l>{', '.join(r['kept']) or '-'}</td>", f"<td class=l>{', '.join(r['pruned']) or '-'}</td>",
             f"<td class=l>{html.escape(_psi(r['psi_opt']))}</td>"]) + "</tr>")
+    why = "".join(f"<p class=warn>{html.escape(r['name'])} is refused, no result: {html.escape(r['refused'])}</p>"
+                  for r in summary["models"] if r.get("refused"))
     return ("<table><tr><th class=l>model</th><th>GoF</th><th>EIG</th><th>ln evidence</th><th>P(M|d)</th>"
-               "<th class=l>kept</th><th class=l>pruned</th><th class=l>psi_opt</th></tr>" + "".join(rows) + "</table>")
+            "<th class=l>kept</th><th class=l>pruned</th><th class=l>psi_opt</th></tr>" + "".join(rows) + "</table>"
+            + why)
 
 
 def _flag(bad: bool, text: str) -> str:

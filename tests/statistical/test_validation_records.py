@@ -21,6 +21,7 @@ from ..bench.validation import backlash, hysteresis
 pytestmark = pytest.mark.timeout(900)
 
 
+@pytest.mark.slow  # a loop of three rounds on a kinked record (make test stays under 15 min)
 def test_a_coupling_with_slack_is_replaced_by_its_dead_zone_form():
     rec = backlash()
     d = diagnose(rec.spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=2))
@@ -33,6 +34,7 @@ def test_a_coupling_with_slack_is_replaced_by_its_dead_zone_form():
     assert 0.8 <= after["band_coverage"] <= 0.97, after
 
 
+@pytest.mark.slow  # three rounds of five stand-ins on the hysteresis record, 2-3 min
 def test_stand_ins_that_free_run_worse_held_out_are_not_kept():
     rec = hysteresis()
     d = diagnose(rec.spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=3))
