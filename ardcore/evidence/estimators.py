@@ -430,7 +430,9 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         C = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         C = np.full((d, d), np.nan)
-    sd = np.sqrt(np.diag(C)) if np.all(np.isfinite(C)) and sign > 0 else None
+    var = np.diag(C)
+    # (a determinant's positive sign does not make a curvature positive definite: two negative eigenvalues)
+    sd = np.sqrt(var) if np.all(np.isfinite(C)) and sign > 0 and np.all(var > 0) else None
     if sd is not None and np.isfinite(lp):
         # a curvature from finite differences over a rough likelihood (kinks at the scale of its steps) is far
         # too large: 3 of its sd out the log posterior has barely moved
