@@ -63,8 +63,8 @@ def test_the_smoothed_kinks_are_rounded_over_the_spread():
 
 
 def test_a_kinked_tank_has_the_posterior_its_curvature_says():
-    """Exact kinks: the log-likelihood is spiked at the scale of the optimiser's steps, the Laplace curvature
-    is 10^6 too large and the evidence says it has collapsed. Smoothed: the Laplace sd is the one the log
+    """Exact kinks: the log-likelihood is spiked at the scale of the optimiser's steps, the Laplace sd comes out
+    10^6 times too small, and the evidence says it has collapsed. Smoothed: the Laplace sd is the one the log
     posterior's shape over +-2 sd gives, and no collapse is reported."""
     ds = tank_record()
     prior = {"a": Normal(mean=0.5, sd=1.0)}
