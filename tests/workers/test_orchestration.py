@@ -32,8 +32,11 @@ def reference_summary():
     return select(load_spec(SPEC))
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def thread_cluster():
+    # one per test (about 1 s each): a module-wide thread cluster used again after the tests that start, disrupt
+    # and close clusters of their own in this process hung with idle workers (fsspec store, locally, and the
+    # reference study, twice in fresh-clone CI), and took every later test with it
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cl, \
             Client(cl) as c:
         yield c
@@ -196,8 +199,7 @@ def test_coordinator_actor_restored_after_its_worker_dies():
 
 @pytest.mark.timeout(300)
 def test_reference_study_store_named_dims(tmp_path):
-    # on process workers, as users run it: on the module's in-process thread cluster this study hung twice in
-    # fresh-clone CI runs (never locally), and took the cluster, and every test after it, with it
+    # on process workers, as users run it
     xr = pytest.importorskip("xarray")
     spec = load_spec(ROOT / "examples" / "sec33.json").model_copy(update={
         "sampler": load_spec(SPEC).sampler.model_copy(update={"n_chains": 2, "n_stationary": 200, "n_proposal": 100}),
