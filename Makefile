@@ -28,8 +28,10 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/ardflow demo --out runs/demo $(DEMO_ARGS)
 
+# two processes: most tests wait on services, clusters and browsers, so two share the cores well (one file per
+# process at a time keeps each module's service and cluster fixtures to one start)
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
