@@ -44,7 +44,7 @@ from ..model.declaration import ModelSpec
 
 def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None,
                       levels: dict[str, tuple[float, float, float]] | None = None,
-                      frequencies: list[float] = (), frequency_resolution: float = 0.0,
+                      frequencies: list = (), frequency_resolution: float = 0.0,
                       extra: list[Effect] = ()) -> list[Effect]:
     """The candidate effects for ``spec``.
 
@@ -57,11 +57,12 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         (minimum, median, maximum) of each state over the record: an overflow's level is searched between
         the median and the maximum (proposed only where both are positive), a contact's gap out to the
         extreme on its side.
-    frequencies : list of float
-        Forcing frequencies (cycles per time unit) found in the residual spectrum.
+    frequencies : list of float or of (float, float)
+        Forcing frequencies (cycles per time unit) found in a residual spectrum, each alone or with the
+        width of its spectrum's bins.
     frequency_resolution : float
-        Width of the spectrum's bins: a peak locates its line only to about a bin, so each forcing's
-        frequency is searched over at least +-1.5 bins around it (else +-3 %).
+        Width of the spectrum's bins where a frequency comes alone: a peak locates its line only to about a
+        bin, so each forcing's frequency is searched over at least +-1.5 bins around it (else +-3 %).
     extra : list of Effect
         User-supplied effects appended to the library.
     """
@@ -88,8 +89,9 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
     used = set(spec.inputs)
     free_idx = (i for i in range(100) if f"forcing{i}_sin" not in used)  # columns of forcing already added stay
     for f in frequencies:
+        f, resolution = f if isinstance(f, tuple) else (f, frequency_resolution)
         i = next(free_idx)
-        w = min(max(0.03 * f, 1.5 * frequency_resolution), 0.5 * f)
+        w = min(max(0.03 * f, 1.5 * resolution), 0.5 * f)
         out.append(Effect(f"forcing(f={f:.4g})", "forcing", (f"forcing{i}_sin", f"forcing{i}_cos"),
                           f"periodic forcing at {f:.4g} cycles/unit", frequency=float(f),
                           code=f"fo{i}", shape=("f", f - w, f + w)))

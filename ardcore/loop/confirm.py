@@ -189,13 +189,14 @@ def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(
     cand, row, bmr, data = held
     extra_effects = ctx.extra_effects
     spectrum = res.tests[col]["spectrum"]
-    peaks = forcing_peaks(fspec, spectrum["peaks"])
+    peaks = forcing_peaks(fspec, spectrum, res.noise_spectra or {})
     scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
     levels = {s: (float(np.nanmin(res.smoothed[:, i])), float(np.nanmedian(res.smoothed[:, i])),
                   float(np.nanmax(res.smoothed[:, i]))) for i, s in enumerate(fspec.states)}
-    # forcing frequencies: the innovation peaks forcing_peaks picks (each refined by the screen)
-    effects = candidate_effects(fspec, scales=scales, levels=levels, frequencies=[p["f"] for p in peaks],
-                                frequency_resolution=spectrum.get("resolution", 0.0), extra=list(extra_effects))
+    # forcing frequencies: the peaks forcing_peaks picks (each refined by the screen)
+    effects = candidate_effects(fspec, scales=scales, levels=levels, frequencies=[(p["f"], p["resolution"])
+                                                                               for p in peaks],
+                                extra=list(extra_effects))
     inp = ScreenInput(fspec, phi, data, cand.substeps)
     screened = screen_effects(inp, effects, dynamic_states(fspec), list(fspec.observed_columns), progress=say,
                               map_fn=mapper)
@@ -256,14 +257,23 @@ def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(
     return screened, confirmed
 
 
-def forcing_peaks(spec: ModelSpec, peaks: list[dict]) -> list[dict]:
-    """The innovation peaks a periodic forcing is screened at: the two strongest that are not harmonics of the
-    record's dominant oscillation and, in a model driven by inputs, the peak at that oscillation itself (a
-    driven response peaks at its resonance, where a periodic disturbance near it shows too; in a self-excited
-    oscillation the fundamental and its harmonics are the missing nonlinearity's). The coherence test and
-    the evidence decide."""
-    own = [p for p in peaks if not p.get("harmonic")][:2]
-    return own + ([p for p in peaks if p.get("harmonic") == 1][:1] if user_inputs(spec) else [])
+def forcing_peaks(spec: ModelSpec, spectrum: dict, noise_spectra: dict | None = None) -> list[dict]:
+    """The peaks a periodic forcing is screened at, each with its spectrum's resolution: of the innovations'
+    spectrum the two strongest that are not harmonics of the record's dominant oscillation and, in a model
+    driven by inputs, the peak at that oscillation itself (a driven response peaks at its resonance, where a
+    periodic disturbance near it shows too; in a self-excited oscillation the fundamental and its harmonics
+    are the missing nonlinearity's); and the strongest non-harmonic peak of the process noise the filter
+    injected into each state (:func:`~ardcore.loop.residuals.noise_peaks`: a slow forcing the filter follows
+    by that noise is faint in the innovations), unless a peak already picked lies within its resolution. The
+    coherence test and the evidence decide."""
+    peaks = [{**p, "resolution": spectrum.get("resolution", 0.0)} for p in spectrum["peaks"]]
+    out = [p for p in peaks if not p.get("harmonic")][:2]
+    out += [p for p in peaks if p.get("harmonic") == 1][:1] if user_inputs(spec) else []
+    for sp_ in (noise_spectra or {}).values():
+        top = next((p for p in sp_["peaks"] if not p.get("harmonic")), None)
+        if top and all(abs(top["f"] - p["f"]) > max(sp_["resolution"], p["resolution"]) for p in out):
+            out.append({**top, "resolution": sp_["resolution"]})
+    return out
 
 
 def _rivals(screened: list, picked: list, config, say) -> dict:

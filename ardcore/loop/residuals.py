@@ -49,6 +49,25 @@ def spectral_peaks(x: np.ndarray, fs: float, p: float, *, nperseg: int | None = 
             "resolution": float(fs / nperseg)}
 
 
+def _label_harmonics(peaks: list[dict], fundamental: float | None) -> None:
+    """Mark each peak that is a harmonic of ``fundamental`` with its order (``peak["harmonic"]``)."""
+    for pk in peaks:
+        if fundamental:
+            m = pk["f"] / fundamental
+            pk["harmonic"] = int(round(m)) if abs(m - round(m)) < 0.08 and round(m) >= 1 else None
+
+
+def noise_peaks(rate: np.ndarray, fs: float, p: float, fundamental: float | None) -> dict:
+    """Spectral peaks of the process noise the filter injected into one state (``rate``, its drift per unit
+    time), over two Welch segments. A missing forcing shows there whole: the innovations are what the filter
+    could not follow, and it follows a slow forcing by that noise, so a line far below the record's own
+    oscillation is faint in them; and a segment as long as half the record resolves a line a few cycles long."""
+    x = rate[np.isfinite(rate)]
+    sp_ = spectral_peaks(x, fs, p, nperseg=max(min(256, x.size), x.size // 2))
+    _label_harmonics(sp_["peaks"], fundamental)
+    return sp_
+
+
 def residual_tests(e: np.ndarray, fs: float, config, *, fundamental: float | None = None) -> dict:
     """Whiteness, normality and spectral peaks of one standardised innovation series."""
     x = e[np.isfinite(e)]
@@ -59,10 +78,7 @@ def residual_tests(e: np.ndarray, fs: float, config, *, fundamental: float | Non
     q = float(n * (n + 2) * np.sum(r[1:h + 1] ** 2 / (n - np.arange(1, h + 1))))
     jb = stats.jarque_bera(x)
     sp_ = spectral_peaks(x, fs, config.peak_p)
-    for pk in sp_["peaks"]:
-        if fundamental:
-            m = pk["f"] / fundamental
-            pk["harmonic"] = int(round(m)) if abs(m - round(m)) < 0.08 and round(m) >= 1 else None
+    _label_harmonics(sp_["peaks"], fundamental)
     return {
         "n": n, "rms": float(np.sqrt(np.mean(x ** 2))), "mean": float(x.mean()),
         "acf": r, "acf_band": band, "acf_outside": float(np.mean(np.abs(r[1:]) > band)),
@@ -116,6 +132,7 @@ class Residuals:
     states: tuple = ()               # names of the smoothed columns
     dt: float = 1.0                  # median sample interval
     records: tuple = ()              # several records: each one's name and its first channel's tests
+    noise_spectra: dict = None       # state -> noise_peaks of its injected process noise
 
 
 def _diagnostic_spec(spec: ModelSpec, states: list[str]) -> tuple[ModelSpec, list[str]]:
@@ -170,5 +187,6 @@ def residuals(spec: ModelSpec, phi: dict, data: Dataset, config: DiagnoseConfig,
     dt = np.diff(data.t)
     rates = {s: sm.process_noise[1:, spec.states.index(s)] / dt for s in dyn}
     noise_std = {s: q0.get(f"q_diag_{s}") for s in dyn}
+    spectra = {s: noise_peaks(r, fs, config.peak_p, fund) for s, r in rates.items() if np.isfinite(r).sum() > 16}
     return Residuals(e, fr.innovations, sm.smoothed, rates, noise_std, tests, fr.loglik, tuple(spec.states),
-                     float(np.median(dt)), records)
+                     float(np.median(dt)), records, spectra)

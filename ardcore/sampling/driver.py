@@ -81,8 +81,13 @@ class Runtime:
     checkpoint: Callable[[dict], None] | None = None
 
 
+STUCK_ACCEPTANCE = 0.02
+"""A burn-in round whose acceptance is below this has chains that cannot move (see :func:`burnin_rounds`)."""
+
+
 def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerConfig, counters: tuple = (0, 0, 0),
-                  dr_scale: float | None = None) -> Generator[Batch | RoundEvent, list, tuple[list, int, int, int]]:
+                  dr_scale: float | None = None,
+                  shrink: float = 1.0) -> Generator[Batch | RoundEvent, list, tuple[list, int, int, int]]:
     """Burn-in rounds until R-hat is below the threshold or the round budget is spent: each round's chain
     tasks as one :class:`~.chains.Batch`, then its event.
 
@@ -90,6 +95,12 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
     of the stages before, for the checkpoints). ``dr_scale`` (default ``config.dr_scale``; 0 for a warm
     start, see :class:`SamplerConfig`) is the delayed-rejection second stage of the first
     ``config.dr_rounds`` rounds.
+
+    Chains that cannot move (a round's acceptance below :data:`STUCK_ACCEPTANCE`) sit where the pooled
+    covariance is far wider than the posterior: pooled over chains in separate modes, or kept from before
+    because chains that never move give no covariance to refit. Their random walk is shrunk tenfold in
+    variance each such round (``shrink``, carried in the checkpoints) until they move, and widened back once
+    they accept freely; a run whose chains move never shrinks.
     """
     dr = config.dr_scale if dr_scale is None else dr_scale
     b_acc = b_n = n_eval = 0
@@ -97,8 +108,8 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
         rnd = pool.rounds + 1
         dr_r = dr if rnd <= config.dr_rounds else 0.0
         jump = pool.jump(config.jump_weight, config.jump_df) if dr_r == 0 else None
-        results = yield Batch(round_task, [(target, s, pool.proposal(c), config.round_size, True, dr_r, jump)
-                                           for c, s in enumerate(states)], Step("burnin", rnd))
+        results = yield Batch(round_task, [(target, s, shrink * np.asarray(pool.proposal(c)), config.round_size,
+                                            True, dr_r, jump) for c, s in enumerate(states)], Step("burnin", rnd))
         states = [q.state for q in results]
         for c, q in enumerate(results):
             pool.report(c, rnd, q.halves, q.best)
@@ -112,10 +123,16 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
         acc = sum(q.accepted + q.dr_accepted for q in results)
         n = sum(q.samples.shape[0] for q in results)
         b_acc, b_n = b_acc + acc, b_n + n
-        reports.append(BurninRound(pool.rounds, pool.rhat().tolist(), pool.best_lp, acc / max(1, n)))
+        rate = acc / max(1, n)
+        if rate < STUCK_ACCEPTANCE:
+            shrink = max(shrink * 0.1, 1e-8)
+        elif rate > 10 * STUCK_ACCEPTANCE:
+            shrink = min(shrink * 10.0, 1.0)
+        reports.append(BurninRound(pool.rounds, pool.rhat().tolist(), pool.best_lp, rate))
         yield RoundEvent("burnin", pool.rounds, tuple(reports), {
             "stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
-            "counters": [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_eval], "dr_scale": dr})
+            "counters": [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_eval], "dr_scale": dr,
+            "shrink": shrink})
         if pool.converged():
             break
     return states, b_acc, b_n, n_eval
@@ -278,7 +295,8 @@ def sampler_steps(target, config: SamplerConfig, *, seed: int, start: Start = St
                                            "pool": pool.to_dict(), "counters": list(counters), "dr_scale": dr})
     # ---- burn-in: DRAM rounds, the pool is the INCA coordinator
     if stage == "burnin":
-        states, b_acc, b_n, n_b = yield from burnin_rounds(target, states, pool, config, tuple(counters), dr)
+        shrink = float(resume.get("shrink", 1.0)) if resume is not None else 1.0
+        states, b_acc, b_n, n_b = yield from burnin_rounds(target, states, pool, config, tuple(counters), dr, shrink)
         counters = [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_b]
     b_acc, b_n, _ = counters
     rounds, converged, r = pool.rounds, pool.converged(), pool.rhat()
