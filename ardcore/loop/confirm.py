@@ -189,7 +189,7 @@ def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(
     cand, row, bmr, data = held
     extra_effects = ctx.extra_effects
     spectrum = res.tests[col]["spectrum"]
-    peaks = forcing_peaks(fspec, spectrum, res.noise_spectra or {})
+    peaks = forcing_peaks(fspec, spectrum, res.noise_spectra)
     scales = {s: float(np.nanstd(res.smoothed[:, i])) for i, s in enumerate(fspec.states)}
     levels = {s: (float(np.nanmin(res.smoothed[:, i])), float(np.nanmedian(res.smoothed[:, i])),
                   float(np.nanmax(res.smoothed[:, i]))) for i, s in enumerate(fspec.states)}

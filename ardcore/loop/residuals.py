@@ -10,7 +10,7 @@ every dynamic state. Their tests: whiteness, normality, spectral peaks, dominant
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import optimize, signal, stats
@@ -132,7 +132,7 @@ class Residuals:
     states: tuple = ()               # names of the smoothed columns
     dt: float = 1.0                  # median sample interval
     records: tuple = ()              # several records: each one's name and its first channel's tests
-    noise_spectra: dict = None       # state -> noise_peaks of its injected process noise
+    noise_spectra: dict = field(default_factory=dict)  # state -> noise_peaks of its injected process noise
 
 
 def _diagnostic_spec(spec: ModelSpec, states: list[str]) -> tuple[ModelSpec, list[str]]:

@@ -695,7 +695,7 @@ def bench_loop(tiny: bool = False) -> dict:
     cut = (lambda d, n: d.slice(0, n)) if tiny else (lambda d, n: d)
     shrink = _tiny_spec if tiny else (lambda spec: spec)
     # --tiny: one round on Silverbox (every move's code runs), none on the pendulum and the reference data
-    rounds, other_rounds = (1, 0) if tiny else (3, 3)
+    rounds, pendulum_rounds, reference_rounds = (1, 0, 0) if tiny else (3, 3, 1)
     if tiny:
         seg = {k: cut(v, 1500 if k == "estimation" else 800) for k, v in seg.items()}
     # -- peers, same data and split
@@ -744,7 +744,7 @@ def bench_loop(tiny: bool = False) -> dict:
     ptest = cut(type(ptest)(ptest.t[::20].copy(), {"y": ptest.columns["y"][::20].copy()}, ptest.meta), 800)
     t0 = time.perf_counter()
     pdata = cut(pend.data.load(ROOT / "examples"), 800)
-    prep = diagnose(pend, pdata, test_data=ptest, config=DiagnoseConfig(max_rounds=other_rounds),
+    prep = diagnose(pend, pdata, test_data=ptest, config=DiagnoseConfig(max_rounds=pendulum_rounds),
                     progress=lambda m: print("  " + m, flush=True))
     out["loop_pendulum_s"] = time.perf_counter() - t0
     out["loop_pendulum_before_rad"] = prep.report["before"]["free_run"]["rms_error"]
@@ -771,7 +771,7 @@ def bench_loop(tiny: bool = False) -> dict:
         _save_partial(out)
     t0 = time.perf_counter()
     try:
-        rrep = diagnose(ref, cut(simulate_reference(3), 1000), config=DiagnoseConfig(max_rounds=1 if not tiny else 0),
+        rrep = diagnose(ref, cut(simulate_reference(3), 1000), config=DiagnoseConfig(max_rounds=reference_rounds),
                         progress=lambda m: print("  " + m, flush=True))
         out["loop_reference_s"] = time.perf_counter() - t0
         out["loop_reference_added"] = [a["effect"] + " -> " + a["target"] for a in rrep.added]
