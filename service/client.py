@@ -151,12 +151,12 @@ class Client:
                  wait: bool = True, poll_s: float = 2.0, timeout: float | None = None, **settings) -> dict:
         """Close the loop on a model of a finished study; with ``wait`` returns the finished diagnosis.
 
-        ``settings``: the loop's settings the service accepts (``top_k``, ``max_rounds``; default 3 each, see
+        ``settings``: the loop's settings the service accepts (``top_k``, ``max_rounds``; defaults as in
         :class:`~ardflow.service.api.schemas.DiagnoseRequest`). The diagnosis (``report``: residual tests
         before/after, ranked candidates, effects added, errors before/after) is also available later from
         :meth:`diagnosis`.
         """
-        body = {"top_k": 3, "max_rounds": 3, **settings}
+        body = dict(settings)
         if model:
             body["model"] = model
         if test_csv:

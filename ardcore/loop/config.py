@@ -43,7 +43,11 @@ class DiagnoseConfig(BaseModel):
     init_samples : int
         Samples of a held-out record used to initialise the free run (filtered state).
     max_rounds : int
-        Effects added one after another at most (each round re-traces the new model's residual).
+        Rounds at most (each re-traces the model's residual and makes one move: an effect, a law in another form, a
+        measurement-noise level). A cap on the cost, not the stopping rule: the loop stops when no move the
+        evidence supports free-runs better held out. On the real tanks record the physical model needs five
+        moves (a noise level, a sensor law, two flow laws, tank 1 overflowing into tank 2); the default leaves
+        room for that.
     split_z : float or None
         Stability check of a surviving effect: its coefficients are refitted (at the optimal alpha) on
         the first and the second half of the record. They disagree when they differ by more than
@@ -102,7 +106,7 @@ class DiagnoseConfig(BaseModel):
     top_k: int = Field(3, ge=1, le=10, description="candidates confirmed by evidence per round")
     min_log_bf: float = Field(3.0, ge=0)
     library_prior: bool = True
-    max_rounds: int = Field(3, ge=0, le=10, description="effects added one after another at most")
+    max_rounds: int = Field(6, ge=0, le=10, description="rounds at most (each makes one move)")
     split_z: float | None = Field(3.0, gt=0)
     split_rel: float = Field(0.3, gt=0)
     alpha_start: float = Field(1e-2, gt=0)

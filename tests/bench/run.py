@@ -835,6 +835,11 @@ def _peers(rec) -> dict:
     return out
 
 
+VALIDATION_RECORDS: list | None = None
+"""``--records``: the validation records a run is limited to (None: all). Such a run checks the gate on them and
+leaves the set's summary keys as the last full run wrote them."""
+
+
 def bench_validation(tiny: bool = False) -> dict:
     """The loop on the validation set (:mod:`tests.bench.validation`): each record from its plain user model,
     and the peers on the same split, in one run; and the regression gate.
@@ -866,6 +871,8 @@ def bench_validation(tiny: bool = False) -> dict:
     # --tiny: every kind of record once (a simulated oscillator and tank, a real tank record, a gate LCO with a
     # gust input), not every record
     names = [n for n in RECORDS if not tiny or not n.startswith(("lco_", "tanks_")) or n in ("tanks_linear", "lco_gust")]
+    if VALIDATION_RECORDS is not None:
+        names = [n for n in names if n in VALIDATION_RECORDS]
     for name in names:
         make = RECORDS[name]
         rec = make(n=800) if tiny else make()
@@ -874,7 +881,7 @@ def bench_validation(tiny: bool = False) -> dict:
         t0 = time.perf_counter()
         try:
             # --tiny: the fit, the measures and the reported model only (no round: the keys, not the figures)
-            rep = diagnose(spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=0 if tiny else 3),
+            rep = diagnose(spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=0) if tiny else DiagnoseConfig(),
                            progress=lambda m: print("    " + m, flush=True))
         except ArdflowError as exc:  # a record the loop fails on (or cannot start on) is a result, and a regression
             out[f"loop_{name}_s"] = time.perf_counter() - t0
@@ -922,6 +929,13 @@ def bench_validation(tiny: bool = False) -> dict:
             checks += not rec.design
         if not tiny:  # a smoke run never touches the measured figures
             _save_partial(out)
+    if VALIDATION_RECORDS is not None:  # a subset: its records and the gate on them, not the set's summary
+        if regressions and not tiny:
+            print("  [gate] verdicts worse than recorded: " + "; ".join(regressions), flush=True)
+        elif not tiny:
+            VERDICTS.write_text(json.dumps({**recorded, **{n: out[f"loop_{n}_verdict"] for n in names}}, indent=1)
+                                + "\n")
+        return {**out, "validation_regressions": regressions}
     out["validation_records"] = len(names)
     out["validation_compared_records"] = compared
     out["validation_loop_at_or_below_best_peer"] = wins
@@ -988,7 +1002,18 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
     ap.add_argument("--tiny", action="store_true", help="every group at a tiny size: the smoke test (figures "
                                                         "meaningless)")
+    ap.add_argument("--records", nargs="+", default=None, metavar="NAME",
+                    help="the validation group on these records only (the gate on them; the set's summary is left "
+                         "as the last full run wrote it)")
     a = ap.parse_args(argv)
+    if a.records:
+        from .validation import RECORDS
+
+        unknown = sorted(set(a.records) - set(RECORDS))
+        if unknown:
+            ap.error(f"unknown validation records: {', '.join(unknown)} (known: {', '.join(RECORDS)})")
+        global VALIDATION_RECORDS
+        VALIDATION_RECORDS = list(a.records)
     out = Path(a.out or (".bench/tiny.json" if a.tiny else ".bench/results.json"))
     out.parent.mkdir(parents=True, exist_ok=True)
     res = json.loads(out.read_text()) if out.exists() else {}
@@ -1014,7 +1039,8 @@ def main(argv=None) -> int:
         from .figures import FIGURES, publish, update_readme
 
         publish(ran, " ".join(
-            ["python -m tests.bench.run"] + (["--only", *a.only] if a.only else [])), res["machine"])
+            ["python -m tests.bench.run"] + (["--only", *a.only] if a.only else [])
+            + (["--records", *a.records] if a.records else [])), res["machine"])
         update_readme()
         print(f"[bench] wrote {FIGURES.relative_to(ROOT)} and the README's figures table")
     return 0
