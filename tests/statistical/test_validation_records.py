@@ -8,6 +8,9 @@
   only when its model free-runs better on held-out blocks of the estimation record: what it took improved
   every round, what it refused did not, it says what it did not keep, and the model it reports free-runs the
   test half no worse than the user's.
+* the real cascaded tanks from the physical square-root model: the loop keeps going while a move free-runs better
+  held out, and the model it reports free-runs the separate validation experiment at or below 0.45 V (published
+  nonlinear state-space models 0.34-0.45) and below a linear ARX tuned as its users tune it.
 """
 
 import pytest
@@ -16,7 +19,8 @@ from ardflow.ardcore.loop.config import DiagnoseConfig
 from ardflow.ardcore.loop.criterion import Score, improves
 from ardflow.ardcore.loop.diagnose import diagnose
 
-from ..bench.validation import backlash, hysteresis
+from ..bench import peers
+from ..bench.validation import backlash, hysteresis, tanks
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -58,3 +62,18 @@ def test_stand_ins_that_free_run_worse_held_out_are_not_kept():
     # the band is calibrated on the estimation record's end, which this model free-runs worse than the test half:
     # it errs wide here (an open point of issue 42), never narrow
     assert rep["reported"]["free_run"]["band_coverage"] >= 0.8
+
+
+@pytest.mark.slow  # five rounds on the real tanks record, ~10-15 min on 2 cores
+@pytest.mark.timeout(2400)
+def test_the_tanks_from_the_square_root_model_free_run_below_a_tuned_arx():
+    rec = tanks("sqrt")
+    d = diagnose(rec.spec, rec.est, test_data=rec.test, config=DiagnoseConfig())
+    rep = d.report
+    after = rep["reported"]["free_run"]
+    y, u = rec.est.columns["y"], rec.est.columns["u"]
+    arx = peers.tuned_narx(y, u, degrees=(1,)).free_run_rms(rec.test.columns["y"], rec.test.columns["u"])
+    assert after["rms_error"] <= 0.45 and after["rms_error"] < arx, (after, arx)
+    # tank 1 spilling into tank 2 is found: the effect that carries the model below the peers
+    assert any(a["effect"].startswith("overflow_flow(h1->h2") for a in rep["added"]), rep["added"]
+    assert 0.8 <= after["band_coverage"] <= 0.97, after
