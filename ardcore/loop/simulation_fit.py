@@ -378,7 +378,7 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
         say("reported model: the posterior (no smaller process noise free-runs both held-out ends better)")
         return rec, final
     fr = free_run(model.spec, model.phi, test, init_samples=config.init_samples, substeps=model.substeps,
-                  band=Band(draws, calibration=held.data, seed=seed, refits=blocks.refits("end") if blocks else ()))
+                  band=Band(draws, calibration=held.data, seed=seed, refits=blocks.refits() if blocks else ()))
     rec["free_run"] = {k: fr[k] for k in keep if k in fr}
     measure["free_run"] = {**{k: v for k, v in fr.items() if k in measured},
                            "band_calibration": fr.get("band_calibration"), "noise_factor": model_factor(sim)}

@@ -59,8 +59,8 @@ def test_stand_ins_that_free_run_worse_held_out_are_not_kept():
     before = rep["before"]["free_run"]["rms_error"]
     assert rep["reported"]["free_run"]["rms_error"] <= 1.01 * before
     assert "not kept" in rep["headline"]
-    # the band is calibrated on the estimation record's end, which this model free-runs worse than the test half:
-    # it errs wide here (an open point of issue 42), never narrow
+    # the band is calibrated on held-out blocks of the estimation record, which this model free-runs worse than
+    # the test half: it errs wide here (an open point of issue 42), never narrow
     assert rep["reported"]["free_run"]["band_coverage"] >= 0.8
 
 
