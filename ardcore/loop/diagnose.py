@@ -166,6 +166,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 arrays["after"] = _arrays(res, fr)
                 rounds[-1].record["after"] = err
             if rnd == config.max_rounds:
+                # the cap, not the criterion, ended the loop: the report says so (more rounds may still help)
+                first["stopped_by"] = "round_cap" if rnd else "no_round"
                 break
             swap = best_laws(ctx, held, brought(rounds), [x for r in rounds for x in r.record.get("replaced", [])
                                                           if x.get("form")])
@@ -174,6 +176,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             move, judged_round = decide(ctx, crit, held, swap, survivors, deferred, rec)
             judged.append(judged_round)
             if move is None:
+                first["stopped_by"] = "criterion"
                 break
             if move.kind == "replace":
                 rec.record["replaced"] = swap[1]

@@ -104,6 +104,16 @@ def test_loop_adds_hardening_cubic_and_the_error_falls():
     assert rep["after"]["log_evidence"] > rep["before"]["log_evidence"] + 10
     # the cubic adds to the declared linear stiffness, it cannot replace it: k stays
     assert rep["replaced"] == [], rep["verdict"]
+    # the criterion ended the loop, not its round cap
+    assert rep["stopped_by"] == "criterion" and "--max-rounds" not in rep["headline"]
+
+
+def test_a_loop_ended_by_its_round_cap_says_so():
+    data = duffing_free_decay(-4.0, 3)
+    rep = diagnose(duffing_spec(), data.slice(0, 1000), test_data=data.slice(1000, None),
+                   config=DiagnoseConfig(top_k=1, max_rounds=1, band_draws=0)).to_json()
+    assert rep["added"] and rep["stopped_by"] == "round_cap"
+    assert "cap of 1 round," in rep["headline"] and "--max-rounds" in rep["headline"], rep["headline"]
 
 
 def _tank(drift):
