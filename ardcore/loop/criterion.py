@@ -11,8 +11,9 @@ law, drop a term, stop) is decided here, by one number computed in one place:
   from a refit of the structure with that block's observations left out
   (:func:`~.simulation_fit.held_out_free_runs`); a diverging free run scores infinity;
 * a move that **adds** (an effect, a law in another form, the survivors of a round together) is taken only
-  when the evidence supports it *and* it free-runs better held out: all blocks together better by more than
-  :data:`FREE_RUN_TOLERANCE`, the loudest block (where a stand-in must extrapolate) no worse (:func:`improves`);
+  when the evidence supports it *and* it free-runs better held out: the blocks' typical relative change (the
+  mean of their log error ratios, :func:`change`) better by more than :data:`FREE_RUN_TOLERANCE`, the loudest
+  block (where a stand-in must extrapolate) no worse (:func:`improves`);
 * a move that **removes** (an earlier effect a later one made redundant, a declared term an effect replaced)
   is taken when the evidence prefers the smaller model and it free-runs no worse held out
   (:func:`no_worse`);
@@ -74,19 +75,36 @@ class Score:
         return out
 
 
+FLOOR = 0.05
+"""A block error below this share of the current model's largest counts as that share: a ratio between two
+near-perfect blocks (a limit cycle's amplitude right to 0.1 %) is noise, not a gain."""
+
+
+def change(new: Score, cur: Score) -> float:
+    """The mean over the blocks of ln(new error / current error), each error floored at :data:`FLOOR` x the
+    current model's largest: the typical relative change of the free run held out, every block weighing alike
+    whatever its scale (an RMS over the blocks lets the block with the largest error, a start whose unseen
+    state the filter has had 50 samples to find, outweigh the two others)."""
+    floor = FLOOR * max(cur.errors.values())
+    return float(np.mean([math.log(max(new.errors[b], floor) / max(cur.errors[b], floor)) for b in cur.errors]))
+
+
 def improves(new: Score, cur: Score, tol: float = FREE_RUN_TOLERANCE) -> bool:
-    """Whether ``new`` free-runs better than ``cur`` held out: all blocks together (the RMS of their errors)
-    better by more than ``tol`` (relative), and the loudest block no worse by more than ``tol``. The loudest
+    """Whether ``new`` free-runs better than ``cur`` held out: the blocks' typical relative change
+    (:func:`change`) better by more than ``tol``, and the loudest block no worse by more than ``tol``. The loudest
     stretch is where a stand-in fitted to smaller motions must extrapolate, and what extrapolates badly is
     worse there first; any other single block does not veto, its error carrying the noise of what happened in
-    it (a limit cycle's amplitude wanders with the process noise). A model without a score never improves; any
-    finite score improves on a model without one (a current model that diverges everywhere)."""
+    it (a limit cycle's amplitude wanders with the process noise; a record's start, what the filter finds of an
+    unmeasured state in 50 samples). A model without a score never improves; any finite score improves on a
+    model without one (a current model that diverges everywhere)."""
     if not new.errors or not math.isfinite(new.overall):
         return False
     if not cur.errors or not math.isfinite(cur.overall):
         return True
+    if set(new.errors) != set(cur.errors):  # scored on other blocks: the totals alone compare
+        return new.overall * (1 + tol) < cur.overall
     loud = new.errors.get(LOUDEST, 0.0) <= cur.errors.get(LOUDEST, math.inf) * (1 + tol)
-    return loud and new.overall * (1 + tol) < cur.overall
+    return loud and change(new, cur) < -math.log1p(tol)
 
 
 LOUDEST = "loudest"
@@ -302,7 +320,8 @@ def held_out_record(config: DiagnoseConfig, judged: list[dict], final) -> dict:
     return {"share": config.simulation_held_out, "free_run": models, "overall": overall, "kept": len(models) - 1,
             "moves": judged,
             "rule": f"a move is taken when the evidence supports it and its model free-runs the held-out blocks "
-                    f"better (all together, by more than {100 * FREE_RUN_TOLERANCE:g} %, the loudest no worse); of "
+                    f"better (their mean log error ratio by more than {100 * FREE_RUN_TOLERANCE:g} %, the loudest no "
+                    "worse); of "
                     "several, the one with the highest evidence among those no other free-runs better on every block; "
                     "the loop stops when no move does",
             "blocks": {b: list(v) for b, v in final.held.blocks.items()} if final.held else None}
