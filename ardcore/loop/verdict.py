@@ -167,7 +167,7 @@ def headline(report: dict, col: str, unit: str = "") -> str:
             left = (f" The innovations are white (Ljung-Box p = {p:.2f}), but the free run misses {rel:.0%} of the "
                     "output's spread: the process noise covers what the model lacks.")
     if report.get("stopped_by") == "round_cap":
-        n = len(report.get("rounds") or [])
+        n = report.get("max_rounds", 0)
         left += (f" The loop stopped at its cap of {n} round{'s' if n != 1 else ''}, not by its criterion: "
                  "run it with more (--max-rounds) to see whether a further move free-runs better.")
     return f"{what} {error}{left}"
