@@ -387,32 +387,6 @@ def _newton_inverse(H: np.ndarray) -> tuple[np.ndarray | None, bool]:
     return (V / np.maximum(np.abs(w), 1e-10 * np.max(np.abs(w)))) @ V.T, False
 
 
-def _positive_definite(H: np.ndarray) -> bool:
-    """Whether ``H`` is finite and its symmetric part has only positive eigenvalues."""
-    if not np.all(np.isfinite(H)):
-        return False
-    return bool(np.all(np.linalg.eigvalsh(0.5 * (H + H.T)) > 0))
-
-
-def _eigen_hessian(f, x: np.ndarray, H: np.ndarray) -> np.ndarray:
-    """The Hessian of ``f`` at ``x`` measured again in the coordinates ``x + S z`` where ``S`` scales each
-    eigen-direction of ``H`` to one standard deviation of its own (from the eigenvalue's magnitude), with steps of
-    0.01 in z, and mapped back; ``H`` itself when it has no usable eigenvalue or the new one is not finite."""
-    if not np.all(np.isfinite(H)):
-        return H
-    w, V = np.linalg.eigh(0.5 * (H + H.T))
-    if np.max(np.abs(w)) == 0:
-        return H
-    a = np.maximum(np.abs(w), 1e-12 * np.max(np.abs(w)))
-    S = V / np.sqrt(a)
-    Hz = fd_hessian(lambda z: f(x + S @ z), np.zeros(x.size), np.full(x.size, 0.01))
-    if not np.all(np.isfinite(Hz)):
-        return H
-    T = V * np.sqrt(a)  # S^-T: H = S^-T Hz S^-1
-    out = T @ Hz @ T.T
-    return 0.5 * (out + out.T)
-
-
 def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: int = 4000,
             polish: int = 3, warm: bool = False) -> tuple[Evidence, np.ndarray, np.ndarray]:
     """Laplace evidence ln p(d) ~ L(MAP) + d/2 ln 2 pi - 1/2 ln |H| (Appendices A-B).
@@ -442,13 +416,6 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         x, h, _, H = newton(f, x, 1e-3 * scale, polish)
     if H is None:
         H = fd_hessian(f, x, h)
-    for _ in range(2):
-        if _positive_definite(H):
-            break
-        # steps along the axes mix directions whose curvatures differ by many orders (a coefficient the data
-        # barely pin beside a rate they pin to 1e-4): its finite-difference error can turn an eigenvalue
-        # negative at a mode; measure it again along its own eigen-directions, each at its own scale
-        H = _eigen_hessian(f, x, H)
     lp, ll = target(x)
     warnings = []
     if np.all(np.isfinite(H)):
