@@ -835,12 +835,7 @@ def _peers(rec) -> dict:
     return out
 
 
-VALIDATION_RECORDS: list | None = None
-"""``--records``: the validation records a run is limited to (None: all). Such a run checks the gate on them and
-leaves the set's summary keys as the last full run wrote them."""
-
-
-def bench_validation(tiny: bool = False) -> dict:
+def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
     """The loop on the validation set (:mod:`tests.bench.validation`): each record from its plain user model,
     and the peers on the same split, in one run; and the regression gate.
 
@@ -856,7 +851,8 @@ def bench_validation(tiny: bool = False) -> dict:
     ``validation_checks_at_or_below_best_peer``, ``validation_added_on_clean`` (effects added where the truth
     has none), ``validation_regressions`` (records whose verdict is worse than :data:`VERDICTS` holds: the gate;
     a full run fails when any is). Per record also ``loop_<r>_posterior_mean_free_run``,
-    ``loop_<r>_noise_factor`` and ``loop_<r>_design``.
+    ``loop_<r>_noise_factor`` and ``loop_<r>_design``. With ``records`` (``--records``) the run is limited to those:
+    it checks the gate on them and leaves the set's summary keys as the last full run wrote them.
     """
     from ardflow.ardcore.errors import ArdflowError
     from ardflow.ardcore.loop.config import DiagnoseConfig
@@ -871,8 +867,8 @@ def bench_validation(tiny: bool = False) -> dict:
     # --tiny: every kind of record once (a simulated oscillator and tank, a real tank record, a gate LCO with a
     # gust input), not every record
     names = [n for n in RECORDS if not tiny or not n.startswith(("lco_", "tanks_")) or n in ("tanks_linear", "lco_gust")]
-    if VALIDATION_RECORDS is not None:
-        names = [n for n in names if n in VALIDATION_RECORDS]
+    if records is not None:
+        names = [n for n in names if n in records]
     for name in names:
         make = RECORDS[name]
         rec = make(n=800) if tiny else make()
@@ -881,7 +877,8 @@ def bench_validation(tiny: bool = False) -> dict:
         t0 = time.perf_counter()
         try:
             # --tiny: the fit, the measures and the reported model only (no round: the keys, not the figures)
-            rep = diagnose(spec, rec.est, test_data=rec.test, config=DiagnoseConfig(max_rounds=0) if tiny else DiagnoseConfig(),
+            config = DiagnoseConfig(max_rounds=0) if tiny else DiagnoseConfig()
+            rep = diagnose(spec, rec.est, test_data=rec.test, config=config,
                            progress=lambda m: print("    " + m, flush=True))
         except ArdflowError as exc:  # a record the loop fails on (or cannot start on) is a result, and a regression
             out[f"loop_{name}_s"] = time.perf_counter() - t0
@@ -929,12 +926,14 @@ def bench_validation(tiny: bool = False) -> dict:
             checks += not rec.design
         if not tiny:  # a smoke run never touches the measured figures
             _save_partial(out)
-    if VALIDATION_RECORDS is not None:  # a subset: its records and the gate on them, not the set's summary
-        if regressions and not tiny:
-            print("  [gate] verdicts worse than recorded: " + "; ".join(regressions), flush=True)
-        elif not tiny:
+    if not tiny:
+        # what this run found becomes the record, only where no verdict got worse (the gate stays as it was)
+        if not regressions:
             VERDICTS.write_text(json.dumps({**recorded, **{n: out[f"loop_{n}_verdict"] for n in names}}, indent=1)
                                 + "\n")
+        else:
+            print("  [gate] verdicts worse than recorded: " + "; ".join(regressions), flush=True)
+    if records is not None:  # a subset: its records and the gate on them, not the set's summary
         return {**out, "validation_regressions": regressions}
     out["validation_records"] = len(names)
     out["validation_compared_records"] = compared
@@ -944,13 +943,6 @@ def bench_validation(tiny: bool = False) -> dict:
     out["validation_added_on_clean"] = clean_added
     out["validation_regressions"] = regressions
     out["validation_regression_count"] = len(regressions)
-    if not tiny:
-        # what this run found becomes the record, only where no verdict got worse (the gate stays as it was)
-        if not regressions:
-            VERDICTS.write_text(json.dumps({**recorded, **{n: out[f"loop_{n}_verdict"] for n in names}}, indent=1)
-                                + "\n")
-        else:
-            print("  [gate] verdicts worse than recorded: " + "; ".join(regressions), flush=True)
     return out
 
 
@@ -1012,15 +1004,14 @@ def main(argv=None) -> int:
         unknown = sorted(set(a.records) - set(RECORDS))
         if unknown:
             ap.error(f"unknown validation records: {', '.join(unknown)} (known: {', '.join(RECORDS)})")
-        global VALIDATION_RECORDS
-        VALIDATION_RECORDS = list(a.records)
     out = Path(a.out or (".bench/tiny.json" if a.tiny else ".bench/results.json"))
     out.parent.mkdir(parents=True, exist_ok=True)
     res = json.loads(out.read_text()) if out.exists() else {}
     ran: dict = {}  # what this run measured (the file also holds earlier runs' keys)
     for name in a.only or BENCHES:
         print(f"[bench] {name} ...", flush=True)
-        r = BENCHES[name](tiny=a.tiny)
+        r = (bench_validation(tiny=a.tiny, records=a.records) if name == "validation" and a.records
+             else BENCHES[name](tiny=a.tiny))
         res.update(r)
         ran.update(r)
         for k, v in r.items():
