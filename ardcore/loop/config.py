@@ -44,8 +44,8 @@ class DiagnoseConfig(BaseModel):
         Samples of a held-out record used to initialise the free run (filtered state).
     max_rounds : int
         Rounds at most (each re-traces the model's residual and makes one move: an effect, a law in another form; a
-        round that takes a measurement-noise level alone does not count). A cap on the cost, not the stopping rule: the loop stops when no move the
-        evidence supports free-runs better held out. On the real tanks record the physical model needs five
+        round that takes a measurement-noise level alone does not count). A cap on the cost, not the stopping
+        rule: the loop stops when no move the evidence supports free-runs better held out. On the real tanks record the physical model needs five
         moves (a noise level, a sensor law, two flow laws, tank 1 overflowing into tank 2); the default leaves
         room for that.
     split_z : float or None

@@ -154,19 +154,21 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
     judged: list[dict] = []  # per round: the held model's held-out score and every move's
     try:
         spent = 0  # rounds that moved the dynamics: a measurement-noise level taken alone is not one
-        for rnd in range(2 * config.max_rounds + 1):
+        last = 2 * config.max_rounds  # a hard bound: the loop always ends on a measured round
+        for rnd in range(last + 1):
             fspec, phi = fitted(held.cand, held.row)
             say(f"round {rnd}: {held.cand.label} ln Z = {held.row.log_evidence:.3f}; computing residuals")
             res, fr, err = _measure(ctx, held, fspec, phi, cur_test, rnd)
             if first is None:
                 initial = FittedModel(fspec, phi, (), held.cand.substeps)
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
-                         "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes, "max_rounds": config.max_rounds}
+                         "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes,
+                         "max_rounds": config.max_rounds}
                 arrays["before"] = _arrays(res, fr)
             else:
                 arrays["after"] = _arrays(res, fr)
                 rounds[-1].record["after"] = err
-            if spent == config.max_rounds:
+            if spent == config.max_rounds or rnd == last:
                 # the cap, not the criterion, ended the loop: the report says so (more rounds may still help)
                 first["stopped_by"] = "round_cap" if rnd else "no_round"
                 break
