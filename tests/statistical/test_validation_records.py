@@ -13,6 +13,8 @@
   below a linear ARX tuned as its users tune it; the published nonlinear models' 0.34-0.45 V is an open target.
 """
 
+import functools
+
 import pytest
 
 from ardflow.ardcore.loop.config import DiagnoseConfig
@@ -65,6 +67,7 @@ def test_stand_ins_that_free_run_worse_held_out_are_not_kept():
 
 
 
+@functools.lru_cache(maxsize=None)  # one loop per start, shared by the two tests below (each is minutes long)
 def _tanks_against_arx(start):
     rec = tanks(start)
     rep = diagnose(rec.spec, rec.est, test_data=rec.test, config=DiagnoseConfig()).report
