@@ -138,7 +138,7 @@ def shape_prior(effect: Effect):
 
 def shape_parameter_name(spec: ModelSpec, effect: Effect, target: str) -> str:
     """A name for ``effect``'s shape parameter on ``target`` not yet used in ``spec`` (e.g. ``L_sny_v``)."""
-    return _unused(_short(f"{effect.shape[0]}_{effect.code}_{target}"), _taken(spec))
+    return _unused(short_name(f"{effect.shape[0]}_{effect.code}_{target}"), _taken(spec))
 
 
 def _taken(spec: ModelSpec) -> set:
@@ -151,7 +151,7 @@ def _unused(base: str, taken: set) -> str:
     round)."""
     n, k = base, 2
     while n in taken:
-        n, k = _short(f"{base}_{k}"), k + 1
+        n, k = short_name(f"{base}_{k}"), k + 1
     return n
 
 
@@ -181,7 +181,9 @@ def dynamic_states(spec: ModelSpec) -> list[str]:
     return [s for s in spec.states if str(spec.drift[s]).strip() not in states]
 
 
-def _short(text: str, limit: int = 32) -> str:
+def short_name(text: str, limit: int = 32) -> str:
+    """``text`` as a name (letters, digits, underscore) of at most ``limit`` characters: cut, with a hash of the
+    whole so that two long names stay distinct."""
     text = re.sub(r"[^0-9A-Za-z_]+", "", text)
     if len(text) <= limit:
         return text
@@ -193,7 +195,7 @@ def _short(text: str, limit: int = 32) -> str:
 def coefficient_name(effect: Effect, term_index: int, target: str) -> str:
     """Parameter name of one term's coefficient, e.g. ``k_s3theta_CM`` (at most 32 characters)."""
     idx = "" if len(effect.terms) == 1 else str(term_index)
-    return _short(f"k_{effect.code}{idx}_{target}")
+    return short_name(f"k_{effect.code}{idx}_{target}")
 
 
 def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | None = None,
@@ -221,7 +223,7 @@ def augment(spec: ModelSpec, effect: Effect, target: str, scales: list[float] | 
              for n, term, c in zip(names, effect.terms, sc)]
     add = " + ".join(parts)
     shape = [effect.shape_parameter] if effect.shape_parameter and effect.shape_parameter not in spec.parameters else []
-    update = {"name": _short(f"{spec.name}_{effect.code}"), "parameters": list(spec.parameters) + names + shape,
+    update = {"name": short_name(f"{spec.name}_{effect.code}"), "parameters": list(spec.parameters) + names + shape,
               "inputs": list(spec.inputs) + [c for c in effect.input_columns() if c not in spec.inputs]}
     if effect.where == "noise":
         if all(o.column != target for o in spec.observations):

@@ -73,6 +73,10 @@ class DiagnoseConfig(BaseModel):
     workers : int
         Processes that run a round's confirmations and halves checks side by side (0: one per core, at
         most ``top_k``; 1: in this process).
+    states : bool
+        When no addition, law or lag is taken (the term families left what they cannot take up), offer the
+        state families that could hold it, a hysteresis of each oscillator and a sensor's own dynamics
+        (:mod:`ardcore.loop.states`), before the loop stops. False: the loop stops there.
     band_draws : int
         Posterior draws whose free runs make the 90 % prediction band of the free run (0: none).
     rival_nats : float
@@ -112,6 +116,7 @@ class DiagnoseConfig(BaseModel):
     alpha_start: float = Field(1e-2, gt=0)
     posterior: Literal["laplace", "sample"] = "laplace"
     joint: bool = True
+    states: bool = True
     workers: int = Field(0, ge=0, le=1024)
     rival_nats: float = Field(5.0, ge=0)
     rivals: int = Field(2, ge=0, le=10)

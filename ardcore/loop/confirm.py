@@ -9,6 +9,7 @@ the best distinct candidates added under ARD, side by side on a process pool;
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -179,12 +180,14 @@ def pool_mapper(workers: int):
     return run, (lambda: pool.shutdown(cancel_futures=True))
 
 
-def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset()):
+def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(), closed: set = frozenset()):
     """Screen the whole library by evidence, then confirm the best few by the full ARD re-selection.
 
     ``ctx``: the loop's :class:`~ardcore.loop.config.LoopContext`; ``held``: the model held, ``fspec, phi``
     with its pruned terms fixed, at its posterior mean; ``res``: its residuals. ``present``: (library name,
-    target) of the effects the model holds already; they are not screened again."""
+    target) of the effects the model holds already; they are not screened again. ``closed``: states whose
+    equation has a fixed form (a hysteresis, a sensor, :mod:`.states`): nothing is added to them or built
+    on them (a term of a Bouc-Wen state is a basis expansion of it, not an effect)."""
     spec, config, say, mapper, col = ctx.spec, ctx.config, ctx.say, ctx.mapper, ctx.column
     cand, row, bmr, data = held
     extra_effects = ctx.extra_effects
@@ -197,8 +200,12 @@ def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(
     effects = candidate_effects(fspec, scales=scales, levels=levels, frequencies=[(p["f"], p["resolution"])
                                                                                for p in peaks],
                                 extra=list(extra_effects))
+    if closed:
+        pattern = re.compile(r"\b(" + "|".join(map(re.escape, closed)) + r")\b")
+        effects = [e for e in effects if not any(pattern.search(t) for t in e.terms)]
     inp = ScreenInput(fspec, phi, data, cand.substeps)
-    screened = screen_effects(inp, effects, dynamic_states(fspec), list(fspec.observed_columns), progress=say,
+    targets = [s for s in dynamic_states(fspec) if s not in closed]
+    screened = screen_effects(inp, effects, targets, list(fspec.observed_columns), progress=say,
                               map_fn=mapper)
     screened = [c for c in screened if ((c.source or c.effect).name, c.target) not in present]
     say("screen: " + ", ".join(f"{c.effect.name} -> {c.target} (ln BF ~ {c.log_bayes_factor:.1f})"

@@ -47,6 +47,7 @@ import numpy as np
 
 from .checks import Added, backward_check, brought, not_degenerate, replace_laws
 from .confirm import Fit, pool_mapper, trace_and_confirm
+from .states import Lag, best_state, state_summary
 from .replace import best_laws, shape_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
@@ -63,7 +64,7 @@ from .residuals import Residuals, residuals
 from ..selection.fit import ModelFit
 from ..selection.spec import StudySpec
 from ..selection.study import run_candidate
-from .verdict import character, headline, latest_forms, parameter_shifts, shape_words, unexplained, withheld_words
+from .verdict import character, headline, latest_forms, parameter_shifts, shape_words, state_words, unexplained, withheld_words
 
 
 
@@ -174,9 +175,19 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 break
             swap = best_laws(ctx, held, brought(rounds), [x for r in rounds for x in r.record.get("replaced", [])
                                                           if x.get("form")])
-            rec, survivors, deferred = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds))
+            lagged = best_state(ctx, held, ("lag",))  # a state: a declared quantity acting through a lag
+            if lagged is not None and (swap is None or lagged[2] > swap[2]):
+                swap = lagged
+            rec, survivors, deferred = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds), _closed(rounds))
             rounds.append(rec)
             move, judged_round = decide(ctx, crit, held, swap, survivors, deferred, rec)
+            if move is None and config.states:
+                # the term families left what they cannot take up: the states that could hold it
+                extra = best_state(ctx, held, ("hysteresis", "sensor"))
+                if extra is not None:
+                    move, more = decide(ctx, crit, held, extra, [], [], rec)
+                    judged_round["moves"] += more["moves"]
+                    swap = extra if move is not None else swap
             judged.append(judged_round)
             if move is None:
                 first["stopped_by"] = "criterion"
@@ -270,13 +281,19 @@ def _present(rounds: list[LoopRound]) -> set:
     return {x.key for r in rounds for x in r.added if not x.record.get("removed")}
 
 
+def _closed(rounds: list[LoopRound]) -> set:
+    """The states added with an equation of fixed form (a hysteresis, a sensor): the screen leaves them alone."""
+    return {x["state"]["name"] for r in rounds for x in r.record.get("replaced", [])
+            if x.get("state") and x["state"]["kind"] != "lag"}
+
+
 def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rnd: int,
-                 present: set = frozenset()) -> tuple[LoopRound, list, list]:
+                 present: set = frozenset(), closed: set = frozenset()) -> tuple[LoopRound, list, list]:
     """One round's trace: screen, confirm, check the survivors' stability; the round's record, the survivors
     (best first) and those deferred behind a measurement-noise level (the noise rule, :func:`_decide`). With no
     survivor, the record carries the verdict on what remains."""
     config, say = ctx.config, ctx.say
-    ranked, confirmed = trace_and_confirm(ctx, held, fspec, phi, res, present)
+    ranked, confirmed = trace_and_confirm(ctx, held, fspec, phi, res, present, closed)
     survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
     survivors = not_degenerate(survivors, say)
     noise = [c for c in survivors if c.fitted_effect.where == "noise"
@@ -349,6 +366,8 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
     for x in replaced:  # a form's shape as the final model has it (later rounds refit it with what they add)
         if x.get("shape") and x["shape"]["name"] in row.mean:
             x["shape"] = shape_summary(row, x["shape"]["name"])
+        if x.get("state") and x["state"]["name"] in held.cand.model_spec().states:
+            x["state"] = state_summary(row, Lag(x["term"], x["target"], x["state"]["kind"]))
     out = {"model": spec.models[0].label, "final_model": held.cand.label,
            "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
            "rounds": rounds,
@@ -357,6 +376,7 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
            "added": added,
            "after": [r for r in kept if r["added"] or r.get("replaced")][-1]["after"] if added or replaced else None,
            "removed": removed, "replaced": replaced, "withheld": withheld, "tests_after": None,
+           "states": [x["state"] for x in replaced if x.get("state")],
            "final_fit": row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
     col = spec.models[0].model_spec().observed_columns[0]
     unit = (data.meta.get("units") or {}).get(col, "")
@@ -375,8 +395,9 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
                       + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
                       f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
                       f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
-                      + "".join(f"; the declared term {x['parameter']}*({x['term']}) of the {x['target']} "
-                                f"equation is replaced by {x['by']}" + shape_words(x)
+                      + "".join((f"; {state_words(x)}" if x.get("state") else
+                                 f"; the declared term {x['parameter']}*({x['term']}) of the {x['target']} "
+                                 f"equation is replaced by {x['by']}" + shape_words(x))
                                 + f" (ln BF {x['log_bayes_factor']:.1f})" for x in replaced)
                       + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
                                 f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)

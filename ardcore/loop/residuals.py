@@ -16,7 +16,7 @@ import numpy as np
 from scipy import optimize, signal, stats
 
 from ..data import Dataset
-from ..effects.base import dynamic_states
+from ..effects.base import dynamic_states, short_name
 from ..likelihood.ekf import compile_model
 from .config import DiagnoseConfig
 from ..model.declaration import ModelSpec
@@ -138,12 +138,12 @@ class Residuals:
 def _diagnostic_spec(spec: ModelSpec, states: list[str]) -> tuple[ModelSpec, list[str]]:
     """``spec`` with a noise parameter on every listed state that has none."""
     add = [s for s in states if not spec.diffusion.get(s)]
-    names = [f"q_diag_{s}" for s in add]
+    names = [short_name(f"q_diag_{s}") for s in add]
     if not add:
         return spec, []
     diff = dict(spec.diffusion)
     diff.update({s: n for s, n in zip(add, names)})
-    new = spec.model_copy(update={"name": f"{spec.name}_diag", "diffusion": diff,
+    new = spec.model_copy(update={"name": short_name(f"{spec.name}_diag"), "diffusion": diff,
                                   "parameters": list(spec.parameters) + names})
     return new.revalidate(), names
 

@@ -130,12 +130,14 @@ def headline(report: dict, col: str, unit: str = "") -> str:
     added, replaced = report.get("added") or [], report.get("replaced") or []
     before, after = report["before"], report.get("after") or report["before"]
     if added or replaced:
-        swaps = [f"the declared {r['parameter']}*({r['term']}) replaced by {r['by']}"
+        swaps = [state_words(r) if r.get("state") else
+                 f"the declared {r['parameter']}*({r['term']}) replaced by {r['by']}"
                  + (f" ({r['shape']['name']} = {r['shape']['mean']:.3g})" if r.get("shape") else "")
                  for r in replaced]
         what = ("Added " + ", ".join(f"{x['effect']} to the {x['target']} equation" for x in added)
                 + (", with " + ", ".join(swaps) if swaps else "") if added else
-                ("In the " + replaced[0]["target"] + " equation, " if len(replaced) == 1 else "") + "; ".join(swaps))
+                ("In the " + replaced[0]["target"] + " equation, " if len(replaced) == 1 and not replaced[0].get("state")
+                 else "") + "; ".join(swaps))
         what = what[0].upper() + what[1:] + (f"; {_not_kept(report)}." if report.get("withheld") else ".")
         error = (f"Free-run RMS error {before['free_run']['rms_error']:.3g}{u} -> "
                  f"{after['free_run']['rms_error']:.3g}{u}; ln Z {before['log_evidence']:.1f} -> "
@@ -209,6 +211,19 @@ def latest_forms(replaced: list) -> list:
             x = {**x, "earlier": [*latest[key].get("earlier", []), latest[key]["form"]]}
         latest[key] = x
     return list(latest.values())
+
+
+def state_words(x: dict) -> str:
+    """``a state added: lag_P' = b_P*(P - lag_P) + k_P*dtheta', time constant 5.9 (99 % 4.6 to 7.4)`` for a
+    move that added a state (:mod:`.states`): its equation, its time constant or its parameters."""
+    st = x["state"]
+    tc = st.get("time_constant")
+    if tc:
+        what = f"time constant {tc['mean']:.3g} (99 % {tc['q005']:.3g} to {tc['q995']:.3g})"
+    else:
+        what = ", ".join(f"{n} = {q['mean']:.3g} (99 % {q['q005']:.3g} to {q['q995']:.3g})"
+                         for n, q in st["parameters"].items())
+    return f"a state added: {st['equation']}, {what}"
 
 
 def shape_words(x: dict) -> str:

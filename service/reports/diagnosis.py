@@ -11,6 +11,7 @@ import numpy as np
 
 from ardflow.ardcore.jsonio import number
 from ardflow.ardcore.loop.result import Diagnosis
+from ardflow.ardcore.loop.verdict import state_words
 
 from ardflow.service.reports.diagnosis_figures import plot_candidates, plot_free_run, plot_noise, plot_tests
 
@@ -223,6 +224,10 @@ def _round_table(r: dict, k: int = 8) -> str:
         out.append("<tr><td colspan='8'>no candidate screened</td></tr>")
     out.append("</table>")
     for x in r.get("replaced") or []:
+        if x.get("state"):
+            out.append(f"<p>This round added a state: {html.escape(state_words(x))} (ln BF "
+                       f"{_num(x['log_bayes_factor'])}).</p>")
+            continue
         out.append(f"<p>This round replaced the declared {html.escape(x['parameter'])}*({html.escape(x['term'])}) "
                    f"by {html.escape(x['by'])} (ln BF {_num(x['log_bayes_factor'])}): of the moves the evidence "
                    "supported, the one taken by its free run on held-out data (see how the loop decided).</p>"
@@ -307,12 +312,26 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
                 body.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
                             f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>")
         body.append("</table>")
-    if j.get("replaced"):
+    if j.get("states"):
+        # an added state as clearly as an added term: its equation, its time constant and parameters
+        body.append("<h2>States added</h2><table><tr><th>state</th><th>kind</th><th>equation</th>"
+                    "<th>parameter</th><th>mean</th><th>99 % interval</th></tr>")
+        for st in j["states"]:
+            rows = dict(st["parameters"])
+            if st.get("time_constant"):
+                rows = {"time constant": st["time_constant"], **rows}
+            for i, (name, q) in enumerate(rows.items()):
+                lead = (f"<td>{html.escape(st['name'])}</td><td>{html.escape(st['kind'])}</td>"
+                        f"<td>{html.escape(st['equation'])}</td>" if i == 0 else "<td></td>" * 3)
+                body.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
+                            f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>")
+        body.append("</table>")
+    if any(not r.get("state") for r in j.get("replaced") or []):
         body.append("<h2>Declared terms replaced</h2><table><tr><th>declared term</th><th>equation</th>"
                     "<th>replaced by</th><th>ln BF of the replacement</th></tr>")
         body += [f"<tr><td>{html.escape(r['parameter'])}*({html.escape(r['term'])})</td><td>{r['target']}</td>"
                  f"<td>{html.escape(r['by'])}{_shape_cell(r)}</td><td>{_num(r['log_bayes_factor'])}</td></tr>"
-                 for r in j["replaced"]]
+                 for r in j["replaced"] if not r.get("state")]
         body.append("</table>")
     body.append("<h2>Each round: the candidates and what became of them</h2>")
     body += [_round_table(r) for r in j.get("rounds", [])]

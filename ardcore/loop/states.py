@@ -1,0 +1,328 @@
+"""States the model lacks: a declared quantity acting through a lag, a hysteresis, a sensor's own dynamics.
+
+The loop's other moves add or reshape terms in the equations of the states the user declared. Many real
+omissions are a state of their own. Three families are offered, each a full fit judged like a law replacement
+(:mod:`.replace`): its ln Bayes factor against the current model must exceed ``config.min_log_bf`` plus ln of
+the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it.
+
+**A lag** (every round, beside the laws). A declared derived quantity ``D`` (a signal: it holds a state or an
+input) that enters one state's equation and no observation or noise: that equation sees a new state instead::
+
+    z' = b (D - z) + k s'        (s: the state whose equation D entered, s' its drift)
+
+``b`` the lag's rate (1 / time constant), ``k`` the part of the state's own rate that feeds the lagged quantity
+directly (the apparent mass of an unsteady moment: M2's ``c6 F``). A process noise declared on ``D`` (the
+state's diffusion proportional to ``D``'s coefficient: M1's ``c3 sigma``) moves into the lag's equation.
+Priors: ``b`` lognormal at the record's dominant angular frequency, a tenth to ten times it at +-2 sd; ``k``
+normal around 0 at the size that makes ``k s'`` as large as ``b D``. The law's coefficients keep their prior's
+width centred on zero (a lag turns the law's phase, so a sign chosen for the quasi-steady reading no longer
+binds), and its ARD terms are selected again. A quantity already acting through a lag (a state ``s`` whose
+drift holds ``g (D - s)``, the rate ``g`` a parameter: M2's ``B (P - CM)``) is not offered again.
+
+**A hysteresis** and **a sensor** (only when the loop would stop: the term families left structure they
+cannot take up). For an oscillator ``x' = v``, a Bouc-Wen state in the velocity's equation::
+
+    v' = ... + k z,    z' = v - beta |v| z - gamma v |z|
+
+(``z`` a displacement that saturates near ``1 / (beta + gamma)``; ``beta`` lognormal at the inverse of the
+displacement's spread, ``gamma`` normal around 0 at that size, ``k`` normal around 0 at the size of the
+velocity equation's own drift over the displacement). For a measured state, the sensor's own first-order
+dynamics: the measurement reads ``m``, ``m' = b (h - m)`` (``h`` the declared measurement expression, ``b`` as a
+lag's rate but a tenth to a hundred times the dominant frequency: a sensor is faster than what it measures).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import NamedTuple
+
+import numpy as np
+import sympy as sp
+
+from ..effects.base import oscillator_pairs, short_name
+from ..likelihood.ekf import compile_model
+from ..model.declaration import ModelSpec
+from ..model.expr import parse_expression
+from ..model.priors import LogNormal, Normal, Uniform
+from ..selection.spec import CandidateSpec
+from .confirm import Fit, essential_from_row
+
+RATE_SPAN = 10.0
+"""A lag's rate prior spans the record's dominant angular frequency divided and multiplied by this at +-2 sd."""
+
+
+class Lag(NamedTuple):
+    """A state move: ``kind`` "lag" (the derived quantity ``term`` of the ``target`` state's equation through a
+    lag), "hysteresis" (a Bouc-Wen state of the oscillator whose position is ``term`` in the velocity ``target``'s
+    equation) or "sensor" (the measurement ``term`` of the observed column ``target`` read through a lag)."""
+
+    term: str
+    target: str
+    kind: str = "lag"
+
+
+def _names(spec: ModelSpec) -> set:
+    return {*spec.states, *spec.inputs, *spec.parameters, *spec.constants, *spec.derived}
+
+
+def _uses(spec: ModelSpec) -> dict:
+    """Derived quantity -> the names its expression holds, those of the derived quantities it uses included."""
+    names, out = _names(spec), {}
+    for d, text in spec.derived.items():
+        sym = {str(s) for s in parse_expression(text, names).free_symbols}
+        out[d] = sym.union(*(out[u] for u in sym if u in out))
+    return out
+
+
+def _mentions(spec: ModelSpec, text: str, term: str, uses: dict) -> bool:
+    sym = {str(s) for s in parse_expression(text, _names(spec)).free_symbols}
+    return term in sym or any(term in uses.get(u, ()) for u in sym)
+
+
+def lags(spec: ModelSpec) -> list[Lag]:
+    """The derived quantities a lag may be offered for (module docstring): in one state's drift, in no
+    observation, diffusion or initial state, a signal (it holds a state or an input), not already acting through
+    a lag."""
+    uses, names, free = _uses(spec), _names(spec), set(spec.free_parameters)
+    elsewhere = ([o.expr for o in spec.observations] + [o.noise_std for o in spec.observations]
+                 + list(spec.diffusion.values()) + list(spec.initial_mean.values())
+                 + list(spec.initial_std.values()))
+    out = []
+    signals = {*spec.states, *spec.inputs}
+    for d in spec.derived:
+        if not uses[d] & signals:
+            continue  # a coefficient made of parameters, not a signal
+        where = [s for s, text in spec.drift.items() if _mentions(spec, text, d, uses)]
+        if len(where) != 1 or any(_mentions(spec, str(t), d, uses) for t in elsewhere):
+            continue
+        s = where[0]
+        f = parse_expression(spec.drift[s], names)
+        g = sp.diff(f, sp.Symbol(d, real=True))
+        rates = {str(x) for x in g.free_symbols} & free
+        if rates and not rates & {str(x) for x in (sp.diff(f, sp.Symbol(s, real=True)) + g).free_symbols}:
+            continue  # the drift holds g (D - s): D already acts through a lag
+        out.append(Lag(d, s))
+    return out
+
+
+def hystereses(spec: ModelSpec) -> list[Lag]:
+    """A Bouc-Wen state for each oscillator (position, velocity) that has none yet."""
+    return [Lag(x, v, "hysteresis") for x, v in oscillator_pairs(spec) if names_of(Lag(x, v, "hysteresis"))[0]
+            not in spec.states]
+
+
+def sensors(spec: ModelSpec) -> list[Lag]:
+    """A sensor state for each measurement of the states that is not read through one yet (what earlier rounds
+    added to the measurement, a feedthrough standing in for the sensor's lag, is read through it too: the
+    backward check then weighs it again)."""
+    names, states = _names(spec), set(spec.states)
+    out = []
+    for o in spec.observations:
+        sym = {str(x) for x in parse_expression(str(o.expr), names).free_symbols}
+        if sym & states and names_of(Lag(str(o.expr), o.column, "sensor"))[0] not in sym:
+            out.append(Lag(str(o.expr), o.column, "sensor"))
+    return out
+
+
+def names_of(move: Lag) -> tuple[str, ...]:
+    """The new state and its parameters, named after what they act on: a lag's (state, rate, feedthrough), a
+    hysteresis' (state, coupling, beta, gamma), a sensor's (state, rate)."""
+    if move.kind == "hysteresis":
+        x = move.term
+        names = (f"hys_{x}", f"k_hys_{x}", f"beta_{x}", f"gamma_{x}")
+    elif move.kind == "sensor":
+        names = (f"sensor_{move.target}", f"b_sensor_{move.target}")
+    else:
+        names = (f"lag_{move.term}", f"b_{move.term}", f"k_{move.term}")
+    # short enough that the loop's own names built on them (q_diag_<state>) stay within 32 characters
+    return tuple(short_name(n, 24) for n in names)
+
+
+def _words(text: str, old: str, new: str) -> str:
+    return re.sub(rf"\b{re.escape(old)}\b", new, text)
+
+
+def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0)) -> ModelSpec:
+    """``spec`` with the state move ``lag`` (module docstring); ``start``: the new state's initial mean and
+    standard deviation."""
+    names = _names(spec)
+    drift, derived, diffusion = dict(spec.drift), dict(spec.derived), dict(spec.diffusion)
+    observations, new = list(spec.observations), names_of(lag)
+    z = new[0]
+    if lag.kind == "hysteresis":
+        _, k, beta, gamma = new
+        v = lag.target
+        drift[v] = f"({drift[v]}) + {k}*{z}"
+        drift[z] = f"{v} - {beta}*abs({v})*{z} - {gamma}*{v}*abs({z})"
+    elif lag.kind == "sensor":
+        _, b = new
+        drift[z] = f"{b}*(({lag.term}) - {z})"
+        observations = [o.model_copy(update={"expr": z}) if o.column == lag.target else o for o in observations]
+    else:
+        _, b, k = new
+        drift = {s: _words(text, lag.term, z) for s, text in drift.items()}
+        derived = {d: (text if d == lag.term else _words(text, lag.term, z)) for d, text in derived.items()}
+        noise = diffusion.get(lag.target)
+        if noise is not None:
+            # noise declared on the quantity (the state's diffusion its coefficient times a level) moves with it
+            g = sp.diff(parse_expression(spec.drift[lag.target], names), sp.Symbol(lag.term, real=True))
+            level = sp.simplify(parse_expression(str(noise), names) / g) if g != 0 else None
+            if level is not None and not {str(x) for x in level.free_symbols} & {*spec.states, *spec.inputs}:
+                diffusion.pop(lag.target)
+                diffusion[z] = str(level)
+        drift[z] = f"{b}*({lag.term} - {z}) + {k}*({drift[lag.target]})"
+    return spec.model_copy(update={
+        "name": short_name(f"{spec.name}_{lag.kind[:3]}"), "states": list(spec.states) + [z], "drift": drift,
+        "derived": derived, "diffusion": diffusion, "observations": observations,
+        "parameters": list(spec.parameters) + list(new[1:]),
+        "initial_mean": {**spec.initial_mean, z: float(start[0])},
+        "initial_std": {**spec.initial_std, z: float(start[1])}}).revalidate()
+
+
+def dominant_rate(y: np.ndarray, dt: float) -> float:
+    """The angular frequency of the largest peak of ``y``'s periodogram (its mean removed); for a record with
+    no peak above the lowest frequency, that lowest frequency (the record's own time scale)."""
+    y = np.asarray(y, float)
+    y = y[np.isfinite(y)] - np.nanmean(y)
+    p = np.abs(np.fft.rfft(y * np.hanning(y.size))) ** 2
+    f = np.fft.rfftfreq(y.size, dt)
+    j = 1 + int(np.argmax(p[1:])) if p.size > 1 else 0
+    return 2 * math.pi * float(f[max(j, 1)] if f.size > 1 else 1.0 / (dt * max(y.size, 1)))
+
+
+def signal_values(spec: ModelSpec, phi: dict, text: str, states: np.ndarray, columns: dict) -> np.ndarray:
+    """``text`` (an expression of ``spec``, derived quantities allowed) along the filtered ``states``."""
+    names = _names(spec)
+    e = parse_expression(text, names)
+    derived = {sp.Symbol(d, real=True): parse_expression(t, names) for d, t in spec.derived.items()}
+    for _ in range(len(derived) + 1):
+        e = e.subs(derived)
+    values = {**spec.constants, **spec.fixed, **phi}
+    e = e.subs({sp.Symbol(n, real=True): v for n, v in values.items()})
+    args = [sp.Symbol(n, real=True) for n in (*spec.states, *spec.inputs)]
+    f = sp.lambdify(args, e, modules="numpy")
+    out = f(*states.T, *[np.asarray(columns[u], float) for u in spec.inputs])
+    return np.asarray(out, dtype=float) * np.ones(states.shape[0])
+
+
+def _centred(prior):
+    """A bounded uniform prior on one side of zero widened to both (a lag turns the law's phase)."""
+    if isinstance(prior, Uniform) and (prior.low >= 0 or prior.high <= 0):
+        m = max(abs(prior.low), abs(prior.high))
+        return Uniform(low=-m, high=m)
+    return prior
+
+
+def _lognormal(median: float, span: float) -> LogNormal:
+    """Lognormal at ``median`` whose +-2 sd of the log span ``median / span`` to ``median * span``."""
+    s = math.log(span) / 2.0
+    return LogNormal(median=median, cov=100.0 * math.sqrt(math.expm1(s * s)))
+
+
+def lag_candidate(current: Fit, lag: Lag) -> CandidateSpec | None:
+    """The current model with the state move ``lag`` (:func:`lag_spec`) as a candidate with its priors (module
+    docstring); None when the record gives them no scale."""
+    from .freerun import fitted
+
+    cand = current.cand
+    fspec, phi = fitted(cand, current.row)
+    states = compile_model(fspec).filter(phi, current.data, cand.substeps).filtered
+    cols = current.data.columns
+    col = fspec.observed_columns[0]
+    t = np.asarray(current.data.t, float)
+    rate = dominant_rate(np.asarray(cols[col], float), float(np.median(np.diff(t))))
+    target = lag.target if lag.kind != "sensor" else None
+    d = signal_values(fspec, phi, lag.term, states, cols)
+    acc = signal_values(fspec, phi, fspec.drift[target], states, cols) if target else d
+    sd_d, sd_acc = float(np.nanstd(d)), float(np.nanstd(acc))
+    if not all(np.isfinite(x) and x > 0 for x in (rate, sd_d, sd_acc)):
+        return None
+    ms = cand.model_spec()
+    priors, fixed = essential_from_row(cand, current.row)
+    new, ard = names_of(lag), []
+    if lag.kind == "hysteresis":
+        spec = lag_spec(ms, lag, (0.0, sd_d))
+        _, k, beta, gamma = new
+        priors[k] = Normal(mean=0.0, sd=sd_acc / sd_d)
+        priors[beta] = _lognormal(1.0 / sd_d, RATE_SPAN)
+        priors[gamma] = Normal(mean=0.0, sd=1.0 / sd_d)
+    elif lag.kind == "sensor":
+        y0 = float(np.asarray(cols[lag.target], float)[0])
+        spec = lag_spec(ms, lag, (y0 if np.isfinite(y0) else float(d[0]), 0.1 * sd_d))
+        priors[new[1]] = _lognormal(10.0 * rate, RATE_SPAN)
+    else:
+        spec = lag_spec(ms, lag, (float(d[0]), sd_d))
+        _, b, k = new
+        # the law's own terms: their essential priors centred, their ARD selected again
+        own = {str(x) for x in parse_expression(ms.derived[lag.term], _names(spec)).free_symbols}
+        ard = [a for a in cand.ard_names if a in own]
+        priors = {n: (_centred(p) if n in own else p) for n, p in priors.items() if n not in ard}
+        fixed = {n: v for n, v in fixed.items() if n not in ard}
+        priors[b] = _lognormal(rate, RATE_SPAN)
+        priors[k] = Normal(mean=0.0, sd=rate * sd_d / sd_acc)
+    return CandidateSpec(model=spec, name=spec.name, priors=priors, fixed=fixed, ard=ard, substeps=cand.substeps)
+
+
+def state_summary(row, lag: Lag) -> dict:
+    """The added state as the report shows it, from a fit's summary row: its name, kind and equation, what it
+    acts on, its parameters (mean, sd, 99 % interval) and, for a lag or a sensor, its time constant ``1/b``."""
+    from .replace import shape_summary
+
+    new = names_of(lag)
+    z = new[0]
+    if lag.kind == "hysteresis":
+        eq = f"{z}' = {lag.target} - {new[2]}*|{lag.target}|*{z} - {new[3]}*{lag.target}*|{z}|, {new[1]}*{z} in the {lag.target} equation"
+    elif lag.kind == "sensor":
+        eq = f"{z}' = {new[1]}*({lag.term} - {z}), the measurement {lag.target} reads {z}"
+    else:
+        eq = f"{z}' = {new[1]}*({lag.term} - {z}) + {new[2]}*{lag.target}'"
+    out = {"name": z, "kind": lag.kind, "term": lag.term, "target": lag.target, "equation": eq,
+           "parameters": {n: shape_summary(row, n) for n in new[1:] if n in row.mean}}
+    if lag.kind in ("lag", "sensor") and new[1] in row.mean:
+        r = out["parameters"][new[1]]
+        out["time_constant"] = {"mean": 1.0 / r["mean"], "q005": 1.0 / r["q995"], "q995": 1.0 / r["q005"]}
+    return out
+
+
+def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
+    """The state move of ``kinds`` (module docstring) worth most, as ``(fit, [record], ln BF)`` like
+    :func:`~.replace.best_laws`, or None.
+
+    Every move offered is fitted side by side on the loop's pool (a lag's: a full ARD re-selection, the law's
+    terms selected again); the best qualifies when its ln Bayes factor against the current model exceeds
+    ``config.min_log_bf`` plus ln of the number tried and its fit is a result. The record is a replacement's
+    with the state (:func:`state_summary`)."""
+    from .confirm import fit_task
+
+    config, say = ctx.config, ctx.say
+    ms = current.cand.model_spec()
+    offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors}
+    offered, tasks = [], []
+    for lag in [m for kind in kinds for m in offer[kind](ms)]:
+        cand = lag_candidate(current, lag)
+        if cand is not None:
+            offered.append(lag)
+            tasks.append((cand, current.data, ctx.spec, None, config.posterior))
+    if not tasks:
+        return None
+    say("  a state: " + ", ".join(f"{x.kind} ({x.term} -> {x.target})" for x in offered))
+    fits = ctx.mapper(fit_task, tasks)
+    gain = np.array([row.log_evidence - current.row.log_evidence for row, _ in fits], dtype=float)
+    if not np.isfinite(gain).any():
+        return None
+    k = int(np.nanargmax(np.where(np.isfinite(gain), gain, -np.inf)))
+    need = config.min_log_bf + math.log(len(tasks))
+    lag, (row, mr) = offered[k], fits[k]
+    if not gain[k] > need:
+        say(f"  the best state, a {lag.kind} ({lag.term} -> {lag.target}): ln BF {gain[k]:.1f}, needs {need:.1f}")
+        return None
+    why = row.degenerate()
+    if why is not None:
+        say(f"  a {lag.kind} ({lag.term} -> {lag.target}): {why}")
+        return None
+    state = state_summary(row, lag)
+    say(f"  a state: {state['equation']} (ln BF {gain[k]:.1f})")
+    record = {"parameter": "", "term": lag.term, "target": lag.target, "by": f"the state {state['name']}",
+              "form": lag.kind, "log_bayes_factor": float(gain[k]), "state": state}
+    return Fit(tasks[k][0], row, mr, current.data), [record], float(gain[k])

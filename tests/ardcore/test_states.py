@@ -1,0 +1,44 @@
+"""The lag move (a state the model lacks): which quantities it is offered for, and the model it builds."""
+
+import numpy as np
+import sympy as sp
+
+from ardflow.ardcore.loop.states import Lag, dominant_rate, lag_spec, lags, signal_values
+from ardflow.ardcore.model.declaration import symbolic
+from ardflow.ardcore.model.library import aero_m1, aero_m2
+
+
+def test_a_quasi_steady_moment_is_offered_a_lag_and_a_lagged_one_is_not():
+    assert lags(aero_m1()) == [Lag("P", "dtheta")]
+    assert lags(aero_m2()) == []  # CM' = B (P - CM) + ...: P already acts through a lag
+
+
+def test_the_lagged_quasi_steady_model_is_the_first_order_wagner_model():
+    """M1 with its moment P through a lag is M2, the lag's rate M2's B and its feedthrough M2's c6 (the
+    apparent mass), the noise declared on the moment moved into the lag's equation."""
+    lagged = lag_spec(aero_m1(), Lag("P", "dtheta"))
+    m2 = aero_m2()
+    c6 = m2.constants["c6"]
+    a = lagged.with_fixed(b_P=0.2, k_P=c6)
+    b = m2.with_fixed(B=0.2)
+    sa, sb = symbolic(a), symbolic(b)
+    rename = {sp.Symbol("lag_P", real=True): sp.Symbol("CM", real=True)}
+    assert [str(x) for x in sa.states] == ["theta", "dtheta", "lag_P"]
+    for fa, fb in zip(sa.drift, sb.drift):
+        assert sp.simplify(fa.subs(rename) - fb) == 0
+    assert [sp.simplify(g.subs(rename) - h) for g, h in zip(sa.diffusion, sb.diffusion)] == [0, 0, 0]
+
+
+def test_the_lag_rate_prior_is_centred_on_the_record_s_dominant_frequency():
+    t = np.arange(5000) * 0.1
+    y = np.sin(0.194 * t) + 0.1 * np.random.default_rng(0).standard_normal(t.size)
+    assert abs(dominant_rate(y, 0.1) - 0.194) < 2 * np.pi / 500.0  # one bin of a 500-unit record
+
+
+def test_a_derived_quantity_is_evaluated_along_the_states():
+    m1 = aero_m1().with_fixed(a3=0.0, a5=0.0, a6=0.0)
+    x = np.array([[0.1, 0.02], [-0.05, 0.01]])
+    phi = {"a1": -1.2, "a2": 0.5, "a4": -400.0, "sigma": 0.002}
+    got = signal_values(m1, phi, "P", x, {})
+    want = -1.2 * x[:, 0] + 0.5 * x[:, 1] - 400.0 * x[:, 0] ** 2 * x[:, 1]
+    np.testing.assert_allclose(got, want)
