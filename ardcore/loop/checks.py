@@ -312,9 +312,11 @@ def not_degenerate(survivors: list, say) -> list:
 
 
 def brought(rounds: list) -> set:
-    """The parameters the loop's effects brought (coefficients and shapes): never a declared law."""
+    """The parameters the loop's effects and states brought (coefficients, shapes, a lag's rate): never a
+    declared law."""
     return {n for r in rounds for x in r.added for n in x.params} | {
-        n for r in rounds for x in r.added for n in x.record.get("shape", {})}
+        n for r in rounds for x in r.added for n in x.record.get("shape", {})} | {
+        n for r in rounds for x in r.record.get("replaced", []) if x.get("state") for n in x["state"]["parameters"]}
 
 
 def replace_laws(ctx, held: Fit, rounds: list, crit=None) -> Fit:

@@ -202,7 +202,7 @@ def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(
                                 extra=list(extra_effects))
     if closed:
         pattern = re.compile(r"\b(" + "|".join(map(re.escape, closed)) + r")\b")
-        effects = [e for e in effects if not any(pattern.search(t) for t in e.terms)]
+        effects = [e for e in effects if not any(pattern.search(t) for t in (*e.terms, *e.between))]
     inp = ScreenInput(fspec, phi, data, cand.substeps)
     targets = [s for s in dynamic_states(fspec) if s not in closed]
     screened = screen_effects(inp, effects, targets, list(fspec.observed_columns), progress=say,

@@ -173,6 +173,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 # the cap, not the criterion, ended the loop: the report says so (more rounds may still help)
                 first["stopped_by"] = "round_cap" if rnd else "no_round"
                 break
+            t_round = time.perf_counter()
             swap = best_laws(ctx, held, brought(rounds), [x for r in rounds for x in r.record.get("replaced", [])
                                                           if x.get("form")])
             lagged = best_state(ctx, held, ("lag",))  # a state: a declared quantity acting through a lag
@@ -181,13 +182,16 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             rec, survivors, deferred = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds), _closed(rounds))
             rounds.append(rec)
             move, judged_round = decide(ctx, crit, held, swap, survivors, deferred, rec)
+            rec.record["terms_s"] = time.perf_counter() - t_round
             if move is None and config.states:
                 # the term families left what they cannot take up: the states that could hold it
+                t_states = time.perf_counter()
                 extra = best_state(ctx, held, ("hysteresis", "sensor"))
                 if extra is not None:
                     move, more = decide(ctx, crit, held, extra, [], [], rec)
                     judged_round["moves"] += more["moves"]
                     swap = extra if move is not None else swap
+                rec.record["states_s"] = time.perf_counter() - t_states  # the cost the bench holds to the terms'
             judged.append(judged_round)
             if move is None:
                 first["stopped_by"] = "criterion"

@@ -42,3 +42,45 @@ def test_a_derived_quantity_is_evaluated_along_the_states():
     got = signal_values(m1, phi, "P", x, {})
     want = -1.2 * x[:, 0] + 0.5 * x[:, 1] - 400.0 * x[:, 0] ** 2 * x[:, 1]
     np.testing.assert_allclose(got, want)
+
+
+def test_an_added_state_reads_as_a_state_in_the_headline():
+    """The headline names the state, its equation and its time constant with the interval (not 'the declared
+    *(P) replaced')."""
+    from ardflow.ardcore.loop.verdict import headline
+
+    state = {"name": "lag_P", "kind": "lag", "term": "P", "target": "dtheta",
+             "equation": "lag_P' = b_P*(P - lag_P) + k_P*dtheta'",
+             "parameters": {"b_P": {"name": "b_P", "mean": 0.17, "sd": 0.02, "q005": 0.135, "q995": 0.218}},
+             "time_constant": {"mean": 5.88, "q005": 4.59, "q995": 7.41}}
+    fr = {"rms_error": 0.0175}
+    report = {"added": [], "replaced": [{"parameter": "", "term": "P", "target": "dtheta", "by": "the state lag_P",
+                                         "form": "lag", "log_bayes_factor": 70.5, "state": state}],
+              "before": {"free_run": fr, "log_evidence": 26100.8},
+              "after": {"free_run": {"rms_error": 0.011}, "log_evidence": 26171.3}, "rounds": [{}]}
+    text = headline(report, "y")
+    assert "A state added: lag_P' = b_P*(P - lag_P) + k_P*dtheta'" in text, text
+    assert "time constant 5.88 (99 % 4.59 to 7.41)" in text, text
+    assert "declared" not in text.split(".")[0], text
+
+
+def test_a_hysteresis_and_a_sensor_are_offered_on_an_oscillator_and_built_as_declared():
+    from ardflow.ardcore.model.library import builtin
+
+    osc = builtin("forced_linear_oscillator")
+    x, v = osc.states[:2]
+    col = osc.observations[0].column
+    offered = [*lags(osc)]
+    from ardflow.ardcore.loop.states import hystereses, sensors
+
+    assert lags(osc) == [] and hystereses(osc) == [Lag(x, v, "hysteresis")]
+    assert sensors(osc) == [Lag(osc.observations[0].expr, col, "sensor")]
+    h = lag_spec(osc, hystereses(osc)[0])
+    z = h.states[-1]
+    assert h.drift[z] == f"{v} - beta_{x}*abs({v})*{z} - gamma_{x}*{v}*abs({z})"
+    assert f"k_hys_{x}*{z}" in h.drift[v] and h.parameters[-3:] == [f"k_hys_{x}", f"beta_{x}", f"gamma_{x}"]
+    s = lag_spec(osc, sensors(osc)[0])
+    m = s.states[-1]
+    assert s.observations[0].expr == m and s.drift[m] == f"b_sensor_{col}*(({osc.observations[0].expr}) - {m})"
+    # once read through a sensor and given a hysteresis, neither is offered again
+    assert sensors(s) == [] and hystereses(h) == [] and offered == []

@@ -674,7 +674,9 @@ def bench_loop(tiny: bool = False) -> dict:
     loop_peer_best_arrow_mv, loop_peer_narx_pendulum_rad, loop_silverbox_added, loop_pendulum_added,
     loop_silverbox_samples and loop_silverbox_rounds (the record's length and the rounds run in loop_silverbox_s),
     loop_silverbox_multisine_band_coverage and loop_pendulum_band_coverage (the held-out data's share inside the
-    final model's 90 % posterior predictive band).
+    final model's 90 % posterior predictive band), loop_silverbox_states_ratio (:func:`states_ratio` on that
+    65k-sample record: what the state families cost beside a round's terms, at most 2; written when the
+    criterion, not the round cap, ended the loop).
     """
     from ardflow.ardcore.data import SILVERBOX_SPLITS, load_pendulum, load_silverbox
     from ardflow.ardcore.loop.config import DiagnoseConfig
@@ -727,6 +729,8 @@ def bench_loop(tiny: bool = False) -> dict:
     # the long-record contract: this many samples through this many rounds in loop_silverbox_s
     out["loop_silverbox_samples"] = len(est)
     out["loop_silverbox_rounds"] = len(rep.report["rounds"])
+    if states_ratio(rep.report) is not None:  # only a loop its criterion ends runs the state families
+        out["loop_silverbox_states_ratio"] = states_ratio(rep.report)
     out["loop_silverbox_multisine_before_mv"] = 1e3 * rep.report["before"]["free_run"]["rms_error"]
     out["loop_silverbox_arrow_before_mv"] = 1e3 * rep.initial.free_run(seg["test_arrow"])["rms_error"]
     out.update({f"loop_silverbox_{k}_mv": v for k, v in _after_mv(rep, seg).items()})
@@ -835,6 +839,14 @@ def _peers(rec) -> dict:
     return out
 
 
+def states_ratio(report: dict) -> float | None:
+    """The state families' cost against the terms': the largest over a loop's rounds of the time the hysteresis
+    and sensor states took (run only in a round that takes nothing else) over the time the round's additions,
+    laws and lags took (None: no round ran them)."""
+    got = [r["states_s"] / r["terms_s"] for r in report.get("rounds", []) if r.get("states_s") and r.get("terms_s")]
+    return max(got) if got else None
+
+
 def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
     """The loop on the validation set (:mod:`tests.bench.validation`): each record from its plain user model,
     and the peers on the same split, in one run; and the regression gate.
@@ -893,8 +905,10 @@ def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
         out[f"loop_{name}_before"] = r["before"]["free_run"]["rms_error"]
         out[f"loop_{name}_band_coverage"] = r["reported"]["free_run"].get("band_coverage")
         out[f"loop_{name}_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
-        out[f"loop_{name}_replaced"] = [f"{x['parameter']}*({x['term']}) -> {x['by']}" for x in r["replaced"]]
+        out[f"loop_{name}_replaced"] = [f"{x['term']} -> {x['by']}" if x.get("state") else
+                                        f"{x['parameter']}*({x['term']}) -> {x['by']}" for x in r["replaced"]]
         out[f"loop_{name}_forms"] = [x.get("form") for x in r["replaced"]]
+        out[f"loop_{name}_states_ratio"] = states_ratio(r)
         out[f"loop_{name}_withheld"] = [a["effect"] + " -> " + a["target"] for a in r.get("withheld", [])]
         if rec.real:  # a measured record: no truth to find; its free run must stay as good as recorded
             out[f"loop_{name}_verdict"] = v = out[f"loop_{name}_free_run"]
@@ -981,7 +995,8 @@ CONTRACT = {
     "validation": ["validation_records", "validation_loop_at_or_below_best_peer", "validation_added_on_clean",
                    "validation_regression_count",
                    *[k.format(r) for r in ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis",
-                                           "none") for k in ("loop_{}_free_run", "peer_best_{}", "loop_{}_s")]],
+                                           "sensor_lag", "none")
+                     for k in ("loop_{}_free_run", "peer_best_{}", "loop_{}_s")]],
     "fresh": ["fresh_demo_s", "fresh_demo_evaluations"],
 }
 """Keys each group must write (named in issues and the README: a contract); the smoke test checks them."""

@@ -172,7 +172,7 @@ def hysteresis(n: int = 4000, seed: int = 15) -> Record:
     truth = _truth("-k*y - c*v - a*z + b*u", ["k", "c", "a", "b", "sigma"], 2e-3, states=("y", "v", "z"),
                    drift_extra={"z": "v - 2.0*abs(v)*z - 1.0*v*abs(z)"})
     spec, data = _against_linear("hysteresis", truth, {"k": 10.0, "c": 0.3, "a": 8.0, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("hysteresis", spec, data, True, False, "a Bouc-Wen hysteretic element")
+    return _split("hysteresis", spec, data, True, False, "a Bouc-Wen hysteretic element", ("form:hysteresis",))
 
 
 def sensor_lag(n: int = 4000, seed: int = 18) -> Record:
