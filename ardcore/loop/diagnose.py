@@ -371,7 +371,7 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
         if x.get("shape") and x["shape"]["name"] in row.mean:
             x["shape"] = shape_summary(row, x["shape"]["name"])
         if x.get("state") and x["state"]["name"] in held.cand.model_spec().states:
-            x["state"] = state_summary(row, Lag(x["term"], x["target"], x["state"]["kind"]))
+            x["state"] = state_summary(row, Lag(x["term"], x["target"], x["state"]["kind"]), held.cand.model_spec())
     out = {"model": spec.models[0].label, "final_model": held.cand.label,
            "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
            "rounds": rounds,

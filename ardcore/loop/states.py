@@ -264,13 +264,24 @@ def lag_candidate(current: Fit, lag: Lag) -> CandidateSpec | None:
     return CandidateSpec(model=spec, name=spec.name, priors=priors, fixed=fixed, ard=ard, substeps=cand.substeps)
 
 
-def state_summary(row, lag: Lag) -> dict:
+def _live(text: str, spec: ModelSpec | None) -> str:
+    """``text`` with the parameters ``spec`` fixes at 0 taken out (a stand-in the backward check dropped after the
+    state read it)."""
+    zeros = {sp.Symbol(n, real=True): 0 for n, v in (spec.fixed if spec is not None else {}).items() if v == 0}
+    if not zeros:
+        return text
+    return str(parse_expression(text, _names(spec)).subs(zeros)).replace("Abs(", "abs(")
+
+
+def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
     """The added state as the report shows it, from a fit's summary row: its name, kind and equation, what it
-    acts on, its parameters (mean, sd, 99 % interval) and, for a lag or a sensor, its time constant ``1/b``."""
+    acts on, its parameters (mean, sd, 99 % interval) and, for a lag or a sensor, its time constant ``1/b``.
+    With ``spec`` (the model it belongs to), terms that model fixes at 0 are left out of the equation."""
     from .replace import shape_summary
 
     new = names_of(lag)
     z = new[0]
+    lag = lag._replace(term=_live(lag.term, spec))
     if lag.kind == "hysteresis":
         eq = f"{z}' = {lag.target} - {new[2]}*|{lag.target}|*{z} - {new[3]}*{lag.target}*|{z}|, {new[1]}*{z} in the {lag.target} equation"
     elif lag.kind == "sensor":
