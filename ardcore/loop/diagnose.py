@@ -57,7 +57,7 @@ from .criterion import Criterion, Move, decide, held_out_record, stable
 from .simulation_fit import reported_model
 from .result import Diagnosis, FittedModel, LoopRound
 from .freerun import Band, fitted, free_run, posterior_draws
-from .initial import data_informed_initial
+from ..selection.initial import data_informed_initial
 from .config import DiagnoseConfig, LoopContext
 from ..model.declaration import ModelSpec
 from .residuals import Residuals, residuals
@@ -179,7 +179,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             lagged = best_state(ctx, held, ("lag",))  # a state: a declared quantity acting through a lag
             if lagged is not None and (swap is None or lagged[2] > swap[2]):
                 swap = lagged
-            rec, survivors, deferred = _trace_round(ctx, held, fspec, phi, res, rnd, _present(rounds), _closed(rounds))
+            rec, survivors, deferred = _trace_round(ctx, held, fspec, phi, res, rounds)
             rounds.append(rec)
             move, judged_round = decide(ctx, crit, held, swap, survivors, deferred, rec)
             rec.record["terms_s"] = time.perf_counter() - t_round
@@ -291,13 +291,13 @@ def _closed(rounds: list[LoopRound]) -> set:
             if x.get("state") and x["state"]["kind"] != "lag"}
 
 
-def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rnd: int,
-                 present: set = frozenset(), closed: set = frozenset()) -> tuple[LoopRound, list, list]:
-    """One round's trace: screen, confirm, check the survivors' stability; the round's record, the survivors
-    (best first) and those deferred behind a measurement-noise level (the noise rule, :func:`_decide`). With no
-    survivor, the record carries the verdict on what remains."""
-    config, say = ctx.config, ctx.say
-    ranked, confirmed = trace_and_confirm(ctx, held, fspec, phi, res, present, closed)
+def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rounds: list[LoopRound]) -> tuple[LoopRound, list, list]:
+    """One round's trace after ``rounds``: screen (not what the model holds already, nothing on a state of fixed
+    form), confirm, check the survivors' stability; the round's record, the survivors (best first) and those
+    deferred behind a measurement-noise level (the noise rule, :func:`_decide`). With no survivor, the record
+    carries the verdict on what remains."""
+    config, say, rnd = ctx.config, ctx.say, len(rounds)
+    ranked, confirmed = trace_and_confirm(ctx, held, fspec, phi, res, _present(rounds), _closed(rounds))
     survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
     survivors = not_degenerate(survivors, say)
     noise = [c for c in survivors if c.fitted_effect.where == "noise"

@@ -13,7 +13,7 @@ from ..data import Dataset
 from ..effects.base import user_inputs
 from ..jsonio import is_pruned
 from ..likelihood.ekf import compile_model
-from .initial import recentred
+from ..selection.initial import recentred
 from ..model.declaration import ModelSpec
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec

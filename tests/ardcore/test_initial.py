@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.loop.initial import data_informed_initial, recentred
+from ardflow.ardcore.selection.initial import data_informed_initial, recentred
 from ardflow.ardcore.model.library import builtin
 from ardflow.ardcore.selection.spec import CandidateSpec
 

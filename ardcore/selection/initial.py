@@ -18,7 +18,7 @@ import numpy as np
 from ..data import Dataset
 from ..jsonio import number
 from ..model.declaration import ModelSpec
-from ..selection.spec import CandidateSpec
+from .spec import CandidateSpec
 
 FIRST_SAMPLES = 50
 
