@@ -11,7 +11,7 @@
 * the real cascaded tanks from the user's linear and from the physical square-root model: the loop keeps going
   while a move free-runs better held out, and the model it reports free-runs the separate validation experiment
   below a linear ARX tuned as its users tune it and within the published nonlinear models' 0.34-0.45 V (the
-  linear start reaches it once a sensor state reads tank 2's level, tests/statistical/test_loop_states.py).
+  linear start reaches it once a sensor state reads tank 2's level: ardcore/loop/states.py).
 """
 
 import functools
