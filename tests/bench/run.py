@@ -905,7 +905,7 @@ def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
         out[f"loop_{name}_before"] = r["before"]["free_run"]["rms_error"]
         out[f"loop_{name}_band_coverage"] = r["reported"]["free_run"].get("band_coverage")
         out[f"loop_{name}_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
-        out[f"loop_{name}_replaced"] = [f"{x['term']} -> {x['by']}" if x.get("state") else
+        out[f"loop_{name}_replaced"] = [f"{x['state']['term']} -> {x['by']}" if x.get("state") else
                                         f"{x['parameter']}*({x['term']}) -> {x['by']}" for x in r["replaced"]]
         out[f"loop_{name}_forms"] = [x.get("form") for x in r["replaced"]]
         out[f"loop_{name}_states_ratio"] = states_ratio(r)
