@@ -64,7 +64,8 @@ from .residuals import Residuals, residuals
 from ..selection.fit import ModelFit
 from ..selection.spec import StudySpec
 from ..selection.study import run_candidate
-from .verdict import character, headline, latest_forms, parameter_shifts, shape_words, state_words, unexplained, withheld_words
+from .verdict import (character, headline, latest_forms, parameter_shifts, shape_words, state_words, unexplained,
+                      withheld_words)
 
 
 
@@ -367,11 +368,12 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
     taken = {(a["effect"], a["target"]) for a in records} | {(x["by"], "") for x in replaced}
     withheld = list({(x["effect"], x["target"]): x for r in rounds for x in r.get("refused", [])
                      if (x["effect"], x["target"]) not in taken}.values())
+    final_spec = held.cand.model_spec()
     for x in replaced:  # a form's shape as the final model has it (later rounds refit it with what they add)
         if x.get("shape") and x["shape"]["name"] in row.mean:
             x["shape"] = shape_summary(row, x["shape"]["name"])
-        if x.get("state") and x["state"]["name"] in held.cand.model_spec().states:
-            x["state"] = state_summary(row, Lag(x["term"], x["target"], x["state"]["kind"]), held.cand.model_spec())
+        if x.get("state") and x["state"]["name"] in final_spec.states:
+            x["state"] = state_summary(row, Lag(x["term"], x["target"], x["state"]["kind"]), final_spec)
     out = {"model": spec.models[0].label, "final_model": held.cand.label,
            "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
            "rounds": rounds,

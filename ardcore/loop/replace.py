@@ -137,11 +137,9 @@ class Form(NamedTuple):
 
 
 def _lognormal(median: float, lo: float, hi: float):
-    """Lognormal at ``median`` whose +-2 sd of the log span ``lo``..``hi`` (the wider side)."""
     from ..model.priors import LogNormal
 
-    s = max(math.log(hi / median), math.log(median / lo)) / 2.0
-    return LogNormal(median=median, cov=100.0 * math.sqrt(math.expm1(s * s)))
+    return LogNormal.spanning(median, lo, hi)
 
 
 def _power_prior(values: np.ndarray):

@@ -216,22 +216,37 @@ def _centred(prior):
 
 def _lognormal(median: float, span: float) -> LogNormal:
     """Lognormal at ``median`` whose +-2 sd of the log span ``median / span`` to ``median * span``."""
-    s = math.log(span) / 2.0
-    return LogNormal(median=median, cov=100.0 * math.sqrt(math.expm1(s * s)))
+    return LogNormal.spanning(median, median / span, median * span)
 
 
-def lag_candidate(current: Fit, lag: Lag) -> CandidateSpec | None:
-    """The current model with the state move ``lag`` (:func:`lag_spec`) as a candidate with its priors (module
-    docstring); None when the record gives them no scale."""
+class Along(NamedTuple):
+    """The current model along the record, what every state move's priors are scaled from: its fitted spec and
+    posterior mean, its filtered states and the record's dominant angular frequency."""
+
+    fspec: ModelSpec
+    phi: dict
+    states: np.ndarray
+    rate: float
+
+
+def along(current: Fit) -> Along:
+    """:class:`Along` for the current model (one filter pass, shared by every move offered)."""
     from .freerun import fitted
 
-    cand = current.cand
-    fspec, phi = fitted(cand, current.row)
-    states = compile_model(fspec).filter(phi, current.data, cand.substeps).filtered
-    cols = current.data.columns
-    col = fspec.observed_columns[0]
+    fspec, phi = fitted(current.cand, current.row)
+    states = compile_model(fspec).filter(phi, current.data, current.cand.substeps).filtered
+    y = np.asarray(current.data.columns[fspec.observed_columns[0]], float)
     t = np.asarray(current.data.t, float)
-    rate = dominant_rate(np.asarray(cols[col], float), float(np.median(np.diff(t))))
+    return Along(fspec, phi, states, dominant_rate(y, float(np.median(np.diff(t)))))
+
+
+def lag_candidate(current: Fit, lag: Lag, at: Along | None = None) -> CandidateSpec | None:
+    """The current model with the state move ``lag`` (:func:`lag_spec`) as a candidate with its priors (module
+    docstring), scaled from ``at`` (default: :func:`along` the current model); None when the record gives them
+    no scale."""
+    cand = current.cand
+    fspec, phi, states, rate = at or along(current)
+    cols = current.data.columns
     target = lag.target if lag.kind != "sensor" else None
     d = signal_values(fspec, phi, lag.term, states, cols)
     acc = signal_values(fspec, phi, fspec.drift[target], states, cols) if target else d
@@ -283,7 +298,8 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
     z = new[0]
     lag = lag._replace(term=_live(lag.term, spec))
     if lag.kind == "hysteresis":
-        eq = f"{z}' = {lag.target} - {new[2]}*|{lag.target}|*{z} - {new[3]}*{lag.target}*|{z}|, {new[1]}*{z} in the {lag.target} equation"
+        v = lag.target
+        eq = f"{z}' = {v} - {new[2]}*|{v}|*{z} - {new[3]}*{v}*|{z}|, {new[1]}*{z} in the {v} equation"
     elif lag.kind == "sensor":
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the measurement {lag.target} reads {z}"
     else:
@@ -310,8 +326,10 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     ms = current.cand.model_spec()
     offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors}
     offered, tasks = [], []
-    for lag in [m for kind in kinds for m in offer[kind](ms)]:
-        cand = lag_candidate(current, lag)
+    moves = [m for kind in kinds for m in offer[kind](ms)]
+    at = along(current) if moves else None
+    for lag in moves:
+        cand = lag_candidate(current, lag, at)
         if cand is not None:
             offered.append(lag)
             tasks.append((cand, current.data, ctx.spec, None, config.posterior))

@@ -47,6 +47,12 @@ class LogNormal(_PriorBase):
     median: float = Field(gt=0)
     cov: float = Field(gt=0, le=10000, description="coefficient of variation, %")
 
+    @classmethod
+    def spanning(cls, median: float, lo: float, hi: float) -> "LogNormal":
+        """Lognormal at ``median`` whose +-2 sd of the log span ``lo``..``hi`` (the wider side)."""
+        s = max(math.log(hi / median), math.log(median / lo)) / 2.0
+        return cls(median=median, cov=100.0 * math.sqrt(math.expm1(s * s)))
+
     @property
     def mu(self) -> float:
         return math.log(self.median)
