@@ -8,6 +8,24 @@ import functools
 import signal
 
 
+WORKER_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+}
+"""How ardflow's own workers run. A chain's task spends most of its time in a compiled likelihood that
+releases the interpreter lock, and between calls runs the sampler's Python, whose lock every wake-up of the
+worker's other threads takes: Dask's statistical profiler (the dashboard's Profile page) samples every thread
+every 10 ms, the event loop's blocked-loop check ticks every 20 ms, the memory and system monitors poll every
+0.1 and 0.5 s. Measured on 2 cores (docs/benchmarks.md), a trial's tasks ran 6-8 % longer on a worker than
+in a plain process with them, about as long with these settings. The dashboard keeps its task stream and
+memory plots (coarser); a worker over its memory limit is stopped within 1 s. A scheduler someone else runs
+keeps its own configuration."""
+
+WORKER_ENV = {"DASK_" + k.upper().replace(".", "__").replace("-", "_"): str(v) for k, v in WORKER_CONFIG.items()}
+
+
 class ClusterClient:
     """Context manager: a Dask client on an existing scheduler (``scheduler`` = its address), or on an
     embedded process-based LocalCluster with ``workers`` workers (default: one per core)."""
@@ -36,7 +54,15 @@ class ClusterClient:
         return self.client
 
     def _start(self, n: int) -> None:
-        """The embedded cluster with ``n`` workers (the dashboard has no authentication: loopback only)."""
+        """The embedded cluster with ``n`` workers (the dashboard has no authentication: loopback only), its
+        workers configured by :data:`WORKER_CONFIG`."""
+        import dask
+
+        with dask.config.set(WORKER_CONFIG), exported(WORKER_ENV):  # a LocalCluster's nannies pass on this
+            # process's config, a SubprocessCluster's processes read their environment
+            self._start_cluster(n)
+
+    def _start_cluster(self, n: int) -> None:
         if self.scheduler_process:
             # the service's scheduler in its own process (Dask's SubprocessCluster): it would otherwise share
             # the API's interpreter lock, and every task of every study would delay a status read. Its comms

@@ -119,6 +119,22 @@ class DaskMap:
     stall_s = 20.0
     """After this long without progress, check that the scheduler still knows every key being waited for."""
 
+    slots_s = 10.0
+    """How long the cluster's thread count (:meth:`slots`) is taken as known before it is asked again."""
+
+    def slots(self) -> int:
+        """Worker threads in the cluster: how many of a batch's tasks run at once (:class:`Submitted`). Asked of
+        the scheduler at most every ``slots_s`` (workers come and go with an adaptive cluster)."""
+        now = time.monotonic()
+        known = getattr(self, "_slots", None)
+        if known is None or now - known[1] > self.slots_s:
+            try:
+                n = sum(self.client.nthreads().values())
+            except Exception:  # noqa: BLE001 - no answer (a dropped connection): no limit, as before
+                n = 0
+            known = self._slots = (n or 1 << 20, now)
+        return known[0]
+
     def _submit(self, func, it, ch: int, step: Step | None, attempt: int):
         c = self.client
         sfx = f"-a{attempt}" if attempt else ""
@@ -148,21 +164,52 @@ class DaskMap:
         return self.submit(Batch(func, items, step)).result()
 
 
+EVEN_STEPS = ("warm", "burnin", "stationary")
+"""Steps whose chain tasks cost about the same (a round of the same number of draws per chain); a start
+optimisation's searches and the evidence's adaptive proposal draws do not."""
+
+
 class Submitted:
-    """One batch's tasks on the cluster, as an event loop tracks them: ``futures``, :meth:`done` when every
-    task has finished (or failed), :meth:`result` the results in chain order. A task the scheduler lost
-    (a worker killed at the wrong moment, a dropped scheduler connection) is submitted again under a new key
-    (suffix ``-a<attempt>``) by :meth:`recover`, which the loop calls when nothing has moved for
-    ``DaskMap.stall_s``."""
+    """One batch's tasks on the cluster, as an event loop tracks them: ``futures`` (those submitted so far),
+    :meth:`done` when every task has finished (or failed), :meth:`result` the results in chain order.
+
+    A batch of tasks of unequal cost (start optimisations, the evidence's adaptive proposal draws: not
+    :data:`EVEN_STEPS`) has at most as many tasks on the cluster at once as it has worker threads
+    (:meth:`DaskMap.slots`); the next is submitted as one finishes (:meth:`done` tops up). Dask places a
+    batch's few tasks on workers as they are submitted, half on each of two workers, and a worker whose
+    tasks finished early would idle while the other works through its queue; handed out one per free
+    thread they pack as a process pool packs them. A task the scheduler lost (a worker killed at the wrong moment, a
+    dropped scheduler connection) is submitted again under a new key (suffix ``-a<attempt>``) by
+    :meth:`recover`, which the loop calls when nothing has moved for ``DaskMap.stall_s``."""
 
     def __init__(self, dmap: DaskMap, batch: Batch):
         self.dmap, self.batch = dmap, batch
-        self.futures = [dmap._submit(batch.func, it, ch, batch.step, 0) for ch, it in enumerate(batch.items)]
-        self.attempts = [0] * len(self.futures)
+        n = len(batch.items)
+        # a round of every chain is the same number of draws: submitted at once, each worker has its next
+        # task at hand (a top-up costs a round trip through the driver)
+        even = batch.step is not None and batch.step.kind in EVEN_STEPS
+        self.slots = n if even else max(1, min(n, dmap.slots()))
+        self._futures: list = [None] * n
+        self.attempts = [0] * n
         self.since = time.monotonic()
+        self._top_up()
+
+    @property
+    def futures(self) -> list:
+        return [f for f in self._futures if f is not None]
+
+    def _top_up(self) -> None:
+        running = sum(f is not None and f.status not in ("finished", "error") for f in self._futures)
+        for i, f in enumerate(self._futures):
+            if running >= self.slots:
+                break
+            if f is None:
+                self._futures[i] = self.dmap._submit(self.batch.func, self.batch.items[i], i, self.batch.step, 0)
+                running += 1
 
     def done(self) -> bool:
-        return all(f.status in ("finished", "error") for f in self.futures)
+        self._top_up()
+        return all(f is not None and f.status in ("finished", "error") for f in self._futures)
 
     def stalled(self) -> bool:
         return time.monotonic() - self.since > self.dmap.stall_s
@@ -173,7 +220,7 @@ class Submitted:
         if not self.done():
             return None
         try:
-            return self.dmap.client.gather(self.futures)
+            return self.dmap.client.gather(self._futures)
         except CancelledError:
             return None
 
@@ -185,26 +232,34 @@ class Submitted:
         wait_connected(d.client)
         pending = [f for f in self.futures if f.status not in ("finished", "error")]
         known = d.client.run_on_scheduler(_known_keys, keys=[f.key for f in pending])
-        for i, f in enumerate(self.futures):
+        for i, f in enumerate(self._futures):
+            if f is None:
+                continue
             if f.status in ("lost", "cancelled") or (f.status == "pending" and not known.get(f.key, False)):
                 self.attempts[i] += 1
                 log.warning("task %s was lost (%s); submitting it again", f.key, f.status)
-                self.futures[i] = d._submit(self.batch.func, self.batch.items[i], i, self.batch.step,
-                                            self.attempts[i])
+                self._futures[i] = d._submit(self.batch.func, self.batch.items[i], i, self.batch.step,
+                                             self.attempts[i])
 
     def result(self) -> list:
         """Block until every task is done: the results in chain order."""
         from distributed import wait
 
         while True:
-            try:
-                wait(self.futures, timeout=self.dmap.stall_s, return_when="ALL_COMPLETED")
-            except (TimeoutError, CancelledError):
-                pass  # a stall or a dropped scheduler connection: both handled below
-            out = self.gather()
+            stalled = False
+            live = [f for f in self.futures if not f.done()]
+            if live:
+                try:
+                    wait(live, timeout=self.dmap.stall_s, return_when="FIRST_COMPLETED")
+                except TimeoutError:
+                    stalled = True
+                except CancelledError:
+                    pass  # a dropped scheduler connection: handled below
+            out = self.gather()  # tops up the batch as its tasks finish
             if out is not None:
                 return out
-            self.recover()
+            if stalled or all(f.done() for f in self.futures):
+                self.recover()  # nothing moved, or the results went with a dropped connection
 
 
 def _known_keys(dask_scheduler=None, keys=()):

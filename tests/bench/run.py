@@ -230,14 +230,13 @@ def bench_dask(tiny: bool = False) -> dict:
     """Scaling of chain throughput with workers, orchestration overhead, store size (M2, reference data)."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from distributed import Client, LocalCluster
-
     from ardflow.ardcore.evidence.evaluate import EvidenceEvaluator, EvidenceSettings
     from ardflow.ardcore.sampling.config import SamplerConfig
     from ardflow.ardcore.sampling.chains import executor_map
     from ardflow.ardcore.sampling.driver import Runtime, sample
     from ardflow.ardcore.likelihood.simulate import simulate_reference
     from ardflow.ardcore.selection.spec import load_spec
+    from ardflow.workers.cluster import ClusterClient
     from ardflow.workers.tasks import DaskMap
     from ardflow.workers.graph import StoredEvaluator, TrialSite
     from ardflow.workers.store import StudyStore
@@ -248,8 +247,7 @@ def bench_dask(tiny: bool = False) -> dict:
         SamplerConfig(n_chains=4, round_size=500, n_stationary=3000, n_proposal=2000)
     rates = {}
     for nw in (1, 2):
-        with LocalCluster(n_workers=nw, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
-                Client(cl) as c:
+        with ClusterClient(None, nw) as c:  # the cluster a study starts (its workers configured as they run there)
             sample(target, SamplerConfig(n_chains=4, round_size=50, n_stationary=50, n_proposal=50,
                                          min_burnin_rounds=1, max_burnin_rounds=1, max_stationary=50),
                    seed=0, runtime=Runtime(map_fn=DaskMap(c, f"warm{nw}")))
@@ -272,9 +270,7 @@ def bench_dask(tiny: bool = False) -> dict:
         t_in = time.perf_counter() - t0
     import tempfile
 
-    with tempfile.TemporaryDirectory() as d, \
-            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, \
-            Client(cl) as c:
+    with tempfile.TemporaryDirectory() as d, ClusterClient(None, 2) as c:
         store = StudyStore.create(Path(d) / "st", spec.model_dump(mode="json"), data)
         se = StoredEvaluator(cand.model_spec(), dict(cand.priors), data, EvidenceSettings(cfg),
                              site=TrialSite(c, store, "bench", "M2"))
