@@ -27,6 +27,9 @@ HEADLINE = [
     ("study_demo_efficiency", "... share of the cores' time spent in likelihoods (target 0.85)", "", ".2f"),
     ("study_full_s", "`--full` (paper-scale settings), wall time", "s", ".0f"),
     ("fresh_demo_s", "`make demo` on a clean clone (venv, install, cold kernel cache)", "s", ".0f"),
+    ("dask_overhead", "a trial through Dask and the store against the same trial in a process pool: extra time "
+                      "(target <= 0.05)", "", ".3f"),
+    ("dask_scaling_2w", "chain samples per second on 2 Dask workers over 1 (target >= 1.85)", "", ".2f"),
     ("ekf_m2_ms", "EKF log-likelihood of M2 on 5000 points", "ms", ".2f"),
     ("records_cost_ratio", "a likelihood on 4 records in one kernel call / 4 single-record calls (M2)", "", ".2f"),
     ("evidence_se_ratio", "reported evidence se / seed-to-seed spread (1 = honest)", "", ".2f"),

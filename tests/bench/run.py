@@ -260,26 +260,30 @@ def bench_dask(tiny: bool = False) -> dict:
     spec = load_spec(Path(__file__).resolve().parents[2] / "examples" / "sec35.json")
     cand = spec.models[0]
     data = simulate_reference(1)
-    with ProcessPoolExecutor(2) as ex:
-        mf = executor_map(ex)
-        ev = EvidenceEvaluator(cand.model_spec(), dict(cand.priors), data, EvidenceSettings(cfg),
-                               runtime=Runtime(map_fn=mf))
-        ev(psi, 11, None)  # warm the pool
-        t0 = time.perf_counter()
-        ev(psi, 12, None)
-        t_in = time.perf_counter() - t0
     import tempfile
 
-    with tempfile.TemporaryDirectory() as d, ClusterClient(None, 2) as c:
+    # the same trial (seed 12) in a plain process pool and through Dask and the store, in turns (a shared
+    # machine's speed drifts between runs): each one's median of ``repeats``
+    repeats = 1 if tiny else 3
+    t_in, t_dask = [], []
+    with ProcessPoolExecutor(2) as ex, tempfile.TemporaryDirectory() as d, ClusterClient(None, 2) as c:
+        ev = EvidenceEvaluator(cand.model_spec(), dict(cand.priors), data, EvidenceSettings(cfg),
+                               runtime=Runtime(map_fn=executor_map(ex)))
         store = StudyStore.create(Path(d) / "st", spec.model_dump(mode="json"), data)
         se = StoredEvaluator(cand.model_spec(), dict(cand.priors), data, EvidenceSettings(cfg),
                              site=TrialSite(c, store, "bench", "M2"))
+        ev(psi, 11, None)  # warm the pool and the workers
         se(psi, 11, None, iteration=0)
-        t0 = time.perf_counter()
-        _, _, res = se(psi, 12, None, iteration=1)
-        t_dask = time.perf_counter() - t0
+        for k in range(repeats):
+            t0 = time.perf_counter()
+            ev(psi, 12, None)
+            t_in.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            _, _, res = se(psi, 12, None, iteration=k + 1)  # a new trial of the store each time
+            t_dask.append(time.perf_counter() - t0)
         mb = _dir_mb(Path(d) / "st" / "models" / "M2" / "trials" / "001")
         n_samples = res.samples.shape[0] * res.samples.shape[1]
+    t_in, t_dask = float(np.median(t_in)), float(np.median(t_dask))
     print(f"  in-process {t_in:.1f} s, orchestrated {t_dask:.1f} s", flush=True)
     return {
         "dask_samples_per_s_1w": rates[1],
@@ -843,6 +847,33 @@ def states_ratio(report: dict) -> float | None:
     return max(got) if got else None
 
 
+def bench_states(tiny: bool = False) -> dict:
+    """What the state families cost on a long record: the loop on the validation set's sensor-lag record at
+    10,000 estimation samples (its truth a linear oscillator read through a first-order sensor, its user model
+    the plain oscillator). Keys: ``states_10k_ratio`` (:func:`states_ratio`: the hysteresis and sensor states'
+    time over the round's additions, laws and lags; issue target <= 2), ``states_10k_samples``,
+    ``states_10k_s`` (the loop's wall time), ``states_10k_forms`` (the states it added) and
+    ``states_10k_free_run`` (the reported model's free run on the test half)."""
+    from ardflow.ardcore.loop.config import DiagnoseConfig
+    from ardflow.ardcore.loop.diagnose import diagnose
+
+    from .validation import RECORDS
+
+    rec = RECORDS["sensor_lag"](n=800 if tiny else 20_000)
+    t0 = time.perf_counter()
+    # --tiny: the fit and the report only (no round runs the state families)
+    rep = diagnose(_tiny_spec(rec.spec) if tiny else rec.spec, rec.est, test_data=rec.test,
+                   config=DiagnoseConfig(max_rounds=0) if tiny else DiagnoseConfig(),
+                   progress=lambda m: print("    " + m, flush=True))
+    r = rep.report
+    ratio = states_ratio(r)
+    if ratio is None:  # no round ran the state families (--tiny runs none: its figures measure nothing)
+        ratio = 0.0 if tiny else float("nan")
+    return {"states_10k_ratio": ratio, "states_10k_samples": len(rec.est),
+            "states_10k_s": time.perf_counter() - t0, "states_10k_forms": [x.get("form") for x in r["replaced"]],
+            "states_10k_free_run": r["reported"]["free_run"]["rms_error"]}
+
+
 def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
     """The loop on the validation set (:mod:`tests.bench.validation`): each record from its plain user model,
     and the peers on the same split, in one run; and the regression gate.
@@ -968,7 +999,7 @@ def _save_partial(res: dict) -> None:
 BENCHES = {"ekf": bench_ekf, "records": bench_records, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "listing": bench_listing,
            "study": bench_study,
            "posterior": bench_posterior, "posterior_full": bench_posterior_full,
-           "loop": bench_loop, "validation": bench_validation, "fresh": bench_fresh}
+           "loop": bench_loop, "states": bench_states, "validation": bench_validation, "fresh": bench_fresh}
 
 
 CONTRACT = {
@@ -988,6 +1019,7 @@ CONTRACT = {
     "loop": ["loop_silverbox_multisine_mv", "loop_silverbox_arrow_mv", "loop_pendulum_rad",
              "loop_peer_best_multisine_mv", "loop_peer_pysindy_multisine_mv", "loop_peer_sysidentpy_multisine_mv",
              "loop_peer_narx_pendulum_rad"],
+    "states": ["states_10k_ratio", "states_10k_samples", "states_10k_s"],
     "validation": ["validation_records", "validation_loop_at_or_below_best_peer", "validation_added_on_clean",
                    "validation_regression_count",
                    *[k.format(r) for r in ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis",
