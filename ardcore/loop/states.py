@@ -351,6 +351,14 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
         say(f"  a {lag.kind} ({lag.term} -> {lag.target}): {why}")
         return None
     state = state_summary(row, lag)
+    if lag.kind == "hysteresis":
+        # the Bouc-Wen state acts on the model only through its coupling k: one whose 99 % interval holds 0
+        # changes nothing the data pin down (its shape then fits the noise), as an effect ARD would prune
+        name = names_of(lag)[1]
+        c = state["parameters"].get(name)
+        if c is None or not (c["q005"] > 0 or c["q995"] < 0):
+            say(f"  a hysteresis ({lag.term} -> {lag.target}): its coupling {name}'s 99 % interval holds 0")
+            return None
     say(f"  a state: {state['equation']} (ln BF {gain[k]:.1f})")
     record = {"parameter": "", "term": lag.term, "target": lag.target, "by": f"the state {state['name']}",
               "form": lag.kind, "log_bayes_factor": float(gain[k]), "state": state}

@@ -81,6 +81,7 @@ def test_nothing_is_added_without_an_undeclared_effect(seed):
     rep = diagnose(m2_spec(seed), simulate_reference(seed), config=DiagnoseConfig(top_k=2, max_rounds=1)).to_json()
     print(f"\n[clean seed {seed}] {rep['verdict']}")
     assert rep["added"] == []
+    assert rep["replaced"] == []  # no law in another form and no state (a lag, a sensor, a hysteresis) either
 
 
 def test_effect_outside_the_library_is_reported_unexplained():
