@@ -115,6 +115,7 @@ class DaskMap:
         self.client, self.prefix = client, prefix
         self.store, self.model, self.iteration = store, model, iteration
         self.coordinator = coordinator  # burn-in tasks report to the trial's coordinator actor
+        self._slots: tuple[int, float] | None = None  # (worker threads, when asked): :meth:`slots`
 
     stall_s = 20.0
     """After this long without progress, check that the scheduler still knows every key being waited for."""
@@ -126,7 +127,7 @@ class DaskMap:
         """Worker threads in the cluster: how many of a batch's tasks run at once (:class:`Submitted`). Asked of
         the scheduler at most every ``slots_s`` (workers come and go with an adaptive cluster)."""
         now = time.monotonic()
-        known = getattr(self, "_slots", None)
+        known = self._slots
         if known is None or now - known[1] > self.slots_s:
             try:
                 n = sum(self.client.nthreads().values())
@@ -178,8 +179,8 @@ class Submitted:
     (:meth:`DaskMap.slots`); the next is submitted as one finishes (:meth:`done` tops up). Dask places a
     batch's few tasks on workers as they are submitted, half on each of two workers, and a worker whose
     tasks finished early would idle while the other works through its queue; handed out one per free
-    thread they pack as a process pool packs them. A task the scheduler lost (a worker killed at the wrong moment, a
-    dropped scheduler connection) is submitted again under a new key (suffix ``-a<attempt>``) by
+    thread they pack as a process pool packs them. A task the scheduler lost (a worker killed at the wrong
+    moment, a dropped scheduler connection) is submitted again under a new key (suffix ``-a<attempt>``) by
     :meth:`recover`, which the loop calls when nothing has moved for ``DaskMap.stall_s``."""
 
     def __init__(self, dmap: DaskMap, batch: Batch):

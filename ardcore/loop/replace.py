@@ -35,6 +35,7 @@ import sympy as sp
 from ..effects.base import oscillator_pairs
 from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec, symbolic
+from ..model.priors import LogNormal
 from ..selection.spec import CandidateSpec
 from .confirm import Fit, essential_from_row, fit_task, warm_with
 from .freerun import fitted
@@ -136,21 +137,15 @@ class Form(NamedTuple):
     prior: object
 
 
-def _lognormal(median: float, lo: float, hi: float):
-    from ..model.priors import LogNormal
-
-    return LogNormal.spanning(median, lo, hi)
-
-
 def _power_prior(values: np.ndarray):
     lo, hi = POWER_RANGE
-    return _lognormal(1.0, lo, hi)
+    return LogNormal.spanning(1.0, lo, hi)
 
 
 def _saturation_prior(values: np.ndarray):
     """Saturation from a fifth of the term's largest size to five times it (far out: the declared law)."""
     top = float(np.nanmax(np.abs(values)))
-    return _lognormal(top, 0.2 * top, 5.0 * top) if top > 0 else None
+    return LogNormal.spanning(top, 0.2 * top, 5.0 * top) if top > 0 else None
 
 
 def _knee_prior(values: np.ndarray):
@@ -159,7 +154,7 @@ def _knee_prior(values: np.ndarray):
     q05, q50, q95 = np.nanquantile(values, [0.05, 0.5, 0.95])
     if not (q05 > 0 and q95 > q50 > 0):
         return None
-    return _lognormal(math.sqrt(0.01 * q50 * q95), 0.01 * q50, float(q95))
+    return LogNormal.spanning(math.sqrt(0.01 * q50 * q95), 0.01 * q50, float(q95))
 
 
 def _dead_zone_prior(values: np.ndarray):
@@ -167,7 +162,7 @@ def _dead_zone_prior(values: np.ndarray):
     q50, q95 = np.nanquantile(np.abs(values), [0.5, 0.95])
     if not q95 > q50 > 0:
         return None
-    return _lognormal(math.sqrt(0.01 * q50 * q95), 0.01 * q50, float(q95))
+    return LogNormal.spanning(math.sqrt(0.01 * q50 * q95), 0.01 * q50, float(q95))
 
 
 def _dead_zone_text(t: str, d: str, width: float) -> str:
