@@ -83,14 +83,26 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
     factor, calibration = 1.0, None
     if band.calibration is not None and band.refits:
         factor, calibration = calibrated_out_of_sample(spec, phi, band, init_samples, substeps)
-    ys = _predictive(spec, _scaled(band.draws, noise_parameters(spec), factor), data, out["start"], substeps, band.seed)
+    noise = noise_parameters(spec)
+    ys = _predictive(spec, _scaled(band.draws, noise, factor), data, out["start"], substeps, band.seed)
+    # the calibration's blocks are shorter than a test record can be: where more than 5 % of the draws diverge
+    # over its length the scale steps down (a band that holds the data by being infinite is no band). This reads
+    # the record's inputs and start, as every free run does, never the outputs the band is judged on
+    for f in sorted((x for x in BAND_FACTORS if x < factor), reverse=True):
+        if diverged(ys) <= 0.05:
+            break
+        factor = f
+        ys = _predictive(spec, _scaled(band.draws, noise, factor), data, out["start"], substeps, band.seed)
     if len(ys) >= 5:
-        lo, hi = np.quantile(ys, [0.05, 0.95], axis=0)
+        lo, hi = band_of(ys)
         y = out["y"]
         ok = np.isfinite(y)
+        wide = np.isfinite(hi - lo)
         out["band"] = (lo, hi)
         out["band_coverage"] = float(np.mean((y[ok] >= lo[ok]) & (y[ok] <= hi[ok])))
-        out["band_halfwidth_rms"] = float(np.sqrt(np.mean(((hi - lo) / 2) ** 2)))
+        out["band_expected"] = expected_coverage(ys)
+        out["band_diverged"] = diverged(ys)
+        out["band_halfwidth_rms"] = float(np.sqrt(np.mean(((hi[wide] - lo[wide]) / 2) ** 2))) if wide.any() else math.inf
         out["draws_rms_error"] = float(np.median([r["rms_error"] for r in sims]))
         out["n_draws"] = int(len(ys))
         out["band_factor"] = factor
@@ -116,6 +128,9 @@ def _joined(parts: list[dict], data: Dataset) -> dict:
     if all("band" in p for p in parts):
         out["band"] = tuple(np.concatenate([p["band"][i] for p in parts]) for i in (0, 1))
         out["band_coverage"] = float(np.sum(w * np.array([p["band_coverage"] for p in parts])))
+        # each record's expected range, weighted like its coverage (an approximation of the joined range)
+        out["band_expected"] = [float(x) for x in np.sum(w[:, None] * np.array([p["band_expected"] for p in parts]), 0)]
+        out["band_diverged"] = max(p["band_diverged"] for p in parts)
         out["band_halfwidth_rms"] = float(np.sqrt(np.sum(w * np.array([p["band_halfwidth_rms"] for p in parts]) ** 2)))
         out["draws_rms_error"] = float(np.sum(w * np.array([p["draws_rms_error"] for p in parts])))
         out["n_draws"] = min(p["n_draws"] for p in parts)
@@ -132,7 +147,8 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
     (:func:`moved_draws`, their spread widened as the refit saw less of the record), make the band from the
     block's start on. The coverage of the blocks together rises with the scale; the scale is where it reaches
     90 %, interpolated between the two neighbouring :data:`BAND_FACTORS` (the largest when none reaches it: an
-    honest band errs wide). Returns it and the coverage at the factors tried."""
+    honest band errs wide), and never one at which more than 5 % of a block's draws diverge (``diverges_at``:
+    the largest below it stands). Returns it and the coverage at the factors tried."""
     noise = noise_parameters(spec)
     if not noise:
         return 1.0, None
@@ -146,14 +162,14 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
         spread = math.sqrt(n / max(n - (b - a), 1))  # the refit saw the rest of the record only
         parts.append((pspec, part, k0, y, np.isfinite(y), moved_draws(band.draws, phi, q, noise, spread)))
     cover: dict = {}
-    chosen, below = max(BAND_FACTORS), None
+    chosen, below, ceiling = max(BAND_FACTORS), None, None
     for f in sorted(BAND_FACTORS):  # from the narrowest, until the band holds 90 %
         inside, seen = 0, 0
         for pspec, part, k0, y, ok, draws in parts:
             ys = _predictive(pspec, _scaled(draws, noise, f), part, k0, substeps, band.seed + 1)
-            if len(ys) < 5:
+            if len(ys) < 5 or diverged(ys) > 0.05:
                 break
-            lo, hi = np.quantile(ys, [0.05, 0.95], axis=0)
+            lo, hi = band_of(ys)
             inside += int(np.sum((y[ok] >= lo[ok]) & (y[ok] <= hi[ok])))
             seen += int(np.sum(ok))
         else:
@@ -162,10 +178,24 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
                 chosen = f if below is None else below[0] + (0.9 - below[1]) / (c - below[1]) * (f - below[0])
                 break
             below = (f, c)
+            continue
+        # more than 5 % of a block's draws diverge at this scale: a band that holds the data by being infinite is
+        # no band, so the largest scale below it stands
+        ceiling = f
+        chosen = below[0] if below is not None else min(BAND_FACTORS)
+        break
     if not cover:
         return 1.0, None
-    return float(chosen), {"held_out_blocks": [[int(a), int(b)] for a, b, _ in band.refits],
-                           "coverage": {f"{f:g}": c for f, c in cover.items()}, "out_of_sample": True}
+    out = {"held_out_blocks": [[int(a), int(b)] for a, b, _ in band.refits],
+           "coverage": {f"{f:g}": c for f, c in cover.items()}, "out_of_sample": True}
+    if ceiling is not None:
+        out["diverges_at"] = ceiling
+    return float(chosen), out
+
+
+def diverged(ys: np.ndarray) -> float:
+    """The share of predictive draws ``ys`` (draws x samples) that diverged somewhere."""
+    return float(np.mean(~np.all(np.isfinite(ys), axis=1))) if len(ys) else 0.0
 
 
 def moved_draws(draws: list, mean: dict, point: dict, noise: list, spread: float = 1.0) -> list:
@@ -186,14 +216,34 @@ def _scaled(draws: list, noise: list, factor: float) -> list:
 
 def _predictive(spec: ModelSpec, draws: list, data: Dataset, k0: int, substeps: int | None,
                 seed: int) -> np.ndarray:
-    """Posterior predictive draws from sample ``k0`` on (:func:`_predictive_one`); the finite ones, stacked."""
+    """Posterior predictive draws from sample ``k0`` on (:func:`_predictive_one`), stacked (draws x samples); a
+    draw that diverged holds non-finite values from where it did (:func:`band_of` counts it)."""
     rng = np.random.default_rng(seed)
-    out = []
-    for d in draws:
-        y = _predictive_one(spec, d, data, k0, substeps, rng)
-        if np.all(np.isfinite(y)):
-            out.append(y)
-    return np.array(out)
+    return np.array([_predictive_one(spec, d, data, k0, substeps, rng) for d in draws])
+
+
+def band_of(ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pointwise 5 % and 95 % quantiles of predictive draws ``ys`` (draws x samples). A draw that diverged is
+    beyond either bound from where it did, not dropped (dropping it would narrow the band of a model that
+    diverges): where more than 5 % of the draws have, the bound is infinite."""
+    fin = np.isfinite(ys)
+    # an interpolation that touches an infinite draw is NaN: the bound there is the infinite one
+    with np.errstate(invalid="ignore"):
+        lo = np.quantile(np.where(fin, ys, -np.inf), 0.05, axis=0)
+        hi = np.quantile(np.where(fin, ys, np.inf), 0.95, axis=0)
+    return np.where(np.isnan(lo), -np.inf, lo), np.where(np.isnan(hi), np.inf, hi)
+
+
+def expected_coverage(ys: np.ndarray) -> list[float]:
+    """The coverage the band's own model expects on one record: each predictive draw's share inside the band of
+    the others, its 5 %, 50 % and 95 % quantiles over the draws. A record's coverage varies a lot about 90 %
+    when its errors are slow (a lightly damped response holds few independent stretches); a coverage outside
+    this range is one the model did not expect."""
+    cover = []
+    for i in range(len(ys)):
+        lo, hi = band_of(np.delete(ys, i, axis=0))
+        cover.append(float(np.mean((ys[i] >= lo) & (ys[i] <= hi))))
+    return [float(x) for x in np.quantile(cover, [0.05, 0.5, 0.95])]
 
 
 def noise_parameters(spec: ModelSpec) -> list[str]:

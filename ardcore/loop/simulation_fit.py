@@ -34,6 +34,7 @@ from ..likelihood.ekf import compile_model
 from .config import LoopContext
 from .freerun import Band, free_run, moved_draws, noise_parameters, posterior_draws
 from .result import FittedModel
+from .verdict import expected_words
 from ..sampling.starts import fd_derivatives
 from ..model.declaration import ModelSpec
 
@@ -352,7 +353,8 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
                           for k in held.row.mean}}
     measure, figure = shown
     measured = measure["free_run"]
-    keep = ("rms_error", "relative_rms_error", "band_coverage", "band_halfwidth_rms", "band_factor", "n")
+    keep = ("rms_error", "relative_rms_error", "band_coverage", "band_expected", "band_diverged",
+            "band_halfwidth_rms", "band_factor", "n")
     rec["free_run"] = {k: measured[k] for k in keep if k in measured}
     sim, model = None, final
     if not config.simulation_factors:
@@ -384,7 +386,7 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
                            "band_calibration": fr.get("band_calibration"), "noise_factor": model_factor(sim)}
     figure["free_run"] = fr
     band = (f", its 90 % band (process noise x {fr['band_factor']:g}, calibrated on held-out blocks) holds "
-            f"{fr['band_coverage']:.0%}" if "band_coverage" in fr else "")
+            f"{fr['band_coverage']:.0%}{expected_words(fr)}" if "band_coverage" in fr else "")
     say(f"reported model: the structure at {model_factor(sim):g} x its posterior process noise; free-run RMS "
         f"error {fr['rms_error']:.4g} (posterior mean {measured['rms_error']:.4g}){band}")
     return rec, model

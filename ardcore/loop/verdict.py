@@ -248,3 +248,13 @@ def parameter_shifts(before: dict, after: ModelFit) -> dict:
         if sd > 0 and abs(after.mean[k] - m0) > SHIFT_Z * sd:
             out[k] = {"before": float(m0), "after": float(after.mean[k]), "z": abs(after.mean[k] - m0) / sd}
     return out
+
+
+def expected_words(fr: dict) -> str:
+    """`` (its own draws: 75-97 %)``: the coverage range the band's model expects (:func:`~.freerun.expected_coverage`),
+    and the share of its draws that diverged."""
+    e = fr.get("band_expected")
+    words = f" (its own draws: {e[0]:.0%}-{e[2]:.0%})" if e else ""
+    if fr.get("band_diverged"):
+        words += f", {fr['band_diverged']:.0%} of its draws diverged"
+    return words

@@ -11,7 +11,7 @@ import numpy as np
 
 from ardflow.ardcore.jsonio import number
 from ardflow.ardcore.loop.result import Diagnosis
-from ardflow.ardcore.loop.verdict import state_words
+from ardflow.ardcore.loop.verdict import expected_words, state_words
 
 from ardflow.service.reports.diagnosis_figures import plot_candidates, plot_free_run, plot_noise, plot_tests
 
@@ -31,8 +31,9 @@ ERRORS = [("innovation_rms", "one-step prediction error (innovation RMS)", "data
           ("free_run.relative_rms_error", "free-run RMS error / RMS of the data", ""),
           ("free_run.draws_rms_error", "free-run RMS error, median over posterior draws", "data"),
           ("free_run.band_coverage", "share of the data inside the 90 % posterior predictive band", "%"),
+          ("free_run.band_diverged", "share of the band's draws that diverged", "%"),
           ("free_run.band_halfwidth_rms", "the 90 % band's half-width (RMS)", "data"),
-          ("free_run.band_factor", "process-noise scale of the band (calibrated on the estimation record's end)", ""),
+          ("free_run.band_factor", "process-noise scale of the band (calibrated on held-out blocks of the estimation record)", ""),
           ("free_run.amplitude_error", "oscillation amplitude error (relative)", ""),
           ("free_run.frequency_error", "oscillation frequency error (relative)", ""),
           ("free_run.harmonic_error", "harmonic spectrum error (relative)", "")]
@@ -148,7 +149,7 @@ def _model_section(m: dict, unit: str, scales: dict) -> list[str]:
     fr = m.get("free_run") or {}
     f = m.get("noise_factor", 1.0)
     cover = (f"; {100 * fr['band_coverage']:.0f} % of the held-out data inside its 90 % band"
-             if isinstance(fr.get("band_coverage"), (int, float)) else "")
+             + html.escape(expected_words(fr)) if isinstance(fr.get("band_coverage"), (int, float)) else "")
     if f == 1.0:
         how = ("the posterior as sampled (its mean, its draws), at the process noise the evidence fitted"
                + (f"; {html.escape(m['chosen_by'])}" if "the posterior" in str(m.get("chosen_by", "")) else

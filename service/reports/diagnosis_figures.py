@@ -122,7 +122,10 @@ def plot_free_run(arrays: dict, out: Path, label=str) -> Path:
     a1.plot(t[z], y[z], "k", lw=0.9, label="data")
     for fr, name, st in runs:
         if "band" in fr:
-            a1.fill_between(fr["t"][z], fr["band"][0][z], fr["band"][1][z], color=st, alpha=0.15, lw=0,
+            # a bound made infinite by diverged draws is drawn at the edge of the data's range
+            edge = np.nanmax(np.abs(y[z] - np.nanmean(y[z]))) * 3 + np.abs(np.nanmean(y[z]))
+            a1.fill_between(fr["t"][z], np.clip(fr["band"][0][z], -edge, edge), np.clip(fr["band"][1][z], -edge, edge),
+                            color=st, alpha=0.15, lw=0,
                             label=f"90 % band, {name} ({100 * fr['band_coverage']:.0f} % of the record inside)")
         a1.plot(fr["t"][z], fr["y_free"][z], st, lw=0.8, label=f"free run, {name}")
     a1.set(xlabel=label("t"), ylabel=ylab,

@@ -880,7 +880,7 @@ def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
 
     Keys per record ``<r>``: ``loop_<r>_free_run`` (the reported model's free-run RMS error on the test
     record), ``loop_<r>_before`` (the user's model's), ``loop_<r>_band_coverage`` (the test data's share
-    inside the reported model's 90 % band), ``loop_<r>_s`` (the loop's wall time), ``loop_<r>_added`` and
+    inside the reported model's 90 % band) and ``loop_<r>_band_expected`` (the range its model expects), ``loop_<r>_s`` (the loop's wall time), ``loop_<r>_added`` and
     ``loop_<r>_replaced`` (what it did), ``loop_<r>_withheld`` (supported by the evidence, not taken by the
     held-out criterion), ``loop_<r>_verdict`` (``found``, ``nothing`` or ``other``: :func:`validation.verdict`),
     ``peer_<p>_<r>`` for the tuned linear ARX and polynomial NARX, SysIdentPy and PySINDy, ``peer_best_<r>`` the
@@ -931,6 +931,7 @@ def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
         out[f"loop_{name}_free_run"] = r["reported"]["free_run"]["rms_error"]
         out[f"loop_{name}_before"] = r["before"]["free_run"]["rms_error"]
         out[f"loop_{name}_band_coverage"] = r["reported"]["free_run"].get("band_coverage")
+        out[f"loop_{name}_band_expected"] = r["reported"]["free_run"].get("band_expected")
         out[f"loop_{name}_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
         out[f"loop_{name}_replaced"] = [f"{x['state']['term']} -> {x['by']}" if x.get("state") else
                                         f"{x['parameter']}*({x['term']}) -> {x['by']}" for x in r["replaced"]]

@@ -1,0 +1,80 @@
+"""The free run's 90 % posterior predictive band (ardcore.loop.freerun): its bounds, the coverage its own model
+expects, and draws that diverge."""
+
+import numpy as np
+import pytest
+
+from ardflow.ardcore.data import Dataset
+from ardflow.ardcore.likelihood.simulate import simulate_model
+from ardflow.ardcore.loop.freerun import (Band, _predictive, _scaled, band_of, calibrated_out_of_sample, diverged,
+                                          expected_coverage, free_run)
+from ardflow.ardcore.model.declaration import ModelSpec
+from ardflow.ardcore.selection.initial import recentred
+
+
+def test_the_band_is_the_draws_5_and_95_percent_quantiles():
+    ys = np.random.default_rng(0).standard_normal((4000, 30))
+    lo, hi = band_of(ys)
+    assert np.allclose(lo, -1.645, atol=0.1) and np.allclose(hi, 1.645, atol=0.1)
+
+
+def test_a_diverged_draw_counts_beyond_the_band_not_dropped():
+    """Ten of 100 draws diverge half-way: from there more than 5 % are beyond either bound, so both bounds are
+    infinite (dropping them would leave a finite band that claims 90 % of a model that diverges); before it the
+    band is the finite draws'."""
+    ys = np.random.default_rng(1).standard_normal((100, 40))
+    ys[:10, 20:] = np.nan
+    ys[:10, 30:] = np.inf
+    lo, hi = band_of(ys)
+    assert np.all(np.isfinite(lo[:20])) and np.all(np.isfinite(hi[:20]))
+    assert np.all(lo[20:] == -np.inf) and np.all(hi[20:] == np.inf)
+    assert diverged(ys) == pytest.approx(0.1)
+    # three of 100: fewer than 5 %, the bounds stay finite
+    ys[3:10] = np.random.default_rng(2).standard_normal((7, 40))
+    lo, hi = band_of(ys)
+    assert np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))
+
+
+def test_the_expected_coverage_of_independent_draws_is_90_percent():
+    """Each draw inside the band of the others: for independent samples (white errors) about 90 % with little
+    spread; for slow errors (a random walk: few independent stretches) a range from under half to all of the
+    record, which is why one record's coverage can sit well outside 80-97 % under a right model."""
+    rng = np.random.default_rng(3)
+    white = expected_coverage(rng.standard_normal((400, 500)))
+    assert white[1] == pytest.approx(0.9, abs=0.01) and white[2] - white[0] < 0.06
+    slow = expected_coverage(np.cumsum(rng.standard_normal((400, 500)), axis=1))
+    assert slow[0] < 0.6 and slow[2] == 1.0
+
+
+def _bistable() -> ModelSpec:
+    """x' = -x + a x^3: stable about 0 within |x| < 1/sqrt(a), beyond it the state diverges; a process noise
+    sigma kicks it over that edge at a rate that grows steeply with sigma."""
+    return ModelSpec(name="bistable_band", states=["x"], inputs=[], drift={"x": "-x + a*x**3"},
+                     diffusion={"x": "sigma"}, observations=[{"column": "y", "expr": "x", "noise_std": "0.002"}],
+                     parameters=["a", "sigma"], initial_std={"x": 0.1})
+
+
+def test_the_band_never_takes_a_noise_scale_at_which_its_draws_diverge():
+    """The data (a linear Ornstein-Uhlenbeck process, noise 0.3) move more than the model's draws (noise 0.05):
+    on short blocks of the estimation record its band needs a process-noise scale of several times to hold
+    90 %. Over the test record, 25 times longer, that scale kicks many draws over the model's edge and they
+    diverge: the band steps its scale down until at most 5 % do, and stays finite."""
+    spec = _bistable()
+    truth = spec.model_copy(update={"name": "ou_band", "drift": {"x": "-x"}, "parameters": ["sigma"]}).revalidate()
+    dt = 0.02
+    est = simulate_model(truth, {"sigma": 0.3}, np.arange(3000) * dt, 4, x0=[0.0])
+    test = simulate_model(truth, {"sigma": 0.3}, np.arange(5000) * dt, 5, x0=[0.0])
+    est, test = (Dataset(d.t, {"y": d.columns["y"]}, {}) for d in (est, test))
+    rng = np.random.default_rng(6)
+    draws = [{"a": float(1.0 + 0.02 * rng.standard_normal()), "sigma": 0.05} for _ in range(40)]
+    phi = {"a": 1.0, "sigma": 0.05}
+    band = Band(draws, calibration=est, seed=7, refits=((0, 200, phi), (1400, 1600, phi), (2800, 3000, phi)))
+    calibrated, record = calibrated_out_of_sample(spec, phi, band, 50, None)
+    assert calibrated > 2.0, record
+    pspec = recentred(spec, test)[0]
+    ys = _predictive(pspec, _scaled(draws, ["sigma"], calibrated), test, 50, None, band.seed)
+    assert diverged(ys) > 0.05  # at the blocks' scale the long test record's draws diverge
+    fr = free_run(spec, phi, test, band=band)
+    assert fr["band_factor"] < calibrated and fr["band_diverged"] <= 0.05
+    assert np.all(np.isfinite(fr["band"][0])) and np.all(np.isfinite(fr["band"][1]))
+    assert 0.0 <= fr["band_expected"][0] <= fr["band_expected"][1] <= fr["band_expected"][2] <= 1.0
