@@ -308,7 +308,9 @@ def _free_run_one(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: in
     y, yh = rest.columns[col], H[:, 0]
     err = yh - y
     fs = 1.0 / float(np.median(np.diff(rest.t)))
-    out = {"n": int(y.size), "start": int(k0), "rms_error": float(np.sqrt(np.nanmean(err ** 2))),
+    with np.errstate(over="ignore", invalid="ignore"):  # a diverging run's error is infinite, said as such
+        rms = float(np.sqrt(np.nanmean(err ** 2)))
+    out = {"n": int(y.size), "start": int(k0), "rms_error": rms,
            "rms_data": float(np.sqrt(np.nanmean((y - np.nanmean(y)) ** 2))),
            "t": rest.t, "y": y, "y_free": yh}
     out["relative_rms_error"] = out["rms_error"] / out["rms_data"] if out["rms_data"] > 0 else float("nan")

@@ -880,9 +880,9 @@ def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
 
     Keys per record ``<r>``: ``loop_<r>_free_run`` (the reported model's free-run RMS error on the test
     record), ``loop_<r>_before`` (the user's model's), ``loop_<r>_band_coverage`` (the test data's share
-    inside the reported model's 90 % band) and ``loop_<r>_band_expected`` (the range its model expects), ``loop_<r>_s`` (the loop's wall time), ``loop_<r>_added`` and
-    ``loop_<r>_replaced`` (what it did), ``loop_<r>_withheld`` (supported by the evidence, not taken by the
-    held-out criterion), ``loop_<r>_verdict`` (``found``, ``nothing`` or ``other``: :func:`validation.verdict`),
+    inside the reported model's 90 % band), ``loop_<r>_band_expected`` (the range its model expects),
+    ``loop_<r>_s`` (the loop's wall time), ``loop_<r>_added`` and ``loop_<r>_replaced`` (what it did),
+    ``loop_<r>_withheld`` (supported by the evidence, not taken by the held-out criterion), ``loop_<r>_verdict`` (``found``, ``nothing`` or ``other``: :func:`validation.verdict`),
     ``peer_<p>_<r>`` for the tuned linear ARX and polynomial NARX, SysIdentPy and PySINDy, ``peer_best_<r>`` the
     best of them; and the summary ``validation_loop_at_or_below_best_peer`` (records with an input where the
     loop's free run is at or below the best peer's; a self-excited LCO's free run loses its phase, so its
