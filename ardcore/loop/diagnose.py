@@ -188,7 +188,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             if move is None and config.states:
                 # the term families left what they cannot take up: the states that could hold it
                 t_states = time.perf_counter()
-                extra = best_state(ctx, held, ("hysteresis", "sensor"))
+                extra = best_state(ctx, held, ("hysteresis", "sensor", "mode"))
                 if extra is not None:
                     move, more = decide(ctx, crit, held, extra, [], [], rec)
                     judged_round["moves"] += more["moves"]
@@ -288,9 +288,10 @@ def _present(rounds: list[LoopRound]) -> set:
 
 
 def _closed(rounds: list[LoopRound]) -> set:
-    """The states added with an equation of fixed form (a hysteresis, a sensor): the screen leaves them alone."""
-    return {x["state"]["name"] for r in rounds for x in r.record.get("replaced", [])
-            if x.get("state") and x["state"]["kind"] != "lag"}
+    """The states added with an equation of fixed form (a hysteresis, a sensor, a mode): the screen leaves them
+    alone."""
+    return {n for r in rounds for x in r.record.get("replaced", []) if x.get("state") and x["state"]["kind"] != "lag"
+            for n in x["state"].get("states", [x["state"]["name"]])}
 
 
 def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rounds: list[LoopRound]) -> tuple[LoopRound, list, list]:

@@ -19,8 +19,8 @@ width centred on zero (a lag turns the law's phase, so a sign chosen for the qua
 binds), and its ARD terms are selected again. A quantity already acting through a lag (a state ``s`` whose
 drift holds ``g (D - s)``, the rate ``g`` a parameter: M2's ``B (P - CM)``) is not offered again.
 
-**A hysteresis** and **a sensor** (only when the loop would stop: the term families left structure they
-cannot take up). For an oscillator ``x' = v``, a Bouc-Wen state in the velocity's equation::
+**A hysteresis**, **a sensor** and **a second mode** (only when the loop would stop: the term families left
+structure they cannot take up). For an oscillator ``x' = v``, a Bouc-Wen state in the velocity's equation::
 
     v' = ... + k z,    z' = v - beta |v| z - gamma v |z|
 
@@ -29,6 +29,14 @@ displacement's spread, ``gamma`` normal around 0 at that size, ``k`` normal arou
 velocity equation's own drift over the displacement). For a measured state, the sensor's own first-order
 dynamics: the measurement reads ``m``, ``m' = b (h - m)`` (``h`` the declared measurement expression, ``b`` as a
 lag's rate but a tenth to a hundred times the dominant frequency: a sensor is faster than what it measures).
+For an oscillator ``x' = v``, a second mode: a mass on a spring and damper attached to it (a secondary structure,
+a sloshing or a flexible part), two states ``q, dq``::
+
+    q' = dq,   dq' = -f,   v' = ... + mu f,   f = w^2 (q - x) + 2 zeta w (dq - v)
+
+(``w`` its angular frequency, lognormal over a tenth to ten times the record's dominant one; ``zeta`` its damping
+ratio, lognormal from 0.5 % to 50 %; ``mu`` the mass ratio that couples it back, normal around 0 at 1: an effect's
+coefficient, taken only when its 99 % interval excludes 0).
 """
 
 from __future__ import annotations
@@ -106,10 +114,23 @@ def lags(spec: ModelSpec) -> list[Lag]:
     return out
 
 
+def _oscillators(spec: ModelSpec) -> list[tuple[str, str]]:
+    """The oscillators (position, velocity) of ``spec`` but those a second mode added: a state of fixed form
+    takes nothing more (a mode of a mode, or its hysteresis, is a basis expansion, not a missing effect)."""
+    pairs = oscillator_pairs(spec)
+    added = {n for x, v in pairs for n in names_of(Lag(x, v, "mode"))[:2]}
+    return [(x, v) for x, v in pairs if x not in added]
+
+
 def hystereses(spec: ModelSpec) -> list[Lag]:
     """A Bouc-Wen state for each oscillator (position, velocity) that has none yet."""
-    return [Lag(x, v, "hysteresis") for x, v in oscillator_pairs(spec) if names_of(Lag(x, v, "hysteresis"))[0]
+    return [Lag(x, v, "hysteresis") for x, v in _oscillators(spec) if names_of(Lag(x, v, "hysteresis"))[0]
             not in spec.states]
+
+
+def modes(spec: ModelSpec) -> list[Lag]:
+    """A second mode for each oscillator (position, velocity) that has none yet."""
+    return [Lag(x, v, "mode") for x, v in _oscillators(spec) if names_of(Lag(x, v, "mode"))[0] not in spec.states]
 
 
 def sensors(spec: ModelSpec) -> list[Lag]:
@@ -127,12 +148,16 @@ def sensors(spec: ModelSpec) -> list[Lag]:
 
 def names_of(move: Lag) -> tuple[str, ...]:
     """The new state and its parameters, named after what they act on: a lag's (state, rate, feedthrough), a
-    hysteresis' (state, coupling, beta, gamma), a sensor's (state, rate)."""
+    hysteresis' (state, coupling, beta, gamma), a sensor's (state, rate), a mode's (its two states, frequency,
+    damping ratio, mass ratio)."""
     if move.kind == "hysteresis":
         x = move.term
         names = (f"hys_{x}", f"k_hys_{x}", f"beta_{x}", f"gamma_{x}")
     elif move.kind == "sensor":
         names = (f"sensor_{move.target}", f"b_sensor_{move.target}")
+    elif move.kind == "mode":
+        x = move.term
+        names = (f"mode_{x}", f"dmode_{x}", f"w_mode_{x}", f"z_mode_{x}", f"mu_mode_{x}")
     else:
         names = (f"lag_{move.term}", f"b_{move.term}", f"k_{move.term}")
     # short enough that the loop's own names built on them (q_diag_<state>) stay within 32 characters
@@ -159,6 +184,13 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
         _, b = new
         drift[z] = f"{b}*(({lag.term}) - {z})"
         observations = [o.model_copy(update={"expr": z}) if o.column == lag.target else o for o in observations]
+    elif lag.kind == "mode":
+        q, dq, w, zeta, mu = new
+        x, v = lag.term, lag.target
+        force = f"({w}**2*({q} - {x}) + 2*{zeta}*{w}*({dq} - {v}))"
+        drift[v] = f"({drift[v]}) + {mu}*{force}"
+        drift[q] = dq
+        drift[dq] = f"-{force}"
     else:
         _, b, k = new
         drift = {s: _words(text, lag.term, z) for s, text in drift.items()}
@@ -172,12 +204,15 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
                 diffusion.pop(lag.target)
                 diffusion[z] = str(level)
         drift[z] = f"{b}*({lag.term} - {z}) + {k}*({drift[lag.target]})"
+    states = [z] if lag.kind != "mode" else list(new[:2])
+    # a mode starts with the oscillator (q at x's start, dq at rest), as uncertain as the new state's start says
+    mean = {z: float(start[0])} if lag.kind != "mode" else {new[0]: float(start[0]), new[1]: 0.0}
+    std = {n: float(start[1]) for n in states}
     return spec.model_copy(update={
-        "name": short_name(f"{spec.name}_{lag.kind[:3]}"), "states": list(spec.states) + [z], "drift": drift,
+        "name": short_name(f"{spec.name}_{lag.kind[:3]}"), "states": list(spec.states) + states, "drift": drift,
         "derived": derived, "diffusion": diffusion, "observations": observations,
-        "parameters": list(spec.parameters) + list(new[1:]),
-        "initial_mean": {**spec.initial_mean, z: float(start[0])},
-        "initial_std": {**spec.initial_std, z: float(start[1])}}).revalidate()
+        "parameters": list(spec.parameters) + list(new[len(states):]),
+        "initial_mean": {**spec.initial_mean, **mean}, "initial_std": {**spec.initial_std, **std}}).revalidate()
 
 
 def dominant_rate(y: np.ndarray, dt: float) -> float:
@@ -262,6 +297,12 @@ def lag_candidate(current: Fit, lag: Lag, at: Along | None = None) -> CandidateS
         priors[k] = Normal(mean=0.0, sd=sd_acc / sd_d)
         priors[beta] = _lognormal(1.0 / sd_d, RATE_SPAN)
         priors[gamma] = Normal(mean=0.0, sd=1.0 / sd_d)
+    elif lag.kind == "mode":
+        spec = lag_spec(ms, lag, (float(d[0]), sd_d))
+        _, _, w, zeta, mu = new
+        priors[w] = _lognormal(rate, RATE_SPAN)
+        priors[zeta] = LogNormal.spanning(0.05, 0.005, 0.5)
+        priors[mu] = Normal(mean=0.0, sd=1.0)
     elif lag.kind == "sensor":
         y0 = float(np.asarray(cols[lag.target], float)[0])
         spec = lag_spec(ms, lag, (y0 if np.isfinite(y0) else float(d[0]), 0.1 * sd_d))
@@ -302,14 +343,28 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
         eq = f"{z}' = {v} - {new[2]}*|{v}|*{z} - {new[3]}*{v}*|{z}|, {new[1]}*{z} in the {v} equation"
     elif lag.kind == "sensor":
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the measurement {lag.target} reads {z}"
+    elif lag.kind == "mode":
+        q, dq, w, zeta, mu = new
+        x, v = lag.term, lag.target
+        f = f"{w}^2*({q} - {x}) + 2*{zeta}*{w}*({dq} - {v})"
+        eq = f"{q}' = {dq}, {dq}' = -({f}), {mu}*({f}) in the {v} equation"
     else:
         eq = f"{z}' = {new[1]}*({lag.term} - {z}) + {new[2]}*{lag.target}'"
+    states = new[:2] if lag.kind == "mode" else new[:1]
     out = {"name": z, "kind": lag.kind, "term": lag.term, "target": lag.target, "equation": eq,
-           "parameters": {n: shape_summary(row, n) for n in new[1:] if n in row.mean}}
+           "states": list(states), "parameters": {n: shape_summary(row, n) for n in new[len(states):] if n in row.mean}}
     if lag.kind in ("lag", "sensor") and new[1] in row.mean:
         r = out["parameters"][new[1]]
         out["time_constant"] = {"mean": 1.0 / r["mean"], "q005": 1.0 / r["q995"], "q995": 1.0 / r["q005"]}
+    if lag.kind == "mode" and new[2] in row.mean:
+        r = out["parameters"][new[2]]
+        out["frequency"] = {k: r[k] / (2 * math.pi) for k in ("mean", "q005", "q995")}
     return out
+
+
+COUPLING = {"hysteresis": 1, "mode": 4}
+"""The parameter (its place in :func:`names_of`) through which a state of fixed form acts on the model: its
+coupling, an effect's coefficient whose 99 % interval must exclude 0."""
 
 
 def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
@@ -324,7 +379,7 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
 
     config, say = ctx.config, ctx.say
     ms = current.cand.model_spec()
-    offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors}
+    offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors, "mode": modes}
     offered, tasks = [], []
     moves = [m for kind in kinds for m in offer[kind](ms)]
     at = along(current) if moves else None
@@ -351,13 +406,13 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
         say(f"  a {lag.kind} ({lag.term} -> {lag.target}): {why}")
         return None
     state = state_summary(row, lag)
-    if lag.kind == "hysteresis":
-        # the Bouc-Wen state acts on the model only through its coupling k: one whose 99 % interval holds 0
-        # changes nothing the data pin down (its shape then fits the noise), as an effect ARD would prune
-        name = names_of(lag)[1]
+    if lag.kind in COUPLING:
+        # a Bouc-Wen state or a second mode acts on the model only through its coupling: one whose 99 % interval
+        # holds 0 changes nothing the data pin down (its shape then fits the noise), as an effect ARD would prune
+        name = names_of(lag)[COUPLING[lag.kind]]
         c = state["parameters"].get(name)
         if c is None or not (c["q005"] > 0 or c["q995"] < 0):
-            say(f"  a hysteresis ({lag.term} -> {lag.target}): its coupling {name}'s 99 % interval holds 0")
+            say(f"  a {lag.kind} ({lag.term} -> {lag.target}): its coupling {name}'s 99 % interval holds 0")
             return None
     say(f"  a state: {state['equation']} (ln BF {gain[k]:.1f})")
     record = {"parameter": "", "term": lag.term, "target": lag.target, "by": f"the state {state['name']}",

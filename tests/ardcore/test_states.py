@@ -84,3 +84,27 @@ def test_a_hysteresis_and_a_sensor_are_offered_on_an_oscillator_and_built_as_dec
     assert s.observations[0].expr == m and s.drift[m] == f"b_sensor_{col}*(({osc.observations[0].expr}) - {m})"
     # once read through a sensor and given a hysteresis, neither is offered again
     assert sensors(s) == [] and hystereses(h) == [] and offered == []
+
+
+def test_a_second_mode_is_a_mass_on_a_spring_and_damper_and_is_offered_once():
+    """The mode built on the forced linear oscillator is the two-degree-of-freedom system it stands for: with the
+    mass ratio mu, the oscillator's equation gains mu times the force its spring and damper pass to the mode,
+    the mode's own equation loses that force; a mode is offered once, and neither a mode nor a hysteresis of the
+    mode's own oscillator is offered after it."""
+    from ardflow.ardcore.loop.states import hystereses, modes
+    from ardflow.ardcore.model.library import builtin
+
+    osc = builtin("forced_linear_oscillator")
+    x, v = osc.states[:2]
+    assert modes(osc) == [Lag(x, v, "mode")]
+    m = lag_spec(osc, modes(osc)[0], (0.3, 0.5))
+    q, dq = m.states[-2:]
+    assert (q, dq) == (f"mode_{x}", f"dmode_{x}") and m.parameters[-3:] == [f"w_mode_{x}", f"z_mode_{x}", f"mu_mode_{x}"]
+    assert m.initial_mean[q] == 0.3 and m.initial_mean[dq] == 0.0 and m.initial_std[dq] == 0.5
+    sm = symbolic(m.with_fixed(**{f"w_mode_{x}": 9.0, f"z_mode_{x}": 0.03, f"mu_mode_{x}": 0.3}))
+    X, V, Q, DQ = (sp.Symbol(n, real=True) for n in (x, v, q, dq))
+    force = 81 * (Q - X) + 2 * 0.03 * 9 * (DQ - V)
+    base = symbolic(osc).drift[1]
+    assert sp.simplify(sm.drift[1] - base - 0.3 * force) == 0
+    assert sm.drift[2] == DQ and sp.simplify(sm.drift[3] + force) == 0
+    assert modes(m) == [] and hystereses(m) == [Lag(x, v, "hysteresis")]

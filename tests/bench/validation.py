@@ -184,6 +184,17 @@ def sensor_lag(n: int = 4000, seed: int = 18) -> Record:
                   ("form:sensor",))
 
 
+def second_mode(n: int = 4000, seed: int = 19) -> Record:
+    u = _noise_input(np.random.default_rng(seed), n)
+    force = "(w**2*(q - y) + 2*z*w*(dq - v))"
+    truth = _truth(f"-k*y - c*v + mu*{force} + b*u", ["k", "c", "b", "mu", "w", "z", "sigma"], 2e-3,
+                   states=("y", "v", "q", "dq"), drift_extra={"q": "dq", "dq": f"-{force}"})
+    spec, data = _against_linear("second_mode", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "mu": 0.3, "w": 9.0,
+                                                        "z": 0.03, "sigma": 0.3}, u, seed)
+    return _split("second_mode", spec, data, True, False,
+                  "a second mode: a mass (ratio 0.3) on a spring and damper at 9 rad/s", ("form:mode",))
+
+
 def none(n: int = 4000, seed: int = 16) -> Record:
     u = _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*u", ["k", "c", "b", "sigma"], 2e-3)
@@ -329,7 +340,8 @@ def _lco_maker(name):
 
 
 RECORDS = {"cascade": cascade, "duffing": duffing, "friction": friction, "saturation": saturation,
-           "backlash": backlash, "hysteresis": hysteresis, "sensor_lag": sensor_lag, "none": none,
+           "backlash": backlash, "hysteresis": hysteresis, "sensor_lag": sensor_lag, "second_mode": second_mode,
+           "none": none,
            "tanks_linear": lambda n=None, seed=None: tanks("linear"), "tanks_sqrt": lambda n=None, seed=None: tanks("sqrt"),
            **{k: _lco_maker(k) for k in LCO_EFFECTS}, "lco_quasi_steady": lco_quasi_steady}
 """Every validation record by name (each a function of the record length and seed)."""
