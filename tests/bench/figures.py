@@ -82,8 +82,8 @@ def publish(results: dict, command: str, machine: dict, path: Path = FIGURES) ->
     path.write_text(json.dumps(figs, indent=1, sort_keys=True) + "\n")
 
 
-VALIDATION = ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis", "sensor_lag", "none",
-              "tanks_linear", "tanks_sqrt", "lco_none", "lco_even_stiffness", "lco_odd_stiffness", "lco_cubic_damping",
+VALIDATION = ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis", "sensor_lag", "second_mode",
+              "none", "tanks_linear", "tanks_sqrt", "lco_none", "lco_even_stiffness", "lco_odd_stiffness", "lco_cubic_damping",
               "lco_quadratic_damping", "lco_gust", "lco_quasi_steady")
 """The validation set's records (:mod:`tests.bench.validation`), in the table's order."""
 def _validation_key(k: str) -> bool:

@@ -1024,7 +1024,7 @@ CONTRACT = {
     "validation": ["validation_records", "validation_loop_at_or_below_best_peer", "validation_added_on_clean",
                    "validation_regression_count",
                    *[k.format(r) for r in ("cascade", "duffing", "friction", "saturation", "backlash", "hysteresis",
-                                           "sensor_lag", "none")
+                                           "sensor_lag", "second_mode", "none")
                      for k in ("loop_{}_free_run", "peer_best_{}", "loop_{}_s")]],
     "fresh": ["fresh_demo_s", "fresh_demo_evaluations"],
 }
