@@ -399,7 +399,8 @@ def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], a
     out["verdict"] = (("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
                                                   f"{x['log_bayes_factor']:.1f}"
                                                   + (f", {x['character']}" if x.get("character") else "") + ")"
-                                                  for x in added) if added else "nothing added")
+                                                  for x in added) if added else
+                        "no effect added" if replaced else "nothing added")
                       + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
                       f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
                       f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
