@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 from dataclasses import dataclass
 
@@ -308,7 +309,8 @@ def _free_run_one(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: in
     y, yh = rest.columns[col], H[:, 0]
     err = yh - y
     fs = 1.0 / float(np.median(np.diff(rest.t)))
-    with np.errstate(over="ignore", invalid="ignore"):  # a diverging run's error is infinite, said as such
+    with np.errstate(over="ignore", invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a run that diverged everywhere: its error is NaN, said so
         rms = float(np.sqrt(np.nanmean(err ** 2)))
     out = {"n": int(y.size), "start": int(k0), "rms_error": rms,
            "rms_data": float(np.sqrt(np.nanmean((y - np.nanmean(y)) ** 2))),
