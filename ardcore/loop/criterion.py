@@ -19,8 +19,7 @@ law, drop a term, stop) is decided here, by one number computed in one place:
   (:func:`no_worse`);
 * of several moves that improve, one that another free-runs better on every block is out; between the rest
   the blocks disagree and the evidence picks (:meth:`Criterion.choose`);
-* a measurement-noise level changes what the filter trusts, not the dynamics: it must free-run no worse, and
-  it is taken only when no move that free-runs better qualifies (its evidence says nothing about the dynamics);
+* a measurement-noise level changes what the filter trusts, not the dynamics: it must free-run no worse;
 * the loop **stops** when no move the evidence supports improves the score.
 
 The evidence proposes, the held-out free run decides: a stand-in that the evidence supports but that
@@ -172,8 +171,7 @@ class Criterion:
         ``current`` (a fit), and every move's score. A move qualifies when it :func:`improves` on the current
         model, a nuisance (a measurement-noise level, which changes what the filter trusts and not the
         dynamics) when it is :func:`no_worse`. Of those that qualify, one that another free-runs better on
-        every block (:func:`dominates`) is out: the held-out data prefer the other. A nuisance is taken only when
-        no other move qualifies (it free-runs no worse, the others better). Between the rest the blocks
+        every block (:func:`dominates`) is out: the held-out data prefer the other. Between the rest the blocks
         disagree, so the held-out data cannot tell them apart and the evidence decides (the highest ln Z, its
         Occam factor charging each its parameters). None when none qualifies; on a record too short to hold a
         block out, the move with the highest evidence."""
@@ -185,10 +183,6 @@ class Criterion:
         if cur.errors or cur.failed is not None:  # else too short to hold a block out: the evidence alone decides
             ok = [i for i, (s, m) in enumerate(zip(sc, moves)) if (no_worse if m[1] else improves)(s, cur)]
         front = [i for i in ok if not any(dominates(sc[j], sc[i]) for j in ok if j != i)]
-        # a move that free-runs better outranks a nuisance that only free-runs no worse: the evidence of a
-        # measurement-noise level (thousands of nats where the declared level is far off) rescales the whole
-        # likelihood and says nothing about the dynamics, so it never outbids a move the held-out data prefer
-        front = [i for i in front if not moves[i][1]] or front
         if not front:
             return None, sc
         return max(front, key=lambda i: moves[i][0].row.log_evidence), sc
@@ -327,7 +321,7 @@ def held_out_record(config: DiagnoseConfig, judged: list[dict], final) -> dict:
             "moves": judged,
             "rule": f"a move is taken when the evidence supports it and its model free-runs the held-out blocks "
                     f"better (their mean log error ratio by more than {100 * FREE_RUN_TOLERANCE:g} %, the loudest no "
-                    "worse; a measurement-noise level: no worse, and only when no other move qualifies); of "
+                    "worse); of "
                     "several, the one with the highest evidence among those no other free-runs better on every block; "
                     "the loop stops when no move does",
             "blocks": {b: list(v) for b, v in final.held.blocks.items()} if final.held else None}

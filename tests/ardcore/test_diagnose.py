@@ -493,32 +493,3 @@ def test_a_replaced_law_changes_form_exactly():
     assert "sat_a" not in power.parameters and "e_a" in power.parameters
     for a, b in zip(symbolic(power).drift, symbolic(direct).drift):
         assert sp.simplify(a - b) == 0, (a, b)
-
-
-def test_a_noise_level_never_outbids_a_move_that_free_runs_better():
-    """Criterion.choose on the quasi-steady M1's first round (the reference record, seed 3; its held-out blocks as
-    the loop scored them): the lagged moment free-runs the end and loudest blocks better (ln BF 39), a
-    measurement-noise level free-runs them no worse (ln BF 15,277, the declared level being far off). The lag is
-    taken; the noise level only when nothing that free-runs better qualifies."""
-    from types import SimpleNamespace
-
-    from ardflow.ardcore.loop.criterion import Criterion, Score
-
-    crit = Criterion(DiagnoseConfig(), lambda fn, tasks: [fn(t) for t in tasks], lambda m: None)
-
-    def fit(ln_z, start, end):
-        f = SimpleNamespace(row=SimpleNamespace(log_evidence=ln_z))
-        crit._kept[id(f.row)] = (f.row, Score({"start": start, "end": end, "loudest": end}))
-        return f
-
-    m1 = fit(13040.5, 0.003138, 0.01927)
-    lag = fit(13079.5, 0.004311, 0.01187)
-    noise = fit(28317.5, 0.003179, 0.01754)
-    assert crit.choose(m1, [(lag, False), (noise, True)])[0] == 0
-    assert crit.choose(m1, [(noise, True), (lag, False)])[0] == 1
-    worse = fit(13100.0, 0.003, 0.0199)  # better at the start, worse where it extrapolates: does not qualify
-    assert crit.choose(m1, [(worse, False), (noise, True)])[0] == 1
-    assert crit.choose(m1, [(noise, True)])[0] == 0
-    # between two moves that both free-run better and do not dominate each other, the evidence still picks
-    other = fit(13200.0, 0.0025, 0.0150)
-    assert crit.choose(m1, [(lag, False), (other, False), (noise, True)])[0] == 1
