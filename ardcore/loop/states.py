@@ -118,7 +118,7 @@ def _oscillators(spec: ModelSpec) -> list[tuple[str, str]]:
     """The oscillators (position, velocity) of ``spec`` but those a second mode added: a state of fixed form
     takes nothing more (a mode of a mode, or its hysteresis, is a basis expansion, not a missing effect)."""
     pairs = oscillator_pairs(spec)
-    added = {n for x, v in pairs for n in names_of(Lag(x, v, "mode"))[:2]}
+    added = {n for x, v in pairs for n in new_states(Lag(x, v, "mode"))}
     return [(x, v) for x, v in pairs if x not in added]
 
 
@@ -164,6 +164,11 @@ def names_of(move: Lag) -> tuple[str, ...]:
     return tuple(short_name(n, 24) for n in names)
 
 
+def new_states(move: Lag) -> tuple[str, ...]:
+    """The states ``move`` adds (:func:`names_of`'s first: two for a mode, one otherwise); its parameters follow."""
+    return names_of(move)[:2 if move.kind == "mode" else 1]
+
+
 def _words(text: str, old: str, new: str) -> str:
     return re.sub(rf"\b{re.escape(old)}\b", new, text)
 
@@ -204,7 +209,7 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
                 diffusion.pop(lag.target)
                 diffusion[z] = str(level)
         drift[z] = f"{b}*({lag.term} - {z}) + {k}*({drift[lag.target]})"
-    states = [z] if lag.kind != "mode" else list(new[:2])
+    states = list(new_states(lag))
     # a mode starts with the oscillator (q at x's start, dq at rest), as uncertain as the new state's start says
     mean = {z: float(start[0])} if lag.kind != "mode" else {new[0]: float(start[0]), new[1]: 0.0}
     std = {n: float(start[1]) for n in states}
@@ -350,7 +355,7 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
         eq = f"{q}' = {dq}, {dq}' = -({f}), {mu}*({f}) in the {v} equation"
     else:
         eq = f"{z}' = {new[1]}*({lag.term} - {z}) + {new[2]}*{lag.target}'"
-    states = new[:2] if lag.kind == "mode" else new[:1]
+    states = new_states(lag)
     out = {"name": z, "kind": lag.kind, "term": lag.term, "target": lag.target, "equation": eq,
            "states": list(states), "parameters": {n: shape_summary(row, n) for n in new[len(states):] if n in row.mean}}
     if lag.kind in ("lag", "sensor") and new[1] in row.mean:
