@@ -15,8 +15,8 @@ argument's gradient in the states), taken at the start of each sub-step: a hyper
 E|a| of a ~ N(m, w^2) at the kink and to |a| far from it (within 0.142 w of that expectation everywhere: the
 largest gap, 0.1415 w, is at |m| = 1.64 w). The width is therefore tied to the noise level: it is what the
 data leave unknown about the argument, and it shrinks as the data pin the state down. ``w = 0`` (a kink in
-known inputs and parameters only, or a state the filter knows exactly) is the exact kink with d sign/dx = 0. The simulation (the free run) has no covariance: it integrates
-the exact model.
+known inputs and parameters only, or a state the filter knows exactly) is the exact kink with d sign/dx = 0.
+The simulation (the free run) has no covariance: it integrates the exact model.
 """
 
 from __future__ import annotations
