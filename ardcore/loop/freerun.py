@@ -90,7 +90,7 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
     # over its length the scale steps down (a band that holds the data by being infinite is no band). This reads
     # the record's inputs and start, as every free run does, never the outputs the band is judged on
     for f in sorted((x for x in BAND_FACTORS if x < factor), reverse=True):
-        if diverged(ys) <= 0.05:
+        if diverged(ys) <= MAX_DIVERGED:
             break
         factor = f
         ys = _predictive(spec, _scaled(band.draws, noise, factor), data, out["start"], substeps, band.seed)
@@ -100,7 +100,7 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
         ok = np.isfinite(y)
         wide = np.isfinite(hi - lo)
         out["band"] = (lo, hi)
-        out["band_coverage"] = float(np.mean((y[ok] >= lo[ok]) & (y[ok] <= hi[ok])))
+        out["band_coverage"] = float(np.mean(inside(y[ok], lo[ok], hi[ok])))
         out["band_expected"] = expected_coverage(ys)
         out["band_diverged"] = diverged(ys)
         out["band_halfwidth_rms"] = float(np.sqrt(np.mean(((hi[wide] - lo[wide]) / 2) ** 2))) if wide.any() else math.inf
@@ -165,16 +165,16 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
     cover: dict = {}
     chosen, below, ceiling = max(BAND_FACTORS), None, None
     for f in sorted(BAND_FACTORS):  # from the narrowest, until the band holds 90 %
-        inside, seen = 0, 0
+        held, seen = 0, 0
         for pspec, part, k0, y, ok, draws in parts:
             ys = _predictive(pspec, _scaled(draws, noise, f), part, k0, substeps, band.seed + 1)
-            if len(ys) < 5 or diverged(ys) > 0.05:
+            if len(ys) < 5 or diverged(ys) > MAX_DIVERGED:
                 break
             lo, hi = band_of(ys)
-            inside += int(np.sum((y[ok] >= lo[ok]) & (y[ok] <= hi[ok])))
+            held += int(np.sum(inside(y[ok], lo[ok], hi[ok])))
             seen += int(np.sum(ok))
         else:
-            c = cover[f] = inside / max(seen, 1)
+            c = cover[f] = held / max(seen, 1)
             if c >= 0.9:
                 chosen = f if below is None else below[0] + (0.9 - below[1]) / (c - below[1]) * (f - below[0])
                 break
@@ -192,6 +192,16 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
     if ceiling is not None:
         out["diverges_at"] = ceiling
     return float(chosen), out
+
+
+MAX_DIVERGED = 0.05
+"""The largest share of a band's draws that may diverge: beyond it the bounds are infinite (:func:`band_of`), so
+no scale is taken at which more do."""
+
+
+def inside(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Where ``y`` lies inside the band ``lo``-``hi`` (False where ``y`` is not finite: a diverged draw)."""
+    return (y >= lo) & (y <= hi)
 
 
 def diverged(ys: np.ndarray) -> float:
@@ -243,7 +253,7 @@ def expected_coverage(ys: np.ndarray) -> list[float]:
     cover = []
     for i in range(len(ys)):
         lo, hi = band_of(np.delete(ys, i, axis=0))
-        cover.append(float(np.mean((ys[i] >= lo) & (ys[i] <= hi))))
+        cover.append(float(np.mean(inside(ys[i], lo, hi))))
     return [float(x) for x in np.quantile(cover, [0.05, 0.5, 0.95])]
 
 
