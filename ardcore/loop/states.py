@@ -372,6 +372,76 @@ COUPLING = {"hysteresis": 1, "mode": 4}
 coupling, an effect's coefficient whose 99 % interval must exclude 0."""
 
 
+def _conditional(cand: CandidateSpec, current: Fit) -> tuple[CandidateSpec, list[str]] | None:
+    """``cand`` with every parameter the current model has fixed at its MAP (the new state's own sampled alone),
+    and the names of those new ones; None when the move has none (or selects terms by ARD: a lag)."""
+    known = dict(zip(current.mr.sampler.names, np.asarray(current.mr.sampler.phi_star, float)))
+    new = [n for n in cand.priors if n not in known]
+    if cand.ard or not new or any(n not in known for n in cand.priors if n not in new):
+        return None
+    fixed = {**cand.fixed, **{n: float(known[n]) for n in cand.priors if n not in new}}
+    return cand.model_copy(update={"priors": {n: cand.priors[n] for n in new}, "fixed": fixed}), new
+
+
+SCREEN_STARTS = 4
+"""Searches per state move in the screen: from the new parameters' prior medians and from dispersed prior points
+(a mode's frequency or a Bouc-Wen shape has local optima a single search can stop in)."""
+SCREEN_TOLERANCE = 0.01
+"""Where a screen's search stops (nats, and prior scales in the parameters): Newton steps take it to the mode."""
+
+
+def screen_task(args) -> tuple[float, dict]:
+    """A state move's conditional Laplace evidence and MAP (a picklable unit of work): ``(cand, data, seed)``,
+    ``cand`` from :func:`_conditional`. The best of :data:`SCREEN_STARTS` loose Nelder-Mead searches, then
+    :func:`~ardcore.evidence.estimators.laplace`'s Newton steps from there."""
+    from ..evidence.estimators import laplace
+    from ..evidence.evaluate import warm_point
+    from ..likelihood.posterior import ModelPosterior
+    from ..sampling.starts import initial_points, initial_scale, local_mode
+
+    cand, data, seed = args
+    target = ModelPosterior(cand.model_spec(), dict(cand.priors), data, cand.substeps)
+    scale = initial_scale(target.prior)
+    starts = [warm_point(target, None), *initial_points(target.prior, SCREEN_STARTS - 1,
+                                                        np.random.default_rng(seed))]
+    found = [local_mode(target, np.asarray(x, float), scale, 400, xatol=SCREEN_TOLERANCE, fatol=SCREEN_TOLERANCE)
+             for x in starts]
+    x0 = max(found, key=lambda r: r[1])[0]
+    ev, x, _ = laplace(target, x0, scale, warm=True)
+    return ev.log_evidence, dict(zip(target.names, map(float, x)))
+
+
+def screened_states(ctx, current: Fit, offered: list[Lag], tasks: list) -> list:
+    """The full fits worth running among ``tasks`` (one per move in ``offered``; None where the screen drops one),
+    each warm-started where its screen peaked.
+
+    The screen fits each move's own parameters with the current model's held at its MAP (a search in one to
+    three dimensions, not in all of them, :func:`screen_task`): its ln Bayes factor against the current model's
+    likelihood at that MAP is a conditional one. A move whose conditional ln BF is not positive does not fit the
+    data better even where the new state is best placed, and is not fitted in full; the others start their full
+    fit at the screen's values, so its search polishes a mode instead of finding one from the prior. A lag
+    (its law's terms selected again by ARD) is fitted in full."""
+    from .confirm import warm_with
+
+    reduced = [_conditional(t[0], current) if m.kind != "lag" else None for t, m in zip(tasks, offered)]
+    idx = [i for i, r in enumerate(reduced) if r is not None]
+    if not idx:
+        return tasks
+    cond = ctx.mapper(screen_task, [(reduced[i][0], tasks[i][1], ctx.spec.seed + i) for i in idx])
+    base = current.row.goodness_of_fit
+    out = list(tasks)
+    for i, (log_z, at) in zip(idx, cond):
+        gain, new, move = log_z - base, reduced[i][1], offered[i]
+        if not gain > 0:
+            ctx.say(f"  screened: a {move.kind} ({move.term} -> {move.target}): conditional ln BF {gain:.1f}, "
+                    "not fitted in full")
+            out[i] = None
+            continue
+        cand, data, spec, _, posterior = tasks[i]
+        out[i] = (cand, data, spec, warm_with(current.mr.sampler, new, [at[n] for n in new]), posterior)
+    return out
+
+
 def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     """The state move of ``kinds`` (module docstring) worth most, as ``(fit, [record], ln BF)`` like
     :func:`~.replace.best_laws`, or None.
@@ -396,8 +466,11 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     if not tasks:
         return None
     say("  a state: " + ", ".join(f"{x.kind} ({x.term} -> {x.target})" for x in offered))
-    fits = ctx.mapper(fit_task, tasks)
-    gain = np.array([row.log_evidence - current.row.log_evidence for row, _ in fits], dtype=float)
+    tasks = screened_states(ctx, current, offered, tasks)
+    fits = ctx.mapper(fit_task, [t for t in tasks if t is not None])
+    fits = [fits.pop(0) if t is not None else (None, None) for t in tasks]
+    gain = np.array([row.log_evidence - current.row.log_evidence if row is not None else np.nan
+                     for row, _ in fits], dtype=float)
     if not np.isfinite(gain).any():
         return None
     k = int(np.nanargmax(np.where(np.isfinite(gain), gain, -np.inf)))

@@ -49,8 +49,10 @@ def fd_hessian(f: Callable[[np.ndarray], float], x: np.ndarray, h: np.ndarray) -
     return fd_derivatives(f, x, h)[2]
 
 
-def local_mode(target, x0: np.ndarray, scale: np.ndarray, maxfev: int) -> tuple[np.ndarray, float]:
-    """Nelder-Mead (in coordinates scaled by ``scale``) from ``x0``, restarted once."""
+def local_mode(target, x0: np.ndarray, scale: np.ndarray, maxfev: int, *, xatol: float = 1e-6,
+               fatol: float = 1e-8) -> tuple[np.ndarray, float]:
+    """Nelder-Mead (in coordinates scaled by ``scale``) from ``x0``, restarted once; ``xatol`` in those
+    coordinates, ``fatol`` in nats (a search that Newton steps polish afterwards can stop far earlier)."""
     from scipy.optimize import minimize
 
     f = _neg_lp(target, x0, scale)
@@ -59,7 +61,7 @@ def local_mode(target, x0: np.ndarray, scale: np.ndarray, maxfev: int) -> tuple[
     for _ in range(2):
         simplex = np.vstack([z] + [z + 0.5 * e for e in np.eye(z.size)])
         r = minimize(f, z, method="Nelder-Mead",
-                     options={"initial_simplex": simplex, "maxfev": maxfev // 2, "xatol": 1e-6, "fatol": 1e-8})
+                     options={"initial_simplex": simplex, "maxfev": maxfev // 2, "xatol": xatol, "fatol": fatol})
         if r.fun <= best:
             z, best = r.x, r.fun
     return x0 + scale * z, -best
