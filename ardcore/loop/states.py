@@ -388,67 +388,121 @@ SCREEN_STARTS = 4
 (a mode's frequency or a Bouc-Wen shape has local optima a single search can stop in)."""
 SCREEN_TOLERANCE = 0.01
 """Where a screen's search stops (nats, and prior scales in the parameters): Newton steps take it to the mode."""
+SCREEN_MAXFEV = 300
+"""Likelihood evaluations one screen search may take."""
 
 
-def screen_task(args) -> tuple[float, dict]:
-    """A state move's conditional Laplace evidence and MAP (a picklable unit of work): ``(cand, data, seed)``,
-    ``cand`` from :func:`_conditional`. The best of :data:`SCREEN_STARTS` loose Nelder-Mead searches, then
-    :func:`~ardcore.evidence.estimators.laplace`'s Newton steps from there."""
-    from ..evidence.estimators import laplace
-    from ..evidence.evaluate import warm_point
+def _target(cand: CandidateSpec, data):
     from ..likelihood.posterior import ModelPosterior
-    from ..sampling.starts import initial_points, initial_scale, local_mode
 
-    cand, data, seed = args
-    target = ModelPosterior(cand.model_spec(), dict(cand.priors), data, cand.substeps)
-    scale = initial_scale(target.prior)
-    starts = [warm_point(target, None), *initial_points(target.prior, SCREEN_STARTS - 1,
-                                                        np.random.default_rng(seed))]
-    found = [local_mode(target, np.asarray(x, float), scale, 400, xatol=SCREEN_TOLERANCE, fatol=SCREEN_TOLERANCE)
-             for x in starts]
-    x0 = max(found, key=lambda r: r[1])[0]
-    ev, x, _ = laplace(target, x0, scale, warm=True)
+    return ModelPosterior(cand.model_spec(), dict(cand.priors), data, cand.substeps)
+
+
+def _screen_search(args) -> tuple[np.ndarray, float]:
+    """One loose Nelder-Mead search of a screen (a picklable unit of work): ``(cand, data, x0)``."""
+    from ..sampling.starts import initial_scale, local_mode
+
+    cand, data, x0 = args
+    target = _target(cand, data)
+    return local_mode(target, x0, initial_scale(target.prior), SCREEN_MAXFEV, xatol=SCREEN_TOLERANCE,
+                      fatol=SCREEN_TOLERANCE, passes=1)
+
+
+def _screen_evidence(args) -> tuple[float, dict]:
+    """A screen's Laplace evidence and MAP from its best search's point ``x0`` (Newton steps): ``(cand, data,
+    x0)``."""
+    from ..evidence.estimators import laplace
+    from ..sampling.starts import initial_scale
+
+    cand, data, x0 = args
+    target = _target(cand, data)
+    ev, x, _ = laplace(target, x0, initial_scale(target.prior), warm=True)
     return ev.log_evidence, dict(zip(target.names, map(float, x)))
 
 
-def screened_states(ctx, current: Fit, offered: list[Lag], tasks: list) -> list:
-    """The full fits worth running among ``tasks`` (one per move in ``offered``; None where the screen drops one),
-    each warm-started where its screen peaked.
+def screen(ctx, cands: list[CandidateSpec], data, seed: int) -> list[tuple[float, dict]]:
+    """Each of ``cands`` (from :func:`_conditional`) screened: its Laplace evidence and MAP from the best of
+    :data:`SCREEN_STARTS` loose Nelder-Mead searches (all of them one batch on the loop's pool) polished by
+    Newton steps."""
+    from ..model.priors import JointPrior
+    from ..sampling.starts import initial_points
+
+    rng = np.random.default_rng(seed)
+    starts = []
+    for c in cands:
+        prior = JointPrior(c.model_spec().free_parameters, dict(c.priors))
+        median = [p.quantile(0.5) if p.kind != "ard" else 0.0 for p in prior.priors]
+        starts.append([np.asarray(median, float), *initial_points(prior, SCREEN_STARTS - 1, rng)])
+    found = ctx.mapper(_screen_search, [(c, data, x) for c, xs in zip(cands, starts) for x in xs])
+    best = [max(found[k * SCREEN_STARTS:(k + 1) * SCREEN_STARTS], key=lambda r: r[1])[0] for k in range(len(cands))]
+    return ctx.mapper(_screen_evidence, [(c, data, x) for c, x in zip(cands, best)])
+
+
+def screened_states(ctx, current: Fit, offered: list[Lag], tasks: list) -> list[tuple[int, tuple]] | None:
+    """The full fits the screen orders: ``(index into offered, fit task)`` by conditional ln BF, best first, each
+    warm-started where its screen peaked; None when a move cannot be screened (a lag, whose law's terms ARD selects
+    again: every lag is fitted in full).
 
     The screen fits each move's own parameters with the current model's held at its MAP (a search in one to
-    three dimensions, not in all of them, :func:`screen_task`): its ln Bayes factor against the current model's
+    three dimensions, not in all of them, :func:`screen`): its ln Bayes factor against the current model's
     likelihood at that MAP is a conditional one. A move whose conditional ln BF is not positive does not fit the
     data better even where the new state is best placed, and is not fitted in full; the others start their full
-    fit at the screen's values, so its search polishes a mode instead of finding one from the prior. A lag
-    (its law's terms selected again by ARD) is fitted in full."""
+    fit at the screen's values, so its search polishes a mode instead of finding one from the prior."""
     from .confirm import warm_with
 
     reduced = [_conditional(t[0], current) if m.kind != "lag" else None for t, m in zip(tasks, offered)]
-    idx = [i for i, r in enumerate(reduced) if r is not None]
-    if not idx:
-        return tasks
-    cond = ctx.mapper(screen_task, [(reduced[i][0], tasks[i][1], ctx.spec.seed + i) for i in idx])
+    if any(r is None for r in reduced):
+        return None
+    cond = screen(ctx, [r[0] for r in reduced], current.data, ctx.spec.seed)
     base = current.row.goodness_of_fit
-    out = list(tasks)
-    for i, (log_z, at) in zip(idx, cond):
+    order = []
+    for i, (log_z, at) in enumerate(cond):
         gain, new, move = log_z - base, reduced[i][1], offered[i]
-        if not gain > 0:
-            ctx.say(f"  screened: a {move.kind} ({move.term} -> {move.target}): conditional ln BF {gain:.1f}, "
-                    "not fitted in full")
-            out[i] = None
-            continue
-        cand, data, spec, _, posterior = tasks[i]
-        out[i] = (cand, data, spec, warm_with(current.mr.sampler, new, [at[n] for n in new]), posterior)
-    return out
+        ctx.say(f"  screened: a {move.kind} ({move.term} -> {move.target}): conditional ln BF {gain:.1f}"
+                + ("" if gain > 0 else ", not fitted in full"))
+        if gain > 0:
+            cand, data, spec, _, posterior = tasks[i]
+            order.append((gain, i, (cand, data, spec, warm_with(current.mr.sampler, new, [at[n] for n in new]),
+                                    posterior)))
+    return [(i, task) for _, i, task in sorted(order, key=lambda x: -x[0])]
+
+
+def _taken(ctx, current: Fit, lag: Lag, task: tuple, fit: tuple, gain: float, need: float):
+    """``(fit, [record], ln BF)`` of the state move ``lag`` fitted as ``fit`` when it qualifies (it gains more
+    than ``need`` nats, its fit is a result and a coupled state's coupling is not 0), else None (said why)."""
+    say = ctx.say
+    row, mr = fit
+    if not gain > need:
+        say(f"  the best state, a {lag.kind} ({lag.term} -> {lag.target}): ln BF {gain:.1f}, needs {need:.1f}")
+        return None
+    why = row.degenerate()
+    if why is not None:
+        say(f"  a {lag.kind} ({lag.term} -> {lag.target}): {why}")
+        return None
+    state = state_summary(row, lag)
+    if lag.kind in COUPLING:
+        # a Bouc-Wen state or a second mode acts on the model only through its coupling: one whose 99 % interval
+        # holds 0 changes nothing the data pin down (its shape then fits the noise), as an effect ARD would prune
+        name = names_of(lag)[COUPLING[lag.kind]]
+        c = state["parameters"].get(name)
+        if c is None or not (c["q005"] > 0 or c["q995"] < 0):
+            say(f"  a {lag.kind} ({lag.term} -> {lag.target}): its coupling {name}'s 99 % interval holds 0")
+            return None
+    say(f"  a state: {state['equation']} (ln BF {gain:.1f})")
+    record = {"parameter": "", "term": lag.term, "target": lag.target, "by": f"the state {state['name']}",
+              "form": lag.kind, "log_bayes_factor": float(gain), "state": state}
+    return Fit(task[0], row, mr, current.data), [record], float(gain)
 
 
 def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     """The state move of ``kinds`` (module docstring) worth most, as ``(fit, [record], ln BF)`` like
     :func:`~.replace.best_laws`, or None.
 
-    Every move offered is fitted side by side on the loop's pool (a lag's: a full ARD re-selection, the law's
-    terms selected again); the best qualifies when its ln Bayes factor against the current model exceeds
-    ``config.min_log_bf`` plus ln of the number tried and its fit is a result. The record is a replacement's
+    A move qualifies when its ln Bayes factor against the current model exceeds ``config.min_log_bf`` plus ln of
+    the number offered and its fit is a result (:func:`_taken`). Lags are fitted side by side on the loop's pool
+    (a full ARD re-selection each, the law's terms selected again) and the best is judged. The other states are
+    screened first (:func:`screened_states`) and fitted in full one at a time in the screen's order: the first
+    that qualifies is the move (a round that takes it offers the others again). The record is a replacement's
     with the state (:func:`state_summary`)."""
     from .confirm import fit_task
 
@@ -466,33 +520,18 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     if not tasks:
         return None
     say("  a state: " + ", ".join(f"{x.kind} ({x.term} -> {x.target})" for x in offered))
-    tasks = screened_states(ctx, current, offered, tasks)
-    fits = ctx.mapper(fit_task, [t for t in tasks if t is not None])
-    fits = [fits.pop(0) if t is not None else (None, None) for t in tasks]
-    gain = np.array([row.log_evidence - current.row.log_evidence if row is not None else np.nan
-                     for row, _ in fits], dtype=float)
+    need = config.min_log_bf + math.log(len(tasks))
+    order = screened_states(ctx, current, offered, tasks)
+    if order is not None:
+        for i, task in order:
+            fit = fit_task(task)
+            got = _taken(ctx, current, offered[i], task, fit, fit[0].log_evidence - current.row.log_evidence, need)
+            if got is not None:
+                return got
+        return None
+    fits = ctx.mapper(fit_task, tasks)
+    gain = np.array([row.log_evidence - current.row.log_evidence for row, _ in fits], dtype=float)
     if not np.isfinite(gain).any():
         return None
     k = int(np.nanargmax(np.where(np.isfinite(gain), gain, -np.inf)))
-    need = config.min_log_bf + math.log(len(tasks))
-    lag, (row, mr) = offered[k], fits[k]
-    if not gain[k] > need:
-        say(f"  the best state, a {lag.kind} ({lag.term} -> {lag.target}): ln BF {gain[k]:.1f}, needs {need:.1f}")
-        return None
-    why = row.degenerate()
-    if why is not None:
-        say(f"  a {lag.kind} ({lag.term} -> {lag.target}): {why}")
-        return None
-    state = state_summary(row, lag)
-    if lag.kind in COUPLING:
-        # a Bouc-Wen state or a second mode acts on the model only through its coupling: one whose 99 % interval
-        # holds 0 changes nothing the data pin down (its shape then fits the noise), as an effect ARD would prune
-        name = names_of(lag)[COUPLING[lag.kind]]
-        c = state["parameters"].get(name)
-        if c is None or not (c["q005"] > 0 or c["q995"] < 0):
-            say(f"  a {lag.kind} ({lag.term} -> {lag.target}): its coupling {name}'s 99 % interval holds 0")
-            return None
-    say(f"  a state: {state['equation']} (ln BF {gain[k]:.1f})")
-    record = {"parameter": "", "term": lag.term, "target": lag.target, "by": f"the state {state['name']}",
-              "form": lag.kind, "log_bayes_factor": float(gain[k]), "state": state}
-    return Fit(tasks[k][0], row, mr, current.data), [record], float(gain[k])
+    return _taken(ctx, current, offered[k], tasks[k], fits[k], float(gain[k]), need)

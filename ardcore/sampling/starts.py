@@ -50,15 +50,15 @@ def fd_hessian(f: Callable[[np.ndarray], float], x: np.ndarray, h: np.ndarray) -
 
 
 def local_mode(target, x0: np.ndarray, scale: np.ndarray, maxfev: int, *, xatol: float = 1e-6,
-               fatol: float = 1e-8) -> tuple[np.ndarray, float]:
-    """Nelder-Mead (in coordinates scaled by ``scale``) from ``x0``, restarted once; ``xatol`` in those
-    coordinates, ``fatol`` in nats (a search that Newton steps polish afterwards can stop far earlier)."""
+               fatol: float = 1e-8, passes: int = 2) -> tuple[np.ndarray, float]:
+    """Nelder-Mead (in coordinates scaled by ``scale``) from ``x0``, restarted once (``passes``); ``xatol`` in
+    those coordinates, ``fatol`` in nats (a search that Newton steps polish afterwards can stop far earlier)."""
     from scipy.optimize import minimize
 
     f = _neg_lp(target, x0, scale)
     z = np.zeros(x0.size)
     best = f(z)
-    for _ in range(2):
+    for _ in range(passes):
         simplex = np.vstack([z] + [z + 0.5 * e for e in np.eye(z.size)])
         r = minimize(f, z, method="Nelder-Mead",
                      options={"initial_simplex": simplex, "maxfev": maxfev // 2, "xatol": xatol, "fatol": fatol})
