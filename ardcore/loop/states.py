@@ -1,9 +1,11 @@
-"""States the model lacks: a declared quantity acting through a lag, a hysteresis, a sensor's own dynamics.
+"""States the model lacks: a declared quantity through a lag, a hysteresis, a sensor's dynamics, a second mode.
 
 The loop's other moves add or reshape terms in the equations of the states the user declared. Many real
-omissions are a state of their own. Three families are offered, each a full fit judged like a law replacement
+omissions are a state of their own. Four families are offered, each a full fit judged like a law replacement
 (:mod:`.replace`): its ln Bayes factor against the current model must exceed ``config.min_log_bf`` plus ln of
-the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it.
+the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it. The
+hysteresis, the sensor and the mode are screened first (:func:`screened_states`): only those that fit better with
+the current model held at its MAP are fitted in full, best first.
 
 **A lag** (every round, beside the laws). A declared derived quantity ``D`` (a signal: it holds a state or an
 input) that enters one state's equation and no observation or noise: that equation sees a new state instead::
@@ -372,85 +374,22 @@ COUPLING = {"hysteresis": 1, "mode": 4}
 coupling, an effect's coefficient whose 99 % interval must exclude 0."""
 
 
-def _conditional(cand: CandidateSpec, current: Fit) -> tuple[CandidateSpec, list[str]] | None:
-    """``cand`` with every parameter the current model has fixed at its MAP (the new state's own sampled alone),
-    and the names of those new ones; None when the move has none (or selects terms by ARD: a lag)."""
-    known = dict(zip(current.mr.sampler.names, np.asarray(current.mr.sampler.phi_star, float)))
-    new = [n for n in cand.priors if n not in known]
-    if cand.ard or not new or any(n not in known for n in cand.priors if n not in new):
-        return None
-    fixed = {**cand.fixed, **{n: float(known[n]) for n in cand.priors if n not in new}}
-    return cand.model_copy(update={"priors": {n: cand.priors[n] for n in new}, "fixed": fixed}), new
-
-
-SCREEN_STARTS = 4
-"""Searches per state move in the screen: from the new parameters' prior medians and from dispersed prior points
-(a mode's frequency or a Bouc-Wen shape has local optima a single search can stop in)."""
-SCREEN_TOLERANCE = 0.01
-"""Where a screen's search stops (nats, and prior scales in the parameters): Newton steps take it to the mode."""
-SCREEN_MAXFEV = 300
-"""Likelihood evaluations one screen search may take."""
-
-
-def _target(cand: CandidateSpec, data):
-    from ..likelihood.posterior import ModelPosterior
-
-    return ModelPosterior(cand.model_spec(), dict(cand.priors), data, cand.substeps)
-
-
-def _screen_search(args) -> tuple[np.ndarray, float]:
-    """One loose Nelder-Mead search of a screen (a picklable unit of work): ``(cand, data, x0)``."""
-    from ..sampling.starts import initial_scale, local_mode
-
-    cand, data, x0 = args
-    target = _target(cand, data)
-    return local_mode(target, x0, initial_scale(target.prior), SCREEN_MAXFEV, xatol=SCREEN_TOLERANCE,
-                      fatol=SCREEN_TOLERANCE, passes=1)
-
-
-def _screen_evidence(args) -> tuple[float, dict]:
-    """A screen's Laplace evidence and MAP from its best search's point ``x0`` (Newton steps): ``(cand, data,
-    x0)``."""
-    from ..evidence.estimators import laplace
-    from ..sampling.starts import initial_scale
-
-    cand, data, x0 = args
-    target = _target(cand, data)
-    ev, x, _ = laplace(target, x0, initial_scale(target.prior), warm=True)
-    return ev.log_evidence, dict(zip(target.names, map(float, x)))
-
-
-def screen(ctx, cands: list[CandidateSpec], data, seed: int) -> list[tuple[float, dict]]:
-    """Each of ``cands`` (from :func:`_conditional`) screened: its Laplace evidence and MAP from the best of
-    :data:`SCREEN_STARTS` loose Nelder-Mead searches (all of them one batch on the loop's pool) polished by
-    Newton steps."""
-    from ..model.priors import JointPrior
-    from ..sampling.starts import initial_points
-
-    rng = np.random.default_rng(seed)
-    starts = []
-    for c in cands:
-        prior = JointPrior(c.model_spec().free_parameters, dict(c.priors))
-        median = [p.quantile(0.5) if p.kind != "ard" else 0.0 for p in prior.priors]
-        starts.append([np.asarray(median, float), *initial_points(prior, SCREEN_STARTS - 1, rng)])
-    found = ctx.mapper(_screen_search, [(c, data, x) for c, xs in zip(cands, starts) for x in xs])
-    best = [max(found[k * SCREEN_STARTS:(k + 1) * SCREEN_STARTS], key=lambda r: r[1])[0] for k in range(len(cands))]
-    return ctx.mapper(_screen_evidence, [(c, data, x) for c, x in zip(cands, best)])
-
-
-def screened_states(ctx, current: Fit, offered: list[Lag], tasks: list) -> list[tuple[int, tuple]] | None:
+def screened_states(ctx, current: Fit, offered: list, tasks: list) -> list[tuple[int, tuple]] | None:
     """The full fits the screen orders: ``(index into offered, fit task)`` by conditional ln BF, best first, each
     warm-started where its screen peaked; None when a move cannot be screened (a lag, whose law's terms ARD selects
     again: every lag is fitted in full).
 
     The screen fits each move's own parameters with the current model's held at its MAP (a search in one to
-    three dimensions, not in all of them, :func:`screen`): its ln Bayes factor against the current model's
-    likelihood at that MAP is a conditional one. A move whose conditional ln BF is not positive does not fit the
-    data better even where the new state is best placed, and is not fitted in full; the others start their full
-    fit at the screen's values, so its search polishes a mode instead of finding one from the prior."""
+    three dimensions, not in all of them, :func:`~ardcore.screening.states.screen`): its ln Bayes factor against
+    the current model's likelihood at that MAP is a conditional one. A move whose conditional ln BF is not
+    positive does not fit the data better even where the new state is best placed, and is not fitted in full; the
+    others start their full fit at the screen's values, so its search polishes a mode instead of finding one from
+    the prior."""
+    from ..screening.states import conditional, screen
     from .confirm import warm_with
 
-    reduced = [_conditional(t[0], current) if m.kind != "lag" else None for t, m in zip(tasks, offered)]
+    known = dict(zip(current.mr.sampler.names, np.asarray(current.mr.sampler.phi_star, float)))
+    reduced = [conditional(t[0], known) if m.kind != "lag" else None for t, m in zip(tasks, offered)]
     if any(r is None for r in reduced):
         return None
     cond = screen(ctx, [r[0] for r in reduced], current.data, ctx.spec.seed)
@@ -501,9 +440,9 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     A move qualifies when its ln Bayes factor against the current model exceeds ``config.min_log_bf`` plus ln of
     the number offered and its fit is a result (:func:`_taken`). Lags are fitted side by side on the loop's pool
     (a full ARD re-selection each, the law's terms selected again) and the best is judged. The other states are
-    screened first (:func:`screened_states`) and fitted in full one at a time in the screen's order: the first
-    that qualifies is the move (a round that takes it offers the others again). The record is a replacement's
-    with the state (:func:`state_summary`)."""
+    screened first (:func:`screened_states`) and fitted in full one at a time in the screen's
+    order: the first that qualifies is the move (a round that takes it offers the others again). The record is a
+    replacement's with the state (:func:`state_summary`)."""
     from .confirm import fit_task
 
     config, say = ctx.config, ctx.say

@@ -108,3 +108,46 @@ def test_a_second_mode_is_a_mass_on_a_spring_and_damper_and_is_offered_once():
     assert sp.simplify(sm.drift[1] - base - 0.3 * force) == 0
     assert sm.drift[2] == DQ and sp.simplify(sm.drift[3] + force) == 0
     assert modes(m) == [] and hystereses(m) == [Lag(x, v, "hysteresis")]
+
+
+def _screened(name: str):
+    """The stop stage's screen of the state moves on a validation record's first 2,000 samples, from the user's
+    linear oscillator fitted there: {kind: conditional ln BF}."""
+    from types import SimpleNamespace
+
+    from ardflow.ardcore.loop.confirm import Fit
+    from ardflow.ardcore.screening.states import conditional, screen
+    from ardflow.ardcore.loop.states import along, hystereses, lag_candidate, modes, sensors
+    from ardflow.ardcore.selection.study import run_candidate
+    from tests.bench.validation import RECORDS
+
+    rec = RECORDS[name](n=2000)
+    cand = rec.spec.models[0]
+    row, mr = run_candidate(cand, rec.est, rec.spec, 0, final_posterior="laplace")
+    cur = Fit(cand, row, mr, rec.est)
+    at, ms = along(cur), cand.model_spec()
+    moves = hystereses(ms) + sensors(ms) + modes(ms)
+    reduced = [conditional(lag_candidate(cur, m, at), dict(zip(mr.sampler.names, mr.sampler.phi_star)))
+               for m in moves]
+    # the screen searches only the new state's own parameters: the current model's are fixed at its MAP
+    assert all(set(r[0].priors) == set(r[1]) and set(r[1]).isdisjoint(mr.sampler.names) for r in reduced)
+    ctx = SimpleNamespace(mapper=lambda fn, tasks: [fn(t) for t in tasks])
+    got = screen(ctx, [r[0] for r in reduced], rec.est, 0)
+    return {m.kind: log_z - row.goodness_of_fit for m, (log_z, _) in zip(moves, got)}, {
+        m.kind: at for m, (_, at) in zip(moves, got)}
+
+
+def test_the_screen_puts_a_planted_second_mode_first_near_its_frequency():
+    """On a record whose truth has a second mode (9 rad/s, mass ratio 0.3), the mode's conditional ln BF is
+    positive and the highest of the three states, and its screened frequency is near the truth's: the full fit
+    then starts there."""
+    gain, at = _screened("second_mode")
+    assert gain["mode"] > 0 and gain["mode"] == max(gain.values()), gain
+    assert abs(at["mode"]["w_mode_y"] - 9.0) < 1.0, at["mode"]
+
+
+def test_the_screen_gives_no_state_a_gain_on_a_clean_record():
+    """On a record whose truth is the user's linear oscillator, no state move's conditional ln BF is positive:
+    none is fitted in full."""
+    gain, _ = _screened("none")
+    assert all(g <= 0 for g in gain.values()), gain
