@@ -266,6 +266,26 @@ def _held_out_section(j: dict) -> list[str]:
             + f"<th>all blocks</th><th></th></tr>{''.join(rows)}</table>"]
 
 
+def _states_table(states: list[dict]) -> str:
+    """The page's "States added": an added state as clearly as an added term, its equation, its time constant (a
+    lag, a sensor) or frequency (a mode) and its parameters, each with its 99 % interval."""
+    body = ["<h2>States added</h2><table><tr><th>state</th><th>kind</th><th>equation</th>"
+            "<th>parameter</th><th>mean</th><th>99 % interval</th></tr>"]
+    for st in states:
+        rows = dict(st["parameters"])
+        if st.get("frequency"):
+            rows = {"frequency (cycles per time unit)": st["frequency"], **rows}
+        if st.get("time_constant"):
+            rows = {"time constant": st["time_constant"], **rows}
+        for i, (name, q) in enumerate(rows.items()):
+            lead = (f"<td>{html.escape(st['name'])}</td><td>{html.escape(st['kind'])}</td>"
+                    f"<td>{html.escape(st['equation'])}</td>" if i == 0 else "<td></td>" * 3)
+            body.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
+                        f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>")
+    body.append("</table>")
+    return "".join(body)
+
+
 def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Path, col: str = "y",
                     label=str) -> Path:
     """Write ``diagnosis.json``, the figures and ``diagnosis.html`` into ``out_dir``; returns the JSON path.
@@ -314,19 +334,7 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
                             f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>")
         body.append("</table>")
     if j.get("states"):
-        # an added state as clearly as an added term: its equation, its time constant and parameters
-        body.append("<h2>States added</h2><table><tr><th>state</th><th>kind</th><th>equation</th>"
-                    "<th>parameter</th><th>mean</th><th>99 % interval</th></tr>")
-        for st in j["states"]:
-            rows = dict(st["parameters"])
-            if st.get("time_constant"):
-                rows = {"time constant": st["time_constant"], **rows}
-            for i, (name, q) in enumerate(rows.items()):
-                lead = (f"<td>{html.escape(st['name'])}</td><td>{html.escape(st['kind'])}</td>"
-                        f"<td>{html.escape(st['equation'])}</td>" if i == 0 else "<td></td>" * 3)
-                body.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
-                            f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>")
-        body.append("</table>")
+        body.append(_states_table(j["states"]))
     if any(not r.get("state") for r in j.get("replaced") or []):
         body.append("<h2>Declared terms replaced</h2><table><tr><th>declared term</th><th>equation</th>"
                     "<th>replaced by</th><th>ln BF of the replacement</th></tr>")

@@ -111,3 +111,28 @@ def test_progress_promises_no_time_left_and_the_demo_speaks_the_users_words():
     text = CHECKS_TITLE + " ".join(str(c) for c in reference_checks(summary, {}))
     assert "documented difference" in text or "docs/" in text
     assert "issue" not in text.lower() and "README" not in text
+
+
+def test_an_added_mode_shows_its_frequency_and_parameters_with_intervals():
+    """The page's "States added" gives a second mode's equation, its frequency in cycles per time unit (its
+    angular frequency w over 2 pi, with w's interval) and each parameter's 99 % interval."""
+    import html
+    import math
+    from types import SimpleNamespace
+
+    from ardflow.ardcore.loop.states import Lag, state_summary
+    from ardflow.service.reports.diagnosis import _states_table
+
+    names = ("w_mode_y", "z_mode_y", "mu_mode_y")
+    mean, sd = dict(zip(names, (9.0, 0.03, 0.3))), dict(zip(names, (0.01, 0.001, 0.004)))
+    row = SimpleNamespace(mean=mean, sd=sd, q005={n: mean[n] - 2.6 * sd[n] for n in names},
+                          q995={n: mean[n] + 2.6 * sd[n] for n in names})
+    state = state_summary(row, Lag("y", "v", "mode"))
+    cells = _cells(_states_table([state]), "States added")
+    assert cells[1][:3] == ["mode_y", "mode", html.escape(state["equation"])] and "mu_mode_y" in state["equation"]
+    freq = next(c for c in cells if c[3].startswith("frequency"))
+    assert math.isclose(float(freq[4]), 9.0 / (2 * math.pi), rel_tol=1e-3), freq
+    lo, hi = (float(x) for x in freq[5].strip("[]").split(","))
+    assert math.isclose(lo, 8.974 / (2 * math.pi), rel_tol=1e-3)
+    assert math.isclose(hi, 9.026 / (2 * math.pi), rel_tol=1e-3)
+    assert [c[3] for c in cells[1:]] == ["frequency (cycles per time unit)", *names]
