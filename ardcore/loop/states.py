@@ -383,8 +383,7 @@ def screened_states(ctx, current: Fit, offered: list, tasks: list) -> list[tuple
     three dimensions, not in all of them, :func:`~ardcore.screening.states.screen`): its ln Bayes factor against
     the current model's likelihood at that MAP is a conditional one. A move whose conditional ln BF is not
     positive does not fit the data better even where the new state is best placed, and is not fitted in full; the
-    others start their full fit at the screen's values, so its search polishes a mode instead of finding one from
-    the prior."""
+    others are fitted in full both from the screen's values and from the prior (:func:`_better_start`)."""
     from ..screening.states import conditional, screen
     from .confirm import warm_with
 
@@ -404,6 +403,26 @@ def screened_states(ctx, current: Fit, offered: list, tasks: list) -> list[tuple
             order.append((gain, i, (cand, data, spec, warm_with(current.mr.sampler, new, [at[n] for n in new]),
                                     posterior)))
     return [(i, task) for _, i, task in sorted(order, key=lambda x: -x[0])]
+
+
+SAME_MODE_NATS = 0.1
+"""Two full fits of one move whose Laplace evidences differ by less than this reached the same mode."""
+
+
+def _better_start(fits: list) -> tuple:
+    """Of a move's full fit from its screened values and its fit from the prior (the search every full fit
+    makes), the one with the higher evidence, the prior's on a tie (:data:`SAME_MODE_NATS`). A start at the screen's
+    values, the current model's parameters where they were, can stop in a nearby mode below the one the searches
+    from the prior find (a sensor on M1 with a measurement noise: 10 nats below), or find one they miss (a sensor on
+    the square-root tanks, where the prior's searches end at a curvature that is not positive definite)."""
+    (warm, wm), (cold, cm) = fits
+
+    def result(row):
+        return row.degenerate() is None and np.isfinite(row.log_evidence)
+
+    if result(warm) and (not result(cold) or warm.log_evidence > cold.log_evidence + SAME_MODE_NATS):
+        return warm, wm
+    return cold, cm
 
 
 def _taken(ctx, current: Fit, lag: Lag, task: tuple, fit: tuple, gain: float, need: float):
@@ -440,9 +459,10 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     A move qualifies when its ln Bayes factor against the current model exceeds ``config.min_log_bf`` plus ln of
     the number offered and its fit is a result (:func:`_taken`). Lags are fitted side by side on the loop's pool
     (a full ARD re-selection each, the law's terms selected again) and the best is judged. The other states are
-    screened first (:func:`screened_states`) and fitted in full one at a time in the screen's
-    order: the first that qualifies is the move (a round that takes it offers the others again). The record is a
-    replacement's with the state (:func:`state_summary`)."""
+    screened first (:func:`screened_states`) and fitted in full one at a time in the screen's order (from its
+    screened values and from the prior side by side, :func:`_better_start`): the first that qualifies is the move
+    (a round that takes it offers the others again). The record is a replacement's with the state
+    (:func:`state_summary`)."""
     from .confirm import fit_task
 
     config, say = ctx.config, ctx.say
@@ -463,7 +483,7 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     order = screened_states(ctx, current, offered, tasks)
     if order is not None:
         for i, task in order:
-            fit = fit_task(task)
+            fit = _better_start(ctx.mapper(fit_task, [task, tasks[i]]))
             got = _taken(ctx, current, offered[i], task, fit, fit[0].log_evidence - current.row.log_evidence, need)
             if got is not None:
                 return got
