@@ -76,10 +76,23 @@ def pysindy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         cut = int(0.8 * y_est.size)
-        best = min((run(fit(th, y_est[:cut], u_est[:cut]), y_est[cut:], u_est[cut:]), th)
-                   for th in (1e-5, 1e-4, 1e-3, 1e-2))
-        model = fit(best[1], y_est, u_est)
+        ranked = sorted((run(fit(th, y_est[:cut], u_est[:cut]), y_est[cut:], u_est[cut:]), th)
+                        for th in (1e-5, 1e-4, 1e-3, 1e-2))
+        # the best threshold whose map, fitted on the whole record, stays bounded there and on every test
+        # record's inputs (a user re-chooses one that blows up; the test outputs only score it)
+        model = None
+        for _, th in ranked:
+            model = fit(th, y_est, u_est)
+            if all(_bounded(lambda y, u: run(model, y, u), y, u) for y, u in [(y_est, u_est), *tests.values()]):
+                break
     return {name: run(model, yt, ut) for name, (yt, ut) in tests.items()}
+
+
+def _bounded(free_run, y, u) -> bool:
+    """Whether ``free_run(y, u)`` (an RMS error, inf where the simulation left any sane range) is finite: the
+    simulation reads only ``y``'s first samples and ``u``, so this is a check a user makes before any test
+    output is seen."""
+    return math.isfinite(free_run(y, u))
 
 
 def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
@@ -127,7 +140,8 @@ def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | Non
         for val, cfg in sorted(scores, key=lambda s: s[0]):
             m = make(*cfg)
             m.fit(X=u_est[:, None], y=y_est[:, None])
-            if math.isfinite(run(m, y_est, u_est)):  # refitted on the whole record, it must still stay bounded
+            # refitted on the whole record, it must still stay bounded there and on the test records' inputs
+            if all(_bounded(lambda y, u: run(m, y, u), y, u) for y, u in [(y_est, u_est), *tests.values()]):
                 model = m
                 break
         if model is None:
@@ -246,14 +260,17 @@ class NARX:
         self.theta = th / s
         return self
 
-    def bounded(self, y, u, starts: int = 16) -> bool:
-        """Whether the free run stays finite over ``y``, ``u`` from each of ``starts`` points spread over it."""
+    def bounded(self, y, u, starts: int = 16, runs: tuple = ()) -> bool:
+        """Whether the free run stays finite over ``y``, ``u`` from each of ``starts`` points spread over it, and
+        over each of ``runs`` (``(y_head, u)``: the first outputs and the inputs of a record it will be
+        free-run on; no output beyond the head is read)."""
         n = y.size
         for k in range(0, n - max(self.na, self.nb) - 1, max(1, n // starts)):
             sim = _simulate_terms(self.theta, self.powers, y[k:], u[k:], self.na, self.nb)
             if not np.all(np.isfinite(sim)):
                 return False
-        return True
+        return all(np.all(np.isfinite(_simulate_terms(self.theta, self.powers, yh, ur, self.na, self.nb)))
+                   for yh, ur in runs)
 
     def free_run_rms(self, y, u, init: int = 50) -> float:
         sim = _simulate_terms(self.theta, self.powers, y, u, self.na, self.nb)
@@ -261,15 +278,22 @@ class NARX:
         return float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else float("inf")
 
 
+def heads(tests, init: int = 50) -> tuple:
+    """``(y_head, u)`` of each ``(y, u)`` test record: what a free run from its start reads (the first ``init``
+    outputs and the inputs), for :func:`tuned_narx`'s ``runs``."""
+    return tuple((y[:init], u) for y, u in tests)
+
+
 def tuned_narx(y: np.ndarray, u: np.ndarray, *, degrees=(1, 2, 3), orders=(1, 2, 3, 4), validation: float = 0.2,
-               sizes=(2, 3, 4, 5, 6, 8, 10, 13, 16, 20), finalists: int = 3) -> NARX:
+               sizes=(2, 3, 4, 5, 6, 8, 10, 13, 16, 20), finalists: int = 3, runs: tuple = ()) -> NARX:
     """A polynomial NARX as its users tune it, by free run on validation blocks: for every (na = nb + 1,
     degree) of the grid the terms are ranked by forward orthogonal least squares (Billings' FROLS), and every
     model of the first ``sizes`` terms is fitted by least squares without a block of ``validation`` of the
     estimation record (its end, then its start) and free-run over it; the ``finalists`` with the lowest RMS
     over both blocks are refitted by simulation error and scored again; the winner is refitted so on the whole
-    record. A model that diverges on a validation block is never chosen (the next one is). ``degrees=(1,)``:
-    a linear ARX."""
+    record. A model that diverges on a validation block is never chosen (the next one is), nor one whose free
+    run blows up on the inputs it will be run on (``runs``: ``(y_head, u)`` of each test record, see
+    :func:`heads`), which its user sees at once and re-chooses for. ``degrees=(1,)``: a linear ARX."""
     n = y.size
     m_ = int(validation * n)
     folds = [(slice(0, n - m_), slice(n - m_, n)), (slice(m_, n), slice(0, m_))]
@@ -295,12 +319,12 @@ def tuned_narx(y: np.ndarray, u: np.ndarray, *, degrees=(1, 2, 3), orders=(1, 2,
                 first.append((score(lambda: NARX(na, nb, d, list(terms))), (na, nb, d, terms)))
     ranked = sorted([f for f in first if math.isfinite(f[0])], key=lambda f: f[0]) or first
     second = [(score(lambda c=c: NARX(c[0], c[1], c[2], list(c[3])), refit=True), c) for _, c in ranked[:finalists]]
-    # the winner refitted on the whole record must stay bounded there from any start (a user re-chooses a
-    # model whose free run blows up; the test record starts elsewhere): else the next one
+    # the winner refitted on the whole record must stay bounded there from any start and on the test inputs
+    # (a user re-chooses a model whose free run blows up): else the next one
     order = [c for _, c in sorted(second, key=lambda f: f[0])] + [c for _, c in ranked[finalists:]]
     for na, nb, d, terms in order:
         m = NARX(na, nb, d, list(terms)).fit(y, u)
-        if m.bounded(y, u):
+        if m.bounded(y, u, runs=runs):
             return m
     na, nb, d, terms = order[0]
     return NARX(na, nb, d, list(terms)).fit(y, u)

@@ -704,8 +704,9 @@ def bench_loop(tiny: bool = False) -> dict:
     y, u = seg["estimation"].columns["y"], seg["estimation"].columns["u"]
     tests = {"multisine": (seg["test_multisine"].columns["y"], seg["test_multisine"].columns["u"]),
              "arrow": (seg["test_arrow"].columns["y"], seg["test_arrow"].columns["u"])}
-    arx = peers.tuned_narx(y, u, degrees=(1,))
-    narx = peers.tuned_narx(y, u)
+    runs = peers.heads(tests.values())
+    arx = peers.tuned_narx(y, u, degrees=(1,), runs=runs)
+    narx = peers.tuned_narx(y, u, runs=runs)
     peer = {"arx": {k: arx.free_run_rms(*v) for k, v in tests.items()},
             "narx": {k: narx.free_run_rms(*v) for k, v in tests.items()}}
     for name, fn in (("pysindy", lambda: peers.pysindy_free_run(y, u, tests)),
@@ -758,7 +759,7 @@ def bench_loop(tiny: bool = False) -> dict:
     out["loop_pendulum_band_coverage"] = prep.report["reported"]["free_run"].get("band_coverage")
     out["loop_pendulum_added"] = [a["effect"] + " -> " + a["target"] for a in prep.added]
     py = pdata.columns["y"]
-    pn = peers.tuned_narx(py, np.zeros_like(py))
+    pn = peers.tuned_narx(py, np.zeros_like(py), runs=peers.heads([(ptest.columns["y"], np.zeros(len(ptest)))]))
     out["loop_peer_narx_pendulum_rad"] = pn.free_run_rms(ptest.columns["y"], np.zeros(len(ptest)))
     # -- the loop on the 5000-point reference data (M2's data-generating form)
     ref = StudySpec.model_validate({
@@ -829,8 +830,9 @@ def _peers(rec) -> dict:
     u = rec.est.columns.get("u", np.zeros_like(y))
     yt = rec.test.columns["y"]
     ut = rec.test.columns.get("u", np.zeros_like(yt))
-    out = {"arx": peers.tuned_narx(y, u, degrees=(1,)).free_run_rms(yt, ut),
-           "narx": peers.tuned_narx(y, u).free_run_rms(yt, ut)}
+    runs = peers.heads([(yt, ut)])
+    out = {"arx": peers.tuned_narx(y, u, degrees=(1,), runs=runs).free_run_rms(yt, ut),
+           "narx": peers.tuned_narx(y, u, runs=runs).free_run_rms(yt, ut)}
     if "u" in rec.est.columns:  # the libraries' NARX and SINDy with a control input
         for p, fn in (("pysindy", peers.pysindy_free_run), ("sysidentpy", peers.sysidentpy_free_run)):
             got = fn(y, u, {"test": (yt, ut)})
