@@ -23,6 +23,13 @@ def _num(x) -> str:
     return f"{x:.4g}" if isinstance(x, (int, float)) and not isinstance(x, bool) else html.escape(str(x))
 
 
+def _parameter_cells(name: str, q: dict) -> str:
+    """A parameter's cells in the page's tables: its name, posterior mean and 99 % interval (empty: no
+    posterior)."""
+    interval = f"[{_num(q.get('q005'))}, {_num(q.get('q995'))}]" if q else ""
+    return f"<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td><td>{interval}</td>"
+
+
 # the error table's rows: (key in the report, what it is, its unit: "data" is the measured column's unit)
 ERRORS = [("innovation_rms", "one-step prediction error (innovation RMS)", "data"),
           ("standardized_rms", "standardised innovation RMS (1 when the filter's variances are right)", ""),
@@ -211,8 +218,7 @@ def _round_table(r: dict, k: int = 8) -> str:
                     f"<td>{_num(c.get('screened_log_bayes_factor'))}</td><td>{_num(c['log_bayes_factor'])}</td>"
                     f"<td>{html.escape('supported by the evidence, not kept: its model free-runs no better held out' if (c['effect'], c['target']) in refused and (c['effect'], c['target']) not in added else _fate(c, added))}</td>"
                     if i == 0 else "<td></td>" * 5)
-            out.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
-                       f"<td>{'' if not q else '[' + _num(q.get('q005')) + ', ' + _num(q.get('q995')) + ']'}</td></tr>")
+            out.append(f"<tr>{lead}{_parameter_cells(name, q)}</tr>")
     tried = {(c["effect"], c["target"]) for c in confirmed}
     rest = [c for c in r.get("candidates") or [] if (c["effect"], c["target"]) not in tried][:max(0, k - len(tried))]
     for c in rest:
@@ -280,8 +286,7 @@ def _states_table(states: list[dict]) -> str:
         for i, (name, q) in enumerate(rows.items()):
             lead = (f"<td>{html.escape(st['name'])}</td><td>{html.escape(st['kind'])}</td>"
                     f"<td>{html.escape(st['equation'])}</td>" if i == 0 else "<td></td>" * 3)
-            body.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
-                        f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>")
+            body.append(f"<tr>{lead}{_parameter_cells(name, q)}</tr>")
     body.append("</table>")
     return "".join(body)
 
@@ -330,8 +335,7 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
                 lead = (f"<td>{html.escape(a['effect'])}</td><td>{html.escape(a['target'])}</td>"
                         f"<td>{html.escape(a.get('character') or '')}</td><td>{_num(a['log_bayes_factor'])}</td>"
                         if i == 0 else "<td></td>" * 4)
-                body.append(f"<tr>{lead}<td>{html.escape(name)}</td><td>{_num(q.get('mean'))}</td>"
-                            f"<td>[{_num(q.get('q005'))}, {_num(q.get('q995'))}]</td></tr>")
+                body.append(f"<tr>{lead}{_parameter_cells(name, q)}</tr>")
         body.append("</table>")
     if j.get("states"):
         body.append(_states_table(j["states"]))
