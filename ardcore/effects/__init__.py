@@ -5,5 +5,5 @@ The modules are the interface: import from them (``from ardflow.ardcore.effects.
 """
 
 __all__ = [
-    "base", "families",
+    "base", "families", "states",
 ]

@@ -47,7 +47,8 @@ import numpy as np
 
 from .checks import Added, backward_check, brought, not_degenerate, replace_laws
 from .confirm import Fit, pool_mapper, trace_and_confirm
-from .states import Lag, best_state, state_summary
+from ..effects.states import Lag
+from .states import best_state, state_summary
 from .replace import best_laws, shape_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns

@@ -5,52 +5,32 @@ omissions are a state of their own. Four families are offered, each a full fit j
 (:mod:`.replace`): its ln Bayes factor against the current model must exceed ``config.min_log_bf`` plus ln of
 the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it. The
 hysteresis, the sensor and the mode are screened first (:func:`screened_states`): only those that fit better with
-the current model held at its MAP are fitted in full, best first.
+the current model held at its MAP are fitted in full, best first. A lag is offered every round, beside the laws;
+the hysteresis, the sensor and the mode only when the loop would stop (the term families left structure they
+cannot take up).
 
-**A lag** (every round, beside the laws). A declared derived quantity ``D`` (a signal: it holds a state or an
-input) that enters one state's equation and no observation or noise: that equation sees a new state instead::
-
-    z' = b (D - z) + k s'        (s: the state whose equation D entered, s' its drift)
-
-``b`` the lag's rate (1 / time constant), ``k`` the part of the state's own rate that feeds the lagged quantity
-directly (the apparent mass of an unsteady moment: M2's ``c6 F``). A process noise declared on ``D`` (the
-state's diffusion proportional to ``D``'s coefficient: M1's ``c3 sigma``) moves into the lag's equation.
-Priors: ``b`` lognormal at the record's dominant angular frequency, a tenth to ten times it at +-2 sd; ``k``
-normal around 0 at the size that makes ``k s'`` as large as ``b D``. The law's coefficients keep their prior's
-width centred on zero (a lag turns the law's phase, so a sign chosen for the quasi-steady reading no longer
-binds), and its ARD terms are selected again. A quantity already acting through a lag (a state ``s`` whose
-drift holds ``g (D - s)``, the rate ``g`` a parameter: M2's ``B (P - CM)``) is not offered again.
-
-**A hysteresis**, **a sensor** and **a second mode** (only when the loop would stop: the term families left
-structure they cannot take up). For an oscillator ``x' = v``, a Bouc-Wen state in the velocity's equation::
-
-    v' = ... + k z,    z' = v - beta |v| z - gamma v |z|
-
-(``z`` a displacement that saturates near ``1 / (beta + gamma)``; ``beta`` lognormal at the inverse of the
-displacement's spread, ``gamma`` normal around 0 at that size, ``k`` normal around 0 at the size of the
-velocity equation's own drift over the displacement). For a measured state, the sensor's own first-order
-dynamics: the measurement reads ``m``, ``m' = b (h - m)`` (``h`` the declared measurement expression, ``b`` as a
-lag's rate but a tenth to a hundred times the dominant frequency: a sensor is faster than what it measures).
-For an oscillator ``x' = v``, a second mode: a mass on a spring and damper attached to it (a secondary structure,
-a sloshing or a flexible part), two states ``q, dq``::
-
-    q' = dq,   dq' = -f,   v' = ... + mu f,   f = w^2 (q - x) + 2 zeta w (dq - v)
-
-(``w`` its angular frequency, lognormal over a tenth to ten times the record's dominant one; ``zeta`` its damping
-ratio, lognormal from 0.5 % to 50 %; ``mu`` the mass ratio that couples it back, normal around 0 at 1: an effect's
-coefficient, taken only when its 99 % interval excludes 0).
+The families and what each adds to a declaration are :mod:`ardcore.effects.states`. Priors: a lag's rate ``b``
+lognormal at the record's dominant angular frequency, a tenth to ten times it at +-2 sd (a sensor's a tenth to a
+hundred times: a sensor is faster than what it measures); its ``k`` normal around 0 at the size that makes
+``k s'`` as large as ``b D``; the law's coefficients keep their prior's width centred on zero (a lag turns the
+law's phase, so a sign chosen for the quasi-steady reading no longer binds) and its ARD terms are selected again.
+A hysteresis' ``beta`` lognormal at the inverse of the displacement's spread, ``gamma`` normal around 0 at that
+size, ``k`` normal around 0 at the size of the velocity equation's own drift over the displacement. A mode's
+``w`` lognormal over a tenth to ten times the record's dominant frequency, ``zeta`` lognormal from 0.5 % to 50 %,
+``mu`` normal around 0 at 1 (an effect's coefficient, taken only when its 99 % interval excludes 0).
 """
 
 from __future__ import annotations
 
 import math
-import re
 from typing import NamedTuple
 
 import numpy as np
 import sympy as sp
 
-from ..effects.base import oscillator_pairs, short_name
+from ..effects.base import short_name
+from ..effects.states import (Lag, declared_names, hystereses, lag_spec, lags, modes, names_of, new_states,
+                             sensors)
 from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
@@ -60,166 +40,6 @@ from .confirm import Fit, essential_from_row
 
 RATE_SPAN = 10.0
 """A lag's rate prior spans the record's dominant angular frequency divided and multiplied by this at +-2 sd."""
-
-
-class Lag(NamedTuple):
-    """A state move: ``kind`` "lag" (the derived quantity ``term`` of the ``target`` state's equation through a
-    lag), "hysteresis" (a Bouc-Wen state of the oscillator whose position is ``term`` in the velocity ``target``'s
-    equation) or "sensor" (the measurement ``term`` of the observed column ``target`` read through a lag)."""
-
-    term: str
-    target: str
-    kind: str = "lag"
-
-
-def _names(spec: ModelSpec) -> set:
-    return {*spec.states, *spec.inputs, *spec.parameters, *spec.constants, *spec.derived}
-
-
-def _uses(spec: ModelSpec) -> dict:
-    """Derived quantity -> the names its expression holds, those of the derived quantities it uses included."""
-    names, out = _names(spec), {}
-    for d, text in spec.derived.items():
-        sym = {str(s) for s in parse_expression(text, names).free_symbols}
-        out[d] = sym.union(*(out[u] for u in sym if u in out))
-    return out
-
-
-def _mentions(spec: ModelSpec, text: str, term: str, uses: dict) -> bool:
-    sym = {str(s) for s in parse_expression(text, _names(spec)).free_symbols}
-    return term in sym or any(term in uses.get(u, ()) for u in sym)
-
-
-def lags(spec: ModelSpec) -> list[Lag]:
-    """The derived quantities a lag may be offered for (module docstring): in one state's drift, in no
-    observation, diffusion or initial state, a signal (it holds a state or an input), not already acting through
-    a lag."""
-    uses, names, free = _uses(spec), _names(spec), set(spec.free_parameters)
-    elsewhere = ([o.expr for o in spec.observations] + [o.noise_std for o in spec.observations]
-                 + list(spec.diffusion.values()) + list(spec.initial_mean.values())
-                 + list(spec.initial_std.values()))
-    out = []
-    signals = {*spec.states, *spec.inputs}
-    for d in spec.derived:
-        if not uses[d] & signals:
-            continue  # a coefficient made of parameters, not a signal
-        where = [s for s, text in spec.drift.items() if _mentions(spec, text, d, uses)]
-        if len(where) != 1 or any(_mentions(spec, str(t), d, uses) for t in elsewhere):
-            continue
-        s = where[0]
-        f = parse_expression(spec.drift[s], names)
-        g = sp.diff(f, sp.Symbol(d, real=True))
-        rates = {str(x) for x in g.free_symbols} & free
-        if rates and not rates & {str(x) for x in (sp.diff(f, sp.Symbol(s, real=True)) + g).free_symbols}:
-            continue  # the drift holds g (D - s): D already acts through a lag
-        out.append(Lag(d, s))
-    return out
-
-
-def _oscillators(spec: ModelSpec) -> list[tuple[str, str]]:
-    """The oscillators (position, velocity) of ``spec`` but those a second mode added: a state of fixed form
-    takes nothing more (a mode of a mode, or its hysteresis, is a basis expansion, not a missing effect)."""
-    pairs = oscillator_pairs(spec)
-    added = {n for x, v in pairs for n in new_states(Lag(x, v, "mode"))}
-    return [(x, v) for x, v in pairs if x not in added]
-
-
-def hystereses(spec: ModelSpec) -> list[Lag]:
-    """A Bouc-Wen state for each oscillator (position, velocity) that has none yet."""
-    return [Lag(x, v, "hysteresis") for x, v in _oscillators(spec) if names_of(Lag(x, v, "hysteresis"))[0]
-            not in spec.states]
-
-
-def modes(spec: ModelSpec) -> list[Lag]:
-    """A second mode for each oscillator (position, velocity) that has none yet."""
-    return [Lag(x, v, "mode") for x, v in _oscillators(spec) if names_of(Lag(x, v, "mode"))[0] not in spec.states]
-
-
-def sensors(spec: ModelSpec) -> list[Lag]:
-    """A sensor state for each measurement of the states that is not read through one yet (what earlier rounds
-    added to the measurement, a feedthrough standing in for the sensor's lag, is read through it too: the
-    backward check then weighs it again)."""
-    names, states = _names(spec), set(spec.states)
-    out = []
-    for o in spec.observations:
-        sym = {str(x) for x in parse_expression(str(o.expr), names).free_symbols}
-        if sym & states and names_of(Lag(str(o.expr), o.column, "sensor"))[0] not in sym:
-            out.append(Lag(str(o.expr), o.column, "sensor"))
-    return out
-
-
-def names_of(move: Lag) -> tuple[str, ...]:
-    """The new state and its parameters, named after what they act on: a lag's (state, rate, feedthrough), a
-    hysteresis' (state, coupling, beta, gamma), a sensor's (state, rate), a mode's (its two states, frequency,
-    damping ratio, mass ratio)."""
-    if move.kind == "hysteresis":
-        x = move.term
-        names = (f"hys_{x}", f"k_hys_{x}", f"beta_{x}", f"gamma_{x}")
-    elif move.kind == "sensor":
-        names = (f"sensor_{move.target}", f"b_sensor_{move.target}")
-    elif move.kind == "mode":
-        x = move.term
-        names = (f"mode_{x}", f"dmode_{x}", f"w_mode_{x}", f"z_mode_{x}", f"mu_mode_{x}")
-    else:
-        names = (f"lag_{move.term}", f"b_{move.term}", f"k_{move.term}")
-    # short enough that the loop's own names built on them (q_diag_<state>) stay within 32 characters
-    return tuple(short_name(n, 24) for n in names)
-
-
-def new_states(move: Lag) -> tuple[str, ...]:
-    """The states ``move`` adds (:func:`names_of`'s first: two for a mode, one otherwise); its parameters follow."""
-    return names_of(move)[:2 if move.kind == "mode" else 1]
-
-
-def _words(text: str, old: str, new: str) -> str:
-    return re.sub(rf"\b{re.escape(old)}\b", new, text)
-
-
-def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0)) -> ModelSpec:
-    """``spec`` with the state move ``lag`` (module docstring); ``start``: the new state's initial mean and
-    standard deviation."""
-    names = _names(spec)
-    drift, derived, diffusion = dict(spec.drift), dict(spec.derived), dict(spec.diffusion)
-    observations, new = list(spec.observations), names_of(lag)
-    z = new[0]
-    if lag.kind == "hysteresis":
-        _, k, beta, gamma = new
-        v = lag.target
-        drift[v] = f"({drift[v]}) + {k}*{z}"
-        drift[z] = f"{v} - {beta}*abs({v})*{z} - {gamma}*{v}*abs({z})"
-    elif lag.kind == "sensor":
-        _, b = new
-        drift[z] = f"{b}*(({lag.term}) - {z})"
-        observations = [o.model_copy(update={"expr": z}) if o.column == lag.target else o for o in observations]
-    elif lag.kind == "mode":
-        q, dq, w, zeta, mu = new
-        x, v = lag.term, lag.target
-        force = f"({w}**2*({q} - {x}) + 2*{zeta}*{w}*({dq} - {v}))"
-        drift[v] = f"({drift[v]}) + {mu}*{force}"
-        drift[q] = dq
-        drift[dq] = f"-{force}"
-    else:
-        _, b, k = new
-        drift = {s: _words(text, lag.term, z) for s, text in drift.items()}
-        derived = {d: (text if d == lag.term else _words(text, lag.term, z)) for d, text in derived.items()}
-        noise = diffusion.get(lag.target)
-        if noise is not None:
-            # noise declared on the quantity (the state's diffusion its coefficient times a level) moves with it
-            g = sp.diff(parse_expression(spec.drift[lag.target], names), sp.Symbol(lag.term, real=True))
-            level = sp.simplify(parse_expression(str(noise), names) / g) if g != 0 else None
-            if level is not None and not {str(x) for x in level.free_symbols} & {*spec.states, *spec.inputs}:
-                diffusion.pop(lag.target)
-                diffusion[z] = str(level)
-        drift[z] = f"{b}*({lag.term} - {z}) + {k}*({drift[lag.target]})"
-    states = list(new_states(lag))
-    # a mode starts with the oscillator (q at x's start, dq at rest), as uncertain as the new state's start says
-    mean = {z: float(start[0])} if lag.kind != "mode" else {new[0]: float(start[0]), new[1]: 0.0}
-    std = {n: float(start[1]) for n in states}
-    return spec.model_copy(update={
-        "name": short_name(f"{spec.name}_{lag.kind[:3]}"), "states": list(spec.states) + states, "drift": drift,
-        "derived": derived, "diffusion": diffusion, "observations": observations,
-        "parameters": list(spec.parameters) + list(new[len(states):]),
-        "initial_mean": {**spec.initial_mean, **mean}, "initial_std": {**spec.initial_std, **std}}).revalidate()
 
 
 def dominant_rate(y: np.ndarray, dt: float) -> float:
@@ -235,7 +55,7 @@ def dominant_rate(y: np.ndarray, dt: float) -> float:
 
 def signal_values(spec: ModelSpec, phi: dict, text: str, states: np.ndarray, columns: dict) -> np.ndarray:
     """``text`` (an expression of ``spec``, derived quantities allowed) along the filtered ``states``."""
-    names = _names(spec)
+    names = declared_names(spec)
     e = parse_expression(text, names)
     derived = {sp.Symbol(d, real=True): parse_expression(t, names) for d, t in spec.derived.items()}
     for _ in range(len(derived) + 1):
@@ -318,7 +138,7 @@ def lag_candidate(current: Fit, lag: Lag, at: Along | None = None) -> CandidateS
         spec = lag_spec(ms, lag, (float(d[0]), sd_d))
         _, b, k = new
         # the law's own terms: their essential priors centred, their ARD selected again
-        own = {str(x) for x in parse_expression(ms.derived[lag.term], _names(spec)).free_symbols}
+        own = {str(x) for x in parse_expression(ms.derived[lag.term], declared_names(spec)).free_symbols}
         ard = [a for a in cand.ard_names if a in own]
         priors = {n: (_centred(p) if n in own else p) for n, p in priors.items() if n not in ard}
         fixed = {n: v for n, v in fixed.items() if n not in ard}
@@ -333,7 +153,7 @@ def _live(text: str, spec: ModelSpec | None) -> str:
     zeros = {sp.Symbol(n, real=True): 0 for n, v in (spec.fixed if spec is not None else {}).items() if v == 0}
     if not zeros:
         return text
-    return str(parse_expression(text, _names(spec)).subs(zeros)).replace("Abs(", "abs(")
+    return str(parse_expression(text, declared_names(spec)).subs(zeros)).replace("Abs(", "abs(")
 
 
 def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:

@@ -3,7 +3,8 @@
 import numpy as np
 import sympy as sp
 
-from ardflow.ardcore.loop.states import Lag, dominant_rate, lag_spec, lags, signal_values
+from ardflow.ardcore.effects.states import Lag, lag_spec, lags
+from ardflow.ardcore.loop.states import dominant_rate, signal_values
 from ardflow.ardcore.model.declaration import symbolic
 from ardflow.ardcore.model.library import aero_m1, aero_m2
 
@@ -71,7 +72,7 @@ def test_a_hysteresis_and_a_sensor_are_offered_on_an_oscillator_and_built_as_dec
     x, v = osc.states[:2]
     col = osc.observations[0].column
     offered = [*lags(osc)]
-    from ardflow.ardcore.loop.states import hystereses, sensors
+    from ardflow.ardcore.effects.states import hystereses, sensors
 
     assert lags(osc) == [] and hystereses(osc) == [Lag(x, v, "hysteresis")]
     assert sensors(osc) == [Lag(osc.observations[0].expr, col, "sensor")]
@@ -91,7 +92,7 @@ def test_a_second_mode_is_a_mass_on_a_spring_and_damper_and_is_offered_once():
     mass ratio mu, the oscillator's equation gains mu times the force its spring and damper pass to the mode,
     the mode's own equation loses that force; a mode is offered once, and neither a mode nor a hysteresis of the
     mode's own oscillator is offered after it."""
-    from ardflow.ardcore.loop.states import hystereses, modes
+    from ardflow.ardcore.effects.states import hystereses, modes
     from ardflow.ardcore.model.library import builtin
 
     osc = builtin("forced_linear_oscillator")
@@ -117,7 +118,8 @@ def _screened(name: str):
 
     from ardflow.ardcore.loop.confirm import Fit
     from ardflow.ardcore.screening.states import conditional, screen
-    from ardflow.ardcore.loop.states import along, hystereses, lag_candidate, modes, sensors
+    from ardflow.ardcore.effects.states import hystereses, modes, sensors
+    from ardflow.ardcore.loop.states import along, lag_candidate
     from ardflow.ardcore.selection.study import run_candidate
     from tests.bench.validation import RECORDS
 

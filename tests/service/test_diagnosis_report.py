@@ -120,7 +120,8 @@ def test_an_added_mode_shows_its_frequency_and_parameters_with_intervals():
     import math
     from types import SimpleNamespace
 
-    from ardflow.ardcore.loop.states import Lag, state_summary
+    from ardflow.ardcore.effects.states import Lag
+    from ardflow.ardcore.loop.states import state_summary
     from ardflow.service.reports.diagnosis import _states_table
 
     names = ("w_mode_y", "z_mode_y", "mu_mode_y")
