@@ -284,18 +284,25 @@ def heads(tests, init: int = 50) -> tuple:
     return tuple((y[:init], u) for y, u in tests)
 
 
-def tuned_narx(y: np.ndarray, u: np.ndarray, *, degrees=(1, 2, 3), orders=(1, 2, 3, 4), validation: float = 0.2,
-               sizes=(2, 3, 4, 5, 6, 8, 10, 13, 16, 20), finalists: int = 3, runs: tuple = ()) -> NARX:
+VALIDATION = 0.2
+"""The share of the estimation record in each of :func:`tuned_narx`'s two validation blocks (its end, its start)."""
+
+FINALISTS = 3
+"""The models :func:`tuned_narx` refits by simulation error and scores again."""
+
+
+def tuned_narx(y: np.ndarray, u: np.ndarray, *, degrees=(1, 2, 3), orders=(1, 2, 3, 4),
+               sizes=(2, 3, 4, 5, 6, 8, 10, 13, 16, 20), runs: tuple = ()) -> NARX:
     """A polynomial NARX as its users tune it, by free run on validation blocks: for every (na = nb + 1,
     degree) of the grid the terms are ranked by forward orthogonal least squares (Billings' FROLS), and every
-    model of the first ``sizes`` terms is fitted by least squares without a block of ``validation`` of the
-    estimation record (its end, then its start) and free-run over it; the ``finalists`` with the lowest RMS
+    model of the first ``sizes`` terms is fitted by least squares without a block of :data:`VALIDATION` of the
+    estimation record (its end, then its start) and free-run over it; the :data:`FINALISTS` with the lowest RMS
     over both blocks are refitted by simulation error and scored again; the winner is refitted so on the whole
     record. A model that diverges on a validation block is never chosen (the next one is), nor one whose free
     run blows up on the inputs it will be run on (``runs``: ``(y_head, u)`` of each test record, see
     :func:`heads`), which its user sees at once and re-chooses for. ``degrees=(1,)``: a linear ARX."""
     n = y.size
-    m_ = int(validation * n)
+    m_ = int(VALIDATION * n)
     folds = [(slice(0, n - m_), slice(n - m_, n)), (slice(m_, n), slice(0, m_))]
 
     def score(make, refit=False):
@@ -318,10 +325,10 @@ def tuned_narx(y: np.ndarray, u: np.ndarray, *, degrees=(1, 2, 3), orders=(1, 2,
                 terms = tuple(order[:k])
                 first.append((score(lambda: NARX(na, nb, d, list(terms))), (na, nb, d, terms)))
     ranked = sorted([f for f in first if math.isfinite(f[0])], key=lambda f: f[0]) or first
-    second = [(score(lambda c=c: NARX(c[0], c[1], c[2], list(c[3])), refit=True), c) for _, c in ranked[:finalists]]
+    second = [(score(lambda c=c: NARX(c[0], c[1], c[2], list(c[3])), refit=True), c) for _, c in ranked[:FINALISTS]]
     # the winner refitted on the whole record must stay bounded there from any start and on the test inputs
     # (a user re-chooses a model whose free run blows up): else the next one
-    order = [c for _, c in sorted(second, key=lambda f: f[0])] + [c for _, c in ranked[finalists:]]
+    order = [c for _, c in sorted(second, key=lambda f: f[0])] + [c for _, c in ranked[FINALISTS:]]
     for na, nb, d, terms in order:
         m = NARX(na, nb, d, list(terms)).fit(y, u)
         if m.bounded(y, u, runs=runs):

@@ -82,7 +82,8 @@ def _tanks_against_arx(start):
     rec = tanks(start)
     rep = diagnose(rec.spec, rec.est, test_data=rec.test, config=DiagnoseConfig()).report
     y, u = rec.est.columns["y"], rec.est.columns["u"]
-    arx = peers.tuned_narx(y, u, degrees=(1,)).free_run_rms(rec.test.columns["y"], rec.test.columns["u"])
+    yt, ut = rec.test.columns["y"], rec.test.columns["u"]
+    arx = peers.tuned_narx(y, u, degrees=(1,), runs=peers.heads([(yt, ut)])).free_run_rms(yt, ut)
     return rep, rep["reported"]["free_run"], arx
 
 
