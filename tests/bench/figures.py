@@ -37,6 +37,8 @@ HEADLINE = [
     ("loop_silverbox_multisine_mv", "... after `ardflow diagnose`", "mV", ".3g"),
     ("loop_peer_best_multisine_mv", "... best peer on the same split (ARX, NARX, PySINDy, SysIdentPy)", "mV", ".3g"),
     ("loop_silverbox_s", "... the loop's wall time", "s", ".0f"),
+    ("states_10k_ratio", "the state families' screen and fits over a round's terms, 10,000-sample sensor-lag record "
+     "(the largest over its rounds; target <= 2)", "", ".2f"),
     ("loop_pendulum_before_rad", "Pendulum, linear model: free run on 40-120 s", "rad", ".3g"),
     ("loop_pendulum_rad", "... after `ardflow diagnose`", "rad", ".3g"),
     ("api_status_p99_ms", "service: status p99 while 50 studies are submitted and a 500k-row upload runs",

@@ -77,6 +77,7 @@ def _serve(tmp_path: Path, log: Path) -> tuple[subprocess.Popen, int]:
 def test_no_one_but_the_service_reaches_its_scheduler(tmp_path):
     """The scheduler's address is no key to it: its comms are TLS with the service's own certificates, so a
     plain client and a client with certificates of its own are both refused."""
+    import asyncio
     import json
     import urllib.request
 
@@ -89,9 +90,20 @@ def test_no_one_but_the_service_reaches_its_scheduler(tmp_path):
         ident = json.load(urllib.request.urlopen(link.replace("/status", "/json/identity.json"), timeout=10))
         addr = ident["address"]
         assert addr.startswith("tls://127.0.0.1:") and ident["n_workers"] == 2, ident
+
+        async def reach(a, sec):
+            # an asynchronous client: a synchronous one that failed to connect can deadlock in its __del__
+            # (its loop runner's lock), which held this test for its whole timeout
+            c = DaskClient(a, asynchronous=True, timeout=5, security=sec)
+            try:
+                await c
+                await c.run(os.getpid)
+            finally:
+                await c.close()  # on its own loop (the refused client's __del__ would find it closed)
+
         for a, sec in ((addr, None), (addr.replace("tls://", "tcp://"), None), (addr, Security.temporary())):
             with pytest.raises(Exception):
-                DaskClient(a, timeout=5, security=sec).run(os.getpid)
+                asyncio.run(asyncio.wait_for(reach(a, sec), 60))
     finally:
         os.killpg(p.pid, signal.SIGKILL)
 
