@@ -236,11 +236,9 @@ def _better_start(fits: list) -> tuple:
     from the prior find (a sensor on M1 with a measurement noise: 10 nats below), or find one they miss (a sensor on
     the square-root tanks, where the prior's searches end at a curvature that is not positive definite)."""
     (warm, wm), (cold, cm) = fits
-
-    def result(row):
-        return row.degenerate() is None and np.isfinite(row.log_evidence)
-
-    if result(warm) and (not result(cold) or warm.log_evidence > cold.log_evidence + SAME_MODE_NATS):
+    # degenerate(): None for a result (a finite evidence with a real error and a posterior that moved)
+    if warm.degenerate() is None and (cold.degenerate() is not None
+                                      or warm.log_evidence > cold.log_evidence + SAME_MODE_NATS):
         return warm, wm
     return cold, cm
 

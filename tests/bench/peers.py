@@ -82,17 +82,20 @@ def pysindy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
         # record's inputs (a user re-chooses one that blows up; the test outputs only score it)
         model = None
         for _, th in ranked:
-            model = fit(th, y_est, u_est)
-            if all(_bounded(lambda y, u: run(model, y, u), y, u) for y, u in [(y_est, u_est), *tests.values()]):
+            m = fit(th, y_est, u_est)
+            if _bounded(run, m, [(y_est, u_est), *tests.values()]):
+                model = m
                 break
+        if model is None:  # none stays bounded: the best on the validation part
+            model = fit(ranked[0][1], y_est, u_est)
     return {name: run(model, yt, ut) for name, (yt, ut) in tests.items()}
 
 
-def _bounded(free_run, y, u) -> bool:
-    """Whether ``free_run(y, u)`` (an RMS error, inf where the simulation left any sane range) is finite: the
-    simulation reads only ``y``'s first samples and ``u``, so this is a check a user makes before any test
-    output is seen."""
-    return math.isfinite(free_run(y, u))
+def _bounded(run, model, records) -> bool:
+    """Whether ``run(model, y, u)`` (an RMS error, inf where the simulation left any sane range) is finite on each
+    ``(y, u)`` of ``records``: the simulation reads only ``y``'s first samples and ``u``, so this is a check a
+    user makes before any test output is seen."""
+    return all(math.isfinite(run(model, y, u)) for y, u in records)
 
 
 def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
@@ -141,7 +144,7 @@ def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | Non
             m = make(*cfg)
             m.fit(X=u_est[:, None], y=y_est[:, None])
             # refitted on the whole record, it must still stay bounded there and on the test records' inputs
-            if all(_bounded(lambda y, u: run(m, y, u), y, u) for y, u in [(y_est, u_est), *tests.values()]):
+            if _bounded(run, m, [(y_est, u_est), *tests.values()]):
                 model = m
                 break
         if model is None:
