@@ -842,9 +842,9 @@ def _peers(rec) -> dict:
 
 
 def states_ratio(report: dict) -> float | None:
-    """The state families' cost against the terms': the largest over a loop's rounds of the time the hysteresis
-    and sensor states took (run only in a round that takes nothing else) over the time the round's additions,
-    laws and lags took (None: no round ran them)."""
+    """The state families' cost against the terms': the largest over a loop's rounds of the time the hysteresis,
+    sensor and mode states took (their screen and the full fits it orders; run only in a round that takes
+    nothing else) over the time the round's additions, laws and lags took (None: no round ran them)."""
     got = [r["states_s"] / r["terms_s"] for r in report.get("rounds", []) if r.get("states_s") and r.get("terms_s")]
     return max(got) if got else None
 
@@ -852,8 +852,8 @@ def states_ratio(report: dict) -> float | None:
 def bench_states(tiny: bool = False) -> dict:
     """What the state families cost on a long record: the loop on the validation set's sensor-lag record at
     10,000 estimation samples (its truth a linear oscillator read through a first-order sensor, its user model
-    the plain oscillator). Keys: ``states_10k_ratio`` (:func:`states_ratio`: the hysteresis and sensor states'
-    time over the round's additions, laws and lags; issue target <= 2), ``states_10k_samples``,
+    the plain oscillator). Keys: ``states_10k_ratio`` (:func:`states_ratio`: the hysteresis, sensor and mode
+    states' time over the round's additions, laws and lags; issue target <= 2), ``states_10k_samples``,
     ``states_10k_s`` (the loop's wall time), ``states_10k_forms`` (the states it added) and
     ``states_10k_free_run`` (the reported model's free run on the test half)."""
     from ardflow.ardcore.loop.config import DiagnoseConfig
