@@ -876,7 +876,7 @@ def bench_states(tiny: bool = False) -> dict:
             "states_10k_free_run": r["reported"]["free_run"]["rms_error"]}
 
 
-def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
+def bench_validation(tiny: bool = False, records: list | None = None, seed: int | None = None) -> dict:
     """The loop on the validation set (:mod:`tests.bench.validation`): each record from its plain user model,
     and the peers on the same split, in one run; and the regression gate.
 
@@ -893,7 +893,10 @@ def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
     has none), ``validation_regressions`` (records whose verdict is worse than :data:`VERDICTS` holds: the gate;
     a full run fails when any is). Per record also ``loop_<r>_posterior_mean_free_run``,
     ``loop_<r>_noise_factor`` and ``loop_<r>_design``. With ``records`` (``--records``) the run is limited to those:
-    it checks the gate on them and leaves the set's summary keys as the last full run wrote them.
+    it checks the gate on them and leaves the set's summary keys as the last full run wrote them. With ``seed``
+    (``--seed``) every record's study runs at that seed instead of its own: how much a verdict owes to the
+    loop's random numbers (its starts, its draws). Such a run is compared with the recorded verdicts
+    (``validation_worse_at_seed``) but is no gate and records nothing.
     """
     from ardflow.ardcore.errors import ArdflowError
     from ardflow.ardcore.loop.config import DiagnoseConfig
@@ -914,7 +917,9 @@ def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
         make = RECORDS[name]
         rec = make(n=800) if tiny else make()
         spec = _tiny_spec(rec.spec) if tiny else rec.spec
-        print(f"  [{name}] {rec.physics}", flush=True)
+        if seed is not None:
+            spec = spec.model_copy(update={"seed": seed})
+        print(f"  [{name}] {rec.physics}" + (f" (seed {seed})" if seed is not None else ""), flush=True)
         t0 = time.perf_counter()
         try:
             # --tiny: the fit, the measures and the reported model only (no round: the keys, not the figures)
@@ -970,6 +975,8 @@ def bench_validation(tiny: bool = False, records: list | None = None) -> dict:
             checks += not rec.design
         if not tiny:  # a smoke run never touches the measured figures
             _save_partial(out)
+    if seed is not None:  # another seed: no gate, nothing recorded
+        return {**out, "validation_seed": seed, "validation_worse_at_seed": regressions}
     if not tiny:
         # what this run found becomes the record, only where no verdict got worse (the gate stays as it was)
         if not regressions:
@@ -1043,7 +1050,12 @@ def main(argv=None) -> int:
     ap.add_argument("--records", nargs="+", default=None, metavar="NAME",
                     help="the validation group on these records only (the gate on them; the set's summary is left "
                          "as the last full run wrote it)")
+    ap.add_argument("--seed", type=int, default=None,
+                    help="the validation group with every study at this seed (no gate, nothing recorded; needs --out)")
     a = ap.parse_args(argv)
+    if a.seed is not None and (a.out is None or a.only != ["validation"]):
+        ap.error("--seed runs the validation group alone (--only validation) and writes only to --out: a run at "
+                 "another seed is no gate and publishes nothing")
     if a.records:
         from .validation import RECORDS
 
@@ -1056,8 +1068,8 @@ def main(argv=None) -> int:
     ran: dict = {}  # what this run measured (the file also holds earlier runs' keys)
     for name in a.only or BENCHES:
         print(f"[bench] {name} ...", flush=True)
-        r = (bench_validation(tiny=a.tiny, records=a.records) if name == "validation" and a.records
-             else BENCHES[name](tiny=a.tiny))
+        r = (bench_validation(tiny=a.tiny, records=a.records, seed=a.seed)
+             if name == "validation" and (a.records or a.seed is not None) else BENCHES[name](tiny=a.tiny))
         res.update(r)
         ran.update(r)
         for k, v in r.items():

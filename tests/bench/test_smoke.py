@@ -55,3 +55,20 @@ def test_the_gate_grades_what_the_loop_did():
     assert graded(clean, "nothing") > graded(clean, verdict(clean, other, [], 1.0, 0.5))
     assert verdict(hidden, other, [], 1.0, 0.5) == "stand-in" and graded(hidden, "stand-in") == graded(hidden, "nothing")
     assert graded(hidden, verdict(hidden, other, [], 1.0, 0.95)) < graded(hidden, "nothing")
+
+
+def test_a_run_at_another_seed_is_no_gate_and_records_nothing(tmp_path):
+    """``--seed`` runs the validation group with every study at that seed: it says how each record compares with
+    what is recorded (``validation_worse_at_seed``) and never fails the gate, writes the verdicts or publishes; it
+    is refused without ``--only validation`` and ``--out``."""
+    from .run import VERDICTS, bench_validation, main
+
+    with pytest.raises(SystemExit):
+        main(["--only", "validation", "--tiny", "--records", "none", "--seed", "5"])  # no --out: it would publish
+    with pytest.raises(SystemExit):
+        main(["--only", "states", "--seed", "5", "--out", str(tmp_path / "x.json")])
+    before = VERDICTS.read_text()
+    got = bench_validation(tiny=True, records=["none"], seed=5)
+    assert got["validation_seed"] == 5 and isinstance(got["validation_worse_at_seed"], list)
+    assert "validation_regressions" not in got and "loop_none_verdict" in got
+    assert VERDICTS.read_text() == before
