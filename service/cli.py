@@ -108,6 +108,9 @@ def _study_commands(sub) -> None:
     s.add_argument("--test-rename", action="append", metavar="OLD=NEW",
                    help="renaming of the held-out file's columns (default: the spec's data.rename); e.g. "
                         "--test-rename uVal=u --test-rename yVal=y for a file that holds both records")
+    s.add_argument("--seed", type=int, help="the loop's random numbers (its starts and draws) at this seed instead "
+                                            "of the spec's: a model found at two seeds does not owe itself to one "
+                                            "run's path")
     for name in ("top_k", "max_rounds"):  # the loop's own defaults and words
         f = DiagnoseConfig.model_fields[name]
         s.add_argument("--" + name.replace("_", "-"), type=int, default=f.default,

@@ -167,7 +167,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 initial = FittedModel(fspec, phi, (), held.cand.substeps)
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
                          "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes,
-                         "max_rounds": config.max_rounds}
+                         "max_rounds": config.max_rounds, "seed": spec.seed}
                 arrays["before"] = _arrays(res, fr)
             else:
                 arrays["after"] = _arrays(res, fr)

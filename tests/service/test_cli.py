@@ -116,6 +116,26 @@ def test_diagnose_held_out_file_with_its_own_column_names(tmp_path):
     assert rep["n_test"] == 400
 
 
+def test_diagnose_at_another_seed_says_which_it_ran(tmp_path):
+    """``--seed`` runs the loop's random numbers at another seed than the spec's, and the diagnosis says which
+    seed it ran at (with and without it)."""
+    import numpy as np
+
+    from ardflow.ardcore.likelihood.simulate import simulate_model
+    from ardflow.ardcore.selection.spec import StudySpec
+
+    t = np.arange(900) * 0.02
+    d = simulate_model("linear_oscillator", {"k": 16.0, "c": 0.1, "sigma": 0.05}, t, 4, x0=[1.0, 0.0])
+    (tmp_path / "est.csv").write_text("t,y\n" + "\n".join(f"{float(a)!r},{float(b)!r}"
+                                                          for a, b in zip(t, d.columns["y"])))
+    spec = _oscillator_spec("est.csv")
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    for extra, seed in (([], StudySpec.model_validate(spec).seed), (["--seed", "7"], 7)):
+        r = run("diagnose", "spec.json", "--out", "out", "--max-rounds", "0", *extra, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        assert json.loads((tmp_path / "out" / "diagnosis.json").read_text())["seed"] == seed
+
+
 def test_live_progress_bars_and_plain_lines(capsys):
     """On an interactive terminal each model gets a bar that advances per trial and completes at model_done;
     in logs and CI the same events are plain lines."""
