@@ -204,7 +204,7 @@ def cmd_diagnose(a) -> int:
         base = src.resolve().parent
         data = spec.load_data(base)
         default = None
-    if getattr(a, "seed", None) is not None:
+    if a.seed is not None:
         spec = spec.model_copy(update={"seed": a.seed})
     name = a.model or (default if len(spec.models) > 1 else None)
     if name:
