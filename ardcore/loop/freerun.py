@@ -146,10 +146,16 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
     """The process-noise scale of the band, calibrated on blocks the parameters did not see (``band.refits``):
     on each block the posterior draws, moved from the posterior mean ``phi`` to the fit without that block
     (:func:`moved_draws`, their spread widened as the refit saw less of the record), make the band from the
-    block's start on. The coverage of the blocks together rises with the scale; the scale is where it reaches
-    90 %, interpolated between the two neighbouring :data:`BAND_FACTORS` (the largest when none reaches it: an
-    honest band errs wide), and never one at which more than 5 % of a block's draws diverge (``diverges_at``:
-    the largest below it stands). Returns it and the coverage at the factors tried."""
+    block's start on.
+
+    The posterior's own noise (scale 1) stands unless the blocks show it is wrong: their coverage at scale 1
+    differs from 90 % by more than twice its standard error, counted over the blocks' independent stretches
+    (:func:`independent_samples`: a slow error holds few). A correct model's blocks cover 90 % only on
+    average, so a scale fitted to a few short blocks would move its band by their noise. Otherwise the
+    coverage of the blocks together rises with the scale; the scale is where it reaches 90 %, interpolated
+    between the two neighbouring :data:`BAND_FACTORS` (the largest when none reaches it: an honest band errs
+    wide), and never one at which more than 5 % of a block's draws diverge (``diverges_at``: the largest below it
+    stands). Returns it and the coverage at the factors tried."""
     noise = noise_parameters(spec)
     if not noise:
         return 1.0, None
@@ -162,36 +168,71 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
         y = part.columns[spec.observed_columns[0]][k0:]
         spread = math.sqrt(n / max(n - (b - a), 1))  # the refit saw the rest of the record only
         parts.append((pspec, part, k0, y, np.isfinite(y), moved_draws(band.draws, phi, q, noise, spread)))
+    out = {"held_out_blocks": [[int(a), int(b)] for a, b, _ in band.refits], "out_of_sample": True}
+    at_one = _blocks_inside(parts, noise, 1.0, substeps, band.seed + 1)
+    if at_one is not None:
+        c = float(np.mean(np.concatenate([x for x, _ in at_one])))
+        se = math.sqrt(0.9 * 0.1 / max(sum(independent_samples(a) for _, a in at_one), 1.0))
+        out.update({"coverage": {"1": c}, "coverage_se": se})
+        if abs(c - 0.9) <= 2.0 * se:  # no evidence against the posterior's noise
+            return 1.0, out
     cover: dict = {}
     chosen, below, ceiling = max(BAND_FACTORS), None, None
     for f in sorted(BAND_FACTORS):  # from the narrowest, until the band holds 90 %
-        held, seen = 0, 0
-        for pspec, part, k0, y, ok, draws in parts:
-            ys = _predictive(pspec, _scaled(draws, noise, f), part, k0, substeps, band.seed + 1)
-            if len(ys) < 5 or diverged(ys) > MAX_DIVERGED:
-                break
-            lo, hi = band_of(ys)
-            held += int(np.sum(inside(y[ok], lo[ok], hi[ok])))
-            seen += int(np.sum(ok))
-        else:
-            c = cover[f] = held / max(seen, 1)
-            if c >= 0.9:
-                chosen = f if below is None else below[0] + (0.9 - below[1]) / (c - below[1]) * (f - below[0])
-                break
-            below = (f, c)
-            continue
-        # more than 5 % of a block's draws diverge at this scale: a band that holds the data by being infinite is
-        # no band, so the largest scale below it stands
-        ceiling = f
-        chosen = below[0] if below is not None else min(BAND_FACTORS)
-        break
+        inside_f = _blocks_inside(parts, noise, f, substeps, band.seed + 1)
+        if inside_f is None:
+            # more than 5 % of a block's draws diverge at this scale: a band that holds the data by being
+            # infinite is no band, so the largest scale below it stands
+            ceiling = f
+            chosen = below[0] if below is not None else min(BAND_FACTORS)
+            break
+        c = cover[f] = float(np.mean(np.concatenate([x for x, _ in inside_f]))) if inside_f else 0.0
+        if c >= 0.9:
+            chosen = f if below is None else below[0] + (0.9 - below[1]) / (c - below[1]) * (f - below[0])
+            break
+        below = (f, c)
     if not cover:
         return 1.0, None
-    out = {"held_out_blocks": [[int(a), int(b)] for a, b, _ in band.refits],
-           "coverage": {f"{f:g}": c for f, c in cover.items()}, "out_of_sample": True}
+    out["coverage"] = {**{f"{f:g}": c for f, c in cover.items()}, **out.get("coverage", {})}
     if ceiling is not None:
         out["diverges_at"] = ceiling
     return float(chosen), out
+
+
+def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int) -> list | None:
+    """Per calibration block (:func:`calibrated_out_of_sample`'s ``parts``), where its data lie inside the band
+    at process-noise ``factor`` (boolean series, its finite points) and how far across it (the squared distance
+    from its centre in half-widths); None when more than 5 % of a block's draws diverge."""
+    got = []
+    for pspec, part, k0, y, ok, draws in parts:
+        ys = _predictive(pspec, _scaled(draws, noise, factor), part, k0, substeps, seed)
+        if len(ys) < 5 or diverged(ys) > MAX_DIVERGED:
+            return None
+        lo, hi = band_of(ys)
+        # where the data lie across the band (inside within +-1): slower than its inside-outside series, as slow
+        # as the error's envelope, so its independent stretches are the block's
+        with np.errstate(invalid="ignore", divide="ignore"):
+            across = (y[ok] - (lo[ok] + hi[ok]) / 2) / ((hi[ok] - lo[ok]) / 2)
+        got.append((inside(y[ok], lo[ok], hi[ok]), np.nan_to_num(across ** 2, nan=0.0, posinf=1e6)))
+    return got
+
+
+def independent_samples(x: np.ndarray) -> float:
+    """How many independent values a series ``x`` holds: its length over its integrated autocorrelation time
+    (1 + 2 x the sum of its autocorrelations up to the first that is not positive)."""
+    x = np.asarray(x, float)
+    n = x.size
+    if n < 3 or np.var(x) == 0:
+        return float(n)
+    d = x - x.mean()
+    f = np.fft.rfft(d, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f))[:n] / (np.arange(n, 0, -1) * np.var(x))
+    tau = 1.0
+    for r in acf[1:n // 2]:
+        if r <= 0:
+            break
+        tau += 2.0 * r
+    return n / tau
 
 
 MAX_DIVERGED = 0.05
@@ -233,15 +274,27 @@ def _predictive(spec: ModelSpec, draws: list, data: Dataset, k0: int, substeps: 
     return np.array([_predictive_one(spec, d, data, k0, substeps, rng) for d in draws])
 
 
+def band_level(n: int, coverage: float = 0.9) -> float:
+    """The lower quantile level of ``n`` draws whose interval to the matching upper one holds a new draw of the
+    same distribution with probability ``coverage``. The sample's 5 % and 95 % quantiles do not: a new draw falls
+    outside the k-th smallest of n with probability k / (n + 1), so 40 draws' 5-95 % interpolated quantiles make
+    an 86 % band. The level puts the bound at order statistic ``(1 - coverage) / 2 * (n + 1)`` (interpolated),
+    the draws' own extremes when ``n`` is too small for it."""
+    k = (1.0 - coverage) / 2.0 * (n + 1)
+    return float(min(max(k - 1.0, 0.0) / max(n - 1, 1), 0.5))
+
+
 def band_of(ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The pointwise 5 % and 95 % quantiles of predictive draws ``ys`` (draws x samples). A draw that diverged is
-    beyond either bound from where it did, not dropped (dropping it would narrow the band of a model that
-    diverges): where more than 5 % of the draws have, the bound is infinite."""
+    """The pointwise 90 % predictive band of draws ``ys`` (draws x samples): the quantiles at
+    :func:`band_level`, which hold a new draw of the same model 90 % of the time. A draw that diverged is beyond
+    either bound from where it did, not dropped (dropping it would narrow the band of a model that diverges):
+    where more than 5 % of the draws have, the bound is infinite."""
     fin = np.isfinite(ys)
+    q = band_level(len(ys))
     # an interpolation that touches an infinite draw is NaN: the bound there is the infinite one
     with np.errstate(invalid="ignore"):
-        lo = np.quantile(np.where(fin, ys, -np.inf), 0.05, axis=0)
-        hi = np.quantile(np.where(fin, ys, np.inf), 0.95, axis=0)
+        lo = np.quantile(np.where(fin, ys, -np.inf), q, axis=0)
+        hi = np.quantile(np.where(fin, ys, np.inf), 1.0 - q, axis=0)
     return np.where(np.isnan(lo), -np.inf, lo), np.where(np.isnan(hi), np.inf, hi)
 
 

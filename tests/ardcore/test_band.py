@@ -18,6 +18,19 @@ def test_the_band_is_the_draws_5_and_95_percent_quantiles():
     assert np.allclose(lo, -1.645, atol=0.1) and np.allclose(hi, 1.645, atol=0.1)
 
 
+def test_a_band_of_few_draws_holds_a_new_draw_90_percent_of_the_time():
+    """The loop's bands are made of 40 posterior draws (``band_draws``): their 5 % and 95 % quantiles hold a new
+    draw of the same model only 86 % of the time (it falls outside the k-th smallest of n with probability
+    k / (n + 1)). At the band's levels (:func:`band_level`) it is 90 %, whatever the number of draws."""
+    rng = np.random.default_rng(4)
+    for n in (20, 40, 100):
+        ys, new = rng.standard_normal((n, 40000)), rng.standard_normal(40000)
+        lo, hi = band_of(ys)
+        assert np.mean((new >= lo) & (new <= hi)) == pytest.approx(0.9, abs=0.006), n
+    plain = np.quantile(ys[:40], [0.05, 0.95], axis=0)
+    assert np.mean((new >= plain[0]) & (new <= plain[1])) < 0.87  # what the sample quantiles give
+
+
 def test_a_diverged_draw_counts_beyond_the_band_not_dropped():
     """Ten of 100 draws diverge half-way: from there more than 5 % are beyond either bound, so both bounds are
     infinite (dropping them would leave a finite band that claims 90 % of a model that diverges); before it the
@@ -55,15 +68,15 @@ def _bistable() -> ModelSpec:
 
 
 def test_the_band_never_takes_a_noise_scale_at_which_its_draws_diverge():
-    """The data (a linear Ornstein-Uhlenbeck process, noise 0.3) move more than the model's draws (noise 0.05):
+    """The data (a linear Ornstein-Uhlenbeck process, noise 0.35) move more than the model's draws (noise 0.05):
     on short blocks of the estimation record its band needs a process-noise scale of several times to hold
     90 %. Over the test record, 25 times longer, that scale kicks many draws over the model's edge and they
     diverge: the band steps its scale down until at most 5 % do, and stays finite."""
     spec = _bistable()
     truth = spec.model_copy(update={"name": "ou_band", "drift": {"x": "-x"}, "parameters": ["sigma"]}).revalidate()
     dt = 0.02
-    est = simulate_model(truth, {"sigma": 0.3}, np.arange(3000) * dt, 4, x0=[0.0])
-    test = simulate_model(truth, {"sigma": 0.3}, np.arange(5000) * dt, 5, x0=[0.0])
+    est = simulate_model(truth, {"sigma": 0.35}, np.arange(3000) * dt, 4, x0=[0.0])
+    test = simulate_model(truth, {"sigma": 0.35}, np.arange(5000) * dt, 5, x0=[0.0])
     est, test = (Dataset(d.t, {"y": d.columns["y"]}, {}) for d in (est, test))
     rng = np.random.default_rng(6)
     draws = [{"a": float(1.0 + 0.02 * rng.standard_normal()), "sigma": 0.05} for _ in range(40)]
@@ -72,9 +85,9 @@ def test_the_band_never_takes_a_noise_scale_at_which_its_draws_diverge():
     calibrated, record = calibrated_out_of_sample(spec, phi, band, 50, None)
     assert calibrated > 2.0, record
     pspec = recentred(spec, test)[0]
-    ys = _predictive(pspec, _scaled(draws, ["sigma"], calibrated), test, 50, None, band.seed)
-    assert diverged(ys) > 0.05  # at the blocks' scale the long test record's draws diverge
     fr = free_run(spec, phi, test, band=band)
+    ys = _predictive(pspec, _scaled(draws, ["sigma"], calibrated), test, fr["start"], None, band.seed)
+    assert diverged(ys) > 0.05  # at the blocks' scale the long test record's draws diverge
     assert fr["band_factor"] < calibrated and fr["band_diverged"] <= 0.05
     assert np.all(np.isfinite(fr["band"][0])) and np.all(np.isfinite(fr["band"][1]))
     assert 0.0 <= fr["band_expected"][0] <= fr["band_expected"][1] <= fr["band_expected"][2] <= 1.0
