@@ -68,7 +68,7 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
     a long horizon too wide or, where the record holds larger motions than those fitted, too narrow; with
     ``band.calibration`` and ``band.refits`` its scale is calibrated out of sample on blocks of the
     estimation record (:func:`calibrated_out_of_sample`, ``band_factor``), never on ``data``.
-    ``band`` holds the pointwise 5 % and 95 % quantiles, ``band_coverage`` the share of data inside
+    ``band`` holds the pointwise bounds (:func:`band_of`), ``band_coverage`` the share of data inside
     it, ``draws_rms_error`` the median RMS error of the draws' deterministic free runs.
     """
     if data.n_records > 1:
