@@ -171,7 +171,7 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
     out = {"held_out_blocks": [[int(a), int(b)] for a, b, _ in band.refits], "out_of_sample": True}
     at_one = _blocks_inside(parts, noise, 1.0, substeps, band.seed + 1)
     if at_one is not None:
-        c = float(np.mean(np.concatenate([x for x, _ in at_one])))
+        c = _share_inside(at_one)
         se = math.sqrt(0.9 * 0.1 / max(sum(independent_samples(a) for _, a in at_one), 1.0))
         out.update({"coverage": {"1": c}, "coverage_se": se})
         if abs(c - 0.9) <= 2.0 * se:  # no evidence against the posterior's noise
@@ -179,14 +179,15 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
     cover: dict = {}
     chosen, below, ceiling = max(BAND_FACTORS), None, None
     for f in sorted(BAND_FACTORS):  # from the narrowest, until the band holds 90 %
-        inside_f = _blocks_inside(parts, noise, f, substeps, band.seed + 1)
+        # scale 1 was run above, with the same draws and seed
+        inside_f = at_one if f == 1.0 else _blocks_inside(parts, noise, f, substeps, band.seed + 1)
         if inside_f is None:
             # more than 5 % of a block's draws diverge at this scale: a band that holds the data by being
             # infinite is no band, so the largest scale below it stands
             ceiling = f
             chosen = below[0] if below is not None else min(BAND_FACTORS)
             break
-        c = cover[f] = float(np.mean(np.concatenate([x for x, _ in inside_f]))) if inside_f else 0.0
+        c = cover[f] = _share_inside(inside_f)
         if c >= 0.9:
             chosen = f if below is None else below[0] + (0.9 - below[1]) / (c - below[1]) * (f - below[0])
             break
@@ -215,6 +216,11 @@ def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int)
             across = (y[ok] - (lo[ok] + hi[ok]) / 2) / ((hi[ok] - lo[ok]) / 2)
         got.append((inside(y[ok], lo[ok], hi[ok]), np.nan_to_num(across ** 2, nan=0.0, posinf=1e6)))
     return got
+
+
+def _share_inside(blocks: list) -> float:
+    """The share of the calibration blocks' data inside their bands (:func:`_blocks_inside`), 0 without any."""
+    return float(np.mean(np.concatenate([x for x, _ in blocks]))) if blocks else 0.0
 
 
 def independent_samples(x: np.ndarray) -> float:

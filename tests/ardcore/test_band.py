@@ -12,7 +12,7 @@ from ardflow.ardcore.model.declaration import ModelSpec
 from ardflow.ardcore.selection.initial import recentred
 
 
-def test_the_band_is_the_draws_5_and_95_percent_quantiles():
+def test_the_band_of_many_draws_is_their_5_and_95_percent_quantiles():
     ys = np.random.default_rng(0).standard_normal((4000, 30))
     lo, hi = band_of(ys)
     assert np.allclose(lo, -1.645, atol=0.1) and np.allclose(hi, 1.645, atol=0.1)
