@@ -187,9 +187,10 @@ def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(
     with its pruned terms fixed, at its posterior mean; ``res``: its residuals. ``present``: (library name,
     target) of the effects the model holds already; they are not screened again. ``closed``: states whose
     equation has a fixed form (a hysteresis, a sensor, :mod:`.states`): nothing is added to them or built
-    on them (a term of a Bouc-Wen state is a basis expansion of it, not an effect)."""
-    spec, config, say, mapper, col = ctx.spec, ctx.config, ctx.say, ctx.mapper, ctx.column
-    cand, row, bmr, data = held
+    on them (a term of a Bouc-Wen state is a basis expansion of it, not an effect). Returns the
+    :class:`Screening` and the confirmations (:func:`confirm`)."""
+    say, mapper, col = ctx.say, ctx.mapper, ctx.column
+    cand, data = held.cand, held.data
     extra_effects = ctx.extra_effects
     spectrum = res.tests[col]["spectrum"]
     peaks = forcing_peaks(fspec, spectrum, res.noise_spectra)
@@ -210,6 +211,30 @@ def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(
     screened = [c for c in screened if ((c.source or c.effect).name, c.target) not in present]
     say("screen: " + ", ".join(f"{c.effect.name} -> {c.target} (ln BF ~ {c.log_bayes_factor:.1f})"
                                for c in screened[:5]))
+    return Screening(inp, screened), confirm(ctx, held, inp, screened, len(screened))
+
+
+class Screening(NamedTuple):
+    """A round's screen: what it read (``inp``) and every candidate it scored, best first (``screened``)."""
+
+    inp: ScreenInput
+    screened: list
+
+
+def hidden(screening: Screening, confirmed: list) -> list:
+    """The screened candidates the forward selection set aside as explained by those it picked
+    (``conditional_on``), not confirmed themselves. Once the picked ones are out (the evidence or the criterion
+    refused them), what they explained is no longer explained: these are the evidence's next proposals."""
+    tried = {id(c.screened) for c in confirmed}
+    return [c for c in screening.screened if getattr(c, "conditional_on", None) and id(c) not in tried]
+
+
+def confirm(ctx, held: Fit, inp: ScreenInput, screened: list, n_tried: int) -> list:
+    """The best distinct candidates of ``screened`` (forward selection on the screened evidence, with their
+    twins) re-selected under ARD side by side: their :class:`Confirmation`\ s. ``n_tried``: the candidates the
+    screen tried, whose number sets the threshold each must gain (``library_prior``)."""
+    spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
+    cand, row, bmr, data = held
     priors, fixed = essential_from_row(cand, row)
     cspec = spec.model_copy(update={"maximiser": spec.maximiser.model_copy(
         update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
@@ -254,14 +279,14 @@ def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(
         for i in outside:
             (fitted[i], tasks[i]), results[i] = hedge[i], hedged[i]
     # the prior odds of each of the N candidates tried (Scott and Berger 2010): its ln BF also pays ln N
-    threshold = config.min_log_bf + (math.log(max(1, len(screened))) if config.library_prior else 0.0)
+    threshold = config.min_log_bf + (math.log(max(1, n_tried)) if config.library_prior else 0.0)
     if chosen and config.library_prior:
-        say(f"  an effect must gain {threshold:.1f} nats: {config.min_log_bf:g} + ln {len(screened)} "
-            f"(the prior odds of one of the {len(screened)} candidates tried)")
+        say(f"  an effect must gain {threshold:.1f} nats: {config.min_log_bf:g} + ln {n_tried} "
+            f"(the prior odds of one of the {n_tried} candidates tried)")
     for sc, (eff, shape), (acand, adata, *_), (arow, amr) in zip(chosen, fitted, tasks, results):
         confirmed.append(_confirmation(sc, eff, shape, Fit(acand, arow, amr, adata), row, threshold, say))
     _resolve_twins(confirmed, rivals, config, say)
-    return screened, confirmed
+    return confirmed
 
 
 def forcing_peaks(spec: ModelSpec, spectrum: dict, noise_spectra: dict | None = None) -> list[dict]:

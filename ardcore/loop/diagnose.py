@@ -46,7 +46,7 @@ from typing import Callable
 import numpy as np
 
 from .checks import Added, backward_check, brought, not_degenerate, replace_laws
-from .confirm import Fit, pool_mapper, trace_and_confirm
+from .confirm import Fit, confirm, hidden, pool_mapper, trace_and_confirm
 from ..effects.states import Lag
 from .states import best_state, state_summary
 from .replace import best_laws, shape_summary
@@ -182,7 +182,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             lagged = best_state(ctx, held, ("lag",))  # a state: a declared quantity acting through a lag
             if lagged is not None and (swap is None or lagged[2] > swap[2]):
                 swap = lagged
-            rec, survivors, deferred = _trace_round(ctx, held, fspec, phi, res, rounds)
+            rec, survivors, deferred, proposals = _trace_round(ctx, held, fspec, phi, res, rounds)
             rounds.append(rec)
             move, judged_round = decide(ctx, crit, held, swap, survivors, deferred, rec)
             rec.record["terms_s"] = time.perf_counter() - t_round
@@ -195,6 +195,10 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                     judged_round["moves"] += more["moves"]
                     swap = extra if move is not None else swap
                 rec.record["states_s"] = time.perf_counter() - t_states  # the cost the bench holds to the terms'
+            if move is None:
+                t_next = time.perf_counter()
+                move = _next_proposals(ctx, crit, held, proposals, rec, judged_round)
+                rec.record["terms_s"] += time.perf_counter() - t_next
             judged.append(judged_round)
             if move is None:
                 first["stopped_by"] = "criterion"
@@ -295,27 +299,15 @@ def _closed(rounds: list[LoopRound]) -> set:
             for n in x["state"].get("states", [x["state"]["name"]])}
 
 
-def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rounds: list[LoopRound]) -> tuple[LoopRound, list, list]:
+def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rounds: list[LoopRound]) -> tuple:
     """One round's trace after ``rounds``: screen (not what the model holds already, nothing on a state of fixed
-    form), confirm, check the survivors' stability; the round's record, the survivors (best first) and those
-    deferred behind a measurement-noise level (the noise rule, :func:`_decide`). With no survivor, the record
-    carries the verdict on what remains."""
-    config, say, rnd = ctx.config, ctx.say, len(rounds)
-    ranked, confirmed = trace_and_confirm(ctx, held, fspec, phi, res, _present(rounds), _closed(rounds))
-    survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
-    survivors = not_degenerate(survivors, say)
-    noise = [c for c in survivors if c.fitted_effect.where == "noise"
-             and any(abs(c.fit.row.mean.get(n, 0.0)) > math.log(2) for n in c.scales)]
-    deferred = [c for c in survivors if c not in noise] if noise else []
-    if deferred:
-        # a noise level off by more than 2x changed what every dynamic candidate was screened and confirmed
-        # against (a filter that takes the misfit for process noise): the noise goes in alone, the others
-        # are screened again under it next round (a cubic and a sine stiffness tie until then)
-        say("the measurement noise changes by more than 2x: " + ", ".join(c.effect for c in deferred)
-            + " screened again under it next round")
-        survivors = noise
-    else:
-        survivors = stable(ctx, survivors)
+    form), confirm, check the survivors' stability; the round's record, the survivors (best first), those
+    deferred behind a measurement-noise level (the noise rule, :func:`_survivors`) and the evidence's next
+    proposals (:func:`_next_proposals`). With no survivor, the record carries the verdict on what remains."""
+    config, rnd = ctx.config, len(rounds)
+    screening, confirmed = trace_and_confirm(ctx, held, fspec, phi, res, _present(rounds), _closed(rounds))
+    ranked = screening.screened
+    survivors, deferred = _survivors(ctx, confirmed)
     # final ranking: what evidence confirmed (by ln Bayes factor), then the rest by regression score
     tried = {(c.screened.effect.name, c.target) for c in confirmed}
     order = sorted(confirmed, key=lambda c: (not c.survives, -c.log_bayes_factor))
@@ -329,7 +321,49 @@ def _trace_round(ctx: LoopContext, held: Fit, fspec, phi, res, rounds: list[Loop
            "candidates": candidates, "confirmed": confirmations, "added": None}
     if not survivors:
         rec["verdict"] = unexplained(res, candidates, confirmations, ctx.column, config)
-    return LoopRound(rec), survivors, deferred
+    return LoopRound(rec), survivors, deferred, (screening, hidden(screening, confirmed))
+
+
+def _survivors(ctx: LoopContext, confirmed: list) -> tuple[list, list]:
+    """The confirmations that survive (best first, stable over the record's halves) and those deferred behind a
+    measurement-noise level off by more than 2x (then the survivors are that level alone)."""
+    survivors = sorted([c for c in confirmed if c.survives], key=lambda c: -c.log_evidence)
+    survivors = not_degenerate(survivors, ctx.say)
+    noise = [c for c in survivors if c.fitted_effect.where == "noise"
+             and any(abs(c.fit.row.mean.get(n, 0.0)) > math.log(2) for n in c.scales)]
+    deferred = [c for c in survivors if c not in noise] if noise else []
+    if deferred:
+        # a noise level off by more than 2x changed what every dynamic candidate was screened and confirmed
+        # against (a filter that takes the misfit for process noise): the noise goes in alone, the others
+        # are screened again under it next round (a cubic and a sine stiffness tie until then)
+        ctx.say("the measurement noise changes by more than 2x: " + ", ".join(c.effect for c in deferred)
+                + " screened again under it next round")
+        return noise, deferred
+    return stable(ctx, survivors), []
+
+
+def _next_proposals(ctx: LoopContext, crit: Criterion, held: Fit, proposals: tuple, rnd: LoopRound,
+                    judged: dict) -> Move | None:
+    """The round's move among the evidence's next proposals, when the criterion took none of its first: the
+    candidates the forward selection set aside as explained by those it picked (``proposals``: the round's
+    screen and them), confirmed and judged the same way, once. A candidate the picked ones explained is no
+    longer explained once they are out, and a refused proposal must not hide the next (on the cascaded tanks an
+    overflow into tank 2 from tank 1's level is screened above the overflow flow between them, which it
+    explains; the criterion refuses it, and the flow is the move)."""
+    screening, rest = proposals
+    if not rest:
+        return None
+    ctx.say("the candidates the refused ones explained, confirmed now: "
+            + ", ".join(f"{c.effect.name} -> {c.target}" for c in rest[:5]))
+    confirmed = confirm(ctx, held, screening.inp, rest, len(screening.screened))
+    rec = rnd.record
+    rec["confirmed"] = rec["confirmed"] + [c.to_json() for c in confirmed]
+    survivors, deferred = _survivors(ctx, confirmed)
+    move, more = decide(ctx, crit, held, None, survivors, deferred, rnd)
+    judged["moves"] += more["moves"]
+    if move is not None:
+        rec.pop("verdict", None)
+    return move
 
 
 def _adopt(ctx: LoopContext, held: Fit, move: Move, fspec, phi, rnd: LoopRound) -> Fit:

@@ -351,6 +351,8 @@ def distinct_candidates(inp: ScreenInput, screened: list[Screened], k: int, min_
         return _distinct_by_refit(inp, screened, k, min_log_bf)
     # a candidate whose terms are not finite along the fit has no stored rows: it cannot be scored jointly
     pool = [c for c in screened[:look] if c.rows is not None and c.basis is screened[0].basis]
+    for c in pool:  # explained by what this selection picks, not by an earlier one's
+        c.conditional_on = None
     picked: list[Screened] = []
     if pool and pool[0].log_bayes_factor > min_log_bf:
         picked.append(pool[0])
