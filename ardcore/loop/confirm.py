@@ -231,8 +231,8 @@ def hidden(screening: Screening, confirmed: list) -> list:
 
 def confirm(ctx, held: Fit, inp: ScreenInput, screened: list, n_tried: int) -> list:
     """The best distinct candidates of ``screened`` (forward selection on the screened evidence, with their
-    twins) re-selected under ARD side by side: their confirmations (:class:`Confirmation`). ``n_tried``: the candidates the
-    screen tried, whose number sets the threshold each must gain (``library_prior``)."""
+    twins) re-selected under ARD side by side: their confirmations (:class:`Confirmation`). ``n_tried``: the
+    candidates the screen tried, whose number sets the threshold each must gain (``library_prior``)."""
     spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
     cand, row, bmr, data = held
     priors, fixed = essential_from_row(cand, row)
