@@ -163,6 +163,36 @@ def test_forward_selection_scores_jointly_and_finds_what_the_first_leaves():
     assert second.conditional_log_bayes_factor > 3.0
 
 
+def test_what_a_refused_pick_explained_is_proposed_next():
+    """The loop's next proposals (:func:`~ardflow.ardcore.loop.confirm.hidden`): with a cubic stiffness
+    planted, the forward selection picks it and sets aside the stiffnesses it explains. Once the picks are out
+    (refused), those set aside are what the evidence proposes next: a second forward selection among them picks
+    the best of them by its own evidence, none marked as explained by the refused picks."""
+    from types import SimpleNamespace
+
+    from ardflow.ardcore.effects.base import augment
+    from ardflow.ardcore.loop.confirm import Screening, hidden
+    from ardflow.ardcore.screening.screen import distinct_candidates
+
+    lib = {e.name: e for e in candidate_effects(base_spec())}
+    truth, _ = augment(base_spec(), lib["cubic_stiffness(y)"], "v")
+    spec, data, phi = _forced(3, truth, {"k_s3y_v": -40.0})
+    scales = {"y": float(np.std(data.columns["y"])), "v": float(np.std(np.diff(data.columns["y"])) / 0.02)}
+    effects = [e for e in candidate_effects(spec, scales=scales) if not e.shape]
+    inp = ScreenInput(spec, phi, data)
+    got = screen_effects(inp, effects, ["v"], ["y"])
+    picked = distinct_candidates(inp, got, 3, 3.0)
+    assert picked[0].effect.name == "cubic_stiffness(y)"
+    rest = hidden(Screening(inp, got), [SimpleNamespace(screened=p) for p in picked])
+    assert rest and not set(map(id, rest)) & set(map(id, picked))
+    assert all("cubic_stiffness(y)" in c.conditional_on for c in rest)
+    assert max(c.log_bayes_factor for c in rest) > 3.0  # explained by the cubic, supported on its own
+    again = distinct_candidates(inp, rest, 3, 3.0)
+    assert again and again[0] is max(rest, key=lambda c: c.log_bayes_factor)
+    assert all(getattr(c, "conditional_on", None) is None or "cubic_stiffness(y)" not in c.conditional_on
+               for c in rest)
+
+
 def test_a_model_that_has_the_input_rate_screens_it_again_without_error():
     """A later round screens the library on a model that holds an input's rate already: its column is one of
     the model's inputs (it used to be appended a second time, and building the term's function failed)."""
