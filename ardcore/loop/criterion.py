@@ -292,8 +292,7 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
         if i != k:
             _refuse(rec, m, s)
     if k is None:
-        say(f"  nothing the evidence supports free-runs better held out than the model ({describe(cur)}): the loop "
-            "stops")
+        say(f"  nothing the evidence supports free-runs better held out than the model ({describe(cur)})")
         rec["verdict"] = (rec.get("verdict") or "") + ("; " if rec.get("verdict") else "") + (
             "supported by the evidence but free-running no better on held-out blocks of the estimation record "
             "(each left out of a refit): " + ", ".join(m.name for m in moves))

@@ -201,6 +201,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 rec.record["terms_s"] += time.perf_counter() - t_next
             judged.append(judged_round)
             if move is None:
+                ctx.say("no move free-runs better held out: the loop stops")
                 first["stopped_by"] = "criterion"
                 break
             # a noise level changes what the filter trusts, not the model's dynamics: the round it took (alone, so
