@@ -38,6 +38,7 @@ from ardflow.ardcore.sampling.config import SamplerResult
 from ardflow.ardcore.sampling.chains import relay, run
 from ardflow.ardcore.sampling.driver import Runtime, Start, continuation, continued, sample_batches
 from ardflow.ardcore.selection.fit import ModelFit
+from ardflow.ardcore.selection.hold import with_holds
 from ardflow.ardcore.selection.maximiser import MaximiserResult, Trial
 from ardflow.ardcore.selection.spec import StudySpec
 from ardflow.ardcore.selection.study import CandidateHooks, compare, iter_study_candidate
@@ -256,11 +257,13 @@ def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None 
     cannot be fitted to is refused first (:meth:`StudySpec.check_data`)."""
     data = spec.load_data(base, datasets)
     spec.check_data(data)
+    spec, hold = with_holds(spec, data)  # stored as it runs: the workers read the hold from the stored spec
     store = StudyStore.create(store_path, spec.model_dump(mode="json"), data)
     meta = store.meta
     if not meta.get("study_id"):
         store.update_meta(study_id=study_id or f"{spec.name}-{uuid.uuid4().hex[:8]}", status="created",
-                          data={"source": data.meta.get("source"), "n": len(data)})
+                          data={"source": data.meta.get("source"), "n": len(data), **({"input_hold": hold} if hold
+                                                                                        else {})})
     return store
 
 

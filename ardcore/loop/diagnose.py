@@ -58,6 +58,7 @@ from .criterion import Criterion, Move, decide, held_out_record, stable
 from .simulation_fit import reported_model
 from .result import Diagnosis, FittedModel, LoopRound
 from .freerun import Band, fitted, free_run, posterior_draws
+from ..selection.hold import with_holds
 from ..selection.initial import data_informed_initial
 from .config import DiagnoseConfig, LoopContext
 from ..model.declaration import ModelSpec
@@ -141,6 +142,9 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         raise SpecError(f"diagnose: the spec must have exactly one model (it has {len(spec.models)})")
     test_data = spec.held_out(test_data) if test_data is not None else data
     _check_columns(spec.models[0].model_spec(), data, test_data)
+    spec, hold = (spec, []) if base is not None else with_holds(spec, data)
+    for n in hold:
+        say(n)
     spec, notes = _informed_start(spec, data, base, say)
     cand = spec.models[0]
     say(f"fitting {cand.label} ...")
@@ -166,7 +170,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             if first is None:
                 initial = FittedModel(fspec, phi, (), held.cand.substeps)
                 first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
-                         "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes,
+                         "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes, "input_hold": hold,
                          "max_rounds": config.max_rounds, "seed": spec.seed}
                 arrays["before"] = _arrays(res, fr)
             else:

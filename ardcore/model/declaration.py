@@ -84,8 +84,9 @@ class ModelSpec(BaseModel):
         few sub-steps are enough. ``"euler"``: ``Phi = I + J dt`` (first order; the paper's
         aeroelastic models keep it so that their reference data and results are unchanged).
     input_hold : {"foh", "zoh"}
-        How inputs vary between samples. ``"foh"`` (default): linearly interpolated (first-order
-        hold). ``"zoh"``: held at the previous sample, which delays them by half a sample.
+        How inputs vary between samples. ``"foh"`` (the default): linearly interpolated (first-order
+        hold). ``"zoh"``: held at the previous sample, which delays them by half a sample. Undeclared, a
+        study and a diagnosis take it from the record (:mod:`ardcore.selection.hold`).
     kinks : {"smooth", "exact"}
         How the filter treats ``abs``, ``sign``, ``max`` and ``min`` of the states. ``"smooth"`` (default):
         their expectation over the filter's own spread of the argument (:mod:`ardcore.model.kinks`), so the

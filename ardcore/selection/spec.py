@@ -212,7 +212,8 @@ class CandidateSpec(BaseModel):
         indicators = [f"{RECORD_INPUT}{r}" for r in range(k)]
         params = [c for p in ms.parameters for c in (copies[p] if p in names else [p])]
         derived = {p: " + ".join(f"{c}*{i}" for c, i in zip(copies[p], indicators)) for p in self.per_record}
-        model = ms.model_dump(mode="json")
+        # an undeclared hold stays undeclared: the records decide it (:mod:`.hold`)
+        model = ms.model_dump(mode="json", exclude=set() if "input_hold" in ms.model_fields_set else {"input_hold"})
         model.update(parameters=params, derived={**derived, **ms.derived},
                      inputs=ms.inputs + [i for i in indicators if i not in ms.inputs], constants=ms.constants)
         spread = lambda d: {c: v for p, v in d.items() for c in (copies[p] if p in names else [p])}  # noqa: E731

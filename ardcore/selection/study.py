@@ -26,6 +26,7 @@ from ..data import Dataset
 from ..errors import FitError
 from ..events import ModelEvent, ProgressEvent, TrialDone
 from .fit import ModelFit
+from .hold import with_holds
 from .summary import ComparedModel, StudySummary
 from ..jsonio import to_jsonable
 from ..sampling.chains import Map, SamplerError, run, serial_map
@@ -205,6 +206,7 @@ def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[Mod
     """
     t0 = time.perf_counter()
     data = spec.load_data(base)
+    spec, _ = with_holds(spec, data)
     rows, results = [], {}
     for i, cand in enumerate(spec.models):
         row, mr = run(iter_study_candidate(cand, data, spec, i, hooks=CandidateHooks(map_fn, progress, cancel)),

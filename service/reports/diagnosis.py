@@ -320,6 +320,8 @@ def write_diagnosis(diagnosis: Diagnosis, data_t: np.ndarray, out_dir: str | Pat
             f"<p class='verdict'><b>Verdict.</b> {html.escape(j.get('headline') or j['verdict'])}</p>",
             f"<details><summary>The loop's account, step by step</summary><p>{html.escape(j['verdict'])}</p>"
             "</details>"]
+    for note in j.get("input_hold") or []:  # the record, not the declaration, decided how inputs vary
+        body.append(f"<p class='note'><b>Inputs.</b> {html.escape(note)}</p>")
     if j.get("added"):
         # one row per coefficient: the effect, its term, the coefficient's posterior mean and 99 % interval
         # the coefficient as its round confirmed it, in the model's units; the reported model's table below holds
