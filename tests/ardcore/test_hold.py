@@ -71,3 +71,4 @@ def test_the_hold_decides_which_model_the_record_supports():
     ll_zoh = cm.filter(truth, data).loglik
     ll_foh = compile_model(spec.models[0].model_spec()).filter(truth, data).loglik
     assert ll_zoh > ll_foh + 10, (ll_zoh, ll_foh)
+
