@@ -41,7 +41,7 @@ from ardflow.ardcore.selection.fit import ModelFit
 from ardflow.ardcore.selection.hold import with_holds
 from ardflow.ardcore.selection.maximiser import MaximiserResult, Trial
 from ardflow.ardcore.selection.spec import StudySpec
-from ardflow.ardcore.selection.study import CandidateHooks, compare, iter_study_candidate
+from ardflow.ardcore.selection.study import CandidateHooks, compare, data_meta, iter_study_candidate
 
 from .coordinator import ActorPool, wait_connected
 from ardflow.ardcore.jsonio import decode_alpha, to_jsonable
@@ -262,8 +262,7 @@ def prepare_store(spec: StudySpec, store_path: str | Path, *, base: Path | None 
     meta = store.meta
     if not meta.get("study_id"):
         store.update_meta(study_id=study_id or f"{spec.name}-{uuid.uuid4().hex[:8]}", status="created",
-                          data={"source": data.meta.get("source"), "n": len(data), **({"input_hold": hold} if hold
-                                                                                        else {})})
+                          data=data_meta(data, hold))
     return store
 
 

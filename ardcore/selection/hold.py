@@ -22,18 +22,17 @@ HELD_SHARE = 0.5
 """The least share of a signal's sample-to-sample steps that are exactly zero for it to count as held."""
 
 
+def _steps(x: np.ndarray) -> np.ndarray:
+    """The finite signal ``x``'s sample-to-sample steps."""
+    x = np.asarray(x, dtype=float)
+    return np.diff(x[np.isfinite(x)])
+
+
 def held_share(x: np.ndarray) -> float:
     """The share of the finite signal ``x``'s sample-to-sample steps that are exactly zero (0 for a signal that
     never changes: a constant is neither held nor interpolated, both holds give it)."""
-    x = np.asarray(x, dtype=float)
-    d = np.diff(x[np.isfinite(x)])
-    return float(np.mean(d == 0)) if d.size and np.any(d != 0) else 0.0
-
-
-def _varies(x: np.ndarray) -> bool:
-    x = np.asarray(x, dtype=float)
-    x = x[np.isfinite(x)]
-    return bool(x.size > 1 and np.any(x != x[0]))
+    d = _steps(x)
+    return float(np.mean(d == 0)) if np.any(d != 0) else 0.0
 
 
 def with_hold(cand: CandidateSpec, data: Dataset) -> tuple[CandidateSpec, list[str]]:
@@ -44,7 +43,7 @@ def with_hold(cand: CandidateSpec, data: Dataset) -> tuple[CandidateSpec, list[s
         return cand, []
     # the record indicators (per-record parameters, :meth:`CandidateSpec.for_records`) are the study's, not data
     varying = {i: held_share(data.columns[i]) for i in ms.inputs
-               if not i.startswith(RECORD_INPUT) and _varies(data.columns[i])}
+               if not i.startswith(RECORD_INPUT) and np.any(_steps(data.columns[i]) != 0)}
     if not varying or min(varying.values()) < HELD_SHARE:
         return cand, []
     shares = ", ".join(f"{i} {100 * s:.0f} %" for i, s in varying.items())

@@ -172,6 +172,12 @@ def _diagnostics(res) -> dict:
     return {}
 
 
+def data_meta(data: Dataset, hold: list[str]) -> dict:
+    """What a study's summary says of its data: the source, the length and, when the record decided how the
+    models take their inputs between samples, the notes saying so (:func:`~.hold.with_holds`)."""
+    return {"source": data.meta.get("source"), "n": len(data), **({"input_hold": hold} if hold else {})}
+
+
 def compare(fits: list[ModelFit], spec: StudySpec, data_meta: dict, wall_s: float) -> StudySummary:
     """The comparison of the optimal nested models (Eq. 7): the study's :class:`StudySummary`.
 
@@ -206,14 +212,14 @@ def select(spec: StudySpec, *, map_fn: Map = serial_map, progress: Callable[[Mod
     """
     t0 = time.perf_counter()
     data = spec.load_data(base)
-    spec, _ = with_holds(spec, data)
+    spec, hold = with_holds(spec, data)
     rows, results = [], {}
     for i, cand in enumerate(spec.models):
         row, mr = run(iter_study_candidate(cand, data, spec, i, hooks=CandidateHooks(map_fn, progress, cancel)),
                       map_fn)
         rows.append(row)
         results[cand.label] = mr.history if mr is not None else []
-    summary = compare(rows, spec, {"source": data.meta.get("source"), "n": len(data)},
+    summary = compare(rows, spec, data_meta(data, hold),
                       time.perf_counter() - t0).to_json()
     summary["_history"] = to_jsonable({k: [t.to_dict() for t in history] for k, history in results.items()})
     return summary

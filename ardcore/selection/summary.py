@@ -44,7 +44,8 @@ class StudySummary:
     study : str
         The spec's name.
     data : dict
-        The data set's ``source`` and length ``n``.
+        The data set's ``source`` and length ``n`` (:func:`~.study.data_meta`), and ``input_hold`` when the
+        record decided how the models take their inputs between samples.
     models : tuple of ComparedModel
         Every candidate, in the spec's order.
     best_model : str

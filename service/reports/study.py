@@ -78,7 +78,7 @@ def write_report(store, out: str | Path | None = None) -> Path:
             f"Best model: <b>{html.escape(best)}</b>. Wall time {summary['wall_s']:.0f} s.</p>",
             # the record, not the declaration, decided how inputs vary between samples (ardcore/selection/hold.py)
             *(f"<p class='note'><b>Inputs.</b> {html.escape(n)}</p>"
-              for n in (store.meta.get("data") or {}).get("input_hold", [])),
+              for n in summary["data"].get("input_hold", [])),
             _records_table(data, innovations, col, best),
             "<h2>Model comparison</h2>", table10,
             f"<h2>Posterior of {html.escape(best)}</h2>", post_table, _convergence_table(summary), paper,
