@@ -168,6 +168,11 @@ def user_inputs(spec: ModelSpec) -> list[str]:
     return [u for u in spec.inputs if not re.fullmatch(made, u)]
 
 
+def declared_names(spec: ModelSpec) -> set:
+    """Every name ``spec`` declares: states, inputs, parameters, constants and derived quantities."""
+    return {*spec.states, *spec.inputs, *spec.parameters, *spec.constants, *spec.derived}
+
+
 def oscillator_pairs(spec: ModelSpec) -> list[tuple[str, str]]:
     """(x, v) pairs with dx/dt = v."""
     states = list(spec.states)

@@ -22,6 +22,9 @@ effect is and how one is added to a model):
   tanh(s/s0), an overflow max(s - h0, 0) that acts only above a level h0 (a tank's overflow, a
   relief valve; h0 a shape parameter between the state's median and maximum), linear coupling to
   every other state, and an offset.
+* **Powers about a declared level**: where the user's drift measures a state from a level c (Newton cooling
+  ``a*(T - 295)``, a set point, an ambient input), (s - c)^2, (s - c)^3 and |s - c|^p sign(s - c), which
+  vanish where the declared law does (radiation to the ambient, a valve about its set point).
 * **Flows between coupled levels** (``where="flow"``): where one dynamic state drives another's drift,
   a flow law (sqrt, x|x|, saturating, overflow above a level) that leaves the first and enters the
   second (the pipe between two tanks, what spills over from the upper one), with one coefficient when
@@ -38,14 +41,15 @@ from __future__ import annotations
 
 import sympy as sp
 
-from .base import RATE_COLUMN, Effect, dynamic_states, oscillator_pairs, user_inputs
+from .base import RATE_COLUMN, Effect, declared_names, dynamic_states, oscillator_pairs, user_inputs
 from ..model.declaration import ModelSpec
+from ..model.expr import parse_expression
 
 
 def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None,
                       levels: dict[str, tuple[float, float, float]] | None = None,
                       frequencies: list = (), frequency_resolution: float = 0.0,
-                      extra: list[Effect] = ()) -> list[Effect]:
+                      extra: list[Effect] = (), declared: ModelSpec | None = None) -> list[Effect]:
     """The candidate effects for ``spec``.
 
     Parameters
@@ -65,6 +69,10 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         bin, so each forcing's frequency is searched over at least +-1.5 bins around it (else +-3 %).
     extra : list of Effect
         User-supplied effects appended to the library.
+    declared : ModelSpec, optional
+        The model the user declared, whose drifts say the levels a state is measured from
+        (:func:`references`; default ``spec``). The loop passes it: terms it added (an overflow above h0)
+        hold levels of their own, which are not the user's.
     """
     scales = scales or {}
     out: list[Effect] = []
@@ -85,6 +93,8 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         if s_ in pair_v:
             continue  # a velocity: the oscillator families above cover it
         out += _level_effects(s_, scales, inputs, (levels or {}).get(s_))
+        declared = declared or spec
+        out += _reference_effects(s_, references(declared, s_) if s_ in declared.states else [])
     out += flow_effects(spec, scales, levels)
     used = set(spec.inputs)
     free_idx = (i for i in range(100) if f"forcing{i}_sin" not in used)  # columns of forcing already added stay
@@ -222,6 +232,53 @@ def _level_effects(s_: str, scales: dict[str, float], inputs: list[str],
     for u in inputs:
         out += [Effect(f"input_cross({u}*{s_})", "input", (f"{u}*{s_}",), f"input-state cross term {u} {s_}",
                        code=f"u{u}{s_}")]
+    return out
+
+
+def references(spec: ModelSpec, s_: str) -> list[str]:
+    """The levels the user's drift of ``s_`` measures ``s_`` from: ``c`` wherever it holds ``s_ - c`` (times a
+    number, any sign), ``c`` a nonzero number or one input, parameter or constant (an ambient temperature, a
+    set point, a supply pressure; not a derived quantity, which may move with the states: M2's moment lags
+    ``P - CM``). Newton cooling ``a*(T - 295)`` declares 295, and so does its expanded form
+    ``q*u - 0.5*T + 147.5``."""
+    names = declared_names(spec)
+    s = sp.Symbol(s_, real=True)
+    found = []
+    for node in sp.preorder_traversal(parse_expression(spec.drift[s_], names)):
+        if not isinstance(node, sp.Add):
+            continue
+        with_s = [a for a in node.args if a.has(s)]
+        others = [a for a in node.args if not a.has(s)]
+        k = sp.simplify(sp.Add(*with_s) / s) if with_s else None
+        if k is None or not k.is_number or k == 0:
+            continue
+        # alone beside s_, any constant or name; among other terms (a number distributed over the sum), the
+        # numbers only: a forcing such as 2*u is not a level
+        rest = others[0] if len(others) == 1 else sp.Add(*[a for a in others if a.is_number])
+        if rest == 0:
+            continue
+        c = -rest / k
+        if c.is_number:
+            found.append(f"{float(c):.6g}")
+        elif c.is_Symbol and str(c) in {*spec.inputs, *spec.parameters, *spec.constants}:
+            found.append(str(c))
+    return list(dict.fromkeys(found))
+
+
+def _reference_effects(s_: str, refs: list[str]) -> list[Effect]:
+    """Powers of ``s_`` about each level the user's drift measures it from (:func:`references`): where the
+    declared law is linear in ``s_ - c``, its nonlinear completion is a series in ``s_ - c``, which vanishes
+    where the declared law does. The library's powers of ``s_`` itself vanish at 0, far from such a level
+    (radiation to an ambient at 295 K, T^4 - 295^4, is (T - 295) times a cubic in it; a square of T alone
+    would move the body's equilibrium, and only with an offset beside it could it stand in)."""
+    out = []
+    for i, c in enumerate(refs):
+        tag = f"{s_}+{c[1:]}" if c.startswith("-") else f"{s_}-{c}"
+        d = f"({tag})"
+        out += [Effect(f"square({tag})", "state", (f"{d}**2",), f"{d}^2", code=f"r2{i}{s_}"),
+                Effect(f"cube({tag})", "state", (f"{d}**3",), f"{d}^3", code=f"r3{i}{s_}"),
+                Effect(f"power_law({tag})", "state", (f"abs{d}**{{p}}*sign{d}",),
+                       f"power law |{d}|^p sign{d} with p = {{p}}", code=f"rp{i}{s_}", shape=("p", 0.25, 3.0))]
     return out
 
 

@@ -36,7 +36,7 @@ from typing import NamedTuple
 
 import sympy as sp
 
-from .base import oscillator_pairs, short_name
+from .base import declared_names, oscillator_pairs, short_name
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
 
@@ -49,11 +49,6 @@ class Lag(NamedTuple):
     term: str
     target: str
     kind: str = "lag"
-
-
-def declared_names(spec: ModelSpec) -> set:
-    """Every name ``spec`` declares: states, inputs, parameters, constants and derived quantities."""
-    return {*spec.states, *spec.inputs, *spec.parameters, *spec.constants, *spec.derived}
 
 
 def _uses(spec: ModelSpec) -> dict:

@@ -200,7 +200,7 @@ def trace_and_confirm(ctx, held: Fit, fspec, phi, res, present: set = frozenset(
     # forcing frequencies: the peaks forcing_peaks picks (each refined by the screen)
     effects = candidate_effects(fspec, scales=scales, levels=levels, frequencies=[(p["f"], p["resolution"])
                                                                                for p in peaks],
-                                extra=list(extra_effects))
+                                extra=list(extra_effects), declared=ctx.spec.models[0].model_spec())
     if closed:
         pattern = re.compile(r"\b(" + "|".join(map(re.escape, closed)) + r")\b")
         effects = [e for e in effects if not any(pattern.search(t) for t in (*e.terms, *e.between))]

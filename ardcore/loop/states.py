@@ -28,9 +28,8 @@ from typing import NamedTuple
 import numpy as np
 import sympy as sp
 
-from ..effects.base import short_name
-from ..effects.states import (Lag, declared_names, hystereses, lag_spec, lags, modes, names_of, new_states,
-                             sensors)
+from ..effects.base import declared_names, short_name
+from ..effects.states import Lag, hystereses, lag_spec, lags, modes, names_of, new_states, sensors
 from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
