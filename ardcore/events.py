@@ -57,7 +57,8 @@ class StationaryRound(_Event, stage="stationary"):
 
 
 class TrialDone(_Event, stage="trial"):
-    """An evidence trial of the maximiser: what it tried (``action``), at which psi, ln Z and its se."""
+    """An evidence trial of the maximiser: what it tried (``action``), at which psi, ln Z and its se (``bound``:
+    ln Z is an upper bound, a prune test decided without sampling)."""
 
     iteration: int
     action: str
@@ -65,6 +66,7 @@ class TrialDone(_Event, stage="trial"):
     log_evidence: float
     log_evidence_se: float
     accepted: bool
+    bound: bool = False
 
 
 class ModelDone(_Event, stage="model_done"):
@@ -106,6 +108,8 @@ class ModelEvent:
             kw["rhat"] = [number(v) for v in kw["rhat"] or []]
         if "psi" in kw:
             kw["psi"] = {k: number(v) for k, v in (kw["psi"] or {}).items()}
+        if "bound" in kw:
+            kw["bound"] = bool(kw["bound"])  # absent from an older writer's lines
         t = d.get("time")
         return cls(str(d.get("model", "")), kind(**kw), float(t) if isinstance(t, (int, float)) else None)
 

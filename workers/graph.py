@@ -88,10 +88,15 @@ class StoredEvaluator(EvidenceEvaluator):
         self.runtime = replace(self.runtime, map_fn=DaskMap(site.client, f"{site.study_id}-{site.model}"))
 
     def trial(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
-              extend: bool = False):
+              extend: bool = False, bound: bool = False):
         """:meth:`EvidenceEvaluator.trial` with its chain tasks submitted to the cluster: it yields each
         batch as :class:`~workers.tasks.Submitted` futures (an event loop advances it when they finish;
-        called directly, it waits)."""
+        called directly, it waits). A bound (no chains, nothing stored but the history) and a Laplace trial
+        take their searches to the cluster as plain tasks."""
+        if bound:
+            # keys of their own: a later bound's searches under the model's keys would be handed this one's results
+            dmap = DaskMap(self.client, f"{self.study_id}-{self.model}-it{iteration:03d}-bound")
+            return (yield from submitted(super().trial(psi, seed, warm, iteration=iteration, bound=True), dmap))
         if self.method == "laplace" or iteration is None:
             return (yield from submitted(super().trial(psi, seed, warm, final=final, iteration=iteration,
                                                        extend=extend), self.runtime.map_fn))

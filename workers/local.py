@@ -30,8 +30,9 @@ class LocalStoredEvaluator(EvidenceEvaluator):
         self.store, self.model = store, model
 
     def trial(self, psi: dict, seed: int, warm, *, final: bool = False, iteration: int | None = None,
-              extend: bool = False):
-        target, ev, res = yield from super().trial(psi, seed, warm, final=final, iteration=iteration, extend=extend)
+              extend: bool = False, bound: bool = False):
+        target, ev, res = yield from super().trial(psi, seed, warm, final=final, iteration=iteration, extend=extend,
+                                                   bound=bound)
         if self.method == "laplace" or iteration is None or res is None or not res.samples.size:
             return target, ev, res
         nc, M, _ = res.samples.shape

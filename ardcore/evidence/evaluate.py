@@ -9,7 +9,7 @@ from typing import Generator
 
 import numpy as np
 
-from .estimators import iter_chib_jeliazkov, laplace
+from .estimators import Evidence, iter_chib_jeliazkov, laplace
 from ..sampling.chains import Batch, Step, run
 from ..sampling.config import SamplerConfig, SamplerResult
 from ..sampling.driver import Runtime, Start, continuation, continued, sample_batches
@@ -83,20 +83,26 @@ class EvidenceEvaluator:
         return 0 if self.method == "laplace" else self.sampler.stationary_budget
 
     def __call__(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False,
-                 iteration: int | None = None, extend: bool = False):
+                 iteration: int | None = None, extend: bool = False, bound: bool = False):
         """(target, evidence, sampler result) at ``psi``: :meth:`trial` with its chain tasks on the runtime's
         map."""
-        return run(self.trial(psi, seed, warm, final=final, iteration=iteration, extend=extend), self.map_fn)
+        return run(self.trial(psi, seed, warm, final=final, iteration=iteration, extend=extend, bound=bound),
+                   self.map_fn)
 
     def trial(self, psi: dict, seed: int, warm: SamplerResult | None, *, final: bool = False,
-              iteration: int | None = None, extend: bool = False) -> Generator:
+              iteration: int | None = None, extend: bool = False, bound: bool = False) -> Generator:
         """The trial at ``psi`` as a generator of the chain tasks it waits for (each a
         :class:`~ardcore.sampling.chains.Batch`; :func:`~ardcore.sampling.chains.run` drives it) returning
         (target, evidence, sampler result): chains warm-started from ``warm`` drawing the judged M per chain
         (:meth:`SamplerConfig.judged`), or with ``extend`` the chains of ``warm`` continued to the quality
-        target (:func:`~ardcore.sampling.driver.continuation`). ``iteration`` numbers the trial for
-        orchestrators that keep it."""
+        target (:func:`~ardcore.sampling.driver.continuation`). With ``bound``, no chain: an upper bound of
+        ln Z at ``psi`` (:meth:`likelihood_bound`; evidence None where there is none to take: a Laplace
+        evidence, no draws to start from). ``iteration`` numbers the trial for orchestrators that keep it."""
         target = build_target(self.spec, self.essential, psi, self.data, self.substeps)
+        if bound:
+            if self.method == "laplace" or warm is None or not warm.states:
+                return target, None, None
+            return target, (yield from self.likelihood_bound(target, warm)), None
         if self.method == "laplace":
             x0 = warm_point(target, warm) if warm is not None else (yield from self._cold_start(target, seed))
             ev, xmap, C = laplace(target, x0, initial_scale(target.prior) if warm is None else None,
@@ -125,6 +131,24 @@ class EvidenceEvaluator:
         ev.warnings = list(res.warnings) + ev.warnings
         return target, ev, res
 
+    def likelihood_bound(self, target, warm: SamplerResult) -> Generator:
+        """An upper bound of ln Z of ``target``: the prior integrates to one, so Z = E_prior[L] <= max L. The
+        maximum of the log likelihood over the prior's support is searched from the best points of the two
+        best chains of ``warm`` (another model's: a parameter ``target`` fixes is dropped, one it adds starts
+        at its prior's centre), in coordinates scaled by ``warm``'s posterior spread, half the start budget
+        each (a generator: the two searches are one batch). A search can stop short of the maximum, so the
+        bound is the larger maximum they found plus the gap between them (the room either may have left).
+        Returns an :class:`Evidence` whose ``log_evidence`` is the bound (``method`` "likelihood bound", se 0,
+        ``goodness_of_fit`` the larger maximum found)."""
+        best = sorted(warm.states, key=lambda s: -s.best_ll)[:2]
+        pts = [_projected(target, warm, np.asarray(s.best_x, float)) for s in best]
+        scale = _warm_scale(target, warm)
+        tasks = [(target, x, scale, max(self.sampler.start_maxfev // 2, 20)) for x in pts]
+        found = yield Batch(_max_likelihood_task, tasks, Step("start"))
+        lls = [ll for _, ll, _ in found]
+        top, gap = max(lls), max(lls) - min(lls)
+        return Evidence(top + gap, 0.0, top, 0.0, "likelihood bound", n_evaluations=sum(n for *_, n in found))
+
     def _cold_start(self, target, seed: int) -> Generator:
         """Best of local searches from the prior medians and n_chains - 1 dispersed prior points (a generator:
         the searches are one batch).
@@ -149,12 +173,38 @@ def _local_mode_task(args):
     return local_mode(target, x0, scale, maxfev)
 
 
+def _max_likelihood_task(args):
+    """(point, its log likelihood, evaluations) of a likelihood maximisation over the prior's support."""
+    from ..sampling.starts import Counted, local_mode
+
+    target, x0, scale, maxfev = args
+    counted = Counted(target)
+    x, ll = local_mode(counted, x0, scale, maxfev, xatol=1e-4, fatol=1e-3, density="log_likelihood")
+    return x, ll, counted.calls
+
+
+def _projected(target, warm: SamplerResult, x: np.ndarray) -> np.ndarray:
+    """A point ``x`` of ``warm``'s parameters as one of ``target``'s (see :func:`warm_point`)."""
+    idx = {n: i for i, n in enumerate(warm.names)}
+    return np.array([x[idx[n]] if n in idx else new_parameter_start(p)
+                     for n, p in zip(target.names, target.prior.priors)])
+
+
+def _warm_scale(target, warm: SamplerResult) -> np.ndarray:
+    """Per parameter of ``target``, the posterior sd in ``warm``'s draws where it has one, else the prior's
+    initial scale."""
+    prior = initial_scale(target.prior)
+    if not warm.samples.size:
+        return prior
+    sd = np.std(warm.samples.reshape(-1, warm.samples.shape[-1]), axis=0)
+    idx = {n: i for i, n in enumerate(warm.names)}
+    return np.array([sd[idx[n]] if n in idx and sd[idx[n]] > 0 else prior[j] for j, n in enumerate(target.names)])
+
+
 def warm_point(target, warm) -> np.ndarray:
     if warm is None:
         return np.array([p.quantile(0.5) if p.kind != "ard" else 0.0 for p in target.prior.priors])
-    idx = {n: i for i, n in enumerate(warm.names)}
-    return np.array([warm.phi_star[idx[n]] if n in idx else new_parameter_start(p)
-                     for n, p in zip(target.names, target.prior.priors)])
+    return _projected(target, warm, np.asarray(warm.phi_star, float))
 
 
 def _starts_around(x, C, n, seed):

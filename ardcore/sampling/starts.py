@@ -14,9 +14,10 @@ from .transform import free_coordinates
 
 
 # --------------------------------------------------------------------------- starts
-def _neg_lp(target, center, scale):
+def _neg_lp(target, center, scale, density: str = "log_posterior"):
     def f(z):
-        v = target(center + scale * z).log_posterior
+        d = target(center + scale * z)
+        v = getattr(d, density) if d.log_posterior > -math.inf else -math.inf  # outside the prior's support
         return -v if v > -math.inf else 1e300
     return f
 
@@ -50,12 +51,14 @@ def fd_hessian(f: Callable[[np.ndarray], float], x: np.ndarray, h: np.ndarray) -
 
 
 def local_mode(target, x0: np.ndarray, scale: np.ndarray, maxfev: int, *, xatol: float = 1e-6,
-               fatol: float = 1e-8, passes: int = 2) -> tuple[np.ndarray, float]:
+               fatol: float = 1e-8, passes: int = 2, density: str = "log_posterior") -> tuple[np.ndarray, float]:
     """Nelder-Mead (in coordinates scaled by ``scale``) from ``x0``, restarted once (``passes``); ``xatol`` in
-    those coordinates, ``fatol`` in nats (a search that Newton steps polish afterwards can stop far earlier)."""
+    those coordinates, ``fatol`` in nats (a search that Newton steps polish afterwards can stop far earlier).
+    ``density``: what is maximised, the log posterior or (``"log_likelihood"``) the log likelihood over the
+    prior's support."""
     from scipy.optimize import minimize
 
-    f = _neg_lp(target, x0, scale)
+    f = _neg_lp(target, x0, scale, density)
     z = np.zeros(x0.size)
     best = f(z)
     for _ in range(passes):
@@ -84,7 +87,7 @@ def posterior_cov_estimate(target, x: np.ndarray, scale: np.ndarray) -> np.ndarr
     return 0.5 * (C + C.T)
 
 
-class _Counted:
+class Counted:
     """A target that counts its calls (likelihood evaluations), for the cost figures."""
 
     def __init__(self, target):
@@ -111,7 +114,7 @@ def _warm_task(args):
 
 def _start_task(args):
     target, x0, scale, maxfev, seed, overdispersion = args
-    target = _Counted(target)
+    target = Counted(target)
     rng = np.random.default_rng(seed)
     xm, lpm = local_mode(target, x0, scale, maxfev)
     C = posterior_cov_estimate(target, xm, scale)

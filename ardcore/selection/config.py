@@ -48,6 +48,18 @@ class MaximiserConfig(BaseModel):
         Sec 3.6 demo M3 kept theta^5 on a gain of 1.1 +- 0.4 nats without it.
     prune_alpha : float
         Default pruning threshold: past it, the term is tested for removal at once.
+    prune_bound : bool
+        Before a prune test is sampled, bound its evidence from above: the prior integrates to one, so
+        ln Z without the term is at most the largest ln-likelihood without it, searched from the current
+        chains' best points with the term at 0 (the larger maximum two searches found, plus the gap between
+        them: the room either may have left). When that bound is below the current ln Z by more than the test's
+        own margin (``keep_nats`` + ``noise_k`` se, at least ``min_gain``), the sampled test could only have
+        kept the term too: it is kept without sampling, and the history records the bound (``bound``,
+        ``method`` "likelihood bound"). Sampled evidence only (a Laplace prune test is itself a search).
+    prune_bound_z : float
+        The bound is tried only for a term whose posterior mean lies more than this many sd from 0: nearer,
+        the nested model is not far enough behind for its likelihood's maximum to fall short of ln Z, and
+        the searches would cost more than they save.
     prune_test : bool
         Test alpha = inf when a coordinate stops improving.
     max_trials : int
@@ -92,6 +104,8 @@ class MaximiserConfig(BaseModel):
     # the prune test
     prune_test: bool = True
     prune_alpha: Alpha = 1e12
+    prune_bound: bool = True
+    prune_bound_z: float = Field(5.0, ge=0, le=1000)
     noise_k: SeMultiple = 1.0
     keep_nats: Nats = 1.0
     max_trials: int = Field(60, ge=1, le=1000)

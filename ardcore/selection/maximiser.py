@@ -52,10 +52,12 @@ class Trial:
     """Iteration of the sampled trial whose draws were reweighted (None: this trial was sampled)."""
     reweight_se: float = 0.0
     """Monte Carlo se of the reweighting alone (the difference to its base trial has only this error)."""
+    bound: bool = False
+    """The evidence is an upper bound (:attr:`MaximiserConfig.prune_bound`), no chain was sampled."""
 
     @property
     def sampled(self) -> bool:
-        return self.reweighted_from is None
+        return self.reweighted_from is None and not self.bound
 
     def to_dict(self) -> dict:
         return {
@@ -64,6 +66,7 @@ class Trial:
             **self.evidence.to_dict(), "accepted": self.accepted, "action": self.action,
             "wall_s": self.wall_s, "posterior": self.posterior, "diagnostics": self.diagnostics,
             "sampled": self.sampled, "reweighted_from": self.reweighted_from, "reweight_se": self.reweight_se,
+            "bound": self.bound,
         }
 
 
@@ -122,7 +125,7 @@ def iter_maximise(trial, ard: dict[str, float | None], config: MaximiserConfig, 
     m = Maximiser(ard, config, seed=seed, warm=warm, on_trial=on_trial, budget=budget)
     while (req := m.next()) is not None:
         t0 = time.perf_counter()
-        more = {"extend": True} if req.extend else {}
+        more = {"extend": True} if req.extend else {"bound": True} if req.bound else {}
         target, ev, res = yield from trial(req.psi, req.seed, req.warm, iteration=req.iteration, **more)
         m.observe(req, target, ev, res, time.perf_counter() - t0)
     return m.result()
@@ -140,7 +143,8 @@ def _immediate(evaluate):
 class TrialRequest:
     """What the maximiser asks for next: the evidence at ``psi`` by sampling (MCMC + Chib-Jeliazkov or
     Laplace), its chains warm-started from ``warm``; with ``extend``, the chains of ``warm`` (sampled at
-    ``psi``) continued to the sampler's quality target instead (:func:`~ardcore.sampling.driver.continuation`)."""
+    ``psi``) continued to the sampler's quality target instead (:func:`~ardcore.sampling.driver.continuation`);
+    with ``bound``, no chains: an upper bound of ln Z at ``psi`` (:meth:`EvidenceEvaluator.likelihood_bound`)."""
 
     iteration: int
     psi: dict
@@ -148,6 +152,7 @@ class TrialRequest:
     action: str
     seed: int
     extend: bool = False
+    bound: bool = False
 
 
 def _diff_se(a: Trial, b: Trial) -> float:
@@ -188,6 +193,7 @@ class Maximiser:
         self.pruned_at: dict[str, float] = {}  # the finite alpha a term had when it was pruned
         self._plan_gen = self._plan()
         self._reply = None
+        self._carried = None  # a prune bound that decided nothing, recorded with the trial sampled after it
         self._started = False
 
     # -- the interface
@@ -202,9 +208,12 @@ class Maximiser:
         except StopIteration:
             return None
 
-    def observe(self, request: TrialRequest, target, evidence: Evidence, res: SamplerResult | None,
-                wall_s: float) -> Trial:
-        """Record the outcome of ``request``."""
+    def observe(self, request: TrialRequest, target, evidence: Evidence | None, res: SamplerResult | None,
+                wall_s: float) -> Trial | None:
+        """Record the outcome of ``request`` (a bound is recorded by the prune test that asked for it)."""
+        if request.bound:
+            self._reply = (evidence, wall_s)
+            return None
         post, diag = {}, {}
         if res is not None and res.samples.size:
             post = posterior_summary(res.names, res.samples.reshape(-1, len(res.names)))
@@ -213,6 +222,10 @@ class Maximiser:
                     "burnin_acceptance": res.burnin_acceptance,
                     # every likelihood evaluation of the trial: start, burn-in, stationary draws, CJ proposals
                     "n_evaluations": int(res.n_evaluations) + int(evidence.n_evaluations)}
+        if self._carried:  # a bound that decided nothing: its searches are this trial's cost
+            diag["bound"] = self._carried
+            diag["n_evaluations"] = diag.get("n_evaluations", 0) + self._carried["n_evaluations"]
+            self._carried = None
         if res is not None:
             post.setdefault("_map", dict(zip(res.names, map(float, res.phi_star))))
         tr = Trial(request.iteration, dict(request.psi), evidence, False, request.action, wall_s, post, diag)
@@ -314,7 +327,11 @@ class Maximiser:
         return (yield from self._sample(dict(self.psi, **{k: a}), warm, self._label(k, a)))
 
     def _prune_test(self, k: str):
-        """Occam: the nested model (alpha = inf) wins unless the term is worth more than the noise."""
+        """Occam: the nested model (alpha = inf) wins unless the term is worth more than the noise. A nested
+        model whose likelihood's maximum falls short of the current ln Z by more than that loses without being
+        sampled (:meth:`_bounded`)."""
+        if (yield from self._bounded(k)):
+            return False
         tr, target, res = yield from self._sample(dict(self.psi, **{k: INF}), self.best_res,
                                                   f"{k}: prune test (alpha = inf)")
         # an evidence that is not a number decides nothing: the term stays (a NaN is never "no better")
@@ -325,6 +342,34 @@ class Maximiser:
             self._accept(tr, target, res)
         self._notify(tr)
         return pruned
+
+    def _bounded(self, k: str):
+        """True when k's prune test is decided by the upper bound of the nested model's ln Z
+        (:attr:`MaximiserConfig.prune_bound`): below the current ln Z by more than the test's margin, the
+        term stays, and the bound is the test's record in the history (it takes the iteration, the seed and
+        the place in ``max_trials`` the sampled test would have: every trial after it is the same). Tried
+        only for a term whose posterior mean is ``prune_bound_z`` sd or more from 0."""
+        cfg, post = self.config, (self.best.posterior or {}).get(k)
+        if not (cfg.prune_bound and post and post.get("sd", 0) > 0
+                and abs(post["mean"]) >= cfg.prune_bound_z * post["sd"]):
+            return False
+        it, psi = self._iteration, dict(self.psi, **{k: INF})
+        action = f"{k}: prune test (alpha = inf)"
+        ev, wall = yield TrialRequest(it, psi, self.best_res, action, self.seed + 1009 * it, bound=True)
+        if ev is None:
+            return False
+        need = max(cfg.noise_k * self.best.evidence.log_evidence_se, cfg.min_gain) + cfg.keep_nats
+        if not self.best.evidence.log_evidence - ev.log_evidence > need:
+            self._carried = {"log_likelihood_max": ev.log_evidence, "n_evaluations": int(ev.n_evaluations),
+                             "decided": False}
+            return False
+        self._iteration += 1
+        self.n_sampled += 1
+        tr = Trial(it, psi, ev, False, f"{action}: decided by the likelihood bound", wall, {},
+                   {"n_evaluations": int(ev.n_evaluations)}, bound=True)
+        self.history.append(tr)
+        self._notify(tr)
+        return True
 
     def _retest(self, k: str):
         """The other terms have moved since k was pruned: does k come back? (The prune test that follows

@@ -113,7 +113,7 @@ def iter_candidate(cand: CandidateSpec, data: Dataset, spec: StudySpec, index: i
 
     def trial_done(tr):
         prog(TrialDone(tr.iteration, tr.action, dict(tr.psi), tr.evidence.log_evidence, tr.evidence.log_evidence_se,
-                       tr.accepted))
+                       tr.accepted, tr.bound))
         if on_trial:
             on_trial(tr)
 

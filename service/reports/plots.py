@@ -98,17 +98,22 @@ def plot_evidence_history(histories: dict[str, list[dict]], out):
         it = [h["iteration"] for h in hist]
         for ax, key, label in zip(axes, ("log_evidence", "goodness_of_fit", "information_gain"),
                                   ("ln evidence", "goodness of fit", "information gain")):
-            y = np.array([h.get(key, np.nan) if isinstance(h.get(key), (int, float)) else np.nan for h in hist])
+            # a bound has no information gain of its own (its goodness of fit is the likelihood's maximum)
+            y = np.array([h.get(key, np.nan) if isinstance(h.get(key), (int, float))
+                          and not (h.get("bound") and key == "information_gain") else np.nan for h in hist])
             ax.plot(it, y, "-", color=f"C{i}", lw=1, label=model)
-            # sampled trials (MCMC + Chib-Jeliazkov) as dots, reweighted ones (no likelihood evaluated) as crosses
+            # sampled trials (MCMC + Chib-Jeliazkov) as dots, reweighted ones (no likelihood evaluated) as crosses,
+            # prune tests decided by an upper bound of ln Z as triangles pointing down (the value is at most that)
             smp = np.array([h.get("sampled", True) for h in hist], dtype=bool)
+            bnd = np.array([bool(h.get("bound")) for h in hist], dtype=bool)
             ax.plot(np.asarray(it)[smp], y[smp], "o", color=f"C{i}", ms=3)
-            ax.plot(np.asarray(it)[~smp], y[~smp], "x", color=f"C{i}", ms=5)
+            ax.plot(np.asarray(it)[~smp & ~bnd], y[~smp & ~bnd], "x", color=f"C{i}", ms=5)
+            ax.plot(np.asarray(it)[bnd], y[bnd], "v", color=f"C{i}", ms=5)
             acc = [j for j, h in enumerate(hist) if h.get("accepted")]
             ax.plot([it[j] for j in acc], y[acc], "o", color=f"C{i}", ms=7, mfc="none")
             ax.set_xlabel("trial")
             ax.set_title(label)
-    axes[0].legend(fontsize=8, title="dots: sampled, x: reweighted\nopen circles: accepted")
+    axes[0].legend(fontsize=8, title="dots: sampled, x: reweighted\nv: upper bound, open circles: accepted")
     return save_figure(fig, out)
 
 

@@ -85,12 +85,45 @@ def test_maximiser_reweights_steps_and_every_reported_evidence_is_right():
     reweighted = [t for t in on.history if not t.sampled]
     assert reweighted and len(sampled) < len([t for t in off.history])
     assert on.best.sampled  # the optimum is always a sampled trial
-    # every estimate the history reports is within 3 se of the exact ln Z (se: CJ's, and the reweighting's)
+    # every estimate the history reports is within 3 se of the exact ln Z (se: CJ's, and the reweighting's); a
+    # prune test decided by the likelihood bound reports a bound: at or above the exact ln Z of the nested model,
+    # and below the optimum's by more than the test's margin (the sampled test would have kept the term too)
     for t in on.history:
+        if t.bound:
+            assert exact(t.psi) <= t.evidence.log_evidence + 1e-6, (t.action, t.evidence.log_evidence, exact(t.psi))
+            assert exact(on.psi_opt) - exact(t.psi) > mcfg.keep_nats, t.action
+            continue
         assert abs(t.evidence.log_evidence - exact(t.psi)) < 3 * t.evidence.log_evidence_se + 0.15, \
             (t.action, t.evidence.log_evidence, exact(t.psi), t.evidence.log_evidence_se)
     print(f"\nsampled trials {len(sampled)} (+{len(reweighted)} reweighted) vs {len(off.history)} without reweighting")
 
+
+
+def test_a_prune_test_the_likelihood_bound_decides_changes_nothing_else():
+    """On the conjugate regression a2 is worth tens of nats: its prune test is decided by the bound on the nested
+    model's ln Z, which is at or above the exact value. Every other trial is the one the fully sampled run makes
+    (the same seeds, draws and estimates), the optimum and its evidence are identical, and the bound costs a
+    fraction of the chains it replaced."""
+    spec, data, _, _, exact = setup()
+    cfg = SamplerConfig(n_chains=4, round_size=250, n_stationary=1000, n_proposal=1000, start_maxfev=400)
+    essential = {k: Normal(mean=0.0, sd=v) for k, v in ESSENTIAL.items()}
+    runs = {}
+    for bound in (True, False):
+        ev = EvidenceEvaluator(spec, essential, data, EvidenceSettings(cfg))
+        runs[bound] = maximise(ev, {k: None for k in ARD_TERMS},
+                               MaximiserConfig(alpha_start=1e-6, step_decades=2, min_step_decades=2, max_sweeps=1,
+                                               prune_bound=bound), seed=11)
+    on, off = runs[True], runs[False]
+    decided = [t for t in on.history if t.bound]
+    assert [t.action.split(":")[0] for t in decided] == ["a2"], [t.action for t in on.history]
+    assert exact(decided[0].psi) <= decided[0].evidence.log_evidence
+    assert on.psi_opt == off.psi_opt and on.best.evidence.log_evidence == off.best.evidence.log_evidence
+    same = {t.iteration: t.evidence.log_evidence for t in on.history if not t.bound}
+    assert same == {t.iteration: t.evidence.log_evidence for t in off.history if t.iteration in same}
+    replaced = next(t for t in off.history if t.iteration == decided[0].iteration)
+    assert replaced.evidence.log_evidence < on.best.evidence.log_evidence - 10  # the sampled test lost by far
+    cost = decided[0].diagnostics["n_evaluations"]
+    assert cost < 0.25 * replaced.diagnostics["n_evaluations"], (cost, replaced.diagnostics["n_evaluations"])
 
 
 def test_prune_test_warm_start_is_the_exact_conditional():

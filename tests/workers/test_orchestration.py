@@ -369,3 +369,24 @@ def test_same_seed_same_numbers_on_any_worker_count(tmp_path, workers, reference
                        kind="diagnostics", round_to="none")
         assert {n: float(t.loc[n, "r_hat"]) for n in names} == pytest.approx(
             {n: v["r_hat"] for n, v in a[k]["diagnostics"].items()}, rel=1e-12)
+
+
+def test_prune_tests_decided_by_bounds_on_dask_are_the_in_process_ones(tmp_path, thread_cluster):
+    """A line y = a0 + a1 x with ARD on both: each prune test is decided by the likelihood bound, a few searches
+    on the cluster each. Every bound of the Dask run is the in-process one (a later bound's searches never get
+    an earlier one's results), and so is every other trial."""
+    from ardflow.ardcore.selection.spec import StudySpec
+
+    d = json.loads(SPEC.read_text())
+    d["models"] = [{"model": "polynomial", "name": "line", "fixed": {"a2": 0.0, "a3": 0.0, "a4": 0.0},
+                    "priors": {"gamma": d["models"][0]["priors"]["gamma"]}, "ard": ["a0", "a1"]}]
+    spec = StudySpec.model_validate(d)
+    local = select(spec)["_history"]["line"]
+    store = prepare_store(spec, tmp_path / "st")
+    run_study(thread_cluster, store, poll_s=0.2)
+    remote = json.loads((tmp_path / "st" / "history.json").read_text())["line"]
+    bounds = {h["iteration"]: h["log_evidence"] for h in local if h.get("bound")}
+    assert {h["action"].split(":")[0] for h in local if h.get("bound")} == {"a0", "a1"}
+    assert len(set(bounds.values())) == 2  # a0's nested model and a1's: two maxima
+    assert [(h["iteration"], h["log_evidence"], h.get("bound")) for h in remote] == \
+        [(h["iteration"], h["log_evidence"], h.get("bound")) for h in local]
