@@ -15,7 +15,7 @@ from ..sampling.config import SamplerConfig, SamplerResult
 from ..sampling.driver import Runtime, Start, continuation, continued, sample_batches
 from ..sampling.starts import initial_scale
 from ..sampling.starts import new_parameter_start
-from ..likelihood.posterior import ModelPosterior
+from ..likelihood.posterior import Density, ModelPosterior
 from ..model.priors import ARD
 from ..sampling.transform import free_coordinates
 
@@ -173,13 +173,24 @@ def _local_mode_task(args):
     return local_mode(target, x0, scale, maxfev)
 
 
+class _LikelihoodOnly:
+    """A target whose density is its likelihood over the prior's support (what a search for max L climbs)."""
+
+    def __init__(self, target):
+        self.target = target
+
+    def __call__(self, x):
+        d = self.target(x)
+        return Density(d.log_likelihood if d.log_posterior > -math.inf else -math.inf, d.log_likelihood)
+
+
 def _max_likelihood_task(args):
     """(point, its log likelihood, evaluations) of a likelihood maximisation over the prior's support."""
     from ..sampling.starts import Counted, local_mode
 
     target, x0, scale, maxfev = args
     counted = Counted(target)
-    x, ll = local_mode(counted, x0, scale, maxfev, xatol=1e-4, fatol=1e-3, density="log_likelihood")
+    x, ll = local_mode(_LikelihoodOnly(counted), x0, scale, maxfev, xatol=1e-4, fatol=1e-3)
     return x, ll, counted.calls
 
 

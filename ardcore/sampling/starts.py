@@ -14,10 +14,9 @@ from .transform import free_coordinates
 
 
 # --------------------------------------------------------------------------- starts
-def _neg_lp(target, center, scale, density: str = "log_posterior"):
+def _neg_lp(target, center, scale):
     def f(z):
-        d = target(center + scale * z)
-        v = getattr(d, density) if d.log_posterior > -math.inf else -math.inf  # outside the prior's support
+        v = target(center + scale * z).log_posterior
         return -v if v > -math.inf else 1e300
     return f
 
@@ -51,14 +50,12 @@ def fd_hessian(f: Callable[[np.ndarray], float], x: np.ndarray, h: np.ndarray) -
 
 
 def local_mode(target, x0: np.ndarray, scale: np.ndarray, maxfev: int, *, xatol: float = 1e-6,
-               fatol: float = 1e-8, passes: int = 2, density: str = "log_posterior") -> tuple[np.ndarray, float]:
+               fatol: float = 1e-8, passes: int = 2) -> tuple[np.ndarray, float]:
     """Nelder-Mead (in coordinates scaled by ``scale``) from ``x0``, restarted once (``passes``); ``xatol`` in
-    those coordinates, ``fatol`` in nats (a search that Newton steps polish afterwards can stop far earlier).
-    ``density``: what is maximised, the log posterior or (``"log_likelihood"``) the log likelihood over the
-    prior's support."""
+    those coordinates, ``fatol`` in nats (a search that Newton steps polish afterwards can stop far earlier)."""
     from scipy.optimize import minimize
 
-    f = _neg_lp(target, x0, scale, density)
+    f = _neg_lp(target, x0, scale)
     z = np.zeros(x0.size)
     best = f(z)
     for _ in range(passes):
