@@ -350,7 +350,8 @@ class Maximiser:
         the place in ``max_trials`` the sampled test would have: every trial after it is the same). Tried
         only for a term whose posterior mean is ``prune_bound_z`` sd or more from 0."""
         cfg, post = self.config, (self.best.posterior or {}).get(k)
-        if not (cfg.prune_bound and post and post.get("sd", 0) > 0
+        # a Laplace prune test is itself a search: a bound would cost what it saves
+        if not (cfg.prune_bound and self.best.evidence.method != "laplace" and post and post.get("sd", 0) > 0
                 and abs(post["mean"]) >= cfg.prune_bound_z * post["sd"]):
             return False
         it, psi = self._iteration, dict(self.psi, **{k: INF})
