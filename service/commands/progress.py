@@ -24,7 +24,7 @@ def print_progress(ev: ModelEvent) -> None:
         print(f"[{m}] {done_words(p.log_evidence)}", flush=True)
     elif isinstance(p, TrialDone):
         mark = "accepted" if p.accepted else "rejected"
-        value = (f"ln Z <= {p.log_evidence:.3f} (likelihood bound)  {mark}" if p.bound
+        value = (f"ln Z <= {p.log_evidence:.3f}  {mark}" if p.bound
                  else f"ln Z = {p.log_evidence:.3f} +- {p.log_evidence_se:.3f}  {mark}" if math.isfinite(p.log_evidence)
                  else "ln Z is not a number: no result")
         print(f"[{m}] trial {p.iteration:>3}  {p.action:<40s} {value}", flush=True)
