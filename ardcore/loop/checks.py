@@ -319,6 +319,12 @@ def brought(rounds: list) -> set:
         n for r in rounds for x in r.record.get("replaced", []) if x.get("state") for n in x["state"]["parameters"]}
 
 
+def _nats(v: float) -> str:
+    """A Laplace estimate as a reader takes it: far past any threshold it says only that (a coefficient many
+    hundred sd from 0 gives a number of thirty digits)."""
+    return f"~{v:.1f}" if v < 1e4 else "over 10,000"
+
+
 def replace_laws(ctx, held: Fit, rounds: list, crit=None) -> Fit:
     """Drop the declared terms this round's effects replace (:func:`declared_rivals`): each is refitted out
     (its parameter fixed at 0, side by side on the loop's pool); the one whose removal raises ln Z most is
@@ -339,7 +345,7 @@ def replace_laws(ctx, held: Fit, rounds: list, crit=None) -> Fit:
         clear = [r for r in rivals if (worth[r.parameter] or -math.inf) >= LAPLACE_MARGIN and r.parameter not in said]
         for r in clear:
             say(f"  the declared {r.parameter}*({r.term}) in {r.target}'s equation stays beside {r.effect} without a "
-                f"refit (its posterior excludes 0: worth ~{worth[r.parameter]:.1f} nats by the Laplace estimate)")
+                f"refit (its posterior excludes 0: worth {_nats(worth[r.parameter])} nats by the Laplace estimate)")
             said.add(r.parameter)
         rivals = [r for r in rivals if (worth[r.parameter] or -math.inf) < LAPLACE_MARGIN]
         if not rivals:
