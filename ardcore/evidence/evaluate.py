@@ -133,20 +133,19 @@ class EvidenceEvaluator:
 
     def likelihood_bound(self, target, warm: SamplerResult) -> Generator:
         """An upper bound of ln Z of ``target``: the prior integrates to one, so Z = E_prior[L] <= max L. The
-        maximum of the log likelihood over the prior's support is searched from the best points of the two
-        best chains of ``warm`` (another model's: a parameter ``target`` fixes is dropped, one it adds starts
-        at its prior's centre), in coordinates scaled by ``warm``'s posterior spread, half the start budget
-        each (a generator: the two searches are one batch). A search can stop short of the maximum, so the
-        bound is the larger maximum they found plus the gap between them (the room either may have left).
-        Returns an :class:`Evidence` whose ``log_evidence`` is the bound (``method`` "likelihood bound", se 0,
-        ``goodness_of_fit`` the larger maximum found)."""
-        best = sorted(warm.states, key=lambda s: -s.best_ll)[:2]
-        pts = [_projected(target, warm, np.asarray(s.best_x, float)) for s in best]
+        maximum of the log likelihood over the prior's support is searched from the best point of each chain of
+        ``warm`` (another model's: a parameter ``target`` fixes is dropped, one it adds starts at its prior's
+        centre), in coordinates scaled by ``warm``'s posterior spread, half the start budget each (a
+        generator: the searches are one batch). A search can stop short of the maximum, so the bound is the
+        largest maximum found plus its gap to the next largest (the room the searches may have left; one
+        search stuck far below does not widen it). Returns an :class:`Evidence` whose ``log_evidence`` is the
+        bound (``method`` "likelihood bound", se 0, ``goodness_of_fit`` the largest maximum found)."""
+        pts = [_projected(target, warm, np.asarray(s.best_x, float)) for s in warm.states]
         scale = _warm_scale(target, warm)
         tasks = [(target, x, scale, max(self.sampler.start_maxfev // 2, 20)) for x in pts]
         found = yield Batch(_max_likelihood_task, tasks, Step("start"))
-        lls = [ll for _, ll, _ in found]
-        top, gap = max(lls), max(lls) - min(lls)
+        lls = sorted((ll for _, ll, _ in found), reverse=True)
+        top, gap = lls[0], (lls[0] - lls[1] if len(lls) > 1 else 0.0)
         return Evidence(top + gap, 0.0, top, 0.0, "likelihood bound", n_evaluations=sum(n for *_, n in found))
 
     def _cold_start(self, target, seed: int) -> Generator:

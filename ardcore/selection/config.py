@@ -50,9 +50,9 @@ class MaximiserConfig(BaseModel):
         Default pruning threshold: past it, the term is tested for removal at once.
     prune_bound : bool
         Before a prune test is sampled, bound its evidence from above: the prior integrates to one, so
-        ln Z without the term is at most the largest ln-likelihood without it, searched from the current
-        chains' best points with the term at 0 (the larger maximum two searches found, plus the gap between
-        them: the room either may have left). When that bound is below the current ln Z by more than the test's
+        ln Z without the term is at most the largest ln-likelihood without it, searched from each current
+        chain's best point with the term at 0 (the largest maximum found, plus its gap to the next: the room
+        the searches may have left). When that bound is below the current ln Z by more than the test's
         own margin (``keep_nats`` + ``noise_k`` se, at least ``min_gain``), the sampled test could only have
         kept the term too: it is kept without sampling, and the history records the bound (``bound``,
         ``method`` "likelihood bound"). Sampled evidence only (a Laplace prune test is itself a search).
