@@ -23,8 +23,9 @@ effect is and how one is added to a model):
   relief valve; h0 a shape parameter between the state's median and maximum), linear coupling to
   every other state, and an offset.
 * **Powers about a declared level**: where the user's drift measures a state from a level c (Newton cooling
-  ``a*(T - 295)``, a set point, an ambient input), (s - c)^2, (s - c)^3 and |s - c|^p sign(s - c), which
-  vanish where the declared law does (radiation to the ambient, a valve about its set point).
+  ``a*(T - 295)``, a set point, an ambient input; an oscillator's position in its velocity's equation, a rest
+  position or a drive ``k*(u - x)``), (s - c)^2, (s - c)^3 and |s - c|^p sign(s - c), which vanish where the
+  declared law does (radiation to the ambient, a valve about its set point, a coupling spring's hardening).
 * **Flows between coupled levels** (``where="flow"``): where one dynamic state drives another's drift,
   a flow law (sqrt, x|x|, saturating, overflow above a level) that leaves the first and enters the
   second (the pipe between two tanks, what spills over from the upper one), with one coefficient when
@@ -75,11 +76,15 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         hold levels of their own, which are not the user's.
     """
     scales = scales or {}
+    declared = declared or spec
     out: list[Effect] = []
     # the user's inputs (columns of a periodic forcing the loop added are not inputs to build effects from)
     inputs = user_inputs(spec)
     for x, v in oscillator_pairs(spec):
         out += _oscillator_effects(x, v, scales, inputs, (levels or {}).get(x))
+        # a spring about a rest position or a drive, -k*(x - x0) or k*(u - x) in the velocity's equation
+        if v in declared.drift:
+            out += _reference_effects(x, references(declared, x, v))
     for u in inputs:
         out += [Effect(f"input({u})", "input", (u,), f"linear input {u}", code=f"u1{u}"),
                 Effect(f"input_quadratic({u})", "input", (f"{u}**2",), f"quadratic input {u}^2", code=f"u2{u}"),
@@ -93,7 +98,6 @@ def candidate_effects(spec: ModelSpec, *, scales: dict[str, float] | None = None
         if s_ in pair_v:
             continue  # a velocity: the oscillator families above cover it
         out += _level_effects(s_, scales, inputs, (levels or {}).get(s_))
-        declared = declared or spec
         out += _reference_effects(s_, references(declared, s_) if s_ in declared.states else [])
     out += flow_effects(spec, scales, levels)
     used = set(spec.inputs)
@@ -235,8 +239,9 @@ def _level_effects(s_: str, scales: dict[str, float], inputs: list[str],
     return out
 
 
-def references(spec: ModelSpec, s_: str) -> list[str]:
-    """The levels the user's drift of ``s_`` measures ``s_`` from: ``c`` wherever it holds ``s_ - c`` (times a
+def references(spec: ModelSpec, s_: str, equation: str | None = None) -> list[str]:
+    """The levels the user's drift of ``equation`` (default ``s_``'s own; an oscillator's position in its
+    velocity's) measures ``s_`` from: ``c`` wherever it holds ``s_ - c`` (times a
     number, any sign), ``c`` a nonzero number or one input, parameter or constant (an ambient temperature, a
     set point, a supply pressure; not a derived quantity, which may move with the states: M2's moment lags
     ``P - CM``). Newton cooling ``a*(T - 295)`` declares 295, and so does its expanded form
@@ -244,7 +249,7 @@ def references(spec: ModelSpec, s_: str) -> list[str]:
     names = declared_names(spec)
     s = sp.Symbol(s_, real=True)
     found = []
-    for node in sp.preorder_traversal(parse_expression(spec.drift[s_], names)):
+    for node in sp.preorder_traversal(parse_expression(spec.drift[equation or s_], names)):
         if not isinstance(node, sp.Add):
             continue
         with_s = [a for a in node.args if a.has(s)]

@@ -42,6 +42,13 @@ def test_the_powers_about_a_level_vanish_where_the_declared_law_does():
     # an oscillator's laws run through 0: its library is what it was
     lin = builtin("forced_linear_oscillator")
     assert not [e for e in candidate_effects(lin, scales={"y": 1.0}) if e.code.startswith("r")]
+    # a spring to a drive, k*(u - y), or about a rest position, -k*(y - 0.3), in the velocity's equation: the
+    # position's powers about it
+    drive = lin.model_copy(update={"drift": {"y": "v", "v": "-c*v + k*(u - y)"}}).revalidate()
+    rest = lin.model_copy(update={"drift": {"y": "v", "v": "-c*v - k*(y - 0.3) + b*u"}}).revalidate()
+    assert references(drive, "y", "v") == ["u"] and references(rest, "y", "v") == ["0.3"]
+    assert {"square(y-u)", "cube(y-u)"} <= {e.name for e in candidate_effects(drive, scales={"y": 1.0})}
+    assert "cube(y-0.3)" in {e.name for e in candidate_effects(rest, scales={"y": 1.0})}
     # the loop passes the user's model: a level the loop's own terms hold (an overflow's h0) is not the user's
     grown = cooling("q*u - a*T + k*0.5*((T - 349) + sqrt((T - 349)**2 + 1))", parameters=["a", "q", "s", "k"])
     assert not [e for e in candidate_effects(grown, declared=cooling("q*u - a*T")) if "T-349" in e.name]
