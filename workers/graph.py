@@ -39,7 +39,7 @@ from ardflow.ardcore.sampling.chains import relay, run
 from ardflow.ardcore.sampling.driver import Runtime, Start, continuation, continued, sample_batches
 from ardflow.ardcore.selection.fit import ModelFit
 from ardflow.ardcore.selection.hold import with_holds
-from ardflow.ardcore.selection.maximiser import MaximiserResult, Trial
+from ardflow.ardcore.selection.trial import MaximiserResult, Trial
 from ardflow.ardcore.selection.spec import StudySpec
 from ardflow.ardcore.selection.study import CandidateHooks, compare, data_meta, iter_study_candidate
 

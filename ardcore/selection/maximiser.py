@@ -16,82 +16,18 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
 from typing import Callable, Generator
-
-import numpy as np
 
 from .config import MaximiserConfig
 from ..evidence.evaluate import (
     EvidenceEvaluator,
 )
 from ..evidence.estimators import Evidence
-from ..jsonio import encode_alpha
 from ..sampling.chains import run
 from ..sampling.config import SamplerResult
-from ..likelihood.posterior import ModelPosterior
 from ..evidence.reweight import resample_states, reweight, weighted_summary
 from ..sampling.transform import free_coordinates
-
-INF = math.inf
-
-
-@dataclass
-class Trial:
-    """One evidence evaluation during maximisation."""
-
-    iteration: int
-    psi: dict
-    evidence: Evidence
-    accepted: bool
-    action: str
-    wall_s: float
-    posterior: dict
-    diagnostics: dict
-    reweighted_from: int | None = None
-    """Iteration of the sampled trial whose draws were reweighted (None: this trial was sampled)."""
-    reweight_se: float = 0.0
-    """Monte Carlo se of the reweighting alone (the difference to its base trial has only this error)."""
-    bound: bool = False
-    """The evidence is an upper bound (:attr:`MaximiserConfig.prune_bound`), no chain was sampled."""
-
-    @property
-    def sampled(self) -> bool:
-        return self.reweighted_from is None and not self.bound
-
-    def to_dict(self) -> dict:
-        return {
-            "iteration": self.iteration,
-            "psi": {k: encode_alpha(v) for k, v in self.psi.items()},
-            **self.evidence.to_dict(), "accepted": self.accepted, "action": self.action,
-            "wall_s": self.wall_s, "posterior": self.posterior, "diagnostics": self.diagnostics,
-            "sampled": self.sampled, "reweighted_from": self.reweighted_from, "reweight_se": self.reweight_se,
-            "bound": self.bound,
-        }
-
-
-@dataclass
-class MaximiserResult:
-    psi_opt: dict
-    best: Trial
-    sampler: SamplerResult | None
-    target: ModelPosterior
-    history: list = field(default_factory=list)
-
-    @property
-    def kept(self) -> list:
-        return [k for k, v in self.psi_opt.items() if v != INF]
-
-    @property
-    def pruned(self) -> list:
-        return [k for k, v in self.psi_opt.items() if v == INF]
-
-
-def posterior_summary(names, samples: np.ndarray) -> dict:
-    """mean, sd and 0.5 / 99.5 % quantiles per parameter of pooled samples (n, d)."""
-    q = np.quantile(samples, [0.005, 0.995], axis=0)
-    return {n: {"mean": float(samples[:, i].mean()), "sd": float(samples[:, i].std(ddof=1)),
-                "q005": float(q[0, i]), "q995": float(q[1, i])} for i, n in enumerate(names)}
+from .trial import INF, MaximiserResult, Trial, TrialRequest, diff_se, posterior_summary
 
 
 def maximise(evaluate: EvidenceEvaluator, ard: dict[str, float | None], config: MaximiserConfig, *,
@@ -137,34 +73,6 @@ def _immediate(evaluate):
         return evaluate(*args, **kw)
         yield  # unreachable: makes this a generator function
     return trial
-
-
-@dataclass(frozen=True)
-class TrialRequest:
-    """What the maximiser asks for next: the evidence at ``psi`` by sampling (MCMC + Chib-Jeliazkov or
-    Laplace), its chains warm-started from ``warm``; with ``extend``, the chains of ``warm`` (sampled at
-    ``psi``) continued to the sampler's quality target instead (:func:`~ardcore.sampling.driver.continuation`);
-    with ``bound``, no chains: an upper bound of ln Z at ``psi`` (:meth:`EvidenceEvaluator.likelihood_bound`)."""
-
-    iteration: int
-    psi: dict
-    warm: SamplerResult | None
-    action: str
-    seed: int
-    extend: bool = False
-    bound: bool = False
-
-
-def _diff_se(a: Trial, b: Trial) -> float:
-    """se of ln Z(a) - ln Z(b): a reweighted trial shares its base's estimate, so only the reweighting's own
-    error separates them."""
-    if a.reweighted_from is not None and a.reweighted_from == b.iteration:
-        return a.reweight_se
-    if b.reweighted_from is not None and b.reweighted_from == a.iteration:
-        return b.reweight_se
-    if a.reweighted_from is not None and a.reweighted_from == b.reweighted_from:
-        return math.hypot(a.reweight_se, b.reweight_se)
-    return math.hypot(a.evidence.log_evidence_se, b.evidence.log_evidence_se)
 
 
 class Maximiser:
@@ -330,10 +238,10 @@ class Maximiser:
         """Occam: the nested model (alpha = inf) wins unless the term is worth more than the noise. A nested
         model whose likelihood's maximum falls short of the current ln Z by more than that loses without being
         sampled (:meth:`_bounded`)."""
-        if (yield from self._bounded(k)):
+        psi, action = dict(self.psi, **{k: INF}), f"{k}: prune test (alpha = inf)"
+        if (yield from self._bounded(k, psi, action)):
             return False
-        tr, target, res = yield from self._sample(dict(self.psi, **{k: INF}), self.best_res,
-                                                  f"{k}: prune test (alpha = inf)")
+        tr, target, res = yield from self._sample(psi, self.best_res, action)
         # an evidence that is not a number decides nothing: the term stays (a NaN is never "no better")
         pruned = math.isfinite(tr.evidence.log_evidence) and not self._better(self.best, tr,
                                                                               margin=self.config.keep_nats)
@@ -343,8 +251,8 @@ class Maximiser:
         self._notify(tr)
         return pruned
 
-    def _bounded(self, k: str):
-        """True when k's prune test is decided by the upper bound of the nested model's ln Z
+    def _bounded(self, k: str, psi: dict, action: str):
+        """True when k's prune test (``psi``, ``action``) is decided by the upper bound of the nested model's ln Z
         (:attr:`MaximiserConfig.prune_bound`): below the current ln Z by more than the test's margin, the
         term stays, and the bound is the test's record in the history (it takes the iteration, the seed and
         the place in ``max_trials`` the sampled test would have: every trial after it is the same). Tried
@@ -354,8 +262,7 @@ class Maximiser:
         if not (cfg.prune_bound and self.best.evidence.method != "laplace" and post and post.get("sd", 0) > 0
                 and abs(post["mean"]) >= cfg.prune_bound_z * post["sd"]):
             return False
-        it, psi = self._iteration, dict(self.psi, **{k: INF})
-        action = f"{k}: prune test (alpha = inf)"
+        it = self._iteration
         ev, wall = yield TrialRequest(it, psi, self.best_res, action, self.seed + 1009 * it, bound=True)
         if ev is None:
             return False
@@ -446,7 +353,7 @@ class Maximiser:
     def _better(self, tr: Trial, ref: Trial, k: float | None = None, margin: float = 0.0) -> bool:
         k = self.config.noise_k if k is None else k
         return (tr.evidence.log_evidence - ref.evidence.log_evidence
-                > max(k * _diff_se(tr, ref), self.config.min_gain) + margin)
+                > max(k * diff_se(tr, ref), self.config.min_gain) + margin)
 
     def _accept(self, tr: Trial, target, res) -> None:
         tr.accepted = True

@@ -21,7 +21,8 @@ import numpy as np
 
 from ..evidence.estimators import COLLAPSED
 from ..evidence.evaluate import EvidenceEvaluator, EvidenceSettings
-from .maximiser import MaximiserResult, iter_maximise, posterior_summary
+from .maximiser import iter_maximise
+from .trial import MaximiserResult, posterior_summary
 from ..data import Dataset
 from ..errors import FitError
 from ..events import ModelEvent, ProgressEvent, TrialDone
@@ -57,7 +58,7 @@ class CandidateHooks:
     ``progress`` receives :class:`~ardcore.events.ModelEvent` s, ``cancel`` is asked between rounds,
     ``evaluator_factory`` (same arguments as :class:`EvidenceEvaluator`) lets an orchestrator substitute its
     own evaluator (caching, checkpoints, remote chains), ``on_trial`` is called with every finished
-    :class:`~ardcore.selection.maximiser.Trial`."""
+    :class:`~ardcore.selection.trial.Trial`."""
 
     map_fn: Map = serial_map
     progress: Callable[[ModelEvent], None] | None = None
