@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import json
 import re
-import threading
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException
@@ -16,7 +15,6 @@ from ardflow.service.api.auth import StudyAccess
 from ardflow.service.api.registry import Registry
 from ardflow.service.api.schemas import API_VERSION, ID_RE, finite_or_none
 
-_render_lock = threading.Lock()  # matplotlib (mathtext, font cache) is not thread-safe
 MAX_POINTWISE_DRAWS = 4000  # EKF passes one request may ask for
 
 
@@ -117,12 +115,12 @@ def _figures(reg: Registry, access: StudyAccess) -> APIRouter:
     def figure(sid: str, name: str):
         reg.readable(sid)
         from ardflow.service.reports.figures import FIGURES, render
+        from ardflow.service.reports.plots import drawn_alone
 
         if name not in FIGURES:
             raise HTTPException(404, f"no figure {name!r} (available: {sorted(FIGURES)})")
         try:
-            with _render_lock:
-                png = render(name, reg.store(sid))
+            png = drawn_alone(render, name, reg.store(sid))
         except LookupError as exc:
             raise HTTPException(409, str(exc)) from None
         return Response(png, media_type="image/png")

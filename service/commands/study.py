@@ -39,16 +39,18 @@ def _run_on_dask(a, store) -> dict:
         max_trials = store.meta.get("spec", {}).get("maximiser", {}).get("max_trials", 60)
         with ctx, LiveProgress(max_trials) as live:
             summary = run_study(client, store, progress=live, done=store.remote)
-    if not store.remote:
-        _report_and_finish(store)
+        if not store.remote:
+            # the study's workers draw the report's figures side by side (a remote store's report is the service's)
+            _report_and_finish(store, lambda fn, *args, **kw: client.submit(fn, *args, pure=False, **kw))
     return summary
 
 
-def _report_and_finish(store) -> None:
-    """The report, then the study's status ``done`` (the service reports done when all of it is written)."""
+def _report_and_finish(store, submit=None) -> None:
+    """The report (its figures drawn where ``submit`` runs them), then the study's status ``done`` (the service
+    reports done when all of it is written)."""
     from ardflow.service.reports.study import write_report
 
-    print(f"[ardflow] report: {write_report(store).resolve()}", flush=True)
+    print(f"[ardflow] report: {write_report(store, submit=submit).resolve()}", flush=True)
     store.update_meta(status="done")
 
 

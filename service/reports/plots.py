@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 from pathlib import Path
 from typing import NamedTuple
 
@@ -13,13 +14,32 @@ TAU_SECONDS = 0.156 / (2 * 8.5)
 """Seconds per non-dimensional time unit of the reference problem (c / 2U)."""
 
 
-def pyplot():
-    import matplotlib
+DRAWING = threading.Lock()
+"""One figure at a time in a process: matplotlib's font cache and mathtext are not thread-safe."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    return plt
+def drawn_alone(fn, *args, **kw):
+    """``fn(*args, **kw)`` (a plot) while no other thread of this process draws."""
+    with DRAWING:
+        return fn(*args, **kw)
+
+
+class _Figures:
+    """What the figures need of pyplot (``subplots``) without its global state: each figure is its own
+    ``matplotlib.figure.Figure``, so figures drawn at once in several threads of one process (a threaded Dask
+    worker drawing a report) stay apart, and none is left open."""
+
+    @staticmethod
+    def subplots(*args, figsize=None, **kw):
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=figsize)
+        return fig, fig.subplots(*args, **kw)
+
+
+def pyplot() -> _Figures:
+    """The figure factory the plots draw with (:class:`_Figures`, rendered by Agg on save)."""
+    return _Figures()
 
 
 class Labels(NamedTuple):
@@ -81,12 +101,10 @@ def plot_data_and_psd(t: np.ndarray, y: np.ndarray, out: str | Path, *, labels: 
 
 def save_figure(fig, out):
     """Save to a path (returned as Path) or a binary file object."""
-    plt = pyplot()
     fig.tight_layout()
     if isinstance(out, (str, Path)):
         out = Path(out)
     fig.savefig(out, dpi=110, format="png")
-    plt.close(fig)
     return out
 
 

@@ -13,8 +13,8 @@ from ardflow.ardcore.sampling.diagnostics import Quality
 
 from ardflow.service.reports.paper import FIG15_M2OPT_BOUNDS, TABLE10, TABLE10_OFFSET
 from ardflow.service.reports.plots import (
-    TAU_SECONDS, Labels, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint, plot_marginals,
-    plot_model_probabilities, plot_prediction,
+    TAU_SECONDS, Labels, drawn_alone, plot_ard_bounds, plot_data_and_psd, plot_evidence_history, plot_joint,
+    plot_marginals, plot_model_probabilities, plot_prediction,
 )
 
 _CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -35,7 +35,7 @@ def _fmt(x, nd=3):
     return html.escape(str(x))
 
 
-def write_report(store, out: str | Path | None = None) -> Path:
+def write_report(store, out: str | Path | None = None, submit=None) -> Path:
     """Write ``report.html`` and its figures for a finished study; returns the HTML path.
 
     Parameters
@@ -43,6 +43,10 @@ def write_report(store, out: str | Path | None = None) -> Path:
     store : workers.store.StudyStore
     out : path, optional
         Directory for the report (default: ``STORE/report`` for a local store).
+    submit : callable, optional
+        ``submit(fn, *args, **kwargs)`` returning a future (``.result()``), as a Dask client's: where the
+        figures are drawn, side by side, in processes that can write to ``out``. Default: here, one after
+        another.
     """
     from ardflow.ardcore.selection.spec import StudySpec
 
@@ -60,11 +64,18 @@ def write_report(store, out: str | Path | None = None) -> Path:
     truth, ref_bounds = _truth(spec, best)
     data = store.load_data()
     col = "y" if "y" in data.columns else next(iter(data.columns))
+    # the figures are drawn where ``submit`` runs them (a study's own workers, side by side) while this process
+    # filters the best model for its innovations; the prediction's figure follows them
+    submit = submit or _here
+    drawn = [(cap, f, submit(drawn_alone, fn, *args, **kw)) for cap, f, fn, args, kw in
+             _report_figures(store, spec, summary, (names, samples), out, data)]
     try:
         innovations = _best_innovations(spec, summary, data, col)
     except Exception as exc:  # noqa: BLE001 - a check that cannot be computed must not cost the report
         innovations = exc
-    figs = _report_figures(store, spec, summary, (names, samples), out, (data, innovations))
+    drawn[2:2] = [(cap, f, submit(drawn_alone, fn, *args, **kw)) for cap, f, fn, args, kw in
+                  _prediction_figures(spec, best, out, data, innovations)]
+    figs = [_drawn(cap, f, job) for cap, f, job in drawn]
     table10 = _comparison_table(summary)
     post_table = _posterior_table(names, samples, truth, ref_bounds)
     paper = _paper_section(summary, spec) if reference and {r["name"] for r in summary["models"]} <= set(TABLE10) \
@@ -156,59 +167,100 @@ def self_checks(names: list, samples: np.ndarray, truth: dict, innovations, why:
     return out
 
 
-def _report_figures(store, spec, summary, draws: tuple, out: Path, record: tuple) -> list[tuple[str, str]]:
-    """The report's figures, written to ``out``: (caption, file) each; ``draws``: the best model's parameter
-    names and posterior samples; ``record``: the study's data (read once, by :func:`write_report`) and the best
-    model's innovations with their variances (or why there are none). The paper's figure numbers are cited only for the paper's own problem."""
+class _Done:
+    """A figure drawn here: its result, or the error drawing it raised, on ``.result()``."""
+
+    def __init__(self, fn, *args, **kw):
+        try:
+            self.value, self.error = fn(*args, **kw), None
+        except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not cost the report
+            self.value, self.error = None, exc
+
+    def result(self):
+        if self.error is not None:
+            raise self.error
+        return self.value
+
+
+def _here(fn, *args, **kw) -> _Done:
+    return _Done(fn, *args, **kw)
+
+
+def _drawn(cap: str, f: str, job) -> tuple[str, str]:
+    """The figure's caption and file once its ``job`` is done; no file, and a caption that says why, when it
+    could not be drawn."""
+    if not f:
+        return cap, ""
+    try:
+        job.result()
+        return cap, f
+    except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not cost the report
+        return f"({cap}: could not be drawn, {type(exc).__name__}: {exc})", ""
+
+
+def _labels(spec, col: str) -> Labels:
+    """A figure's names and units as the spec declares them (data.units, data.labels)."""
+    seconds = spec.naming.units.get("t") == "s"
+    return Labels(f"{spec.name}: {spec.naming.axis_label(col)}", spec.naming.axis_label("t"),
+                  spec.naming.axis_label(col), "Hz" if seconds else "cycles per time unit")
+
+
+def _report_figures(store, spec, summary, draws: tuple, out: Path, data) -> list[tuple]:
+    """The report's figures but the prediction's (:func:`_prediction_figures`), each ``(caption, file, function,
+    args, kwargs)``: the function draws the file in ``out``. ``draws``: the best model's parameter names and
+    posterior samples; ``data``: the study's data (read once, by :func:`write_report`). The paper's figure
+    numbers are cited only for the paper's own problem."""
     reference = spec.naming.generator == "reference"
     cite = (lambda figs: f" ({figs})") if reference else (lambda figs: "")
     best = summary["best_model"]
     names, samples = draws
     truth, ref_bounds = _truth(spec, best)
-    data, innovations = record
-    figs: list[tuple[str, str]] = []
     col = "y" if "y" in data.columns else next(iter(data.columns))
-    # names and units as the spec declares them (data.units, data.labels)
-    seconds = spec.naming.units.get("t") == "s"
-    labels = Labels(f"{spec.name}: {spec.naming.axis_label(col)}", spec.naming.axis_label("t"), spec.naming.axis_label(col),
-                    "Hz" if seconds else "cycles per time unit")
-    plot_data_and_psd(data.t, data.columns[col], out / "data_psd.png", labels=labels,
-                      cutoff=0.2295 if reference else None, tau_seconds=TAU_SECONDS if reference else None)
-    figs.append(("Data and its power spectral density" + cite("Figs. 2-3"), "data_psd.png"))
-
-    plot_model_probabilities(summary["models"], out / "probabilities.png")
-    figs.append(("Posterior probability of each candidate model (Eq. 7), with its ln evidence", "probabilities.png"))
-    several = data.n_records > 1
-    for r, (rec, rows) in enumerate(zip(data.record_names(), data.record_slices())):
-        f = f"prediction_{r}.png" if several else "prediction.png"
-        name = f" on {rec}" if several else ""
-        try:
-            if isinstance(innovations, Exception):
-                raise innovations
-            plot_prediction(data.record(r).t, data.columns[col][rows], *(a[rows] for a in innovations), out / f,
-                            model=best + name, labels=labels)
-            figs.append((f"Data against {best}'s one-step prediction{name}, and the standardised residuals", f))
-        except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not cost the report
-            figs.append((f"(the prediction of {best}{name} could not be drawn: {type(exc).__name__})", ""))
-
+    figs: list[tuple] = [
+        ("Data and its power spectral density" + cite("Figs. 2-3"), "data_psd.png", plot_data_and_psd,
+         (data.t, data.columns[col], out / "data_psd.png"),
+         {"labels": _labels(spec, col), "cutoff": 0.2295 if reference else None,
+          "tau_seconds": TAU_SECONDS if reference else None}),
+        ("Posterior probability of each candidate model (Eq. 7), with its ln evidence", "probabilities.png",
+         plot_model_probabilities, (summary["models"], out / "probabilities.png"), {})]
     histories = store.histories([r["name"] for r in summary["models"]])
-    plot_evidence_history(histories, out / "evidence.png")
     figs.append(("ln evidence, goodness of fit and information gain per maximisation trial" + cite("Figs. 8, 11-14"),
-                 "evidence.png"))
+                 "evidence.png", plot_evidence_history, (histories, out / "evidence.png"), {}))
     for cand in spec.models:
         ard = cand.ard_names
         if ard and histories.get(cand.label):
             f = f"ard_{cand.label}.png"
-            plot_ard_bounds(histories[cand.label], ard, out / f)
             figs.append((f"{cand.label}: prior and posterior 99 % bounds of the ARD parameters per trial" + cite("Fig. 9"),
-                         f))
-
-    plot_marginals(names, samples, out / "marginals.png", truth, ref_bounds)
+                         f, plot_ard_bounds, (histories[cand.label], ard, out / f), {}))
     figs.append((f"{best} (optimal nested model): marginal posteriors, 99 % bounds, true values" + cite("Fig. 15"),
-                 "marginals.png"))
-    plot_joint(names, samples, out / "joint.png", truth)
-    figs.append((f"{best}: joint posteriors" + cite("Fig. 16"), "joint.png"))
+                 "marginals.png", plot_marginals, (names, samples, out / "marginals.png", truth, ref_bounds), {}))
+    figs.append((f"{best}: joint posteriors" + cite("Fig. 16"), "joint.png", plot_joint,
+                 (names, samples, out / "joint.png", truth), {}))
     return figs
+
+
+def _prediction_figures(spec, best: str, out: Path, data, innovations) -> list[tuple]:
+    """The data against the best model's one-step prediction, one figure per record, as
+    :func:`_report_figures`' entries (``innovations``: its innovations and their variances, or why there are
+    none: the entry then has no file and its caption says so)."""
+    col = "y" if "y" in data.columns else next(iter(data.columns))
+    several = data.n_records > 1
+    figs = []
+    for r, (rec, rows) in enumerate(zip(data.record_names(), data.record_slices())):
+        f = f"prediction_{r}.png" if several else "prediction.png"
+        name = f" on {rec}" if several else ""
+        if isinstance(innovations, Exception):
+            figs.append((f"(the prediction of {best}{name} could not be drawn: {type(innovations).__name__})", "",
+                         _nothing, (), {}))
+            continue
+        figs.append((f"Data against {best}'s one-step prediction{name}, and the standardised residuals", f,
+                     plot_prediction, (data.record(r).t, data.columns[col][rows], *(a[rows] for a in innovations),
+                                       out / f), {"model": best + name, "labels": _labels(spec, col)}))
+    return figs
+
+
+def _nothing() -> None:
+    return None
 
 
 def _best_innovations(spec, summary: dict, data, col: str) -> tuple:

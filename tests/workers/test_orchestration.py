@@ -251,6 +251,13 @@ def test_report_for_any_study(tmp_path, thread_cluster):
     assert len(shown["images"]) == len(imgs)
     assert all(i["complete"] and i["width"] > 100 for i in shown["images"]), shown["images"]
     assert not shown["blocked"] and not shown["failed"] and not shown["errors"], shown
+    # the figures drawn on the study's workers, side by side (two threads of one process here): the same page
+    # and the same pictures
+    there = write_report(store, tmp_path / "on_workers",
+                         submit=lambda fn, *a, **kw: thread_cluster.submit(fn, *a, pure=False, **kw))
+    assert there.read_text() == text
+    for f in imgs:
+        assert (there.parent / f).read_bytes() == (page.parent / f).read_bytes(), f
 
 
 class _SlowTarget:
