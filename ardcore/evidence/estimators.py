@@ -13,8 +13,6 @@ from typing import Generator
 
 import numpy as np
 from scipy.special import logsumexp
-from scipy.stats import chi2
-from scipy.stats import f as f_dist
 
 from ..sampling.chains import Jump, MixedProposal
 from ..sampling.chains import Batch, Map, SamplerError, Step, run, serial_map
@@ -126,6 +124,8 @@ def pooled_se(values: np.ndarray, within: np.ndarray, batches: int = BATCHES) ->
     between = float(np.var(values, ddof=1))
     inside = float(np.mean(within ** 2))
     k_b, k_w = nc - 1, nc * (batches - 1)
+    from scipy.stats import f as f_dist  # here: scipy.stats costs every worker half a second at its start
+
     if not inside > 0 or between / inside > f_dist.ppf(0.99, k_b, k_w):
         return math.sqrt(between / nc)
     return math.sqrt((k_b * between + k_w * inside) / (k_b + k_w) / nc)
@@ -295,6 +295,8 @@ def iter_chib_jeliazkov(target, res: SamplerResult, *, n_proposal: int, seed: in
     if nc > 1:
         noise = np.array([max(p.se, 1e-3) for p in per])
         stat = float(np.sum(((vals - mean) / noise) ** 2))
+        from scipy.stats import chi2
+
         if stat > chi2.ppf(0.999, nc - 1) and np.ptp(vals) > 0.5:
             warnings.append(f"per-chain ln evidence estimates disagree beyond their noise "
                             f"(spread {np.ptp(vals):.2f} nats: {np.round(vals, 2).tolist()}); "
