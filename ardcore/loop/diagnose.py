@@ -89,7 +89,7 @@ def _errors(res: Residuals, fr: dict, row: ModelFit, col: str) -> dict:
     t = res.tests[col]
     keep = ("rms_error", "relative_rms_error", "frequency_error", "amplitude_error", "harmonic_error",
             "band_coverage", "band_expected", "band_diverged", "band_halfwidth_rms", "draws_rms_error", "n_draws",
-            "band_factor", "band_calibration", "band_level")
+            "band_factor", "band_calibration")
     # the first innovations carry the initial-state uncertainty, not the model's error
     skip = min(10, max(0, res.raw_innovations.shape[0] // 10))
     out = {"innovation_rms": float(np.sqrt(np.nanmean(res.raw_innovations[skip:, 0] ** 2))),
