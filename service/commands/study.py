@@ -27,6 +27,7 @@ def full_settings(spec):
 
 def _run_on_dask(a, store) -> dict:
     import contextlib
+    import functools
 
     from ardflow.workers.graph import run_study
 
@@ -41,7 +42,7 @@ def _run_on_dask(a, store) -> dict:
             summary = run_study(client, store, progress=live, done=store.remote)
         if not store.remote:
             # the study's workers draw the report's figures side by side (a remote store's report is the service's)
-            _report_and_finish(store, lambda fn, *args, **kw: client.submit(fn, *args, pure=False, **kw))
+            _report_and_finish(store, functools.partial(client.submit, pure=False))
     return summary
 
 

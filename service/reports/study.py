@@ -65,16 +65,15 @@ def write_report(store, out: str | Path | None = None, submit=None) -> Path:
     data = store.load_data()
     col = "y" if "y" in data.columns else next(iter(data.columns))
     # the figures are drawn where ``submit`` runs them (a study's own workers, side by side) while this process
-    # filters the best model for its innovations; the prediction's figure follows them
-    submit = submit or _here
-    drawn = [(cap, f, submit(drawn_alone, fn, *args, **kw)) for cap, f, fn, args, kw in
-             _report_figures(store, spec, summary, (names, samples), out, data)]
+    # filters the best model for its innovations; the prediction's figures follow them
+    submit = submit or _Done
+    drawn = _submitted(_report_figures(store, spec, summary, (names, samples), out, data, col), submit)
     try:
         innovations = _best_innovations(spec, summary, data, col)
     except Exception as exc:  # noqa: BLE001 - a check that cannot be computed must not cost the report
         innovations = exc
-    drawn[2:2] = [(cap, f, submit(drawn_alone, fn, *args, **kw)) for cap, f, fn, args, kw in
-                  _prediction_figures(spec, best, out, data, innovations)]
+    # on the page they come after the data's figure and the models' probabilities
+    drawn[2:2] = _submitted(_prediction_figures(spec, best, out, (data, col), innovations), submit)
     figs = [_drawn(cap, f, job) for cap, f, job in drawn]
     table10 = _comparison_table(summary)
     post_table = _posterior_table(names, samples, truth, ref_bounds)
@@ -182,14 +181,17 @@ class _Done:
         return self.value
 
 
-def _here(fn, *args, **kw) -> _Done:
-    return _Done(fn, *args, **kw)
+def _submitted(entries: list[tuple], submit) -> list[tuple]:
+    """Each figure entry (``(caption, file, function, args, kwargs)``; no function: nothing to draw) as
+    ``(caption, file, job)``, its function handed to ``submit`` to draw while no other of its process does."""
+    return [(cap, f, submit(drawn_alone, fn, *args, **kw) if fn is not None else None)
+            for cap, f, fn, args, kw in entries]
 
 
 def _drawn(cap: str, f: str, job) -> tuple[str, str]:
     """The figure's caption and file once its ``job`` is done; no file, and a caption that says why, when it
     could not be drawn."""
-    if not f:
+    if job is None:
         return cap, ""
     try:
         job.result()
@@ -205,17 +207,16 @@ def _labels(spec, col: str) -> Labels:
                   spec.naming.axis_label(col), "Hz" if seconds else "cycles per time unit")
 
 
-def _report_figures(store, spec, summary, draws: tuple, out: Path, data) -> list[tuple]:
+def _report_figures(store, spec, summary, draws: tuple, out: Path, data, col: str) -> list[tuple]:
     """The report's figures but the prediction's (:func:`_prediction_figures`), each ``(caption, file, function,
     args, kwargs)``: the function draws the file in ``out``. ``draws``: the best model's parameter names and
-    posterior samples; ``data``: the study's data (read once, by :func:`write_report`). The paper's figure
-    numbers are cited only for the paper's own problem."""
+    posterior samples; ``data``: the study's data (read once, by :func:`write_report`), ``col`` its measured
+    channel. The paper's figure numbers are cited only for the paper's own problem."""
     reference = spec.naming.generator == "reference"
     cite = (lambda figs: f" ({figs})") if reference else (lambda figs: "")
     best = summary["best_model"]
     names, samples = draws
     truth, ref_bounds = _truth(spec, best)
-    col = "y" if "y" in data.columns else next(iter(data.columns))
     figs: list[tuple] = [
         ("Data and its power spectral density" + cite("Figs. 2-3"), "data_psd.png", plot_data_and_psd,
          (data.t, data.columns[col], out / "data_psd.png"),
@@ -239,11 +240,12 @@ def _report_figures(store, spec, summary, draws: tuple, out: Path, data) -> list
     return figs
 
 
-def _prediction_figures(spec, best: str, out: Path, data, innovations) -> list[tuple]:
+def _prediction_figures(spec, best: str, out: Path, record: tuple, innovations) -> list[tuple]:
     """The data against the best model's one-step prediction, one figure per record, as
-    :func:`_report_figures`' entries (``innovations``: its innovations and their variances, or why there are
-    none: the entry then has no file and its caption says so)."""
-    col = "y" if "y" in data.columns else next(iter(data.columns))
+    :func:`_report_figures`' entries; ``record``: the study's data and its measured channel, ``innovations``:
+    the best model's innovations and their variances, or why there are none (the entry then draws nothing and
+    its caption says why)."""
+    data, col = record
     several = data.n_records > 1
     figs = []
     for r, (rec, rows) in enumerate(zip(data.record_names(), data.record_slices())):
@@ -251,16 +253,12 @@ def _prediction_figures(spec, best: str, out: Path, data, innovations) -> list[t
         name = f" on {rec}" if several else ""
         if isinstance(innovations, Exception):
             figs.append((f"(the prediction of {best}{name} could not be drawn: {type(innovations).__name__})", "",
-                         _nothing, (), {}))
+                         None, (), {}))
             continue
         figs.append((f"Data against {best}'s one-step prediction{name}, and the standardised residuals", f,
                      plot_prediction, (data.record(r).t, data.columns[col][rows], *(a[rows] for a in innovations),
                                        out / f), {"model": best + name, "labels": _labels(spec, col)}))
     return figs
-
-
-def _nothing() -> None:
-    return None
 
 
 def _best_innovations(spec, summary: dict, data, col: str) -> tuple:

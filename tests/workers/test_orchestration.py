@@ -1,5 +1,6 @@
 """The study on real Dask clusters and a real zarr store."""
 
+import functools
 import json
 import os
 import signal
@@ -253,8 +254,7 @@ def test_report_for_any_study(tmp_path, thread_cluster):
     assert not shown["blocked"] and not shown["failed"] and not shown["errors"], shown
     # the figures drawn on the study's workers, side by side (two threads of one process here): the same page
     # and the same pictures
-    there = write_report(store, tmp_path / "on_workers",
-                         submit=lambda fn, *a, **kw: thread_cluster.submit(fn, *a, pure=False, **kw))
+    there = write_report(store, tmp_path / "on_workers", submit=functools.partial(thread_cluster.submit, pure=False))
     assert there.read_text() == text
     for f in imgs:
         assert (there.parent / f).read_bytes() == (page.parent / f).read_bytes(), f
