@@ -9,7 +9,8 @@ from typing import Generator
 
 import numpy as np
 
-from .estimators import Evidence, iter_chib_jeliazkov, laplace
+from .estimators import Evidence, iter_chib_jeliazkov
+from .laplace import laplace
 from ..sampling.chains import Batch, Step, run
 from ..sampling.config import SamplerConfig, SamplerResult
 from ..sampling.driver import Runtime, Start, continuation, continued, sample_batches

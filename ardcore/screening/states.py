@@ -53,7 +53,7 @@ def _screen_search(args) -> tuple[np.ndarray, float]:
 def _screen_evidence(args) -> tuple[float, dict]:
     """A screen's Laplace evidence and MAP from its best search's point ``x0`` (Newton steps): ``(cand, data,
     x0)``."""
-    from ..evidence.estimators import laplace
+    from ..evidence.laplace import laplace
     from ..sampling.starts import initial_scale
 
     cand, data, x0 = args

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.evidence.estimators import laplace
+from ardflow.ardcore.evidence.laplace import laplace
 from ardflow.ardcore.model.declaration import ModelSpec
 from ardflow.ardcore.likelihood.posterior import ModelPosterior
 from ardflow.ardcore.model.priors import LogNormal

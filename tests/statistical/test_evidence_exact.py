@@ -7,7 +7,8 @@ import pytest
 from scipy.stats import multivariate_normal as mvn
 
 from ardflow.ardcore.data import Dataset
-from ardflow.ardcore.evidence.estimators import chib_jeliazkov, laplace
+from ardflow.ardcore.evidence.estimators import chib_jeliazkov
+from ardflow.ardcore.evidence.laplace import laplace
 from ardflow.ardcore.model.library import builtin
 from ardflow.ardcore.sampling.config import SamplerConfig
 from ardflow.ardcore.sampling.driver import Runtime, Start, sample

@@ -14,7 +14,8 @@ import pytest
 import sympy as sp
 from scipy import integrate, stats
 
-from ardflow.ardcore.evidence.estimators import COLLAPSED, laplace
+from ardflow.ardcore.evidence.estimators import COLLAPSED
+from ardflow.ardcore.evidence.laplace import laplace
 from ardflow.ardcore.likelihood.ekf import compile_model
 from ardflow.ardcore.likelihood.posterior import ModelPosterior
 from ardflow.ardcore.likelihood.simulate import simulate_model

@@ -130,7 +130,7 @@ def _true_model_interval(eff, target, value, seed) -> tuple[float, float]:
     import numpy as np
 
     from ardflow.ardcore.effects.base import with_columns
-    from ardflow.ardcore.evidence.estimators import laplace
+    from ardflow.ardcore.evidence.laplace import laplace
     from ardflow.ardcore.likelihood.posterior import ModelPosterior
     from ardflow.ardcore.model.priors import Normal
 

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from ardflow.ardcore.data import Dataset, join_records
-from ardflow.ardcore.evidence.estimators import chib_jeliazkov, laplace
+from ardflow.ardcore.evidence.estimators import chib_jeliazkov
+from ardflow.ardcore.evidence.laplace import laplace
 from ardflow.ardcore.likelihood.ekf import compile_model
 from ardflow.ardcore.likelihood.posterior import ModelPosterior
 from ardflow.ardcore.likelihood.simulate import simulate_model

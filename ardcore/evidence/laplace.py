@@ -1,0 +1,150 @@
+"""The Laplace evidence at the MAP (docs/method.md, Appendices A-B): Newton steps with finite-difference
+Hessians reused as chords, after a Nelder-Mead search where a warm start does not converge."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..sampling.starts import fd_derivatives, fd_hessian, local_mode
+from .estimators import Evidence, collapse_drops, collapse_warning
+
+
+CHORD_STEPS = 4
+"""Newton steps :func:`laplace` takes with one finite-difference Hessian before taking it again."""
+BACKTRACKS = 8
+"""Halvings of a Newton step that does not descend before the Hessian is taken afresh."""
+
+
+def _same_scale(a, b) -> bool:
+    """Steps within a factor 2 of each other in every coordinate."""
+    return bool(np.all((a > 0.5 * b) & (a < 2 * b)))
+
+
+def newton(f, x: np.ndarray, h: np.ndarray, iters: int):
+    """Newton steps minimising ``f`` from ``x`` with finite-difference steps ``h``; returns x, h, whether it
+    converged (step < 1e-3 sd) and the last Hessian when it was taken at the returned x's predecessor
+    (else None).
+
+    A Hessian (with its gradient) costs d^2 evaluations and a gradient alone 2 d, so a Hessian is reused
+    for up to ``CHORD_STEPS`` steps (a chord method: near the mode it barely changes) and taken afresh when
+    a step fails to descend or the chord steps do not converge; ``iters`` bounds the Hessians. Far from the
+    mode a step is halved until it descends, and where the Hessian is not positive definite the step
+    uses its eigenvalues' magnitudes (a descent direction; the Hessian is taken afresh after it)."""
+    H = C = None
+    hessians = chords = 0
+    while True:
+        if H is None:
+            if hessians == iters:
+                return x, h, False, None
+            fx, g, H = fd_derivatives(f, x, h)
+            hessians, chords = hessians + 1, 0
+            if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
+                return x, h, False, None  # a step left the posterior's support
+            C, ok = _newton_inverse(H)
+            if C is None:
+                return x, h, False, None
+            sd = np.sqrt(np.diag(C))
+            h_used, h = h, np.where(np.isfinite(sd) & (sd > 0), 0.01 * sd, h)
+        fresh = chords == 0
+        if not fresh:
+            fx = f(x)
+            g = np.array([(f(x + h_used[i] * e) - f(x - h_used[i] * e)) / (2 * h_used[i])
+                          for i, e in enumerate(np.eye(x.size))])
+        step = C @ g
+        descends = f(x - step) <= fx
+        small = ok and np.all(np.abs(step) < 1e-3 * sd)
+        if small:
+            # converged: a step this small may not descend only by the likelihood's rounding noise
+            x = x - step if descends else x
+            # a fresh Hessian a step of < 1e-3 sd away, taken with steps of its own sd's size, is the
+            # mode's (the final one would be the same up to finite-difference error)
+            return x, h, True, (H if fresh and _same_scale(h_used, h) else None)
+        for _ in range(0 if descends else BACKTRACKS):
+            # far from the mode the quadratic model overshoots: halve the step until it descends
+            step = 0.5 * step
+            if f(x - step) <= fx:
+                descends = True
+                break
+        if descends:
+            x = x - step
+            chords += 1
+            if chords >= CHORD_STEPS or not ok:
+                H = None
+        elif fresh and _same_scale(h_used, h):
+            return x, h, False, None
+        else:
+            # an old curvature misled the step, or a fresh one taken with steps far from its own sd's
+            # size (the first, with the caller's steps): take it afresh here
+            H = None
+
+
+def _newton_inverse(H: np.ndarray) -> tuple[np.ndarray | None, bool]:
+    """(H^-1, True) when it is a covariance; else the inverse with H's eigenvalues' magnitudes (a descent
+    direction for a Newton step) and False; (None, False) when H has no usable eigenvalue."""
+    try:
+        C = np.linalg.inv(H)
+        if np.all(np.isfinite(C)) and np.all(np.diag(C) > 0):
+            return C, True
+    except np.linalg.LinAlgError:
+        pass
+    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    if not np.all(np.isfinite(w)) or np.max(np.abs(w)) == 0:
+        return None, False
+    return (V / np.maximum(np.abs(w), 1e-10 * np.max(np.abs(w)))) @ V.T, False
+
+
+def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: int = 4000,
+            polish: int = 3, warm: bool = False) -> tuple[Evidence, np.ndarray, np.ndarray]:
+    """Laplace evidence ln p(d) ~ L(MAP) + d/2 ln 2 pi - 1/2 ln |H| (Appendices A-B).
+
+    With ``warm`` (``x0`` from a neighbouring trial), Newton steps start at ``x0`` and Nelder-Mead runs only
+    when they do not converge.
+
+    Returns
+    -------
+    evidence : Evidence
+    phi_map : ndarray
+    cov : ndarray
+        H^{-1}, the Laplace posterior covariance.
+    """
+    x0 = np.asarray(x0, dtype=float)
+    d = x0.size
+    if scale is None:
+        scale = np.maximum(np.abs(x0) * 0.1, 1e-3)
+    f = lambda v: -target(v).log_posterior  # noqa: E731
+
+    converged, H = False, None
+    if warm:
+        # a warm start is near the mode: Newton from there, Nelder-Mead only if Newton does not converge
+        x, h, converged, H = newton(f, x0.copy(), 1e-3 * scale, polish + 5)
+    if not converged:
+        x, _ = local_mode(target, x0, scale, maxfev)
+        x, h, _, H = newton(f, x, 1e-3 * scale, polish)
+    if H is None:
+        H = fd_hessian(f, x, h)
+    lp, ll = target(x)
+    warnings = []
+    if np.all(np.isfinite(H)):
+        sign, logdet = np.linalg.slogdet(H)
+    else:  # a curvature that could not be measured (a step out of the support): no determinant to take
+        sign, logdet = 0.0, math.nan
+    if sign <= 0:
+        warnings.append("Hessian at the MAP is not positive definite: Laplace evidence invalid")
+    log_z = lp + 0.5 * d * math.log(2 * math.pi) - 0.5 * logdet
+    ev = Evidence(float(log_z), 0.0, float(ll), float(ll - log_z), "laplace", [], warnings)
+    try:
+        C = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        C = np.full((d, d), np.nan)
+    var = np.diag(C)
+    # (a determinant's positive sign does not make a curvature positive definite: two negative eigenvalues)
+    sd = np.sqrt(var) if np.all(np.isfinite(C)) and sign > 0 and np.all(var > 0) else None
+    if sd is not None and np.isfinite(lp):
+        # a curvature from finite differences over a rough likelihood (kinks at the scale of its steps) is far
+        # too large: 3 of its sd out the log posterior has barely moved
+        warnings += collapse_warning(getattr(target, "names", [f"x{i}" for i in range(d)]),
+                                     collapse_drops(target, x, lp, sd), "the curvature was measured on a "
+                                     "likelihood rough at the scale of its steps")
+    return ev, x, C
