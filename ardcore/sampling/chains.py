@@ -285,12 +285,20 @@ class MixedProposal:
 
     def log_ratio(self, y: np.ndarray, x: np.ndarray) -> float:
         """ln q(x|y) - ln q(y|x) (0 for the pure random walk: it is symmetric)."""
+        return self.ratio_and_t(y, x)[0]
+
+    def ratio_and_t(self, y: np.ndarray, x: np.ndarray, tx: float | None = None) -> tuple:
+        """:meth:`log_ratio` with ln t(x) and ln t(y), the independence density at both (None for the pure
+        random walk). ``tx``: ln t(x) when known, as this returned it before: a chain reads its point's there
+        (from the step that proposed the point, or the last one that stayed at it) instead of solving for it
+        at every step (the same number)."""
         if not self.w:
-            return 0.0
+            return 0.0, None, None
         r = math.log1p(-self.w) + float(self.log_rw(y - x)[0])
-        tx, ty = float(self.log_t(x)[0]), float(self.log_t(y)[0])
+        tx = float(self.log_t(x)[0]) if tx is None else tx
+        ty = float(self.log_t(y)[0])
         lw = math.log(self.w)
-        return float(np.logaddexp(r, lw + tx) - np.logaddexp(r, lw + ty))
+        return float(np.logaddexp(r, lw + tx) - np.logaddexp(r, lw + ty)), tx, ty
 
 
 # --------------------------------------------------------------------------- one round
@@ -336,6 +344,7 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
         return y, lpy, lly, (lpy + free.log_jacobian(y) if lpy > -math.inf else -math.inf)
 
     mix = MixedProposal(cov, jump) if jump is not None and jump.weight > 0 else None
+    tz = None  # ln t(z) under the mixture's independence proposal, once the chain has moved to a proposal
     for i in range(n):
         if mix is not None:
             w1 = mix.draw(rng, z)
@@ -344,10 +353,11 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
             w1 = z + L @ z1
         y1, lp1, ll1, lpz1 = at(w1)
         # the mixture is not symmetric: its proposal ratio enters the acceptance
-        log_a1 = (lpz1 - lpz + (mix.log_ratio(w1, z) if mix is not None else 0.0)) if lpz1 > -math.inf \
-            else -math.inf
+        ratio, t0, t1 = mix.ratio_and_t(w1, z, tz) if mix is not None and lpz1 > -math.inf else (0.0, tz, None)
+        tz = t0
+        log_a1 = (lpz1 - lpz + ratio) if lpz1 > -math.inf else -math.inf
         if math.log(rng.random() + 1e-300) < log_a1:
-            x, lp, ll, lpz, z = y1, lp1, ll1, lpz1, w1
+            x, lp, ll, lpz, z, tz = y1, lp1, ll1, lpz1, w1, t1
             acc += 1
         elif mix is None and adaptive and dr_scale > 0:
             z2 = rng.standard_normal(d)

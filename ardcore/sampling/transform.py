@@ -48,6 +48,9 @@ class Unconstrained:
         self._log, self._logit = self.kind == _LOG, self.kind == _LOGIT
         self.width = np.where(self._logit, self.hi - self.lo, 1.0)
         self.identity = not (self._log.any() or self._logit.any())
+        # the uniform priors' bounds and log widths, taken out once (the Jacobian is read at every step)
+        m = self._logit
+        self._lo_m, self._hi_m, self._w_m, self._lnw_m = self.lo[m], self.hi[m], self.width[m], np.log(self.width[m])
 
     def to_free(self, x: np.ndarray) -> np.ndarray:
         """z of points x (the last axis is the parameter)."""
@@ -70,7 +73,7 @@ class Unconstrained:
         x = z.copy()
         x[..., self._log] = np.exp(z[..., self._log])
         m = self._logit
-        x[..., m] = self.lo[m] + self.width[m] * _expit(z[..., m])
+        x[..., m] = self._lo_m + self._w_m * _expit(z[..., m])
         return x
 
     def log_jacobian(self, x: np.ndarray) -> np.ndarray | float:
@@ -80,8 +83,8 @@ class Unconstrained:
             return np.zeros(x.shape[:-1]) if x.ndim > 1 else 0.0
         with np.errstate(divide="ignore", invalid="ignore"):
             lg = np.log(x[..., self._log]).sum(axis=-1)
-            m = self._logit
-            lt = (np.log(x[..., m] - self.lo[m]) + np.log(self.hi[m] - x[..., m]) - np.log(self.width[m])).sum(axis=-1)
+            xm = x[..., self._logit]
+            lt = (np.log(xm - self._lo_m) + np.log(self._hi_m - xm) - self._lnw_m).sum(axis=-1)
         out = lg + lt
         return np.where(np.isnan(out), -np.inf, out) if np.ndim(out) else (float(out) if out == out else -math.inf)
 
