@@ -9,7 +9,6 @@ term off (the parameter is fixed to 0 and leaves phi).
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Annotated, Literal, Union
 
@@ -54,12 +53,11 @@ class LogNormal(_PriorBase):
         s = max(math.log(hi / median), math.log(median / lo)) / 2.0
         return cls(median=median, cov=100.0 * math.sqrt(math.expm1(s * s)))
 
-    # computed once per prior (it is frozen): a chain's every step reads them
-    @functools.cached_property
+    @property
     def mu(self) -> float:
         return math.log(self.median)
 
-    @functools.cached_property
+    @property
     def s(self) -> float:
         return math.sqrt(math.log1p((self.cov / 100.0) ** 2))
 

@@ -231,14 +231,14 @@ def _sampler_step_us(target, res, n: int) -> float:
     from ardflow.ardcore.sampling.chains import ChainState, Jump, run_round
     from ardflow.ardcore.sampling.transform import free_coordinates
 
-    free = FunctionTarget(target.names, target.prior, lambda x: 0.0)
+    costless = FunctionTarget(target.names, target.prior, lambda x: 0.0)
     x = np.array(res.phi_star)
-    lp, ll = free(x)
+    lp, ll = costless(x)
     st = ChainState(0, x.tolist(), lp, ll, np.random.PCG64(0).state, x.tolist(), lp, ll)
     cov = np.asarray(res.proposal_cov, float)  # in the chain's coordinates, as the sampler keeps it
     jump = Jump(free_coordinates(target).to_free(x), 4.0 * cov, 0.5, 5.0)
     t0 = time.perf_counter()
-    run_round(free, st, cov, n, adaptive=False, jump=jump)
+    run_round(costless, st, cov, n, adaptive=False, jump=jump)
     return (time.perf_counter() - t0) / n * 1e6
 
 
@@ -872,8 +872,9 @@ def states_ratio(report: dict) -> float | None:
 def bench_states(tiny: bool = False) -> dict:
     """What the state families cost on a long record: the loop on the validation set's sensor-lag record at
     10,000 estimation samples (its truth a linear oscillator read through a first-order sensor, its user model
-    the plain oscillator), timed on a warm kernel cache (a first run fills it). Keys: ``states_10k_ratio`` (:func:`states_ratio`: the hysteresis, sensor and mode
-    states' time over the round's additions, laws and lags; issue target <= 2), ``states_10k_samples``,
+    the plain oscillator), timed on a warm kernel cache (a first run fills it). Keys: ``states_10k_ratio``
+    (:func:`states_ratio`: the hysteresis, sensor and mode states' time over the round's additions, laws and
+    lags; issue target <= 2), ``states_10k_samples``,
     ``states_10k_s`` (the loop's wall time), ``states_10k_forms`` (the states it added) and
     ``states_10k_free_run`` (the reported model's free run on the test half)."""
     from ardflow.ardcore.loop.config import DiagnoseConfig
