@@ -901,6 +901,29 @@ def bench_states(tiny: bool = False) -> dict:
             "states_10k_free_run": r["reported"]["free_run"]["rms_error"]}
 
 
+def bench_bands(tiny: bool = False) -> dict:
+    """What the band of each simulated validation record's own truth holds of its test record
+    (:func:`validation.truth_band`: 40 draws at the true values, seed 0): the most a fitted model's band can be
+    asked to hold there. Keys ``band_truth_<r>``, ``bands_records`` (how many were measured) and
+    ``bands_truth_in_range`` (how many of them the truth's band holds 80-97 % of). No loop runs: a few seconds a
+    record."""
+    from .validation import RECORDS, truth_band
+
+    out: dict = {}
+    # --tiny: two kinds of record (a driven oscillator, the self-excited LCO), shortened
+    names = ["none", "lco_none"] if tiny else list(RECORDS)
+    for name in names:
+        rec = RECORDS[name](n=800) if tiny else RECORDS[name]()
+        c = truth_band(rec, 40)
+        if c is not None:
+            out[f"band_truth_{name}"] = c
+            print(f"  [{name}] the truth's band holds {100 * c:.0f} % of the test record", flush=True)
+    got = [v for k, v in out.items() if k.startswith("band_truth_")]
+    out["bands_records"] = len(got)
+    out["bands_truth_in_range"] = sum(0.8 <= c <= 0.97 for c in got)
+    return out
+
+
 def bench_validation(tiny: bool = False, records: list | None = None, seed: int | None = None) -> dict:
     """The loop on the validation set (:mod:`tests.bench.validation`): each record from its plain user model,
     and the peers on the same split, in one run; and the regression gate.
@@ -1034,7 +1057,8 @@ def _save_partial(res: dict) -> None:
 BENCHES = {"ekf": bench_ekf, "records": bench_records, "engine": bench_engine, "dask": bench_dask, "api": bench_api, "listing": bench_listing,
            "study": bench_study,
            "posterior": bench_posterior, "posterior_full": bench_posterior_full,
-           "loop": bench_loop, "states": bench_states, "validation": bench_validation, "fresh": bench_fresh}
+           "loop": bench_loop, "states": bench_states, "validation": bench_validation, "bands": bench_bands,
+           "fresh": bench_fresh}
 
 
 CONTRACT = {
@@ -1061,6 +1085,7 @@ CONTRACT = {
                                            "sensor_lag", "second_mode", "none")
                      for k in ("loop_{}_free_run", "peer_best_{}", "loop_{}_s")]],
     "fresh": ["fresh_demo_s", "fresh_demo_evaluations"],
+    "bands": ["bands_records", "bands_truth_in_range", "band_truth_none"],
 }
 """Keys each group must write (named in issues and the README: a contract); the smoke test checks them."""
 

@@ -64,6 +64,9 @@ class Record:
     physics: str
     real: bool = False
     """A measured record: no truth to find, so the gate holds its free-run error (no worse than recorded)."""
+    truth: tuple | None = None
+    """``(spec, parameter values)`` of the model that generated a simulated record, None for a measured one: the band
+    the truth itself makes on the test record (:func:`truth_band`) is the most any model's band can be asked to do."""
     family: tuple = ()
     """What finding the missing physics means (:func:`verdict`): library names or kinds of effects, or
     ``form:<form>`` for a declared law replaced in that form; empty when the library holds nothing to find."""
@@ -107,17 +110,17 @@ def _simulate(truth, params: dict, t: np.ndarray, u: np.ndarray, seed: int, n_st
     return Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": f"validation:{truth.name}"})
 
 
-def _split(name, spec, data, has_effect, design, physics, family=()) -> Record:
+def _split(name, spec, data, has_effect, design, physics, family=(), truth=None) -> Record:
     k = int(round(EST * len(data)))
     return Record(name, spec, data.slice(0, k), data.slice(k, None), has_effect, design, physics,
-                  family=tuple(family))
+                  truth=truth, family=tuple(family))
 
 
 def _against_linear(name: str, truth, values: dict, u: np.ndarray, seed: int):
     """The user's linear oscillator (its study) and the record of ``truth`` at ``values`` under the input
     ``u``, sampled at 50 Hz."""
     data = _simulate(truth, values, np.arange(u.size) * 0.02, u, seed, len(truth.states))
-    return _oscillator_study(name, _linear_oscillator(2e-3), OSC_PRIORS), data
+    return _oscillator_study(name, _linear_oscillator(2e-3), OSC_PRIORS), data, (truth, values)
 
 
 OSC_PRIORS = {"k": {"kind": "lognormal", "median": 15.0, "cov": 100},
@@ -136,8 +139,8 @@ def duffing(n: int = 4000, seed: int = 11) -> Record:
     f = 0.3 + (1.2 - 0.3) * t / t[-1]  # a swept sine, 0.3 -> 1.2 Hz (the linear resonance is near 0.64 Hz)
     u = 1.5 * np.sin(2 * np.pi * np.cumsum(f) * 0.02)
     truth = _truth("-k*y - c*v - k3*y**3 + b*u", ["k", "c", "k3", "b", "sigma"], 2e-3)
-    spec, data = _against_linear("duffing", truth, {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("duffing", spec, data, True, True, "hardening cubic stiffness under a swept sine", ("cubic_stiffness",))
+    spec, data, truth = _against_linear("duffing", truth, {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}, u, seed)
+    return _split("duffing", spec, data, True, True, "hardening cubic stiffness under a swept sine", ("cubic_stiffness",), truth)
 
 
 def friction(n: int = 4000, seed: int = 12) -> Record:
@@ -146,17 +149,17 @@ def friction(n: int = 4000, seed: int = 12) -> Record:
     for k0 in range(0, n, 400):  # a pulse every 8 s, of random height and sign
         u[k0:k0 + 25] = rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 4.0)
     truth = _truth("-k*y - c*v - Fc*tanh(v/0.02) + b*u", ["k", "c", "Fc", "b", "sigma"], 2e-3)
-    spec, data = _against_linear("friction", truth, {"k": 16.0, "c": 0.2, "Fc": 0.8, "b": 8.0, "sigma": 0.05}, u, seed)
+    spec, data, truth = _against_linear("friction", truth, {"k": 16.0, "c": 0.2, "Fc": 0.8, "b": 8.0, "sigma": 0.05}, u, seed)
     return _split("friction", spec, data, True, False, "viscous and Coulomb friction, decaying to rest",
-                  ("friction", "dry_friction", "coulomb_friction", "stribeck"))
+                  ("friction", "dry_friction", "coulomb_friction", "stribeck"), truth)
 
 
 def saturation(n: int = 4000, seed: int = 13) -> Record:
     u = 2.5 * _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*0.8*tanh(u/0.8)", ["k", "c", "b", "sigma"], 2e-3)
-    spec, data = _against_linear("saturation", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
+    spec, data, truth = _against_linear("saturation", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
     return _split("saturation", spec, data, True, False, "an actuator saturating at 0.8",
-                  ("input_cubic", "form:saturation"))
+                  ("input_cubic", "form:saturation"), truth)
 
 
 def backlash(n: int = 4000, seed: int = 14) -> Record:
@@ -164,29 +167,30 @@ def backlash(n: int = 4000, seed: int = 14) -> Record:
     u = 0.6 * _noise_input(np.random.default_rng(seed), n, 25)  # the driving gear's position
     gap = "0.5*((u - y) - 0.1*sign(u - y))*(1 + sign(abs(u - y) - 0.1))"  # dead zone of half-width 0.1
     truth = _truth(f"-c*v + k*{gap}", ["k", "c", "sigma"], 1e-3)
-    data = _simulate(truth, {"k": 16.0, "c": 0.6, "sigma": 0.2}, t, u, seed, 2)
+    values = {"k": 16.0, "c": 0.6, "sigma": 0.2}
+    data = _simulate(truth, values, t, u, seed, 2)
     user = _linear_oscillator(1e-3)
     user["drift"] = {"y": "v", "v": "-c*v + k*(u - y)"}
     user["parameters"] = ["k", "c", "sigma"]
     spec = _oscillator_study("backlash", user, {p: OSC_PRIORS[p] for p in ("k", "c", "sigma")})
-    return _split("backlash", spec, data, True, True, "a gear with backlash of half-width 0.1", ("form:dead_zone",))
+    return _split("backlash", spec, data, True, True, "a gear with backlash of half-width 0.1", ("form:dead_zone",), (truth, values))
 
 
 def hysteresis(n: int = 4000, seed: int = 15) -> Record:
     u = 1.2 * _noise_input(np.random.default_rng(seed), n, 12)
     truth = _truth("-k*y - c*v - a*z + b*u", ["k", "c", "a", "b", "sigma"], 2e-3, states=("y", "v", "z"),
                    drift_extra={"z": "v - 2.0*abs(v)*z - 1.0*v*abs(z)"})
-    spec, data = _against_linear("hysteresis", truth, {"k": 10.0, "c": 0.3, "a": 8.0, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("hysteresis", spec, data, True, False, "a Bouc-Wen hysteretic element", ("form:hysteresis",))
+    spec, data, truth = _against_linear("hysteresis", truth, {"k": 10.0, "c": 0.3, "a": 8.0, "b": 8.0, "sigma": 0.3}, u, seed)
+    return _split("hysteresis", spec, data, True, False, "a Bouc-Wen hysteretic element", ("form:hysteresis",), truth)
 
 
 def sensor_lag(n: int = 4000, seed: int = 18) -> Record:
     u = _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*u", ["k", "c", "b", "sigma"], 2e-3, states=("y", "v", "m"),
                    drift_extra={"m": "20.0*(y - m)"}, measured="m")
-    spec, data = _against_linear("sensor_lag", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
+    spec, data, truth = _against_linear("sensor_lag", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
     return _split("sensor_lag", spec, data, True, False, "a sensor with its own first-order lag (tau 0.05 s)",
-                  ("form:sensor",))
+                  ("form:sensor",), truth)
 
 
 def second_mode(n: int = 4000, seed: int = 19) -> Record:
@@ -194,10 +198,10 @@ def second_mode(n: int = 4000, seed: int = 19) -> Record:
     force = "(w**2*(q - y) + 2*z*w*(dq - v))"
     truth = _truth(f"-k*y - c*v + mu*{force} + b*u", ["k", "c", "b", "mu", "w", "z", "sigma"], 2e-3,
                    states=("y", "v", "q", "dq"), drift_extra={"q": "dq", "dq": f"-{force}"})
-    spec, data = _against_linear("second_mode", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "mu": 0.3, "w": 9.0,
+    spec, data, truth = _against_linear("second_mode", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "mu": 0.3, "w": 9.0,
                                                         "z": 0.03, "sigma": 0.3}, u, seed)
     return _split("second_mode", spec, data, True, False,
-                  "a second mode: a mass (ratio 0.3) on a spring and damper at 9 rad/s", ("form:mode",))
+                  "a second mode: a mass (ratio 0.3) on a spring and damper at 9 rad/s", ("form:mode",), truth)
 
 
 HEATED_BODY = {"C": 500.0, "h": 0.5, "r": 2.55e-9, "ambient": 295.0, "dt": 5.0}
@@ -208,6 +212,19 @@ def heated_drift(T, u):
     """dT/dt of the heated body (:data:`HEATED_BODY`) at heater power ``u``."""
     b = HEATED_BODY
     return (u - b["h"] * (T - b["ambient"]) - b["r"] * (T ** 4 - b["ambient"] ** 4)) / b["C"]
+
+
+def _heated_truth() -> tuple:
+    """The heated body (:data:`HEATED_BODY`) as a model the band can simulate, with its values."""
+    from ardflow.ardcore.model.declaration import ModelSpec
+
+    b = HEATED_BODY
+    spec = ModelSpec(name="heated_truth", states=["T"], inputs=["u"],
+                     drift={"T": f"(u - h*(T - {b['ambient']}) - r*(T**4 - {b['ambient']}**4))/C"},
+                     diffusion={"T": "s"}, observations=[{"column": "y", "expr": "T", "noise_std": "gamma"}],
+                     constants={"gamma": 0.1}, parameters=["C", "h", "r", "s"],
+                     initial_mean={"T": b["ambient"]}, initial_std={"T": 5.0}, substeps=50)
+    return spec, {"C": b["C"], "h": b["h"], "r": b["r"], "s": 0.02}
 
 
 def heated_body(n: int = 6000, seed: int = 20) -> Record:
@@ -235,14 +252,14 @@ def heated_body(n: int = 6000, seed: int = 20) -> Record:
         "sampler": {**SAMPLER, "start_maxfev": 1500}, "seed": 2})
     # a design record: the powers about a declared level were built on this class
     return _split("heated_body", spec, data, True, True, "convection and radiation (T^4) of a heated body",
-                  ("square(T-295", "cube(T-295", "power_law(T-295"))
+                  ("square(T-295", "cube(T-295", "power_law(T-295"), _heated_truth())
 
 
 def none(n: int = 4000, seed: int = 16) -> Record:
     u = _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*u", ["k", "c", "b", "sigma"], 2e-3)
-    spec, data = _against_linear("none", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("none", spec, data, False, False, "the user's linear oscillator is the truth")
+    spec, data, truth = _against_linear("none", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
+    return _split("none", spec, data, False, False, "the user's linear oscillator is the truth", truth=truth)
 
 
 def cascade(n: int = 3000, seed: int = 17) -> Record:
@@ -266,8 +283,8 @@ def cascade(n: int = 3000, seed: int = 17) -> Record:
     from ardflow.ardcore.data import Dataset
     from ardflow.ardcore.likelihood.simulate import simulate_model
 
-    d = simulate_model(tanks(root("h1"), root("h2"), rim), {"q": 0.5, "a": 0.5, "c": 0.4, "s": 0.005}, t, seed,
-                       inputs={"u": u}, x0=[1.0, 1.0])
+    truth = (tanks(root("h1"), root("h2"), rim), {"q": 0.5, "a": 0.5, "c": 0.4, "s": 0.005})
+    d = simulate_model(*truth, t, seed, inputs={"u": u}, x0=[1.0, 1.0])
     data = Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": "validation:cascade"})
     spec = StudySpec.model_validate({
         "name": "cascade", "data": {"generator": "appendix_a"}, "evidence": "laplace",
@@ -278,7 +295,7 @@ def cascade(n: int = 3000, seed: int = 17) -> Record:
                                "s": {"kind": "lognormal", "median": 0.01, "cov": 200}}}],
         "sampler": SAMPLER, "seed": 2})
     return _split("cascade", spec, data, True, True, "sqrt(h) pipe and orifice, a rim on the lower tank",
-                  ("overflow", "form:power"))
+                  ("overflow", "form:power"), truth)
 
 
 # --------------------------------------------------------------------------- the regression gate: the reference LCO
@@ -332,7 +349,9 @@ def lco(name: str, n: int | None = None, seed: int = 3) -> Record:
         "models": [{"model": "M2true", "priors": M2_PRIORS}],
         "sampler": {"start_maxfev": 1500, "round_size": 250, "n_stationary": 1000, "n_proposal": 1000},
         "maximiser": {"step_decades": 2, "min_step_decades": 2, "max_sweeps": 1}, "seed": seed})
-    return _split(name, spec, data, family is not None, False, physics, (family,) if family else ())
+    # a gust's truth reads an input the record does not hold: no band of its own
+    return _split(name, spec, data, family is not None, False, physics, (family,) if family else (),
+                  None if inputs is not None else (truth, data.meta["true_params"]))
 
 
 M1_PRIORS = {"a1": {"kind": "uniform", "low": -2, "high": 0}, "a2": {"kind": "uniform", "low": 0, "high": 2},
@@ -344,6 +363,7 @@ def lco_quasi_steady(n: int | None = None, seed: int = 3) -> Record:
     """The reference LCO record (generated by M2, whose moment lags the motion) from the paper's quasi-steady
     M1, whose moment P enters the pitch equation directly: what is missing is a state, the lagged moment."""
     from ardflow.ardcore.likelihood.simulate import simulate_reference
+    from ardflow.ardcore.model.library import aero_true
     from ardflow.ardcore.selection.spec import StudySpec
 
     data = simulate_reference(seed)
@@ -356,7 +376,7 @@ def lco_quasi_steady(n: int | None = None, seed: int = 3) -> Record:
         "sampler": {"start_maxfev": 1500, "round_size": 250, "n_stationary": 1000, "n_proposal": 1000},
         "maximiser": {"step_decades": 2, "min_step_decades": 2, "max_sweeps": 1}, "seed": seed})
     return _split("lco_quasi_steady", spec, data, True, False, "the quasi-steady M1 on data with a lagged moment",
-                  ("form:lag",))
+                  ("form:lag",), (aero_true(), data.meta["true_params"]))
 
 
 def tanks(start: str) -> Record:
@@ -388,6 +408,20 @@ RECORDS = {"cascade": cascade, "duffing": duffing, "friction": friction, "satura
            "tanks_linear": lambda n=None, seed=None: tanks("linear"), "tanks_sqrt": lambda n=None, seed=None: tanks("sqrt"),
            **{k: _lco_maker(k) for k in LCO_EFFECTS}, "lco_quasi_steady": lco_quasi_steady}
 """Every validation record by name (each a function of the record length and seed)."""
+
+
+def truth_band(rec: Record, n_draws: int, seed: int = 0) -> float | None:
+    """The test record's share inside the 90 % band of the model that generated it (``rec.truth``), None for a
+    measured record: each of its ``n_draws`` draws at the true values, so only the process and measurement noise
+    and the initial state spread it. A record whose own truth holds it rarely (a slow error holds few independent
+    stretches, so one record's coverage varies a lot about 90 %) is one where no honest band can."""
+    if rec.truth is None:
+        return None
+    from ardflow.ardcore.loop.freerun import Band, free_run
+
+    spec, values = rec.truth
+    phi = {p: float(values[p]) for p in spec.free_parameters}
+    return free_run(spec, phi, rec.test, band=Band(draws=[phi] * n_draws, seed=seed)).get("band_coverage")
 
 
 def verdict(rec: Record, added: list, replaced: list, before: float = math.nan, after: float = math.nan) -> str:
