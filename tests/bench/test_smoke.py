@@ -44,9 +44,9 @@ def test_the_gate_grades_what_the_loop_did():
     from .validation import _split, graded, verdict
 
     data = Dataset(np.arange(40.0), {"y": np.zeros(40)}, {})
-    planted = _split("p", None, data, True, False, "", ("cubic_stiffness", "form:power"))
-    clean = _split("c", None, data, False, False, "")
-    hidden = _split("h", None, data, True, False, "")
+    planted = _split("p", None, data, (True, False), "", ("cubic_stiffness", "form:power"))
+    clean = _split("c", None, data, (False, False), "")
+    hidden = _split("h", None, data, (True, False), "")
     assert not planted.real and planted.family == ("cubic_stiffness", "form:power")
     cubic, other = [{"effect": "cubic_stiffness(y)", "target": "v"}], [{"effect": "offset", "target": "v"}]
     assert verdict(planted, cubic, []) == "found" and verdict(planted, [], [{"form": "power"}]) == "found"

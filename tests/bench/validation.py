@@ -110,7 +110,9 @@ def _simulate(truth, params: dict, t: np.ndarray, u: np.ndarray, seed: int, n_st
     return Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": f"validation:{truth.name}"})
 
 
-def _split(name, spec, data, has_effect, design, physics, family=(), truth=None) -> Record:
+def _split(name, spec, data, kind: tuple, physics, family=(), truth=None) -> Record:
+    """The record's first :data:`EST` estimates, the rest tests; ``kind`` is ``(has_effect, design)``."""
+    has_effect, design = kind
     k = int(round(EST * len(data)))
     return Record(name, spec, data.slice(0, k), data.slice(k, None), has_effect, design, physics,
                   truth=truth, family=tuple(family))
@@ -140,7 +142,8 @@ def duffing(n: int = 4000, seed: int = 11) -> Record:
     u = 1.5 * np.sin(2 * np.pi * np.cumsum(f) * 0.02)
     truth = _truth("-k*y - c*v - k3*y**3 + b*u", ["k", "c", "k3", "b", "sigma"], 2e-3)
     spec, data, truth = _against_linear("duffing", truth, {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("duffing", spec, data, True, True, "hardening cubic stiffness under a swept sine", ("cubic_stiffness",), truth)
+    return _split("duffing", spec, data, (True, True), "hardening cubic stiffness under a swept sine",
+                  ("cubic_stiffness",), truth)
 
 
 def friction(n: int = 4000, seed: int = 12) -> Record:
@@ -150,7 +153,7 @@ def friction(n: int = 4000, seed: int = 12) -> Record:
         u[k0:k0 + 25] = rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 4.0)
     truth = _truth("-k*y - c*v - Fc*tanh(v/0.02) + b*u", ["k", "c", "Fc", "b", "sigma"], 2e-3)
     spec, data, truth = _against_linear("friction", truth, {"k": 16.0, "c": 0.2, "Fc": 0.8, "b": 8.0, "sigma": 0.05}, u, seed)
-    return _split("friction", spec, data, True, False, "viscous and Coulomb friction, decaying to rest",
+    return _split("friction", spec, data, (True, False), "viscous and Coulomb friction, decaying to rest",
                   ("friction", "dry_friction", "coulomb_friction", "stribeck"), truth)
 
 
@@ -158,7 +161,7 @@ def saturation(n: int = 4000, seed: int = 13) -> Record:
     u = 2.5 * _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*0.8*tanh(u/0.8)", ["k", "c", "b", "sigma"], 2e-3)
     spec, data, truth = _against_linear("saturation", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("saturation", spec, data, True, False, "an actuator saturating at 0.8",
+    return _split("saturation", spec, data, (True, False), "an actuator saturating at 0.8",
                   ("input_cubic", "form:saturation"), truth)
 
 
@@ -173,7 +176,8 @@ def backlash(n: int = 4000, seed: int = 14) -> Record:
     user["drift"] = {"y": "v", "v": "-c*v + k*(u - y)"}
     user["parameters"] = ["k", "c", "sigma"]
     spec = _oscillator_study("backlash", user, {p: OSC_PRIORS[p] for p in ("k", "c", "sigma")})
-    return _split("backlash", spec, data, True, True, "a gear with backlash of half-width 0.1", ("form:dead_zone",), (truth, values))
+    return _split("backlash", spec, data, (True, True), "a gear with backlash of half-width 0.1", ("form:dead_zone",),
+                  (truth, values))
 
 
 def hysteresis(n: int = 4000, seed: int = 15) -> Record:
@@ -181,7 +185,7 @@ def hysteresis(n: int = 4000, seed: int = 15) -> Record:
     truth = _truth("-k*y - c*v - a*z + b*u", ["k", "c", "a", "b", "sigma"], 2e-3, states=("y", "v", "z"),
                    drift_extra={"z": "v - 2.0*abs(v)*z - 1.0*v*abs(z)"})
     spec, data, truth = _against_linear("hysteresis", truth, {"k": 10.0, "c": 0.3, "a": 8.0, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("hysteresis", spec, data, True, False, "a Bouc-Wen hysteretic element", ("form:hysteresis",), truth)
+    return _split("hysteresis", spec, data, (True, False), "a Bouc-Wen hysteretic element", ("form:hysteresis",), truth)
 
 
 def sensor_lag(n: int = 4000, seed: int = 18) -> Record:
@@ -189,7 +193,7 @@ def sensor_lag(n: int = 4000, seed: int = 18) -> Record:
     truth = _truth("-k*y - c*v + b*u", ["k", "c", "b", "sigma"], 2e-3, states=("y", "v", "m"),
                    drift_extra={"m": "20.0*(y - m)"}, measured="m")
     spec, data, truth = _against_linear("sensor_lag", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("sensor_lag", spec, data, True, False, "a sensor with its own first-order lag (tau 0.05 s)",
+    return _split("sensor_lag", spec, data, (True, False), "a sensor with its own first-order lag (tau 0.05 s)",
                   ("form:sensor",), truth)
 
 
@@ -200,7 +204,7 @@ def second_mode(n: int = 4000, seed: int = 19) -> Record:
                    states=("y", "v", "q", "dq"), drift_extra={"q": "dq", "dq": f"-{force}"})
     spec, data, truth = _against_linear("second_mode", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "mu": 0.3, "w": 9.0,
                                                         "z": 0.03, "sigma": 0.3}, u, seed)
-    return _split("second_mode", spec, data, True, False,
+    return _split("second_mode", spec, data, (True, False),
                   "a second mode: a mass (ratio 0.3) on a spring and damper at 9 rad/s", ("form:mode",), truth)
 
 
@@ -251,7 +255,7 @@ def heated_body(n: int = 6000, seed: int = 20) -> Record:
                     "priors": {"a": lognormal(0.001), "q": lognormal(0.001), "s": lognormal(0.05)}}],
         "sampler": {**SAMPLER, "start_maxfev": 1500}, "seed": 2})
     # a design record: the powers about a declared level were built on this class
-    return _split("heated_body", spec, data, True, True, "convection and radiation (T^4) of a heated body",
+    return _split("heated_body", spec, data, (True, True), "convection and radiation (T^4) of a heated body",
                   ("square(T-295", "cube(T-295", "power_law(T-295"), _heated_truth())
 
 
@@ -259,7 +263,7 @@ def none(n: int = 4000, seed: int = 16) -> Record:
     u = _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*u", ["k", "c", "b", "sigma"], 2e-3)
     spec, data, truth = _against_linear("none", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
-    return _split("none", spec, data, False, False, "the user's linear oscillator is the truth", truth=truth)
+    return _split("none", spec, data, (False, False), "the user's linear oscillator is the truth", truth=truth)
 
 
 def cascade(n: int = 3000, seed: int = 17) -> Record:
@@ -294,7 +298,7 @@ def cascade(n: int = 3000, seed: int = 17) -> Record:
                                "q": {"kind": "lognormal", "median": 0.3, "cov": 200},
                                "s": {"kind": "lognormal", "median": 0.01, "cov": 200}}}],
         "sampler": SAMPLER, "seed": 2})
-    return _split("cascade", spec, data, True, True, "sqrt(h) pipe and orifice, a rim on the lower tank",
+    return _split("cascade", spec, data, (True, True), "sqrt(h) pipe and orifice, a rim on the lower tank",
                   ("overflow", "form:power"), truth)
 
 
@@ -350,7 +354,7 @@ def lco(name: str, n: int | None = None, seed: int = 3) -> Record:
         "sampler": {"start_maxfev": 1500, "round_size": 250, "n_stationary": 1000, "n_proposal": 1000},
         "maximiser": {"step_decades": 2, "min_step_decades": 2, "max_sweeps": 1}, "seed": seed})
     # a gust's truth reads an input the record does not hold: no band of its own
-    return _split(name, spec, data, family is not None, False, physics, (family,) if family else (),
+    return _split(name, spec, data, (family is not None, False), physics, (family,) if family else (),
                   None if inputs is not None else (truth, data.meta["true_params"]))
 
 
@@ -375,7 +379,7 @@ def lco_quasi_steady(n: int | None = None, seed: int = 3) -> Record:
                     "constants": {"gamma": 0.002}}],
         "sampler": {"start_maxfev": 1500, "round_size": 250, "n_stationary": 1000, "n_proposal": 1000},
         "maximiser": {"step_decades": 2, "min_step_decades": 2, "max_sweeps": 1}, "seed": seed})
-    return _split("lco_quasi_steady", spec, data, True, False, "the quasi-steady M1 on data with a lagged moment",
+    return _split("lco_quasi_steady", spec, data, (True, False), "the quasi-steady M1 on data with a lagged moment",
                   ("form:lag",), (aero_true(), data.meta["true_params"]))
 
 
