@@ -14,7 +14,7 @@ import math
 import sys
 from pathlib import Path
 
-from .validation import RECORDS
+from .validation import RECORDS, band_held
 
 ROOT = Path(__file__).resolve().parents[2]
 FIGURES = ROOT / "docs" / "figures.json"
@@ -297,11 +297,11 @@ def _bands(v: dict, records: list, truth: dict) -> str:
     got = [v.get(f"loop_{r}_band_coverage") for r in records]
     got = [c for c in got if isinstance(c, (int, float))]
     line = (f"Bands: the reported model's 90 % band holds 80-97 % of the test record on "
-            f"{sum(0.8 <= c <= 0.97 for c in got)} of {len(got)} records.")
+            f"{sum(map(band_held, got))} of {len(got)} records.")
     mine = {r: c for r, c in truth.items() if r in records}
     if not mine:
         return line
-    miss = [f"{r} ({100 * c:.0f} %)" for r, c in mine.items() if not 0.8 <= c <= 0.97]
+    miss = [f"{r} ({100 * c:.0f} %)" for r, c in mine.items() if not band_held(c)]
     return (line + f" The band of the truth itself (every draw at the true values: its process and measurement "
             f"noise and its initial state only) does on {len(mine) - len(miss)} of {len(mine)} simulated records"
             + (f"; it misses on {', '.join(miss)}: one record's coverage can sit far from 90 % by chance (a slow "

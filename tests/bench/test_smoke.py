@@ -72,3 +72,21 @@ def test_a_run_at_another_seed_is_no_gate_and_records_nothing(tmp_path):
     assert got["validation_seed"] == 5 and isinstance(got["validation_worse_at_seed"], list)
     assert "validation_regressions" not in got and "loop_none_verdict" in got
     assert VERDICTS.read_text() == before
+
+
+def test_the_heated_body_s_truth_is_the_physics_its_record_is_made_of():
+    """The band's truth for the heated body (a declared model) and the loop that makes its record
+    (:func:`validation.heated_drift`) are written apart: their drifts agree wherever the record goes."""
+    import numpy as np
+    import sympy as sp
+
+    from ardflow.ardcore.model.expr import parse_expression
+
+    from .validation import _heated_truth, heated_drift
+
+    spec, values = _heated_truth()
+    names = {*spec.states, *spec.inputs, *spec.parameters, *spec.constants}
+    f = sp.lambdify([sp.Symbol(n, real=True) for n in ("T", "u", *values)],
+                    parse_expression(spec.drift["T"], names), modules="numpy")
+    T, u = np.meshgrid(np.linspace(280.0, 420.0, 15), np.linspace(0.0, 100.0, 11))
+    assert np.allclose(f(T, u, *values.values()), heated_drift(T, u), rtol=1e-12, atol=1e-15)
