@@ -131,37 +131,22 @@ TLS_ENV = "DASK_DISTRIBUTED__COMM__"
 
 def private_tls():
     """TLS for the service's own cluster: a fresh certificate authority and certificate (Dask's
-    ``Security.temporary``), written 0600 into a 0700 folder. Returns the ``Security`` of this process's client
-    and the Dask settings (environment variables) its scheduler, workers and study drivers are started with;
-    this process's own configuration is left alone (other clusters it runs stay plain). Encryption is required:
-    a client without the certificate is refused by the scheduler."""
-    import atexit
-    import os
-    import shutil
-    import tempfile
-    from pathlib import Path
+    ``Security.temporary``). Returns the ``Security`` of this process's client and the Dask settings
+    (environment variables) its scheduler, workers and study drivers are started with; this process's own
+    configuration is left alone (other clusters it runs stay plain). Encryption is required: a client without
+    the certificate is refused by the scheduler.
 
+    The certificates and keys travel in those settings as PEM text (Dask reads a value holding a newline as the
+    certificate itself), never as files: a process's environment is readable by its own user only, as a 0600
+    file is, and it goes with the process, where a file outlives a killed service with its keys."""
     from distributed import Security
 
     sec = Security.temporary()
-    folder = Path(tempfile.mkdtemp(prefix="ardflow-tls-"))  # 0700 by mkdtemp
-    atexit.register(shutil.rmtree, folder, True)
-    files = {}
-    for name in ("ca_file", "client_cert", "client_key", "scheduler_cert", "scheduler_key", "worker_cert",
-                 "worker_key"):
-        f = folder / f"{name}.pem"
-        fd = os.open(f, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w") as fh:
-            fh.write(getattr(sec, f"tls_{name}"))
-        files[name] = str(f)
-    env = {"REQUIRE_ENCRYPTION": "True", "TLS__CA_FILE": files["ca_file"]}
+    env = {"REQUIRE_ENCRYPTION": "True", "TLS__CA_FILE": sec.tls_ca_file}
     for who in ("client", "scheduler", "worker"):
-        env[f"TLS__{who.upper()}__CERT"] = files[f"{who}_cert"]
-        env[f"TLS__{who.upper()}__KEY"] = files[f"{who}_key"]
-    return Security(require_encryption=True, tls_ca_file=files["ca_file"], tls_client_cert=files["client_cert"],
-                    tls_client_key=files["client_key"], tls_scheduler_cert=files["scheduler_cert"],
-                    tls_scheduler_key=files["scheduler_key"], tls_worker_cert=files["worker_cert"],
-                    tls_worker_key=files["worker_key"]), {TLS_ENV + k: v for k, v in env.items()}
+        env[f"TLS__{who.upper()}__CERT"] = getattr(sec, f"tls_{who}_cert")
+        env[f"TLS__{who.upper()}__KEY"] = getattr(sec, f"tls_{who}_key")
+    return sec, {TLS_ENV + k: v for k, v in env.items()}
 
 
 @contextlib.contextmanager

@@ -108,6 +108,57 @@ def test_no_one_but_the_service_reaches_its_scheduler(tmp_path):
         os.killpg(p.pid, signal.SIGKILL)
 
 
+def _private_key(pid: int) -> str | None:
+    """The cluster's private key as a process below ``pid`` holds it in its environment (None if none does)."""
+    for q in _descendants(pid):
+        try:
+            env = Path(f"/proc/{q}/environ").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        for kv in env:
+            k, _, v = kv.decode(errors="replace").partition("=")
+            if k == "DASK_DISTRIBUTED__COMM__TLS__SCHEDULER__KEY":
+                return v
+    return None
+
+
+def _files_holding(text: str, roots: list[Path], since: float) -> list[Path]:
+    """Files under ``roots`` written since ``since`` that hold ``text`` (directories untouched since then are
+    passed over: a file written into one would have touched it)."""
+    found = []
+    for root in roots:
+        for d, dirs, files in os.walk(root):
+            dirs[:] = [x for x in dirs if os.path.getmtime(os.path.join(d, x)) >= since - 1]
+            for f in files:
+                path = Path(d, f)
+                try:
+                    if path.stat().st_mtime >= since - 1 and path.stat().st_size < 1 << 20 and text in path.read_text(
+                            errors="replace"):
+                        found.append(path)
+                except OSError:
+                    continue
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process tree from /proc")
+def test_a_killed_service_leaves_its_cluster_s_key_on_no_disk(tmp_path):
+    """The certificates of the service's cluster live in its processes' environments only: a SIGKILLed service
+    (no exit handler runs) leaves no file with its private key behind."""
+    import tempfile
+
+    t0 = time.time()
+    p, _ = _serve(tmp_path, tmp_path / "serve.log")
+    try:
+        key = _private_key(p.pid)
+        assert key is not None and "PRIVATE KEY" in key
+        body = key.strip().splitlines()[1]  # a line of the key itself, not its header
+        assert _files_holding(body, [Path(tempfile.gettempdir()), tmp_path], t0) == []
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait(timeout=30)
+    assert _files_holding(body, [Path(tempfile.gettempdir()), tmp_path], t0) == []
+
+
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process tree from /proc")
 @pytest.mark.parametrize("how", ["ctrl-c", "sigterm", "sigkill"])
 def test_stopping_the_service_leaves_no_process_and_little_output(tmp_path, how):
