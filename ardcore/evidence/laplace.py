@@ -15,6 +15,9 @@ CHORD_STEPS = 4
 """Newton steps :func:`laplace` takes with one finite-difference Hessian before taking it again."""
 BACKTRACKS = 8
 """Halvings of a Newton step that does not descend before the Hessian is taken afresh."""
+PROFILE_FALL = 2.0
+"""Nats the log posterior falls, along a direction whose curvature at the steps' scale is no curvature, at the
+distance its curvature is measured over instead: two sd of a Gaussian, the scale a Laplace evidence integrates."""
 
 
 def _same_scale(a, b) -> bool:
@@ -95,6 +98,73 @@ def _newton_inverse(H: np.ndarray) -> tuple[np.ndarray | None, bool]:
     return (V / np.maximum(np.abs(w), 1e-10 * np.max(np.abs(w)))) @ V.T, False
 
 
+def curvature_at_scale(f, x: np.ndarray, H: np.ndarray, sd: np.ndarray, *, fx: float | None = None,
+                       tries: int = 40) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``H`` with the curvature along each of its eigenvectors taken over the posterior's own width wherever
+    the one taken at the steps' scale is not it.
+
+    A likelihood rough at the scale of a finite-difference Hessian's steps (jumps where a sub-step crosses a
+    kink, a threshold's location read through a filter that smooths its kinks only over the states' spread) has
+    a curvature of any size and sign there, while over its posterior's width it rises as a mode does. Along an
+    eigenvector with eigenvalue w > 0, ``f`` rises by :data:`PROFILE_FALL` at 2/sqrt(w) on each side when w is
+    the posterior's curvature; where it rises less than half or more than twice that (or w <= 0), the
+    curvature is measured instead where ``f`` has risen by about :data:`PROFILE_FALL` (k = 2 rise / distance^2,
+    averaged over the sides). A Gaussian posterior keeps ``H`` as it is.
+
+    Returns ((the Hessian, gain), None), gain the nats by which the vertices of the parabolas through each
+    re-measured profile lie below ``f(x)`` (``x`` is the mode of a rough ``f`` only up to its roughness);
+    (None, a lower point) when a profile finds ``f`` lower than at ``x`` (``x`` is no mode); (None, None) when no
+    distance gives a usable rise (a flat or unbounded direction)."""
+    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    fx = f(x) if fx is None else fx
+    gain, changed = 0.0, False
+    lo, hi = 0.5 * PROFILE_FALL, 2 * PROFILE_FALL
+    for i in range(w.size):
+        v = V[:, i]
+        if w[i] > 0:
+            d0 = 2 / math.sqrt(w[i])
+            rises = [f(x + d0 * v) - fx, f(x - d0 * v) - fx]
+            if all(lo <= r <= hi for r in rises):
+                continue
+        else:
+            d0 = 2 * float(np.sqrt(np.sum((v * sd) ** 2)))  # two of the sd the steps were taken for
+        ends = []
+        for side in (1.0, -1.0):
+            end = _rise_at(f, x, fx, side * v, d0, tries)
+            if isinstance(end, np.ndarray):
+                return None, end
+            if end is None:
+                return None, None
+            ends.append(end)
+        # the parabola through the mode and the two ends: its curvature, and how far below its vertex x lies
+        (dp, rp), (dm, rm) = ends
+        a = (rp * dm + rm * dp) / (dp * dm * (dp + dm))
+        b = (rp * dm**2 - rm * dp**2) / (dp * dm * (dp + dm))
+        w[i], gain = 2 * a, gain + b**2 / (4 * a)
+        changed = True
+    return ((V * w) @ V.T if changed else H, gain), None
+
+
+def _rise_at(f, x, fx, v, dist, tries):
+    """(distance, rise) along ``v`` where ``f`` has risen by about :data:`PROFILE_FALL` (the distance bracketed
+    and bisected in its logarithm); a point lower than ``x`` if the profile meets one; None if ``tries``
+    evaluations find no such distance."""
+    short = long = None
+    for _ in range(tries):
+        y = x + dist * v
+        rise = f(y) - fx
+        if rise < -0.1:  # beyond the likelihood's rounding noise: a lower point, x is no mode
+            return y
+        if not math.isfinite(rise) or rise > 2 * PROFILE_FALL:
+            long = dist
+        elif rise < 0.5 * PROFILE_FALL:
+            short = dist
+        else:
+            return dist, rise
+        dist = math.sqrt(short * long) if short and long else (dist * 4 if long is None else dist / 4)
+    return None
+
+
 def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: int = 4000,
             polish: int = 3, warm: bool = False) -> tuple[Evidence, np.ndarray, np.ndarray]:
     """Laplace evidence ln p(d) ~ L(MAP) + d/2 ln 2 pi - 1/2 ln |H| (Appendices A-B).
@@ -124,6 +194,24 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         x, h, _, H = newton(f, x, 1e-3 * scale, polish)
     if H is None:
         H = fd_hessian(f, x, h)
+    gain = 0.0
+    for _ in range(3):
+        if not np.all(np.isfinite(H)):
+            break
+        # the curvature over the posterior's width where the one at the steps' scale is not it
+        scaled, lower = curvature_at_scale(f, x, H, 100 * h)  # newton's steps are 0.01 sd
+        if lower is not None:
+            x, h, _, H = newton(f, lower, h, polish)
+            H = fd_hessian(f, x, h) if H is None else H
+            continue
+        if scaled is None or scaled[0] is H:
+            break
+        # measured along the rough Hessian's axes, which need not be the posterior's: the Hessian again, with
+        # steps of the posterior's sd (its correlations; a rise of 1/2 nat each way, well above the roughness),
+        # checked the same way
+        H, gain = scaled
+        h = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 0))
+        H = fd_hessian(f, x, h)
     lp, ll = target(x)
     warnings = []
     if np.all(np.isfinite(H)):
@@ -132,7 +220,7 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         sign, logdet = 0.0, math.nan
     if sign <= 0:
         warnings.append("Hessian at the MAP is not positive definite: Laplace evidence invalid")
-    log_z = lp + 0.5 * d * math.log(2 * math.pi) - 0.5 * logdet
+    log_z = lp + gain + 0.5 * d * math.log(2 * math.pi) - 0.5 * logdet
     ev = Evidence(float(log_z), 0.0, float(ll), float(ll - log_z), "laplace", [], warnings)
     try:
         C = np.linalg.inv(H)

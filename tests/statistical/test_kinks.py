@@ -65,7 +65,8 @@ def test_the_smoothed_kinks_are_rounded_over_the_spread():
 
 def test_a_kinked_tank_has_the_posterior_its_curvature_says():
     """Exact kinks: the log-likelihood is spiked at the scale of the optimiser's steps, the Laplace sd comes out
-    10^6 times too small, and the evidence says it has collapsed. Smoothed: the Laplace sd is the one the log
+    far too small (10^3 times before the curvature was re-measured over the posterior's width, still 10^2 times
+    after: the spike is the exact filter's), and the evidence says it has collapsed. Smoothed: the Laplace sd is the one the log
     posterior's shape over +-2 sd gives, and no collapse is reported."""
     ds = tank_record()
     prior = {"a": Normal(mean=0.5, sd=1.0)}
@@ -85,7 +86,7 @@ def test_a_kinked_tank_has_the_posterior_its_curvature_says():
         c2 = np.polyfit(xs - mode[0], lp, 2)[0]
         assert np.sqrt(-0.5 / c2) == pytest.approx(sds[kinks], rel=0.1)
         assert np.abs(lp - np.polyval(np.polyfit(xs - mode[0], lp, 2), xs - mode[0])).max() < 0.05
-    assert sds["exact"] < 1e-3 * sds["smooth"]
+    assert sds["exact"] < 0.1 * sds["smooth"]
     # the simulation integrates the exact law, whatever the filter does
     cm_exact, cm_smooth = compile_model(ModelSpec(**tank(kinks="exact"))), compile_model(ModelSpec(**tank()))
     X1, _ = cm_exact.simulate({"a": 0.4}, ds.t, inputs=ds.columns["u"][:, None], nsub=4, noise=False)
