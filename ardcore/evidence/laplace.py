@@ -210,8 +210,11 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         # steps of the posterior's sd (its correlations; a rise of 1/2 nat each way, well above the roughness),
         # checked the same way
         H, gain = scaled
-        h = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 0))
-        H = fd_hessian(f, x, h)
+        h_wide = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 0))
+        wide = fd_hessian(f, x, h_wide) if np.all(h_wide > 0) else None
+        if wide is None or not np.all(np.isfinite(wide)):
+            break  # a step of one sd leaves the support: the profiles' curvature is the one there is
+        H, h = wide, h_wide
     lp, ll = target(x)
     warnings = []
     if np.all(np.isfinite(H)):
