@@ -111,13 +111,11 @@ def curvature_at_scale(f, x: np.ndarray, H: np.ndarray, sd: np.ndarray, *, fx: f
     curvature is measured instead where ``f`` has risen by about :data:`PROFILE_FALL` (k = 2 rise / distance^2,
     averaged over the sides). A Gaussian posterior keeps ``H`` as it is.
 
-    Returns ((the Hessian, gain), None), gain the nats by which the vertices of the parabolas through each
-    re-measured profile lie below ``f(x)`` (``x`` is the mode of a rough ``f`` only up to its roughness);
-    (None, a lower point) when a profile finds ``f`` lower than at ``x`` (``x`` is no mode); (None, None) when no
-    distance gives a usable rise (a flat or unbounded direction)."""
+    Returns (the Hessian, None); (None, a lower point) when a profile finds ``f`` lower than at ``x`` (``x`` is
+    no mode); (None, None) when no distance gives a usable rise (a flat or unbounded direction)."""
     w, V = np.linalg.eigh(0.5 * (H + H.T))
     fx = f(x) if fx is None else fx
-    gain, changed = 0.0, False
+    changed = False
     lo, hi = 0.5 * PROFILE_FALL, 2 * PROFILE_FALL
     for i in range(w.size):
         v = V[:, i]
@@ -136,13 +134,19 @@ def curvature_at_scale(f, x: np.ndarray, H: np.ndarray, sd: np.ndarray, *, fx: f
             if end is None:
                 return None, None
             ends.append(end)
-        # the parabola through the mode and the two ends: its curvature, and how far below its vertex x lies
+        # the parabola through the mode and the two ends: its curvature; a vertex between the ends that it puts
+        # clearly below f(x) is looked at (a lower point there: x is no mode), never extrapolated to
         (dp, rp), (dm, rm) = ends
         a = (rp * dm + rm * dp) / (dp * dm * (dp + dm))
         b = (rp * dm**2 - rm * dp**2) / (dp * dm * (dp + dm))
-        w[i], gain = 2 * a, gain + b**2 / (4 * a)
+        vertex = -b / (2 * a)
+        if -dm < vertex < dp and b**2 / (4 * a) > 0.1:
+            y = x + vertex * v
+            if f(y) - fx < -0.1:
+                return None, y
+        w[i] = 2 * a
         changed = True
-    return ((V * w) @ V.T if changed else H, gain), None
+    return (V * w) @ V.T if changed else H, None
 
 
 def _rise_at(f, x, fx, v, dist, tries):
@@ -194,7 +198,6 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         x, h, _, H = newton(f, x, 1e-3 * scale, polish)
     if H is None:
         H = fd_hessian(f, x, h)
-    gain = 0.0
     for _ in range(3):
         if not np.all(np.isfinite(H)):
             break
@@ -204,12 +207,12 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
             x, h, _, H = newton(f, lower, h, polish)
             H = fd_hessian(f, x, h) if H is None else H
             continue
-        if scaled is None or scaled[0] is H:
+        if scaled is None or scaled is H:
             break
         # measured along the rough Hessian's axes, which need not be the posterior's: the Hessian again, with
         # steps of the posterior's sd (its correlations; a rise of 1/2 nat each way, well above the roughness),
         # checked the same way
-        H, gain = scaled
+        H = scaled
         h_wide = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 0))
         wide = fd_hessian(f, x, h_wide) if np.all(h_wide > 0) else None
         if wide is None or not np.all(np.isfinite(wide)):
@@ -223,7 +226,7 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         sign, logdet = 0.0, math.nan
     if sign <= 0:
         warnings.append("Hessian at the MAP is not positive definite: Laplace evidence invalid")
-    log_z = lp + gain + 0.5 * d * math.log(2 * math.pi) - 0.5 * logdet
+    log_z = lp + 0.5 * d * math.log(2 * math.pi) - 0.5 * logdet
     ev = Evidence(float(log_z), 0.0, float(ll), float(ll - log_z), "laplace", [], warnings)
     try:
         C = np.linalg.inv(H)
