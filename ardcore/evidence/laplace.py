@@ -169,6 +169,41 @@ def _rise_at(f, x, fx, v, dist, tries):
     return None
 
 
+def _trusted(target, f, x: np.ndarray, H: np.ndarray) -> bool:
+    """A curvature that is the posterior's: finite, positive definite, and the log posterior falls 3 of its sd
+    out as a Gaussian's must (:func:`~.estimators.collapse_drops`). Only one that is not is re-measured, so every
+    fit whose Laplace evidence was a result stays exactly what it was."""
+    if not np.all(np.isfinite(H)) or not np.all(np.linalg.eigvalsh(0.5 * (H + H.T)) > 0):
+        return False
+    sd = np.sqrt(np.diag(np.linalg.inv(H)))
+    names = getattr(target, "names", [f"x{i}" for i in range(x.size)])
+    return not collapse_warning(names, collapse_drops(target, x, -f(x), sd), "")
+
+
+def _at_scale(target, f, x: np.ndarray, h: np.ndarray, H: np.ndarray, polish: int):
+    """(x, h, H) with the curvature re-measured over the posterior's width (:func:`curvature_at_scale`): Newton
+    again from a lower point a profile meets (once), then the Hessian taken again with steps of the re-measured
+    sd for the correlations the profiles' axes miss, kept where it passes the same check unchanged."""
+    for _ in range(2):
+        if not np.all(np.isfinite(H)):
+            return x, h, H
+        scaled, lower = curvature_at_scale(f, x, H, 100 * h)  # newton's steps are 0.01 sd
+        if lower is not None:
+            x, h, _, H = newton(f, lower, h, polish)
+            H = fd_hessian(f, x, h) if H is None else H
+            if _trusted(target, f, x, H):
+                return x, h, H
+            continue
+        if scaled is None:
+            return x, h, H
+        h_wide = np.sqrt(np.maximum(np.diag(np.linalg.inv(scaled)), 0))
+        wide = fd_hessian(f, x, h_wide) if np.all(h_wide > 0) else None
+        if wide is not None and np.all(np.isfinite(wide)) and curvature_at_scale(f, x, wide, h_wide)[0] is wide:
+            return x, h_wide, wide
+        return x, h, scaled  # a step of one sd leaves the support, or its Hessian is rough too
+    return x, h, H
+
+
 def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: int = 4000,
             polish: int = 3, warm: bool = False) -> tuple[Evidence, np.ndarray, np.ndarray]:
     """Laplace evidence ln p(d) ~ L(MAP) + d/2 ln 2 pi - 1/2 ln |H| (Appendices A-B).
@@ -198,26 +233,10 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         x, h, _, H = newton(f, x, 1e-3 * scale, polish)
     if H is None:
         H = fd_hessian(f, x, h)
-    for _ in range(3):
-        if not np.all(np.isfinite(H)):
-            break
-        # the curvature over the posterior's width where the one at the steps' scale is not it
-        scaled, lower = curvature_at_scale(f, x, H, 100 * h)  # newton's steps are 0.01 sd
-        if lower is not None:
-            x, h, _, H = newton(f, lower, h, polish)
-            H = fd_hessian(f, x, h) if H is None else H
-            continue
-        if scaled is None or scaled is H:
-            break
-        # measured along the rough Hessian's axes, which need not be the posterior's: the Hessian again, with
-        # steps of the posterior's sd (its correlations; a rise of 1/2 nat each way, well above the roughness),
-        # checked the same way
-        H = scaled
-        h_wide = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 0))
-        wide = fd_hessian(f, x, h_wide) if np.all(h_wide > 0) else None
-        if wide is None or not np.all(np.isfinite(wide)):
-            break  # a step of one sd leaves the support: the profiles' curvature is the one there is
-        H, h = wide, h_wide
+    if not _trusted(target, f, x, H):
+        # a curvature that is not the posterior's (not positive definite, or collapsed: measured on a likelihood
+        # rough at the scale of the steps): the one over the posterior's width, where it is a mode
+        x, h, H = _at_scale(target, f, x, h, H, polish)
     lp, ll = target(x)
     warnings = []
     if np.all(np.isfinite(H)):
