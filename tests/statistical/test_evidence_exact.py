@@ -302,9 +302,9 @@ class _Stairs:
 @pytest.mark.parametrize("frac", [0.003, 0.01, 0.03])
 def test_laplace_on_a_likelihood_rough_at_its_steps_takes_the_posterior_s_own_curvature(frac):
     """Steps of 0.05 nats in the likelihood give a finite-difference curvature of any size and sign at the
-    Hessian's steps (before, 23 of 24 such fits were 'collapsed' or 'not positive definite', no result, off by
+    Hessian's steps (before, 22 of 24 such fits were 'collapsed' or 'not positive definite', no result, off by
     3-12 nats); over the posterior's width the curvature is the Gaussian's, and so is the evidence (within the
-    roughness and the mode's uncertainty along it: 0.5 nats)."""
+    roughness and the mode's uncertainty along it: 0.25 nats; 0.1 measured)."""
     d = 3
     for seed in range(8):
         S = correlated_cov(d, seed)
@@ -314,6 +314,6 @@ def test_laplace_on_a_likelihood_rough_at_its_steps_takes_the_posterior_s_own_cu
                                 _Stairs(m, S, 0.05, frac * math.sqrt(S[0, 0])))
         exact = mvn(np.zeros(d), S + 9 * np.eye(d)).logpdf(m)
         lap, _, C = laplace(target, np.zeros(d), np.ones(d))
-        assert lap.warnings == [] and abs(lap.log_evidence - exact) < 0.5, (seed, lap.log_evidence - exact)
+        assert lap.warnings == [] and abs(lap.log_evidence - exact) < 0.25, (seed, lap.log_evidence - exact)
         P = np.linalg.inv(np.linalg.inv(S) + np.eye(d) / 9)
         assert np.allclose(np.sqrt(np.diag(C)), np.sqrt(np.diag(P)), rtol=0.25), (np.diag(C), np.diag(P))
