@@ -108,8 +108,8 @@ def curvature_at_scale(f, x: np.ndarray, H: np.ndarray, sd: np.ndarray, *, fx: f
     a curvature of any size and sign there, while over its posterior's width it rises as a mode does. Along an
     eigenvector with eigenvalue w > 0, ``f`` rises by :data:`PROFILE_FALL` at 2/sqrt(w) on each side when w is
     the posterior's curvature; where it rises less than half or more than twice that (or w <= 0), the
-    curvature is measured instead where ``f`` has risen by about :data:`PROFILE_FALL` (k = 2 rise / distance^2,
-    averaged over the sides). A Gaussian posterior keeps ``H`` as it is.
+    curvature is measured instead where ``f`` has risen by about :data:`PROFILE_FALL` on each side (that of the
+    parabola through ``x`` and the two points). A Gaussian posterior keeps ``H`` as it is.
 
     Returns (the Hessian, None); (None, a lower point) when a profile finds ``f`` lower than at ``x`` (``x`` is
     no mode); (None, None) when no distance gives a usable rise (a flat or unbounded direction)."""
