@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from ..sampling.starts import fd_derivatives, fd_hessian, local_mode
-from .estimators import Evidence, collapse_drops, collapse_warning
+from .estimators import COLLAPSE_NATS, Evidence, collapse_drops, collapse_warning
 
 
 CHORD_STEPS = 4
@@ -18,6 +18,13 @@ BACKTRACKS = 8
 PROFILE_FALL = 2.0
 """Nats the log posterior falls, along a direction whose curvature at the steps' scale is no curvature, at the
 distance its curvature is measured over instead: two sd of a Gaussian, the scale a Laplace evidence integrates."""
+PROFILE_BAND = (0.5 * PROFILE_FALL, 2 * PROFILE_FALL)
+"""The fall at 2 sd that a curvature is taken to describe (a Gaussian's is :data:`PROFILE_FALL`), and the fall a
+profile's distance is bracketed to."""
+PROFILE_TRIES = 40
+"""Evaluations a profile may spend bracketing its distance (factors of 4, then bisection in the logarithm)."""
+LOWER_NATS = 0.1
+"""A point this much below the mode, beyond the likelihood's rounding noise, shows it is no mode."""
 
 
 def _same_scale(a, b) -> bool:
@@ -98,8 +105,8 @@ def _newton_inverse(H: np.ndarray) -> tuple[np.ndarray | None, bool]:
     return (V / np.maximum(np.abs(w), 1e-10 * np.max(np.abs(w)))) @ V.T, False
 
 
-def curvature_at_scale(f, x: np.ndarray, H: np.ndarray, sd: np.ndarray, *, fx: float | None = None,
-                       tries: int = 40) -> tuple[np.ndarray | None, np.ndarray | None]:
+def curvature_at_scale(f, x: np.ndarray, H: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray | None,
+                                                                                 np.ndarray | None]:
     """``H`` with the curvature along each of its eigenvectors taken over the posterior's own width wherever
     the one taken at the steps' scale is not it.
 
@@ -114,9 +121,9 @@ def curvature_at_scale(f, x: np.ndarray, H: np.ndarray, sd: np.ndarray, *, fx: f
     Returns (the Hessian, None); (None, a lower point) when a profile finds ``f`` lower than at ``x`` (``x`` is
     no mode); (None, None) when no distance gives a usable rise (a flat or unbounded direction)."""
     w, V = np.linalg.eigh(0.5 * (H + H.T))
-    fx = f(x) if fx is None else fx
+    fx = f(x)
     changed = False
-    lo, hi = 0.5 * PROFILE_FALL, 2 * PROFILE_FALL
+    lo, hi = PROFILE_BAND
     for i in range(w.size):
         v = V[:, i]
         if w[i] > 0:
@@ -128,7 +135,7 @@ def curvature_at_scale(f, x: np.ndarray, H: np.ndarray, sd: np.ndarray, *, fx: f
             d0 = 2 * float(np.sqrt(np.sum((v * sd) ** 2)))  # two of the sd the steps were taken for
         ends = []
         for side in (1.0, -1.0):
-            end = _rise_at(f, x, fx, side * v, d0, tries)
+            end = _rise_at(f, x, fx, side * v, d0)
             if isinstance(end, np.ndarray):
                 return None, end
             if end is None:
@@ -140,28 +147,29 @@ def curvature_at_scale(f, x: np.ndarray, H: np.ndarray, sd: np.ndarray, *, fx: f
         a = (rp * dm + rm * dp) / (dp * dm * (dp + dm))
         b = (rp * dm**2 - rm * dp**2) / (dp * dm * (dp + dm))
         vertex = -b / (2 * a)
-        if -dm < vertex < dp and b**2 / (4 * a) > 0.1:
+        if -dm < vertex < dp and b**2 / (4 * a) > LOWER_NATS:
             y = x + vertex * v
-            if f(y) - fx < -0.1:
+            if f(y) - fx < -LOWER_NATS:
                 return None, y
         w[i] = 2 * a
         changed = True
     return (V * w) @ V.T if changed else H, None
 
 
-def _rise_at(f, x, fx, v, dist, tries):
-    """(distance, rise) along ``v`` where ``f`` has risen by about :data:`PROFILE_FALL` (the distance bracketed
-    and bisected in its logarithm); a point lower than ``x`` if the profile meets one; None if ``tries``
-    evaluations find no such distance."""
+def _rise_at(f, x, fx, v, dist):
+    """(distance, rise) along ``v`` where ``f`` has risen into :data:`PROFILE_BAND` (the distance bracketed and
+    bisected in its logarithm); a point lower than ``x`` if the profile meets one; None if
+    :data:`PROFILE_TRIES` evaluations find no such distance."""
+    lo, hi = PROFILE_BAND
     short = long = None
-    for _ in range(tries):
+    for _ in range(PROFILE_TRIES):
         y = x + dist * v
         rise = f(y) - fx
-        if rise < -0.1:  # beyond the likelihood's rounding noise: a lower point, x is no mode
+        if rise < -LOWER_NATS:
             return y
-        if not math.isfinite(rise) or rise > 2 * PROFILE_FALL:
+        if not math.isfinite(rise) or rise > hi:
             long = dist
-        elif rise < 0.5 * PROFILE_FALL:
+        elif rise < lo:
             short = dist
         else:
             return dist, rise
@@ -169,15 +177,20 @@ def _rise_at(f, x, fx, v, dist, tries):
     return None
 
 
-def _trusted(target, f, x: np.ndarray, H: np.ndarray) -> bool:
-    """A curvature that is the posterior's: finite, positive definite, and the log posterior falls 3 of its sd
-    out as a Gaussian's must (:func:`~.estimators.collapse_drops`). Only one that is not is re-measured, so every
-    fit whose Laplace evidence was a result stays exactly what it was."""
+def _drops(target, x: np.ndarray, lp: float, H: np.ndarray) -> list[float] | None:
+    """How far the log posterior (``lp`` at ``x``) falls 3 of ``H``'s sd out per parameter
+    (:func:`~.estimators.collapse_drops`); None when ``H`` is no curvature of a mode (not finite, or not positive
+    definite)."""
     if not np.all(np.isfinite(H)) or not np.all(np.linalg.eigvalsh(0.5 * (H + H.T)) > 0):
-        return False
-    sd = np.sqrt(np.diag(np.linalg.inv(H)))
-    names = getattr(target, "names", [f"x{i}" for i in range(x.size)])
-    return not collapse_warning(names, collapse_drops(target, x, -f(x), sd), "")
+        return None
+    return collapse_drops(target, x, lp, np.sqrt(np.diag(np.linalg.inv(H))))
+
+
+def _trusted(drops: list[float] | None) -> bool:
+    """A curvature that is the posterior's (:func:`_drops`): positive definite, and the log posterior falls 3 of
+    its sd out as a Gaussian's must. Only one that is not is re-measured, so every fit whose Laplace evidence was a
+    result stays exactly what it was."""
+    return drops is not None and not any(d < COLLAPSE_NATS for d in drops)  # as collapse_warning reads them
 
 
 def _at_scale(target, f, x: np.ndarray, h: np.ndarray, H: np.ndarray, polish: int):
@@ -191,7 +204,7 @@ def _at_scale(target, f, x: np.ndarray, h: np.ndarray, H: np.ndarray, polish: in
         if lower is not None:
             x, h, _, H = newton(f, lower, h, polish)
             H = fd_hessian(f, x, h) if H is None else H
-            if _trusted(target, f, x, H):
+            if _trusted(_drops(target, x, -f(x), H)):
                 return x, h, H
             continue
         if scaled is None:
@@ -233,11 +246,14 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         x, h, _, H = newton(f, x, 1e-3 * scale, polish)
     if H is None:
         H = fd_hessian(f, x, h)
-    if not _trusted(target, f, x, H):
+    lp, ll = target(x)
+    drops = _drops(target, x, lp, H)
+    if not _trusted(drops):
         # a curvature that is not the posterior's (not positive definite, or collapsed: measured on a likelihood
         # rough at the scale of the steps): the one over the posterior's width, where it is a mode
         x, h, H = _at_scale(target, f, x, h, H, polish)
-    lp, ll = target(x)
+        lp, ll = target(x)
+        drops = _drops(target, x, lp, H)
     warnings = []
     if np.all(np.isfinite(H)):
         sign, logdet = np.linalg.slogdet(H)
@@ -257,7 +273,8 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
     if sd is not None and np.isfinite(lp):
         # a curvature from finite differences over a rough likelihood (kinks at the scale of its steps) is far
         # too large: 3 of its sd out the log posterior has barely moved
+        # (the drops the trust check measured at this curvature, taken again only for one it found no mode's)
         warnings += collapse_warning(getattr(target, "names", [f"x{i}" for i in range(d)]),
-                                     collapse_drops(target, x, lp, sd), "the curvature was measured on a "
-                                     "likelihood rough at the scale of its steps")
+                                     drops if drops is not None else collapse_drops(target, x, lp, sd),
+                                     "the curvature was measured on a likelihood rough at the scale of its steps")
     return ev, x, C

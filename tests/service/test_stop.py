@@ -132,8 +132,8 @@ def _files_holding(text: str, roots: list[Path], since: float) -> list[Path]:
             for f in files:
                 path = Path(d, f)
                 try:
-                    if path.stat().st_mtime >= since - 1 and path.stat().st_size < 1 << 20 and text in path.read_text(
-                            errors="replace"):
+                    st = path.stat()
+                    if st.st_mtime >= since - 1 and st.st_size < 1 << 20 and text in path.read_text(errors="replace"):
                         found.append(path)
                 except OSError:
                     continue
