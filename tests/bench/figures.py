@@ -14,7 +14,7 @@ import math
 import sys
 from pathlib import Path
 
-from .validation import RECORDS, band_held
+from .validation import BAND_RANGE, RECORDS, band_held
 
 ROOT = Path(__file__).resolve().parents[2]
 FIGURES = ROOT / "docs" / "figures.json"
@@ -296,7 +296,8 @@ def _bands(v: dict, records: list, truth: dict) -> str:
     hold to that range."""
     got = [v.get(f"loop_{r}_band_coverage") for r in records]
     got = [c for c in got if isinstance(c, (int, float))]
-    line = (f"Bands: the reported model's 90 % band holds 80-97 % of the test record on "
+    lo, hi = (round(100 * b) for b in BAND_RANGE)
+    line = (f"Bands: the reported model's 90 % band holds {lo}-{hi} % of the test record on "
             f"{sum(map(band_held, got))} of {len(got)} records.")
     mine = {r: c for r, c in truth.items() if r in records}
     if not mine:
