@@ -52,6 +52,11 @@ FREE_RUN_TOLERANCE = 0.01
 barely pin moves a refit, and with it the free run, by less than this."""
 
 
+TIE = 0.03
+"""Difference of two moves' held-out change (:func:`change`, a mean log error ratio) within which the held-out data
+cannot tell them apart and the evidence picks between them: three times what a refit of an unpinned term moves."""
+
+
 @dataclass(frozen=True)
 class Score:
     """A model's held-out score: per block its free-run RMS error (``errors``) and the refits behind them
@@ -185,6 +190,11 @@ class Criterion:
         front = [i for i in ok if not any(dominates(sc[j], sc[i]) for j in ok if j != i)]
         if not front:
             return None, sc
+        if cur.errors and all(sc[i].errors and set(sc[i].errors) == set(cur.errors) for i in front):
+            # the held-out data tell apart what they change by more than TIE: the evidence, which prefers
+            # what helps one-step prediction (a noise level's hundreds of nats), picks only between the rest
+            best = min(change(sc[i], cur) for i in front)
+            front = [i for i in front if change(sc[i], cur) <= best + TIE]
         return max(front, key=lambda i: moves[i][0].row.log_evidence), sc
 
 
