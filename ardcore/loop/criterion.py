@@ -17,8 +17,9 @@ law, drop a term, stop) is decided here, by one number computed in one place:
 * a move that **removes** (an earlier effect a later one made redundant, a declared term an effect replaced)
   is taken when the evidence prefers the smaller model and it free-runs no worse held out
   (:func:`no_worse`);
-* of several moves that improve, one that another free-runs better on every block is out; between the rest
-  the blocks disagree and the evidence picks (:meth:`Criterion.choose`);
+* of several moves that improve, the held-out data pick: one that another free-runs better on every block, or
+  whose typical change is worse than the best one's by more than :data:`TIE`, is out; only between the rest,
+  which the blocks cannot tell apart, does the evidence pick (:func:`pick`);
 * a measurement-noise level changes what the filter trusts, not the dynamics: it must free-run no worse;
 * the loop **stops** when no move the evidence supports improves the score.
 
@@ -173,29 +174,34 @@ class Criterion:
 
     def choose(self, current, moves: list) -> tuple[int | None, list[Score]]:
         """Which of ``moves`` (``(fit, nuisance)`` each, supported by the evidence) the loop takes over
-        ``current`` (a fit), and every move's score. A move qualifies when it :func:`improves` on the current
-        model, a nuisance (a measurement-noise level, which changes what the filter trusts and not the
-        dynamics) when it is :func:`no_worse`. Of those that qualify, one that another free-runs better on
-        every block (:func:`dominates`) is out: the held-out data prefer the other. Between the rest the blocks
-        disagree, so the held-out data cannot tell them apart and the evidence decides (the highest ln Z, its
-        Occam factor charging each its parameters). None when none qualifies; on a record too short to hold a
-        block out, the move with the highest evidence."""
+        ``current`` (a fit), and every move's score (:func:`pick` on their held-out scores)."""
         if not moves:
             return None, []
         got = self.scores([current] + [m[0] for m in moves])
-        cur, sc = got[0], got[1:]
-        ok = list(range(len(moves)))
-        if cur.errors or cur.failed is not None:  # else too short to hold a block out: the evidence alone decides
-            ok = [i for i, (s, m) in enumerate(zip(sc, moves)) if (no_worse if m[1] else improves)(s, cur)]
-        front = [i for i in ok if not any(dominates(sc[j], sc[i]) for j in ok if j != i)]
-        if not front:
-            return None, sc
-        if cur.errors and all(sc[i].errors and set(sc[i].errors) == set(cur.errors) for i in front):
-            # the held-out data tell apart what they change by more than TIE: the evidence, which prefers
-            # what helps one-step prediction (a noise level's hundreds of nats), picks only between the rest
-            best = min(change(sc[i], cur) for i in front)
-            front = [i for i in front if change(sc[i], cur) <= best + TIE]
-        return max(front, key=lambda i: moves[i][0].row.log_evidence), sc
+        return pick(got[0], got[1:], [m[1] for m in moves], [m[0].row.log_evidence for m in moves]), got[1:]
+
+
+def pick(cur: Score, scores: list[Score], nuisance: list[bool], log_evidence: list[float]) -> int | None:
+    """The move the held-out scores take over the current model's ``cur``, or None.
+
+    A move qualifies when it :func:`improves` on the current model, a nuisance (a measurement-noise level, which
+    changes what the filter trusts and not the dynamics) when it is :func:`no_worse`. Of those that qualify,
+    one that another free-runs better on every block (:func:`dominates`) is out, and so is one whose
+    :func:`change` is worse than the best one's by more than :data:`TIE`: the held-out data tell them apart.
+    Only between the rest, which the held-out data cannot tell apart, does the evidence decide (the highest
+    ln Z, its Occam factor charging each its parameters): it judges one-step prediction, where a noise level
+    gains hundreds of nats and a law that free-runs better may gain tens. On a record too short to hold a block
+    out, the move with the highest evidence."""
+    ok = list(range(len(scores)))
+    if cur.errors or cur.failed is not None:  # else too short to hold a block out: the evidence alone decides
+        ok = [i for i in ok if (no_worse if nuisance[i] else improves)(scores[i], cur)]
+    front = [i for i in ok if not any(dominates(scores[j], scores[i]) for j in ok if j != i)]
+    if not front:
+        return None
+    if cur.errors and all(set(scores[i].errors) == set(cur.errors) for i in front):
+        best = min(change(scores[i], cur) for i in front)
+        front = [i for i in front if change(scores[i], cur) <= best + TIE]
+    return max(front, key=lambda i: log_evidence[i])
 
 
 def dominates(a: Score, b: Score, tol: float = FREE_RUN_TOLERANCE) -> bool:
