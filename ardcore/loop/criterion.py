@@ -17,9 +17,9 @@ law, drop a term, stop) is decided here, by one number computed in one place:
 * a move that **removes** (an earlier effect a later one made redundant, a declared term an effect replaced)
   is taken when the evidence prefers the smaller model and it free-runs no worse held out
   (:func:`no_worse`);
-* of several moves that improve, the held-out data pick: one that another free-runs better on every block, or
-  whose typical change is worse than the best one's by more than :data:`TIE`, is out; only between the rest,
-  which the blocks cannot tell apart, does the evidence pick (:func:`pick`);
+* of several moves that improve, one that another free-runs better on every block is out, a noise level is out
+  beside a move of the dynamics, the survivors together are out unless they free-run better than each alone;
+  between the rest the blocks disagree and the evidence picks (:func:`pick`);
 * a measurement-noise level changes what the filter trusts, not the dynamics: it must free-run no worse;
 * the loop **stops** when no move the evidence supports improves the score.
 
@@ -51,11 +51,6 @@ INF = math.inf
 FREE_RUN_TOLERANCE = 0.01
 """Relative change of a held-out free-run error that counts as none: a measurement-noise level or a term the data
 barely pin moves a refit, and with it the free run, by less than this."""
-
-
-TIE = 0.03
-"""Difference of two moves' held-out change (:func:`change`, a mean log error ratio) within which the held-out data
-cannot tell them apart and the evidence picks between them: three times what a refit of an unpinned term moves."""
 
 
 @dataclass(frozen=True)
@@ -173,34 +168,42 @@ class Criterion:
         return f"without it the model free-runs worse held out ({describe(without)} against {describe(now)})"
 
     def choose(self, current, moves: list) -> tuple[int | None, list[Score]]:
-        """Which of ``moves`` (``(fit, nuisance)`` each, supported by the evidence) the loop takes over
-        ``current`` (a fit), and every move's score (:func:`pick` on their held-out scores)."""
+        """Which of ``moves`` (:class:`Move` each, supported by the evidence) the loop takes over ``current`` (a
+        fit), and every move's score (:func:`pick` on their held-out scores)."""
         if not moves:
             return None, []
-        got = self.scores([current] + [m[0] for m in moves])
-        return pick(got[0], got[1:], [m[1] for m in moves], [m[0].row.log_evidence for m in moves]), got[1:]
+        got = self.scores([current] + [m.fit for m in moves])
+        parts = [[j for j, o in enumerate(moves) if j != i and m.holds(o)] for i, m in enumerate(moves)]
+        return pick(got[0], got[1:], [m.nuisance for m in moves], [m.fit.row.log_evidence for m in moves],
+                    parts), got[1:]
 
 
-def pick(cur: Score, scores: list[Score], nuisance: list[bool], log_evidence: list[float]) -> int | None:
+def pick(cur: Score, scores: list[Score], nuisance: list[bool], log_evidence: list[float],
+         parts: list[list[int]] | None = None) -> int | None:
     """The move the held-out scores take over the current model's ``cur``, or None.
 
     A move qualifies when it :func:`improves` on the current model, a nuisance (a measurement-noise level, which
-    changes what the filter trusts and not the dynamics) when it is :func:`no_worse`. Of those that qualify,
-    one that another free-runs better on every block (:func:`dominates`) is out, and so is one whose
-    :func:`change` is worse than the best one's by more than :data:`TIE`: the held-out data tell them apart.
-    Only between the rest, which the held-out data cannot tell apart, does the evidence decide (the highest
-    ln Z, its Occam factor charging each its parameters): it judges one-step prediction, where a noise level
-    gains hundreds of nats and a law that free-runs better may gain tens. On a record too short to hold a block
-    out, the move with the highest evidence."""
+    changes what the filter trusts and not the dynamics) when it is :func:`no_worse`. Of those that qualify:
+
+    * one that another free-runs better on every block (:func:`dominates`) is out;
+    * a nuisance is out when a move of the dynamics qualifies: the one free-runs better, the other only no worse,
+      and the evidence cannot weigh them (it judges one-step prediction, where a noise level gains hundreds of
+      nats; it goes in next round if it still free-runs no worse);
+    * a move that holds another qualifying one (``parts[i]``: the survivors fitted together hold each alone) is
+      out unless it :func:`improves` on it: what it adds must free-run better, as every addition must.
+
+    Between the rest the blocks disagree and the evidence decides (the highest ln Z, its Occam factor charging
+    each its parameters). On a record too short to hold a block out, the move with the highest evidence."""
     ok = list(range(len(scores)))
     if cur.errors or cur.failed is not None:  # else too short to hold a block out: the evidence alone decides
         ok = [i for i in ok if (no_worse if nuisance[i] else improves)(scores[i], cur)]
     front = [i for i in ok if not any(dominates(scores[j], scores[i]) for j in ok if j != i)]
+    if any(not nuisance[i] for i in front):
+        front = [i for i in front if not nuisance[i]]
+    if parts is not None:
+        front = [i for i in front if all(improves(scores[i], scores[j]) for j in parts[i] if j in ok)]
     if not front:
         return None
-    if cur.errors and all(set(scores[i].errors) == set(cur.errors) for i in front):
-        best = min(change(scores[i], cur) for i in front)
-        front = [i for i in front if change(scores[i], cur) <= best + TIE]
     return max(front, key=lambda i: log_evidence[i])
 
 
@@ -243,6 +246,11 @@ class Move:
     fit: Fit
     name: str
     chosen: list = field(default_factory=list)
+
+    def holds(self, other: "Move") -> bool:
+        """Whether this move adds everything ``other`` adds and more (the survivors together hold each alone)."""
+        mine = {id(c) for c in self.chosen}
+        return bool(other.chosen) and len(mine) > len(other.chosen) and all(id(c) in mine for c in other.chosen)
 
     @property
     def nuisance(self) -> bool:
@@ -287,7 +295,7 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
     judged = {"round": rec["round"], "model": held.cand.label, "score": cur.to_json(), "moves": []}
     if deferred:
         noise = _moves(ctx, held, None, survivors[:1])
-        k, (s,) = crit.choose(held, [(noise[0].fit, True)])
+        k, (s,) = crit.choose(held, noise[:1])
         judged["moves"].append({"move": noise[0].name, "kind": "add", **s.to_json(), "taken": k == 0})
         if k == 0:
             say(f"  held out: {noise[0].name} free-runs no worse ({describe(s)} against {describe(cur)}): it goes in "
@@ -300,7 +308,7 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
     moves = _moves(ctx, held, swap, survivors)
     if not moves:
         return None, judged
-    k, scores = crit.choose(held, [(m.fit, m.nuisance) for m in moves])
+    k, scores = crit.choose(held, moves)
     say(f"  held out: the model: {describe(cur)}")
     for i, (m, s) in enumerate(zip(moves, scores)):
         judged["moves"].append({"move": m.name, "kind": m.kind, **s.to_json(), "taken": i == k})
