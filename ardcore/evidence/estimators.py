@@ -171,10 +171,15 @@ def collapse_drops(target, center: np.ndarray, lp_center: float, sd: np.ndarray)
     return out
 
 
+def collapsed(names, drops) -> list[tuple]:
+    """``(name, drop)`` of the parameters whose drop (:func:`collapse_drops`) is below :data:`COLLAPSE_NATS`."""
+    return [(n, d) for n, d in zip(names, drops) if d < COLLAPSE_NATS]
+
+
 def collapse_warning(names, drops, why: str) -> list[str]:
-    """The :data:`COLLAPSED` warning for the parameters whose drop (:func:`collapse_drops`) is below
-    :data:`COLLAPSE_NATS` (none when every one falls as a Gaussian must)."""
-    narrow = [(n, d) for n, d in zip(names, drops) if d < COLLAPSE_NATS]
+    """The :data:`COLLAPSED` warning for the parameters :func:`collapsed` names (none when every one falls as a
+    Gaussian must)."""
+    narrow = collapsed(names, drops)
     if not narrow:
         return []
     return [f"{COLLAPSED}: 3 sd from its mode the log posterior falls by only "

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from ..sampling.starts import fd_derivatives, fd_hessian, local_mode
-from .estimators import COLLAPSE_NATS, Evidence, collapse_drops, collapse_warning
+from .estimators import Evidence, collapse_drops, collapse_warning, collapsed
 
 
 CHORD_STEPS = 4
@@ -190,7 +190,7 @@ def _trusted(drops: list[float] | None) -> bool:
     """A curvature that is the posterior's (:func:`_drops`): positive definite, and the log posterior falls 3 of
     its sd out as a Gaussian's must. Only one that is not is re-measured, so every fit whose Laplace evidence was a
     result stays exactly what it was."""
-    return drops is not None and not any(d < COLLAPSE_NATS for d in drops)  # as collapse_warning reads them
+    return drops is not None and not collapsed(range(len(drops)), drops)
 
 
 def _at_scale(target, f, x: np.ndarray, h: np.ndarray, H: np.ndarray, polish: int):
