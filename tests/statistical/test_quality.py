@@ -206,3 +206,37 @@ def test_pooled_evidence_error_is_calibrated_and_steadier_than_the_chains_spread
     # chains in different modes: their own errors are tiny, the spread is the error
     v = np.array([0.0, 0.1, 2.0, 2.1])
     assert pooled_se(v, np.full(4, 0.01)) == pytest.approx(np.std(v, ddof=1) / 2)
+
+
+def test_the_diagnostics_are_arviz_s_summary_to_rounding():
+    """What the sampler stops on and reports is what ``az.summary(kind="diagnostics")`` gives a user for the
+    same draws: autocorrelated, anticorrelated and tied chains, chains apart, a constant, one chain, chains of
+    4 and of odd length."""
+    import warnings
+
+    import arviz as az
+
+    from ardflow.ardcore.sampling.diagnostics import FIELDS
+
+    rng = np.random.default_rng(7)
+    for chains, draws, phi in ((4, 1000, 0.95), (8, 333, -0.6), (1, 50, 0.3), (2, 4, 0.0), (4, 4001, 0.999)):
+        e = rng.standard_normal((chains, draws, 4))
+        x = np.zeros_like(e)
+        for t in range(draws):
+            x[:, t] = (phi * x[:, t - 1] if t else 0.0) + e[:, t]
+        x[..., 1] = np.round(x[..., 1])  # ties
+        x[..., 2] = 3.0  # a parameter that never moved
+        x[..., 3] += rng.normal(0.0, 0.5, (chains, 1))  # chains that sit apart
+        names = list("abcd")
+        got = convergence(names, x)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            table = az.summary(az.from_dict({"posterior": {f"p{i}": x[..., i] for i in range(4)}}),
+                               kind="diagnostics", round_to="none")
+        for i, n in enumerate(names):
+            for f in FIELDS:
+                want = float(table.loc[f"p{i}"][f])
+                if math.isnan(want):
+                    assert math.isnan(got[n][f]), (chains, draws, n, f)
+                else:
+                    assert got[n][f] == pytest.approx(want, rel=1e-10, abs=1e-300), (chains, draws, n, f)
