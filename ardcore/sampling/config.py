@@ -19,7 +19,9 @@ class SamplerConfig(BaseModel):
     n_chains : int
         Chains run side by side (one task each per round).
     round_size : int
-        W, samples per chain per round.
+        W, samples per chain per round: a burn-in round adapts the kernel after it; the stationary stage
+        (fixed kernel) stops only on whole rounds and draws up to four rounds in one task per chain
+        (:data:`~ardcore.sampling.driver.STATIONARY_ROUNDS`), the same draws in fewer trips.
     min_burnin_rounds, max_burnin_rounds : int
         Burn-in lasts at least / at most this many rounds.
     burnin_rhat : float

@@ -138,6 +138,11 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
     return states, b_acc, b_n, n_eval
 
 
+STATIONARY_ROUNDS = 4
+"""Rounds of draws a stationary task carries per chain: each task is a trip through the scheduler, the driver
+and the store, which on the demo's 250-draw rounds cost about a tenth of the cores besides the likelihoods."""
+
+
 STRIDE = 10_000_000
 """A stationary round's :class:`Step` index is ``pass * STRIDE + first draw`` (no task of a later pass shares
 a key with one of an earlier pass; the store's slot is the index modulo STRIDE)."""
@@ -190,7 +195,10 @@ def stationary_rounds(target, states: list, config: SamplerConfig, *, pool: Adap
 
     while True:
         while done < goal:
-            n = min(config.round_size, goal - done)
+            # the kernel is fixed here, so a chain's draws do not depend on how they are cut into tasks (its
+            # random numbers travel with it): a task carries up to STATIONARY_ROUNDS rounds, and the stage's
+            # goals stay whole rounds
+            n = min(STATIONARY_ROUNDS * config.round_size, goal - done)
             results = yield Batch(round_task, [(target, s, cov, n, False, 0.0, jump) for s in states],
                                   Step("stationary", passes * STRIDE + done))
             states = [q.state for q in results]

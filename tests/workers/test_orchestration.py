@@ -292,7 +292,7 @@ def test_task_wall_clock_limit_is_the_backstop(thread_cluster):
 def test_redrawn_stationary_passes_write_the_store_and_never_share_a_task_key(tmp_path, thread_cluster):
     """A stationary stage drawn again (its R-hat failed) on Dask: every pass's tasks have their own keys (a
     later pass never gets an earlier pass's cached result) and the store holds the final draws."""
-    from ardflow.ardcore.sampling.driver import Runtime, Start, sample
+    from ardflow.ardcore.sampling.driver import STATIONARY_ROUNDS, Runtime, Start, sample
     from ardflow.workers.tasks import DaskMap
 
     from ..statistical.test_dram import far_start_run
@@ -308,8 +308,8 @@ def test_redrawn_stationary_passes_write_the_store_and_never_share_a_task_key(tm
     np.testing.assert_array_equal(samples, res.samples)
     np.testing.assert_allclose(ll, res.ll)
     keys = [str(t["key"]) for t in ts.data if str(t["key"]).startswith("stationary-redraw")]
-    n_rounds = cfg.n_stationary // cfg.round_size
-    assert len(keys) == len(set(keys)) > cfg.n_chains * n_rounds  # more than one pass, no key twice
+    per_pass = -(-cfg.n_stationary // (STATIONARY_ROUNDS * cfg.round_size))  # tasks per chain in one pass
+    assert len(keys) == len(set(keys)) > cfg.n_chains * per_pass  # more than one pass, no key twice
 
 
 def test_a_continued_trial_stopped_mid_extension_resumes_to_the_same_numbers(tmp_path, thread_cluster):
