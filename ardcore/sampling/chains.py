@@ -109,9 +109,21 @@ class ChainState:
     n_prop: int = 0
     n_acc: int = 0
     n_dr: int = 0
+    free: dict | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def free_point(self, free) -> tuple[np.ndarray, float]:
+        """The chain's point in the sampler's unconstrained coordinates (``free``, :mod:`.transform`) and its log
+        posterior there, ``lp + ln|dx/dz|``: as the last round left them while the chain is still at that ``x``
+        (``self.free``), else converted from ``x``. The conversion back and forth is not exact in the last
+        bits, so a chain continued in another task, or resumed from a checkpoint, draws what it would have
+        drawn in one."""
+        if self.free is not None and self.free.get("x") == list(self.x):
+            return np.array(self.free["z"], dtype=float), float(self.free["lpz"])
+        x = np.array(self.x, dtype=float)
+        return free.to_free(x), self.lp + free.log_jacobian(x)
 
     @classmethod
     def from_dict(cls, d: dict) -> "ChainState":
@@ -328,7 +340,7 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
     x = np.array(state.x, dtype=float)
     lp, ll = state.lp, state.ll
     # the chain moves in unconstrained coordinates (:mod:`.transform`): lpz = lp + ln|dx/dz|
-    z, lpz = free.to_free(x), lp + free.log_jacobian(x)
+    z, lpz = state.free_point(free)
     best_x, best_lp, best_ll = np.array(state.best_x), state.best_lp, state.best_ll
     d = x.size
     L = safe_cholesky(cov)
@@ -381,7 +393,8 @@ def run_round(target, state: ChainState, cov: np.ndarray, n: int, *, adaptive: b
         S[i], Z[i], LP[i], LL[i] = x, z, lp, ll
     new = ChainState(state.chain, x.tolist(), float(lp), float(ll), rng.bit_generator.state,
                      best_x.tolist(), float(best_lp), float(best_ll),
-                     state.n_prop + S.shape[0], state.n_acc + acc, state.n_dr + dr)
+                     state.n_prop + S.shape[0], state.n_acc + acc, state.n_dr + dr,
+                     {"x": x.tolist(), "z": z.tolist(), "lpz": float(lpz)})
     # the halves' statistics (the pooled proposal, burn-in R-hat) are taken in the chain's coordinates z
     h = max(1, Z.shape[0] // 2)
     return RoundResult(new, S, LP, LL, acc, dr, (RoundStats.of(Z[:h]), RoundStats.of(Z[h:]) if Z.shape[0] > h

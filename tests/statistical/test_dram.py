@@ -101,13 +101,13 @@ def test_pooled_adaptation_shortens_burnin():
 
 
 def test_sampler_rounds_as_events_and_resume_from_one():
-    """iter_sample yields one typed event per round, each carrying the state to resume from; driven by hand
-    it gives sample()'s result, and resuming from a stationary round's checkpoint (with the draws so far)
-    gives the same draws as the run that was not interrupted."""
-    from ardflow.ardcore.sampling.driver import RoundEvent, Start, iter_sample
+    """iter_sample yields one typed event per burn-in round and per stationary task, each carrying the state to
+    resume from; driven by hand it gives sample()'s result, and resuming from a stationary task's checkpoint
+    (with the draws so far) gives the same draws as the run that was not interrupted."""
+    from ardflow.ardcore.sampling.driver import STATIONARY_ROUNDS, RoundEvent, Start, iter_sample
 
     target, _, _ = gaussian_target()
-    cfg = SamplerConfig(n_chains=3, round_size=100, min_burnin_rounds=2, max_burnin_rounds=30, n_stationary=300,
+    cfg = SamplerConfig(n_chains=3, round_size=50, min_burnin_rounds=2, max_burnin_rounds=30, n_stationary=300,
                         n_proposal=50, start_maxfev=200, min_ess=0.0, max_rhat=2.0)
     gen = iter_sample(target, cfg, seed=4)
     events = []
@@ -121,13 +121,15 @@ def test_sampler_rounds_as_events_and_resume_from_one():
     stages = [e.stage for e in events]
     assert stages[0] == "burnin" and events[0].round == 0 and stages[-1] == "stationary"
     assert stages == sorted(stages)  # burn-in rounds, then stationary rounds
-    assert stages.count("stationary") == 3 and stages.count("burnin") == res.burnin_rounds + 1
+    # a stationary task carries up to STATIONARY_ROUNDS rounds: 300 draws in tasks of 200 and 100
+    tasks = -(-cfg.n_stationary // (STATIONARY_ROUNDS * cfg.round_size))
+    assert tasks == 2 and stages.count("stationary") == tasks and stages.count("burnin") == res.burnin_rounds + 1
     evals = [e.checkpoint["counters"][2] for e in events]
     assert evals == sorted(evals) and evals[-1] == res.n_evaluations
     json.dumps(events[-2].checkpoint)  # JSON-able
     again = sample(target, cfg, seed=4)
     np.testing.assert_array_equal(again.samples, res.samples)
-    mid = dict(events[-2].checkpoint, samples=res.samples, lp=res.lp, ll=res.ll)  # after 2 of 3 stationary rounds
+    mid = dict(events[-2].checkpoint, samples=res.samples, lp=res.lp, ll=res.ll)  # after the first stationary task
     resumed = sample(target, cfg, seed=4, start=Start(resume=mid))
     np.testing.assert_array_equal(resumed.samples, res.samples)
     assert resumed.n_evaluations == res.n_evaluations

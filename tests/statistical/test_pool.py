@@ -62,13 +62,16 @@ def test_sampler_resumes_exactly_from_any_checkpoint():
     names = [f"p{i}" for i in range(d)]
     target = FunctionTarget(names, JointPrior(names, {n: Normal(sd=10.0) for n in names}),
                             GaussianLoglik(np.zeros(d), correlated_cov(d, 0, 1.0)))
-    cfg = SamplerConfig(n_chains=3, round_size=100, n_stationary=400, n_proposal=50)
+    # stationary tasks of four 50-draw rounds: a checkpoint between the stage's two tasks
+    cfg = SamplerConfig(n_chains=3, round_size=50, n_stationary=400, n_proposal=50)
     cks = []
     full = sample(target, cfg, seed=4,
                   runtime=Runtime(checkpoint=lambda ck: cks.append(copy.deepcopy(json.loads(json.dumps(ck))))))
     stages = [c["stage"] for c in cks]
     assert "burnin" in stages and "stationary" in stages
-    for k in (1, stages.index("stationary") + 1):
+    first = stages.index("stationary")
+    assert cks[first]["done"] < cks[first]["goal"]  # resumed mid-stage, not at its end
+    for k in (1, first):
         ck = dict(cks[k])
         if ck["stage"] == "stationary":
             ck.update(samples=full.samples, lp=full.lp, ll=full.ll)  # what the store holds (only :done is used)
