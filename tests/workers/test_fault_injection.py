@@ -43,12 +43,20 @@ def test_driver_killed_at_random_points_resumes_to_the_same_summary(tmp_path):
     rng = random.Random(2026)
     env = dict(os.environ)
     kills = 0
+
+    def start(out: Path) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "select", str(SPEC), "--out", str(out),
+                                 "--executor", "serial"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
+
+    # the kills land over the run's own length on this machine (a faster sampler must not make them miss)
+    t0 = time.perf_counter()
+    assert start(tmp_path / "whole").wait(timeout=600) == 0
+    whole = time.perf_counter() - t0
     for trial in range(20):
         out = tmp_path / f"st{trial}"
-        p = subprocess.Popen([sys.executable, "-m", "ardflow.service.cli", "select", str(SPEC), "--out", str(out),
-                              "--executor", "serial"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL, start_new_session=True)
-        time.sleep(rng.uniform(1.5, 9.0))  # the start-up, the store's creation or any trial
+        p = start(out)
+        time.sleep(rng.uniform(0.15, 0.9) * whole)  # the start-up, the store's creation or any trial
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             kills += 1
