@@ -39,17 +39,18 @@ def _diagnostics(x: np.ndarray) -> dict[str, float]:
     if not np.all(np.isfinite(x)):
         return {k: math.nan for k in FIELDS}
     split = _split(x)
+    bulk = _z_scale(split)  # the rank-normalised draws: the bulk R-hat and the bulk ESS read them
     low, high = np.quantile(x, sorted((TAIL_PROB, 1.0 - TAIL_PROB)))
     centred = x - x.mean()
     with np.errstate(invalid="ignore", divide="ignore"):  # a constant: NaN, as ArviZ has it
         r_hat = math.nan
         if x.shape[0] >= 2:
-            r_hat = max(_rhat(_z_scale(split)), _rhat(_z_scale(np.abs(split - np.median(split)))))
+            r_hat = max(_rhat(bulk), _rhat(_z_scale(np.abs(split - np.median(split)))))
         var = (centred ** 2).mean()
         varvar = ((centred ** 4).mean() - var ** 2) / _ess(_split(centred ** 2))
         mcse_sd = np.sqrt(varvar / var / 4)
     return {"r_hat": float(r_hat),
-            "ess_bulk": float(_ess(_z_scale(split))),
+            "ess_bulk": float(_ess(bulk)),
             "ess_tail": float(min(_ess(_split(x <= low)), _ess(_split(x <= high)))),
             "mcse_mean": float(np.std(x, ddof=1) / np.sqrt(_ess(split))),
             "mcse_sd": float(mcse_sd)}
