@@ -105,9 +105,11 @@ class EvidenceEvaluator:
                 return target, None, None
             return target, (yield from self.likelihood_bound(target, warm)), None
         if self.method == "laplace":
-            x0 = warm_point(target, warm) if warm is not None else (yield from self._cold_start(target, seed))
+            # the searches only place the start: on a long record they may read its first samples alone
+            search = target.window(self.sampler.search_window)
+            x0 = warm_point(target, warm) if warm is not None else (yield from self._cold_start(search, seed))
             ev, xmap, C = laplace(target, x0, initial_scale(target.prior) if warm is None else None,
-                                  warm=warm is not None)
+                                  warm=warm is not None, search=search)
             res = None
             if final and self.final_posterior == "laplace":
                 res = _laplace_state(target, xmap, C, ev, draws=LAPLACE_DRAWS, seed=seed)

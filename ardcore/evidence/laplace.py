@@ -218,11 +218,13 @@ def _at_scale(target, f, x: np.ndarray, h: np.ndarray, H: np.ndarray, polish: in
 
 
 def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: int = 4000,
-            polish: int = 3, warm: bool = False) -> tuple[Evidence, np.ndarray, np.ndarray]:
+            polish: int = 3, warm: bool = False, search=None) -> tuple[Evidence, np.ndarray, np.ndarray]:
     """Laplace evidence ln p(d) ~ L(MAP) + d/2 ln 2 pi - 1/2 ln |H| (Appendices A-B).
 
     With ``warm`` (``x0`` from a neighbouring trial), Newton steps start at ``x0`` and Nelder-Mead runs only
-    when they do not converge.
+    when they do not converge. ``search``: the target the Nelder-Mead search climbs (default ``target``; a
+    window of its record, :meth:`~ardcore.likelihood.posterior.Target.window`): the Newton steps from where
+    it stops read ``target``.
 
     Returns
     -------
@@ -242,7 +244,7 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         # a warm start is near the mode: Newton from there, Nelder-Mead only if Newton does not converge
         x, h, converged, H = newton(f, x0.copy(), 1e-3 * scale, polish + 5)
     if not converged:
-        x, _ = local_mode(target, x0, scale, maxfev)
+        x, _ = local_mode(search if search is not None else target, x0, scale, maxfev)
         x, h, _, H = newton(f, x, 1e-3 * scale, polish)
     if H is None:
         H = fd_hessian(f, x, h)

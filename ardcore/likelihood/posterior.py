@@ -8,6 +8,7 @@ pickled: a target rebuilds them on first use in whichever process runs it.
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Callable, NamedTuple
 
@@ -40,6 +41,11 @@ class Target:
 
     def loglik(self, x: np.ndarray) -> float:
         raise NotImplementedError
+
+    def window(self, n: int | None) -> "Target":
+        """This target on its record's first ``n`` samples, the same prior: what a search that only places a
+        start may read (itself here: a target without a record)."""
+        return self
 
     def __call__(self, x) -> Density:
         lp = self.prior.logpdf(x)
@@ -85,6 +91,15 @@ class ModelPosterior(Target):
 
     def loglik(self, x: np.ndarray) -> float:
         return self.likelihood(x)
+
+    def window(self, n: int | None) -> "ModelPosterior":
+        """This posterior on the record's first ``n`` samples, the same prior (:class:`Target`); itself when
+        ``n`` is None, when the record is no longer or when the data hold several records."""
+        if n is None or self.data.n_records > 1 or len(self.data) <= n:
+            return self
+        out = copy.copy(self)
+        out.data, out._lik = self.data.slice(0, n), None
+        return out
 
 
 class FunctionTarget(Target):

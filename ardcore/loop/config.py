@@ -77,6 +77,12 @@ class DiagnoseConfig(BaseModel):
         When no addition, law or lag is taken (the term families left what they cannot take up), offer the
         state families that could hold it, a hysteresis of each oscillator and a sensor's own dynamics
         (:mod:`ardcore.loop.states`), before the loop stops. False: the loop stops there.
+    search_window : int or None
+        The state families' Nelder-Mead searches (their screen's, and their full fits' from the prior) read
+        the record's first this many samples; the Newton steps, the curvature and the evidence read all of it
+        (``sampler.search_window``). On a longer record the searches then cost what they cost on one this
+        long, and the state families what the term families cost (issue target: at most twice). None: the
+        searches read the whole record.
     band_draws : int
         Posterior draws whose free runs make the 90 % prediction band of the free run (0: none).
     rival_nats : float
@@ -117,6 +123,7 @@ class DiagnoseConfig(BaseModel):
     posterior: Literal["laplace", "sample"] = "laplace"
     joint: bool = True
     states: bool = True
+    search_window: int | None = Field(2500, ge=100, le=10**9)
     workers: int = Field(0, ge=0, le=1024)
     rival_nats: float = Field(5.0, ge=0)
     rivals: int = Field(2, ge=0, le=10)

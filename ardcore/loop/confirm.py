@@ -25,7 +25,8 @@ from ..jsonio import is_pruned, to_jsonable
 from ..screening.screen import ScreenInput, Screened, distinct_candidates, screen_effects
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec
-from ..selection.study import run_candidate
+from ..sampling.chains import Batch
+from ..selection.study import CandidateHooks, iter_candidate, run_candidate
 
 INF = math.inf
 
@@ -153,9 +154,55 @@ def warm_with(sampler, names: list[str], values: list[float]):
 
 
 def fit_task(args):
-    """One re-selection (a picklable unit of work for the confirmation pool)."""
-    cand, data, spec, warm, posterior = args
-    return run_candidate(cand, data, spec, 0, warm=warm, final_posterior=posterior)
+    """One re-selection (a picklable unit of work for the confirmation pool): ``(cand, data, spec, warm,
+    posterior)``, and optionally the results of its first batch of tasks, run beforehand (:func:`fit_all`)."""
+    cand, data, spec, warm, posterior, *first = args
+    hooks = CandidateHooks(map_fn=Answered(first[0])) if first else CandidateHooks()
+    return run_candidate(cand, data, spec, 0, warm=warm, final_posterior=posterior, hooks=hooks)
+
+
+class Answered:
+    """A :data:`~ardcore.sampling.chains.Map` that answers the first batch it is given with ``results`` (that
+    batch's tasks, run beforehand on a pool: a fit is deterministic, so its first batch is the one they were)
+    and runs every later batch in this process."""
+
+    def __init__(self, results: list):
+        self.results = results
+
+    def __call__(self, func, items, step=None) -> list:
+        if self.results is None:
+            return [func(it) for it in items]
+        out, self.results = self.results, None
+        if len(out) != len(items):
+            raise RuntimeError(f"a fit's first batch has {len(items)} tasks, not the {len(out)} run beforehand")
+        return out
+
+
+def fit_all(mapper, tasks: list) -> list:
+    """:func:`fit_task` of each of ``tasks`` on the pool ``mapper``, every fit from the prior (``warm`` None)
+    first running the searches that place its start (its first batch of tasks) spread over the pool: the same
+    fits, but a fit from the prior no longer searches its four starts one after another while the pool's other
+    workers wait for it."""
+    firsts = []
+    for cand, data, spec, warm, posterior in tasks:
+        first = None
+        if warm is None:
+            steps = iter_candidate(cand, data, spec, 0, final_posterior=posterior)
+            first = next(steps, None)  # a Batch (a generator that returned at once yields none)
+            steps.close()
+        firsts.append(first if isinstance(first, Batch) else None)
+    todo = [(i, it) for i, b in enumerate(firsts) if b is not None for it in b.items]
+    done = mapper(_batch_task, [(firsts[i].func, it) for i, it in todo]) if todo else []
+    answers = {i: [] for i, b in enumerate(firsts) if b is not None}
+    for (i, _), r in zip(todo, done):
+        answers[i].append(r)
+    return mapper(fit_task, [(*t, answers[i]) if i in answers else t for i, t in enumerate(tasks)])
+
+
+def _batch_task(args):
+    """One task of a fit's batch (a picklable unit of work): ``(func, item)``."""
+    func, item = args
+    return func(item)
 
 
 def pool_mapper(workers: int):

@@ -210,11 +210,11 @@ def screened_states(ctx, current: Fit, offered: list, tasks: list) -> list[tuple
     reduced = [conditional(t[0], known) if m.kind != "lag" else None for t, m in zip(tasks, offered)]
     if any(r is None for r in reduced):
         return None
-    cond = screen(ctx, [r[0] for r in reduced], current.data, ctx.spec.seed)
+    cond = screen(ctx, reduced, current.data, ctx.spec.seed, ctx.config.search_window)
     base = current.row.goodness_of_fit
     order = []
     for i, (log_z, at) in enumerate(cond):
-        gain, new, move = log_z - base, reduced[i][1], offered[i]
+        gain, new, move = log_z - base, reduced[i].new, offered[i]
         ctx.say(f"  screened: a {move.kind} ({move.term} -> {move.target}): conditional ln BF {gain:.1f}"
                 + ("" if gain > 0 else ", not fitted in full"))
         if gain > 0:
@@ -280,7 +280,7 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     screened values and from the prior side by side, :func:`_better_start`): the first that qualifies is the move
     (a round that takes it offers the others again). The record is a replacement's with the state
     (:func:`state_summary`)."""
-    from .confirm import fit_task
+    from .confirm import fit_all, fit_task
 
     config, say = ctx.config, ctx.say
     ms = current.cand.model_spec()
@@ -288,11 +288,15 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     offered, tasks = [], []
     moves = [m for kind in kinds for m in offer[kind](ms)]
     at = along(current) if moves else None
+    # the screened families' searches from the prior read the record's first config.search_window samples (a
+    # lag's fit re-selects a law's terms, like the laws beside it, and reads the whole record)
+    windowed = ctx.spec.model_copy(update={"sampler": ctx.spec.sampler.model_copy(
+        update={"search_window": config.search_window})})
     for lag in moves:
         cand = lag_candidate(current, lag, at)
         if cand is not None:
             offered.append(lag)
-            tasks.append((cand, current.data, ctx.spec, None, config.posterior))
+            tasks.append((cand, current.data, ctx.spec if lag.kind == "lag" else windowed, None, config.posterior))
     if not tasks:
         return None
     say("  a state: " + ", ".join(f"{x.kind} ({x.term} -> {x.target})" for x in offered))
@@ -300,7 +304,7 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     order = screened_states(ctx, current, offered, tasks)
     if order is not None:
         for i, task in order:
-            fit = _better_start(ctx.mapper(fit_task, [task, tasks[i]]))
+            fit = _better_start(fit_all(ctx.mapper, [task, tasks[i]]))
             got = _taken(ctx, current, offered[i], task, fit, fit[0].log_evidence - current.row.log_evidence, need)
             if got is not None:
                 return got

@@ -65,6 +65,11 @@ class SamplerConfig(BaseModel):
         Delayed rejection in the first ``dr_rounds`` of warm starts as well.
     start_maxfev : int
         Budget of the local optimisation that places each chain's start.
+    search_window : int, optional
+        The Nelder-Mead searches that place a Laplace trial's cold start read only the record's first this
+        many samples; the Newton steps, the curvature and the evidence read all of it (None, the default: the
+        searches read all of it too). A search only has to land where Newton's steps converge, so on a long
+        record it costs what it costs on a short one. A record of several experiments is always read whole.
     overdispersion : float
         Starts are drawn at this many posterior standard deviations around each local mode.
     inca : bool
@@ -103,6 +108,7 @@ class SamplerConfig(BaseModel):
     dr_rounds: int = Field(2, ge=0, le=10_000)
     warm_dr: bool = False
     start_maxfev: int = Field(3000, ge=10, le=1_000_000)
+    search_window: int | None = Field(None, ge=100, le=10**9)
     overdispersion: float = Field(2.0, gt=0, le=10)
     inca: bool = True
     jump_weight: float = Field(0.5, ge=0.0, lt=1.0)

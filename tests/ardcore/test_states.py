@@ -131,10 +131,11 @@ def _screened(name: str):
     moves = hystereses(ms) + sensors(ms) + modes(ms)
     reduced = [conditional(lag_candidate(cur, m, at), dict(zip(mr.sampler.names, mr.sampler.phi_star)))
                for m in moves]
-    # the screen searches only the new state's own parameters: the current model's are fixed at its MAP
-    assert all(set(r[0].priors) == set(r[1]) and set(r[1]).isdisjoint(mr.sampler.names) for r in reduced)
+    # the screen searches only the new state's own parameters: the current model's are held at its MAP
+    assert all(r.target(rec.est).names == r.new and set(r.new).isdisjoint(mr.sampler.names)
+               and set(r.new) | set(r.known) == set(r.cand.priors) for r in reduced)
     ctx = SimpleNamespace(mapper=lambda fn, tasks: [fn(t) for t in tasks])
-    got = screen(ctx, [r[0] for r in reduced], rec.est, 0)
+    got = screen(ctx, reduced, rec.est, 0)
     return {m.kind: log_z - row.goodness_of_fit for m, (log_z, _) in zip(moves, got)}, {
         m.kind: at for m, (_, at) in zip(moves, got)}
 
