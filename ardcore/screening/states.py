@@ -58,13 +58,14 @@ class Held(Target):
 
 
 def conditional(cand: CandidateSpec, known: dict) -> Conditional | None:
-    """``cand`` with every parameter ``known`` names (the current model's MAP) held there and the new state's own
-    sampled alone (:class:`Conditional`); None when the move has none, when it samples one ``known`` does not
-    name, or when it selects terms by ARD (a lag)."""
-    new = [n for n in cand.model_spec().free_parameters if n not in known]
-    if cand.ard or not new or any(n not in known for n in cand.priors if n not in new):
+    """``cand`` with every free parameter ``known`` names (the current model's MAP) held there and the new state's
+    own, the free parameters it does not name, sampled alone (:class:`Conditional`); None when the move has none or
+    when it selects terms by ARD (a lag). A parameter ``cand`` fixes (a term dropped earlier, 0) stays fixed."""
+    free = cand.model_spec().free_parameters
+    new = [n for n in free if n not in known]
+    if cand.ard or not new:
         return None
-    return Conditional(cand, {n: float(known[n]) for n in cand.priors if n not in new}, new)
+    return Conditional(cand, {n: float(known[n]) for n in free if n not in new}, new)
 
 
 SCREEN_STARTS = 4

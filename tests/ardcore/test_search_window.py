@@ -64,6 +64,25 @@ def test_a_held_target_is_the_move_with_the_current_values_fixed_in_it(record):
     assert held.window(500).full.data.t.size == 500 and held.full.data.t.size == len(rec.est)
 
 
+def test_a_move_on_a_model_that_fixed_a_term_is_screened_with_that_term_fixed(record):
+    """A term an earlier round dropped (fixed at 0, its prior still declared) is neither held nor sampled: the
+    move is screened on the model as it stands, as the loop's later rounds need."""
+    from ardflow.ardcore.screening.states import conditional
+
+    rec, cand = record
+    names = cand.model_spec().free_parameters
+    dropped = cand.model_copy(update={"fixed": {**cand.fixed, names[1]: 0.0}})
+    known = {n: 1.0 for n in names[2:]}
+    c = conditional(dropped, known)
+    assert c is not None and c.new == [names[0]] and set(c.known) == set(names[2:])
+    target = c.target(rec.est)
+    x = np.array([1.0])
+    ref = _posterior(dropped.model_copy(update={"priors": {names[0]: cand.priors[names[0]]},
+                                                  "fixed": {**dropped.fixed, **known}}), rec.est)
+    assert target(x).log_likelihood == pytest.approx(ref(x).log_likelihood, rel=1e-10)
+    assert conditional(cand, {n: 1.0 for n in names}) is None  # nothing new to sample
+
+
 def test_a_fit_from_the_prior_with_its_searches_on_a_window_reaches_the_same_evidence(record):
     """A Laplace fit from the prior whose start searches read 1,000 of the record's 3,000 samples ends where the
     one whose searches read all of them ends: its Newton steps and its evidence read the whole record."""
