@@ -15,7 +15,7 @@ from typing import Generator
 import numpy as np
 from scipy.special import logsumexp
 
-from ..sampling.chains import Jump, MixedProposal
+from ..sampling.proposal import Jump, MixedProposal
 from ..sampling.chains import Batch, Map, SamplerError, Step, run, serial_map
 from ..sampling.config import SamplerResult
 from ..sampling.transform import free_coordinates

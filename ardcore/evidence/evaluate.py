@@ -221,7 +221,7 @@ def warm_point(target, warm) -> np.ndarray:
 
 
 def _starts_around(x, C, n, seed):
-    from ..sampling.chains import safe_cholesky
+    from ..sampling.proposal import safe_cholesky
 
     rng = np.random.default_rng(seed)
     L = safe_cholesky(C if np.all(np.isfinite(C)) else np.diag(np.maximum(np.abs(x) * 1e-2, 1e-6) ** 2))
@@ -235,7 +235,8 @@ LAPLACE_DRAWS = 4000
 def _laplace_state(target, xmap, C, ev, *, draws: int = 0, seed: int = 0) -> SamplerResult:
     """A SamplerResult carrying the MAP for warm starts of the next Laplace trial; with ``draws``, also
     that many draws of the Laplace posterior N(MAP, C) as one chain (their lp/ll are not evaluated: NaN)."""
-    from ..sampling.chains import ChainState, safe_cholesky
+    from ..sampling.chains import ChainState
+    from ..sampling.proposal import safe_cholesky
 
     lp, ll = target(xmap)
     st = ChainState(0, xmap.tolist(), lp, ll, np.random.PCG64(0).state, xmap.tolist(), lp, ll)

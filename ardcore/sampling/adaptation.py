@@ -8,7 +8,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .chains import ChainReport, Jump, RoundStats, pool_stats
+from .chains import ChainReport, RoundStats, pool_stats
+from .proposal import Jump
 
 
 # --------------------------------------------------------------------------- coordinator

@@ -8,7 +8,8 @@ from typing import Callable, Generator
 
 import numpy as np
 
-from .chains import Batch, ChainState, Map, SamplerError, Step, run, safe_cholesky, serial_map
+from .chains import Batch, ChainState, Map, SamplerError, Step, run, serial_map
+from .proposal import safe_cholesky
 from .config import SamplerConfig, SamplerResult
 from .transform import free_coordinates
 

@@ -228,7 +228,8 @@ def _sampler_step_us(target, res, n: int) -> float:
     independence proposal, as the stationary stage draws) on ``target``'s prior with a likelihood that costs
     nothing, so what is timed is the proposal, its densities, the coordinates' map and the prior."""
     from ardflow.ardcore.likelihood.posterior import FunctionTarget
-    from ardflow.ardcore.sampling.chains import ChainState, Jump, run_round
+    from ardflow.ardcore.sampling.chains import ChainState, run_round
+    from ardflow.ardcore.sampling.proposal import Jump
     from ardflow.ardcore.sampling.transform import free_coordinates
 
     costless = FunctionTarget(target.names, target.prior, lambda x: 0.0)
