@@ -112,7 +112,7 @@ class AdaptationPool:
         return (2.38**2 / d) * C + np.diag((1e-8 * scale) ** 2)
 
     def jump(self, weight: float, df: float) -> Jump | None:
-        """The independence half of the proposal (:class:`~ardcore.sampling.chains.Jump`), fitted to the pooled latter
+        """The independence half of the proposal (:class:`~ardcore.sampling.proposal.Jump`), fitted to the pooled latter
         half of every chain's rounds: their mean and covariance as the t's centre and scale. None before
         there are enough draws for a covariance (or with ``weight`` 0)."""
         if not weight > 0 or self.rounds == 0 or not all(self.halves):

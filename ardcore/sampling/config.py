@@ -77,7 +77,7 @@ class SamplerConfig(BaseModel):
         (for comparison only).
     jump_weight : float
         The share of steps that propose from an independence proposal (a multivariate t fitted to the
-        pooled burn-in draws, :class:`~ardcore.sampling.chains.Jump`) instead of the random walk: in burn-in once
+        pooled burn-in draws, :class:`~ardcore.sampling.proposal.Jump`) instead of the random walk: in burn-in once
         delayed rejection is over, and throughout the stationary stage (fixed there, so Chib-Jeliazkov holds
         with the mixture's density). 0 is the plain random walk of method.md. On Sec 3.6 it cut the
         integrated autocorrelation time of M2 from ~30 draws to a few and made M3's curved posterior mix.
@@ -158,7 +158,7 @@ class SamplerResult:
     n_evaluations: int
     warnings: list = field(default_factory=list)
     jump: dict | None = None
-    """The stationary stage's independence proposal (:class:`~ardcore.sampling.chains.Jump` as a dict; None: the plain
+    """The stationary stage's independence proposal (:class:`~ardcore.sampling.proposal.Jump` as a dict; None: the plain
     random walk), which the Chib-Jeliazkov ordinate needs with ``proposal_cov``."""
     diagnostics: dict = field(default_factory=dict)
     """ArviZ's rank R-hat, bulk and tail ESS and MCSE per parameter of the stationary draws

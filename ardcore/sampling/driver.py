@@ -151,7 +151,7 @@ a key with one of an earlier pass; the store's slot is the index modulo STRIDE).
 def stationary_rounds(target, states: list, config: SamplerConfig, *, pool: AdaptationPool, counters: list,
                       resume: dict | None = None) -> Generator:
     """The stationary stage: draws by Metropolis-Hastings with the fixed proposal (the random walk with
-    the pool's covariance mixed with the pool's independence proposal, :class:`~ardcore.sampling.chains.Jump`), one
+    the pool's covariance mixed with the pool's independence proposal, :class:`~ardcore.sampling.proposal.Jump`), one
     :class:`~.chains.Batch` and one event per round, until the draws meet the quality target or the budget is
     spent.
 
