@@ -280,7 +280,7 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     screened values and from the prior side by side, :func:`_better_start`): the first that qualifies is the move
     (a round that takes it offers the others again). The record is a replacement's with the state
     (:func:`state_summary`)."""
-    from .confirm import fit_all, fit_task
+    from .confirm import fit_all
 
     config, say = ctx.config, ctx.say
     ms = current.cand.model_spec()
@@ -309,7 +309,7 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
             if got is not None:
                 return got
         return None
-    fits = ctx.mapper(fit_task, tasks)
+    fits = fit_all(ctx.mapper, tasks)  # lags: fits from the prior, their start searches spread over the pool
     gain = np.array([row.log_evidence - current.row.log_evidence for row, _ in fits], dtype=float)
     if not np.isfinite(gain).any():
         return None
