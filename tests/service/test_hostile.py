@@ -647,8 +647,10 @@ def test_a_full_disk_is_a_507_and_a_failed_study_never_running(hostile, tmp_path
 
     with Server(app, port), httpx.Client(timeout=60, headers=H) as c:
         base = f"http://127.0.0.1:{port}/v1"
+        # a study that runs for minutes: it must still be running when its driver is killed below (one of 4,000
+        # draws a trial finished first on a loaded machine once the sampler grew faster, and left no driver to kill)
         sid = c.post(f"{base}/studies", json=dict(SPEC, seed=81, maximiser=dict(SPEC["maximiser"], max_trials=40),
-                                                  sampler=dict(SPEC["sampler"], n_stationary=4000))).json()["id"]
+                                                  sampler=dict(SPEC["sampler"], n_stationary=400_000))).json()["id"]
         with monkeypatch.context() as m:
             m.setattr(Registry, "write_meta", full)
             r = c.post(f"{base}/studies", json=dict(SPEC, seed=82))
