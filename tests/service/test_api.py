@@ -218,16 +218,20 @@ def start_service(root: Path, port: int):
     process once /v1/health answers."""
     cmd = [sys.executable, "-m", "ardflow.service.cli", "serve", "--port", str(port), "--root", str(root), "--workers", "2",
            "--token", TOKEN]
-    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    # its output goes to a log beside the root, so a service that does not start says why
+    log = root.parent / f"serve-{port}-{time.monotonic_ns()}.log"
+    with open(log, "wb") as out:
+        p = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     deadline = time.time() + 120
-    while time.time() < deadline:
+    while time.time() < deadline and p.poll() is None:
         try:
             with Client(f"http://127.0.0.1:{port}", token=TOKEN, timeout=2) as c:
                 c.health()
                 return p
         except Exception:
             time.sleep(0.3)
-    raise RuntimeError("service did not start")
+    tail = log.read_text(errors="replace")[-3000:]
+    raise RuntimeError(f"service did not start (exit {p.poll()}); its output ends:\n{tail}")
 
 
 class ServiceProcess:
@@ -249,7 +253,10 @@ class ServiceProcess:
         self.p = start_service(self.root, self.port)
 
     def __exit__(self, *exc):
-        os.killpg(self.p.pid, signal.SIGKILL)
+        try:
+            os.killpg(self.p.pid, signal.SIGKILL)
+        except ProcessLookupError:  # it had already exited (a service that did not start): its error stands
+            pass
 
 
 def test_service_restart_mid_study(tmp_path):
