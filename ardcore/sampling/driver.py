@@ -104,7 +104,8 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
     """
     dr = config.dr_scale if dr_scale is None else dr_scale
     b_acc = b_n = n_eval = 0
-    while pool.rounds < config.max_burnin_rounds:
+    # a checkpoint of the round that converged resumes into the stationary stage, as the run it was taken from did
+    while pool.rounds < config.max_burnin_rounds and not (pool.rounds and pool.converged()):
         rnd = pool.rounds + 1
         dr_r = dr if rnd <= config.dr_rounds else 0.0
         jump = pool.jump(config.jump_weight, config.jump_df) if dr_r == 0 else None
@@ -133,8 +134,6 @@ def burnin_rounds(target, states: list, pool: AdaptationPool, config: SamplerCon
             "stage": "burnin", "states": [q.to_dict() for q in states], "pool": pool.to_dict(),
             "counters": [counters[0] + b_acc, counters[1] + b_n, counters[2] + n_eval], "dr_scale": dr,
             "shrink": shrink})
-        if pool.converged():
-            break
     return states, b_acc, b_n, n_eval
 
 
