@@ -21,6 +21,10 @@ parameter: M2's ``B (P - CM)``) is not offered again.
 **A sensor**. For a measured state, the sensor's own first-order dynamics: the measurement reads ``m``,
 ``m' = b (h - m)`` (``h`` the declared measurement expression).
 
+**An actuator**. For an input ``u`` that drives the dynamics, the actuator's own first-order dynamics: every
+drift equation reads ``a`` instead of ``u``, ``a' = b (u - a)`` (a valve, a motor, a heater that does not
+follow its command at once).
+
 **A second mode**. For an oscillator ``x' = v``, a mass on a spring and damper attached to it (a secondary
 structure, a sloshing or a flexible part), two states ``q, dq``::
 
@@ -36,7 +40,7 @@ from typing import NamedTuple
 
 import sympy as sp
 
-from .base import declared_names, oscillator_pairs, short_name
+from .base import declared_names, oscillator_pairs, short_name, user_inputs
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
 
@@ -44,7 +48,10 @@ from ..model.expr import parse_expression
 class Lag(NamedTuple):
     """A state move: ``kind`` "lag" (the derived quantity ``term`` of the ``target`` state's equation through a
     lag), "hysteresis" (a Bouc-Wen state of the oscillator whose position is ``term`` in the velocity ``target``'s
-    equation) or "sensor" (the measurement ``term`` of the observed column ``target`` read through a lag)."""
+    equation), "sensor" (the measurement ``term`` of the observed column ``target`` read through a lag),
+    "actuator" (the input ``term`` read through a lag by every drift equation, ``target`` the first state it
+    drives) or "mode" (a second mode of the oscillator whose position is ``term``, coupled to its velocity
+    ``target``)."""
 
     term: str
     target: str
@@ -123,6 +130,18 @@ def sensors(spec: ModelSpec) -> list[Lag]:
     return out
 
 
+def actuators(spec: ModelSpec) -> list[Lag]:
+    """An actuator state for each of the user's inputs (not a column the loop made: a forcing's sine, an input's
+    rate) that drives a state's drift (directly or through a derived quantity) and is not read through one
+    yet."""
+    uses, out = _uses(spec), []
+    for u in user_inputs(spec):
+        where = [s for s, text in spec.drift.items() if _mentions(spec, text, u, uses)]
+        if where and names_of(Lag(u, where[0], "actuator"))[0] not in spec.states:
+            out.append(Lag(u, where[0], "actuator"))
+    return out
+
+
 def names_of(move: Lag) -> tuple[str, ...]:
     """The new state and its parameters, named after what they act on: a lag's (state, rate, feedthrough), a
     hysteresis' (state, coupling, beta, gamma), a sensor's (state, rate), a mode's (its two states, frequency,
@@ -132,6 +151,8 @@ def names_of(move: Lag) -> tuple[str, ...]:
         names = (f"hys_{x}", f"k_hys_{x}", f"beta_{x}", f"gamma_{x}")
     elif move.kind == "sensor":
         names = (f"sensor_{move.target}", f"b_sensor_{move.target}")
+    elif move.kind == "actuator":
+        names = (f"act_{move.term}", f"b_act_{move.term}")
     elif move.kind == "mode":
         x = move.term
         names = (f"mode_{x}", f"dmode_{x}", f"w_mode_{x}", f"z_mode_{x}", f"mu_mode_{x}")
@@ -166,6 +187,11 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
         _, b = new
         drift[z] = f"{b}*(({lag.term}) - {z})"
         observations = [o.model_copy(update={"expr": z}) if o.column == lag.target else o for o in observations]
+    elif lag.kind == "actuator":
+        _, b = new
+        drift = {s: _words(text, lag.term, z) for s, text in drift.items()}
+        derived = {d: _words(text, lag.term, z) for d, text in derived.items()}
+        drift[z] = f"{b}*({lag.term} - {z})"
     elif lag.kind == "mode":
         q, dq, w, zeta, mu = new
         x, v = lag.term, lag.target

@@ -193,7 +193,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             if move is None and config.states:
                 # the term families left what they cannot take up: the states that could hold it
                 t_states = time.perf_counter()
-                extra = best_state(ctx, held, ("hysteresis", "sensor", "mode"))
+                extra = best_state(ctx, held, STATE_KINDS)
                 if extra is not None:
                     move, more = decide(ctx, crit, held, extra, [], [], rec)
                     judged_round["moves"] += more["moves"]
@@ -297,9 +297,13 @@ def _present(rounds: list[LoopRound]) -> set:
     return {x.key for r in rounds for x in r.added if not x.record.get("removed")}
 
 
+STATE_KINDS = ("hysteresis", "sensor", "actuator", "mode")
+"""The state families offered when the term families leave what they cannot take up (:mod:`.states`)."""
+
+
 def _closed(rounds: list[LoopRound]) -> set:
-    """The states added with an equation of fixed form (a hysteresis, a sensor, a mode): the screen leaves them
-    alone."""
+    """The states added with an equation of fixed form (a hysteresis, a sensor, an actuator, a mode): the screen
+    leaves them alone."""
     return {n for r in rounds for x in r.record.get("replaced", []) if x.get("state") and x["state"]["kind"] != "lag"
             for n in x["state"].get("states", [x["state"]["name"]])}
 

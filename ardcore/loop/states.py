@@ -1,19 +1,21 @@
-"""States the model lacks: a declared quantity through a lag, a hysteresis, a sensor's dynamics, a second mode.
+"""States the model lacks: a declared quantity through a lag, a hysteresis, a sensor's or an actuator's dynamics, a
+second mode.
 
 The loop's other moves add or reshape terms in the equations of the states the user declared. Many real
-omissions are a state of their own. Four families are offered, each a full fit judged like a law replacement
+omissions are a state of their own. Five families are offered, each a full fit judged like a law replacement
 (:mod:`.replace`): its ln Bayes factor against the current model must exceed ``config.min_log_bf`` plus ln of
 the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it. The
-hysteresis, the sensor and the mode are screened first (:func:`screened_states`): only those that fit better with
-the current model held at its MAP are fitted in full, best first. A lag is offered every round, beside the laws;
-the hysteresis, the sensor and the mode only when the loop would stop (the term families left structure they
-cannot take up).
+hysteresis, the sensor, the actuator and the mode are screened first (:func:`screened_states`): only those that
+fit better with the current model held at its MAP are fitted in full (:func:`_screened_pick`). A lag is
+offered every round, beside the laws; the others only when the loop would stop (the term families left structure
+they cannot take up).
 
 The families and what each adds to a declaration are :mod:`ardcore.effects.states`. Priors: a lag's rate ``b``
-lognormal at the record's dominant angular frequency, a tenth to ten times it at +-2 sd (a sensor's a tenth to a
-hundred times: a sensor is faster than what it measures); its ``k`` normal around 0 at the size that makes
-``k s'`` as large as ``b D``; the law's coefficients keep their prior's width centred on zero (a lag turns the
-law's phase, so a sign chosen for the quasi-steady reading no longer binds) and its ARD terms are selected again.
+lognormal at the record's dominant angular frequency, a tenth to ten times it at +-2 sd (a sensor's or an
+actuator's once to a hundred times: it is faster than what it measures or drives); its ``k`` normal around 0
+at the size that makes ``k s'`` as large as ``b D``; the law's coefficients keep their prior's width centred on
+zero (a lag turns the law's phase, so a sign chosen for the quasi-steady reading no longer binds) and its ARD
+terms are selected again.
 A hysteresis' ``beta`` lognormal at the inverse of the displacement's spread, ``gamma`` normal around 0 at that
 size, ``k`` normal around 0 at the size of the velocity equation's own drift over the displacement. A mode's
 ``w`` lognormal over a tenth to ten times the record's dominant frequency, ``zeta`` lognormal from 0.5 % to 50 %,
@@ -29,7 +31,7 @@ import numpy as np
 import sympy as sp
 
 from ..effects.base import declared_names, short_name
-from ..effects.states import Lag, hystereses, lag_spec, lags, modes, names_of, new_states, sensors
+from ..effects.states import Lag, actuators, hystereses, lag_spec, lags, modes, names_of, new_states, sensors
 from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
@@ -129,8 +131,9 @@ def lag_candidate(current: Fit, lag: Lag, at: Along | None = None) -> CandidateS
         priors[w] = _lognormal(rate, RATE_SPAN)
         priors[zeta] = LogNormal.spanning(0.05, 0.005, 0.5)
         priors[mu] = Normal(mean=0.0, sd=1.0)
-    elif lag.kind == "sensor":
-        y0 = float(np.asarray(cols[lag.target], float)[0])
+    elif lag.kind in ("sensor", "actuator"):
+        # a sensor starts at its first reading, an actuator at its first command
+        y0 = float(np.asarray(cols[lag.target if lag.kind == "sensor" else lag.term], float)[0])
         spec = lag_spec(ms, lag, (y0 if np.isfinite(y0) else float(d[0]), 0.1 * sd_d))
         priors[new[1]] = _lognormal(10.0 * rate, RATE_SPAN)
     else:
@@ -169,6 +172,8 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
         eq = f"{z}' = {v} - {new[2]}*|{v}|*{z} - {new[3]}*{v}*|{z}|, {new[1]}*{z} in the {v} equation"
     elif lag.kind == "sensor":
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the measurement {lag.target} reads {z}"
+    elif lag.kind == "actuator":
+        eq = f"{z}' = {new[1]}*({lag.term} - {z}), the dynamics read {z} for {lag.term}"
     elif lag.kind == "mode":
         q, dq, w, zeta, mu = new
         x, v = lag.term, lag.target
@@ -179,7 +184,7 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
     states = new_states(lag)
     out = {"name": z, "kind": lag.kind, "term": lag.term, "target": lag.target, "equation": eq,
            "states": list(states), "parameters": {n: shape_summary(row, n) for n in new[len(states):] if n in row.mean}}
-    if lag.kind in ("lag", "sensor") and new[1] in row.mean:
+    if lag.kind in ("lag", "sensor", "actuator") and new[1] in row.mean:
         r = out["parameters"][new[1]]
         out["time_constant"] = {"mean": 1.0 / r["mean"], "q005": 1.0 / r["q995"], "q995": 1.0 / r["q005"]}
     if lag.kind == "mode" and new[2] in row.mean:
@@ -215,7 +220,7 @@ def screened_states(ctx, current: Fit, offered: list, tasks: list) -> list[tuple
     order = []
     for i, (log_z, at) in enumerate(cond):
         gain, new, move = log_z - base, reduced[i].new, offered[i]
-        ctx.say(f"  screened: a {move.kind} ({move.term} -> {move.target}): conditional ln BF {gain:.1f}"
+        ctx.say(f"  screened: {_a(move.kind)} ({move.term} -> {move.target}): conditional ln BF {gain:.1f}"
                 + ("" if gain > 0 else ", not fitted in full"))
         if gain > 0:
             cand, data, spec, _, posterior = tasks[i]
@@ -242,31 +247,87 @@ def _better_start(fits: list) -> tuple:
     return cold, cm
 
 
-def _taken(ctx, current: Fit, lag: Lag, task: tuple, fit: tuple, gain: float, need: float):
-    """``(fit, [record], ln BF)`` of the state move ``lag`` fitted as ``fit`` when it qualifies (it gains more
-    than ``need`` nats, its fit is a result and a coupled state's coupling is not 0), else None (said why)."""
-    say = ctx.say
-    row, mr = fit
+def _a(kind: str) -> str:
+    """``kind`` with its article, as the progress lines say it."""
+    return ("an " if kind[0] in "aeiou" else "a ") + kind
+
+
+def _refused(lag: Lag, row, gain: float, need: float) -> str | None:
+    """Why the state move ``lag`` fitted as ``row`` does not qualify (it gains no more than ``need`` nats, its
+    fit is no result, or a coupled state's coupling may be 0), None when it does."""
     if not gain > need:
-        say(f"  the best state, a {lag.kind} ({lag.term} -> {lag.target}): ln BF {gain:.1f}, needs {need:.1f}")
-        return None
+        return f"the best state, {_a(lag.kind)} ({lag.term} -> {lag.target}): ln BF {gain:.1f}, needs {need:.1f}"
     why = row.degenerate()
     if why is not None:
-        say(f"  a {lag.kind} ({lag.term} -> {lag.target}): {why}")
-        return None
-    state = state_summary(row, lag)
+        return f"{_a(lag.kind)} ({lag.term} -> {lag.target}): {why}"
     if lag.kind in COUPLING:
         # a Bouc-Wen state or a second mode acts on the model only through its coupling: one whose 99 % interval
         # holds 0 changes nothing the data pin down (its shape then fits the noise), as an effect ARD would prune
         name = names_of(lag)[COUPLING[lag.kind]]
-        c = state["parameters"].get(name)
+        c = state_summary(row, lag)["parameters"].get(name)
         if c is None or not (c["q005"] > 0 or c["q995"] < 0):
-            say(f"  a {lag.kind} ({lag.term} -> {lag.target}): its coupling {name}'s 99 % interval holds 0")
-            return None
-    say(f"  a state: {state['equation']} (ln BF {gain:.1f})")
+            return f"{_a(lag.kind)} ({lag.term} -> {lag.target}): its coupling {name}'s 99 % interval holds 0"
+    return None
+
+
+def _taken(ctx, current: Fit, lag: Lag, task: tuple, fit: tuple, gain: float, need: float):
+    """``(fit, [record], ln BF)`` of the state move ``lag`` fitted as ``fit`` when it qualifies
+    (:func:`_refused`), else None (said why)."""
+    row, mr = fit
+    why = _refused(lag, row, gain, need)
+    if why is not None:
+        ctx.say("  " + why)
+        return None
+    state = state_summary(row, lag)
+    ctx.say(f"  a state: {state['equation']} (ln BF {gain:.1f})")
     record = {"parameter": "", "term": lag.term, "target": lag.target, "by": f"the state {state['name']}",
               "form": lag.kind, "log_bayes_factor": float(gain), "state": state}
     return Fit(task[0], row, mr, current.data), [record], float(gain)
+
+
+SWAPPED = {"sensor": "actuator", "actuator": "sensor"}
+"""The lag at a model's output and the lag at its input, which its linear part cannot tell apart (a linear system
+read through a lag is the same system driven through it): the screen, which holds the current model where it was,
+does not order them (on the validation set's ``actuator`` record the actuator screened at 66 nats against the
+sensor's 292 and beat it in full by 140), so when its best move is one of them the best of the other is fitted
+beside it and the evidence chooses."""
+
+
+def _screened_pick(ctx, current: Fit, offered: list, tasks: list, order: list, need: float):
+    """The move :func:`best_state` takes of the screened ones (``order``, :func:`screened_states`), or None.
+
+    The screen's best is fitted in full from its screened values and from the prior (:func:`_better_start`),
+    side by side with its swapped rival if one screened (:data:`SWAPPED`, from its screened values); of those
+    that qualify (:func:`_refused`) the one with the higher evidence is the move. When none does, the rest are
+    fitted in the screen's order, each from both starts, and the first that qualifies is the move."""
+    from .confirm import fit_all
+
+    if not order:
+        return None
+    base = current.row.log_evidence
+    kind = SWAPPED.get(offered[order[0][0]].kind)
+    head = [order[0], *[o for o in order[1:] if offered[o[0]].kind == kind][:1]]
+    got = fit_all(ctx.mapper, [head[0][1], tasks[head[0][0]], *(task for _, task in head[1:])])
+    fits = [_better_start(got[:2]), *got[2:]]
+    gains = [f[0].log_evidence - base if np.isfinite(f[0].log_evidence) else -math.inf for f in fits]
+    if len(head) > 1:
+        ctx.say("  fitted in full: " + ", ".join(f"{_a(offered[i].kind)} ln BF {g:.1f}"
+                                                 for (i, _), g in zip(head, gains)))
+    ok = [j for j in range(len(head)) if _refused(offered[head[j][0]], fits[j][0], gains[j], need) is None]
+    if ok:
+        j = max(ok, key=lambda j: gains[j])
+        i, task = head[j]
+        return _taken(ctx, current, offered[i], task, fits[j], gains[j], need)
+    _taken(ctx, current, offered[head[0][0]], head[0][1], fits[0], gains[0], need)  # says why not
+    for i, task in order[1:]:
+        # the rival's fit from the prior now; the others' from both starts
+        warm = [f for (j, _), f in zip(head[1:], fits[1:]) if j == i]
+        fit = _better_start([*warm, *fit_all(ctx.mapper, [tasks[i]])] if warm
+                            else fit_all(ctx.mapper, [task, tasks[i]]))
+        got = _taken(ctx, current, offered[i], task, fit, fit[0].log_evidence - base, need)
+        if got is not None:
+            return got
+    return None
 
 
 def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
@@ -276,15 +337,13 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     A move qualifies when its ln Bayes factor against the current model exceeds ``config.min_log_bf`` plus ln of
     the number offered and its fit is a result (:func:`_taken`). Lags are fitted side by side on the loop's pool
     (a full ARD re-selection each, the law's terms selected again) and the best is judged. The other states are
-    screened first (:func:`screened_states`) and fitted in full one at a time in the screen's order (from its
-    screened values and from the prior side by side, :func:`_better_start`): the first that qualifies is the move
-    (a round that takes it offers the others again). The record is a replacement's with the state
-    (:func:`state_summary`)."""
+    screened first (:func:`screened_states`) and fitted in full in the screen's order, a sensor's and an
+    actuator's lag side by side (:func:`_screened_pick`). A round that takes one offers the others again. The record is a replacement's with the state (:func:`state_summary`)."""
     from .confirm import fit_all
 
     config, say = ctx.config, ctx.say
     ms = current.cand.model_spec()
-    offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors, "mode": modes}
+    offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors, "actuator": actuators, "mode": modes}
     offered, tasks = [], []
     moves = [m for kind in kinds for m in offer[kind](ms)]
     at = along(current) if moves else None
@@ -303,12 +362,7 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     need = config.min_log_bf + math.log(len(tasks))
     order = screened_states(ctx, current, offered, tasks)
     if order is not None:
-        for i, task in order:
-            fit = _better_start(fit_all(ctx.mapper, [task, tasks[i]]))
-            got = _taken(ctx, current, offered[i], task, fit, fit[0].log_evidence - current.row.log_evidence, need)
-            if got is not None:
-                return got
-        return None
+        return _screened_pick(ctx, current, offered, tasks, order, need)
     fits = fit_all(ctx.mapper, tasks)  # lags: fits from the prior, their start searches spread over the pool
     gain = np.array([row.log_evidence - current.row.log_evidence for row, _ in fits], dtype=float)
     if not np.isfinite(gain).any():

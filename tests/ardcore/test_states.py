@@ -87,6 +87,30 @@ def test_a_hysteresis_and_a_sensor_are_offered_on_an_oscillator_and_built_as_dec
     assert sensors(s) == [] and hystereses(h) == [] and offered == []
 
 
+def test_an_actuator_reads_the_user_s_input_through_a_lag_and_is_offered_once():
+    """The actuator built on the forced linear oscillator: every drift equation reads the new state where it read
+    the input, the state follows the input at rate b; a column the loop made (an input's rate) is not offered,
+    and an input read through an actuator is not offered again."""
+    from ardflow.ardcore.effects.base import RATE_COLUMN
+    from ardflow.ardcore.effects.states import actuators
+    from ardflow.ardcore.model.library import builtin
+
+    osc = builtin("forced_linear_oscillator")
+    (u,), v = osc.inputs, osc.states[1]
+    assert actuators(osc) == [Lag(u, v, "actuator")]
+    a = lag_spec(osc, actuators(osc)[0], (0.2, 0.1))
+    z = a.states[-1]
+    assert (z, a.parameters[-1]) == (f"act_{u}", f"b_act_{u}") and a.drift[z] == f"b_act_{u}*({u} - {z})"
+    assert a.initial_mean[z] == 0.2 and a.initial_std[z] == 0.1
+    A, U = sp.Symbol(z, real=True), sp.Symbol(u, real=True)
+    assert sp.simplify(symbolic(a).drift[1] - symbolic(osc).drift[1].subs(U, A)) == 0
+    assert actuators(a) == []
+    rate = RATE_COLUMN.format(u)
+    made = osc.model_copy(update={"inputs": [u, rate], "parameters": [*osc.parameters, "k_rate"],
+                                  "drift": {**osc.drift, v: f"{osc.drift[v]} + k_rate*{rate}"}}).revalidate()
+    assert actuators(made) == [Lag(u, v, "actuator")]
+
+
 def test_a_second_mode_is_a_mass_on_a_spring_and_damper_and_is_offered_once():
     """The mode built on the forced linear oscillator is the two-degree-of-freedom system it stands for: with the
     mass ratio mu, the oscillator's equation gains mu times the force its spring and damper pass to the mode,
@@ -118,7 +142,7 @@ def _screened(name: str):
 
     from ardflow.ardcore.loop.confirm import Fit
     from ardflow.ardcore.screening.states import conditional, screen
-    from ardflow.ardcore.effects.states import hystereses, modes, sensors
+    from ardflow.ardcore.effects.states import actuators, hystereses, modes, sensors
     from ardflow.ardcore.loop.states import along, lag_candidate
     from ardflow.ardcore.selection.study import run_candidate
     from tests.bench.validation import RECORDS
@@ -128,7 +152,7 @@ def _screened(name: str):
     row, mr = run_candidate(cand, rec.est, rec.spec, 0, final_posterior="laplace")
     cur = Fit(cand, row, mr, rec.est)
     at, ms = along(cur), cand.model_spec()
-    moves = hystereses(ms) + sensors(ms) + modes(ms)
+    moves = hystereses(ms) + sensors(ms) + actuators(ms) + modes(ms)
     reduced = [conditional(lag_candidate(cur, m, at), dict(zip(mr.sampler.names, mr.sampler.phi_star)))
                for m in moves]
     # the screen searches only the new state's own parameters: the current model's are held at its MAP
@@ -142,7 +166,7 @@ def _screened(name: str):
 
 def test_the_screen_puts_a_planted_second_mode_first_near_its_frequency():
     """On a record whose truth has a second mode (9 rad/s, mass ratio 0.3), the mode's conditional ln BF is
-    positive and the highest of the three states, and its screened frequency is near the truth's: the full fit
+    positive and the highest of the states, and its screened frequency is near the truth's: the full fit
     then starts there."""
     gain, at = _screened("second_mode")
     assert gain["mode"] > 0 and gain["mode"] == max(gain.values()), gain

@@ -28,6 +28,8 @@ Records (the physics each one holds; ``sigma`` process noise, ``gamma`` measurem
   z' = v - beta |v| z - gamma_bw v |z| (a hidden hysteretic state). User model: linear.
 * ``sensor_lag``: a linear oscillator read through a sensor with its own first-order dynamics, m' = (y - m)/tau,
   tau = 0.05 s (an 11 degree lag at the resonance). User model: linear, the sensor reading y directly.
+* ``actuator``: a hardening oscillator, y'' = -k y - c y' - k3 y^3 + b a, driven through an actuator with its own
+  first-order lag, a' = (u - a)/tau, tau = 0.1 s. User model: the hardening oscillator driven by u directly.
 * ``heated_body``: a lumped body (heat capacity 500 J/K) cooling to a 295 K ambient by convection (0.5 W/K)
   and radiation (2.55e-9 (T^4 - 295^4) W), its heater's power stepped every 5-25 minutes and held between the
   5 s samples (integrated here by 50 Euler-Maruyama steps per sample). User model: Newton cooling
@@ -195,6 +197,22 @@ def sensor_lag(n: int = 4000, seed: int = 18) -> Record:
     spec, data, truth = _against_linear("sensor_lag", truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.3}, u, seed)
     return _split("sensor_lag", spec, data, (True, False), "a sensor with its own first-order lag (tau 0.05 s)",
                   ("form:sensor",), truth)
+
+
+def actuator(n: int = 4000, seed: int = 21) -> Record:
+    u = 1.5 * _noise_input(np.random.default_rng(seed), n)
+    values = {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}
+    truth = _truth("-k*y - c*v - k3*y**3 + b*a", list(values), 2e-3, states=("y", "v", "a"),
+                   drift_extra={"a": "10.0*(u - a)"})
+    data = _simulate(truth, values, np.arange(n) * 0.02, u, seed, 3)
+    # the user knows the hardening spring; what the model lacks is the actuator's own lag
+    user = _linear_oscillator(2e-3)
+    user["drift"] = {"y": "v", "v": "-k*y - c*v - k3*y**3 + b*u"}
+    user["parameters"] = ["k", "c", "k3", "b", "sigma"]
+    spec = _oscillator_study("actuator", user, {**OSC_PRIORS, "k3": {"kind": "lognormal", "median": 3.0, "cov": 200}})
+    return _split("actuator", spec, data, (True, False),
+                  "a hardening oscillator driven through an actuator with its own first-order lag (tau 0.1 s)",
+                  ("form:actuator",), (truth, values))
 
 
 def second_mode(n: int = 4000, seed: int = 19) -> Record:
@@ -410,7 +428,8 @@ def _lco_maker(name):
 
 
 RECORDS = {"cascade": cascade, "duffing": duffing, "friction": friction, "saturation": saturation,
-           "backlash": backlash, "hysteresis": hysteresis, "sensor_lag": sensor_lag, "second_mode": second_mode,
+           "backlash": backlash, "hysteresis": hysteresis, "sensor_lag": sensor_lag, "actuator": actuator,
+           "second_mode": second_mode,
            "heated_body": heated_body, "none": none,
            "tanks_linear": lambda n=None, seed=None: tanks("linear"), "tanks_sqrt": lambda n=None, seed=None: tanks("sqrt"),
            **{k: _lco_maker(k) for k in LCO_EFFECTS}, "lco_quasi_steady": lco_quasi_steady}
