@@ -25,6 +25,13 @@ parameter: M2's ``B (P - CM)``) is not offered again.
 drift equation reads ``a`` instead of ``u``, ``a' = b (u - a)`` (a valve, a motor, a heater that does not
 follow its command at once).
 
+**A second store**. For a first-order state ``x`` (a temperature, a level, a charge: not an oscillator's), a
+second store exchanging with it (a second thermal mass, a tank or a capacitor it feeds and drains)::
+
+    x' = ... + k (z - x),    z' = b (x - z)
+
+(``b`` the store's rate, ``k`` the exchange's rate seen from ``x``).
+
 **A second mode**. For an oscillator ``x' = v``, a mass on a spring and damper attached to it (a secondary
 structure, a sloshing or a flexible part), two states ``q, dq``::
 
@@ -50,7 +57,8 @@ class Lag(NamedTuple):
     lag), "hysteresis" (a Bouc-Wen state of the oscillator whose position is ``term`` in the velocity ``target``'s
     equation), "sensor" (the measurement ``term`` of the observed column ``target`` read through a lag),
     "actuator" (the input ``term`` read through a lag by every drift equation, ``target`` the first state it
-    drives) or "mode" (a second mode of the oscillator whose position is ``term``, coupled to its velocity
+    drives), "store" (a second store exchanging with the first-order state ``term``, its equation ``target``) or
+    "mode" (a second mode of the oscillator whose position is ``term``, coupled to its velocity
     ``target``)."""
 
     term: str
@@ -117,6 +125,25 @@ def modes(spec: ModelSpec) -> list[Lag]:
     return [Lag(x, v, "mode") for x, v in _oscillators(spec) if names_of(Lag(x, v, "mode"))[0] not in spec.states]
 
 
+def stores(spec: ModelSpec) -> list[Lag]:
+    """A second store for each first-order state (none of an oscillator's, none a state family added: a store of
+    a store is a basis expansion) that has none yet."""
+    paired = {n for pair in oscillator_pairs(spec) for n in pair}
+    made = _made(spec)
+    return [Lag(x, x, "store") for x in spec.states if x not in paired and x not in made
+            and names_of(Lag(x, x, "store"))[0] not in spec.states]
+
+
+def _made(spec: ModelSpec) -> set:
+    """The states of ``spec`` a state family added (a lag, a sensor, an actuator, a store, a hysteresis, a mode),
+    by their names."""
+    moves = [Lag(d, d, "lag") for d in spec.derived]
+    moves += [Lag(o.column, o.column, "sensor") for o in spec.observations]
+    moves += [Lag(u, u, "actuator") for u in spec.inputs]
+    moves += [Lag(x, x, k) for x in spec.states for k in ("store", "hysteresis", "mode")]
+    return {n for m in moves for n in new_states(m)} & set(spec.states)
+
+
 def sensors(spec: ModelSpec) -> list[Lag]:
     """A sensor state for each measurement of the states that is not read through one yet (what earlier rounds
     added to the measurement, a feedthrough standing in for the sensor's lag, is read through it too: the
@@ -144,8 +171,8 @@ def actuators(spec: ModelSpec) -> list[Lag]:
 
 def names_of(move: Lag) -> tuple[str, ...]:
     """The new state and its parameters, named after what they act on: a lag's (state, rate, feedthrough), a
-    hysteresis' (state, coupling, beta, gamma), a sensor's (state, rate), a mode's (its two states, frequency,
-    damping ratio, mass ratio)."""
+    hysteresis' (state, coupling, beta, gamma), a sensor's or an actuator's (state, rate), a store's (state, rate,
+    exchange), a mode's (its two states, frequency, damping ratio, mass ratio)."""
     if move.kind == "hysteresis":
         x = move.term
         names = (f"hys_{x}", f"k_hys_{x}", f"beta_{x}", f"gamma_{x}")
@@ -153,6 +180,9 @@ def names_of(move: Lag) -> tuple[str, ...]:
         names = (f"sensor_{move.target}", f"b_sensor_{move.target}")
     elif move.kind == "actuator":
         names = (f"act_{move.term}", f"b_act_{move.term}")
+    elif move.kind == "store":
+        x = move.term
+        names = (f"store_{x}", f"b_store_{x}", f"k_store_{x}")
     elif move.kind == "mode":
         x = move.term
         names = (f"mode_{x}", f"dmode_{x}", f"w_mode_{x}", f"z_mode_{x}", f"mu_mode_{x}")
@@ -192,6 +222,11 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
         drift = {s: _words(text, lag.term, z) for s, text in drift.items()}
         derived = {d: _words(text, lag.term, z) for d, text in derived.items()}
         drift[z] = f"{b}*({lag.term} - {z})"
+    elif lag.kind == "store":
+        _, b, k = new
+        x = lag.term
+        drift[x] = f"({drift[x]}) + {k}*({z} - {x})"
+        drift[z] = f"{b}*({x} - {z})"
     elif lag.kind == "mode":
         q, dq, w, zeta, mu = new
         x, v = lag.term, lag.target

@@ -297,13 +297,13 @@ def _present(rounds: list[LoopRound]) -> set:
     return {x.key for r in rounds for x in r.added if not x.record.get("removed")}
 
 
-STATE_KINDS = ("hysteresis", "sensor", "actuator", "mode")
+STATE_KINDS = ("hysteresis", "sensor", "actuator", "store", "mode")
 """The state families offered when the term families leave what they cannot take up (:mod:`.states`)."""
 
 
 def _closed(rounds: list[LoopRound]) -> set:
-    """The states added with an equation of fixed form (a hysteresis, a sensor, an actuator, a mode): the screen
-    leaves them alone."""
+    """The states added with an equation of fixed form (a hysteresis, a sensor, an actuator, a store, a mode): the
+    screen leaves them alone."""
     return {n for r in rounds for x in r.record.get("replaced", []) if x.get("state") and x["state"]["kind"] != "lag"
             for n in x["state"].get("states", [x["state"]["name"]])}
 

@@ -1,14 +1,14 @@
 """States the model lacks: a declared quantity through a lag, a hysteresis, a sensor's or an actuator's dynamics, a
-second mode.
+second store, a second mode.
 
 The loop's other moves add or reshape terms in the equations of the states the user declared. Many real
-omissions are a state of their own. Five families are offered, each a full fit judged like a law replacement
+omissions are a state of their own. Six families are offered, each a full fit judged like a law replacement
 (:mod:`.replace`): its ln Bayes factor against the current model must exceed ``config.min_log_bf`` plus ln of
 the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it. The
-hysteresis, the sensor, the actuator and the mode are screened first (:func:`screened_states`): only those that
-fit better with the current model held at its MAP are fitted in full (:func:`_screened_pick`). A lag is
-offered every round, beside the laws; the others only when the loop would stop (the term families left structure
-they cannot take up).
+hysteresis, the sensor, the actuator, the store and the mode are screened first (:func:`screened_states`): only
+those that fit better with the current model held at its MAP are fitted in full (:func:`_screened_pick`). A lag
+is offered every round, beside the laws; the others only when the loop would stop (the term families left
+structure they cannot take up).
 
 The families and what each adds to a declaration are :mod:`ardcore.effects.states`. Priors: a lag's rate ``b``
 lognormal at the record's dominant angular frequency, a tenth to ten times it at +-2 sd (a sensor's or an
@@ -17,7 +17,8 @@ at the size that makes ``k s'`` as large as ``b D``; the law's coefficients keep
 zero (a lag turns the law's phase, so a sign chosen for the quasi-steady reading no longer binds) and its ARD
 terms are selected again.
 A hysteresis' ``beta`` lognormal at the inverse of the displacement's spread, ``gamma`` normal around 0 at that
-size, ``k`` normal around 0 at the size of the velocity equation's own drift over the displacement. A mode's
+size, ``k`` normal around 0 at the size of the velocity equation's own drift over the displacement. A store's
+``b`` as a lag's, its ``k`` normal around 0 at the size of its state's own drift over that state's spread. A mode's
 ``w`` lognormal over a tenth to ten times the record's dominant frequency, ``zeta`` lognormal from 0.5 % to 50 %,
 ``mu`` normal around 0 at 1 (an effect's coefficient, taken only when its 99 % interval excludes 0).
 """
@@ -31,7 +32,7 @@ import numpy as np
 import sympy as sp
 
 from ..effects.base import declared_names, short_name
-from ..effects.states import Lag, actuators, hystereses, lag_spec, lags, modes, names_of, new_states, sensors
+from ..effects.states import Lag, actuators, hystereses, lag_spec, lags, modes, names_of, new_states, sensors, stores
 from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
@@ -131,6 +132,13 @@ def lag_candidate(current: Fit, lag: Lag, at: Along | None = None) -> CandidateS
         priors[w] = _lognormal(rate, RATE_SPAN)
         priors[zeta] = LogNormal.spanning(0.05, 0.005, 0.5)
         priors[mu] = Normal(mean=0.0, sd=1.0)
+    elif lag.kind == "store":
+        # the store starts where its state does, as uncertain as that state's spread; its rate is a lag's, its
+        # exchange as large as the state's own drift over its spread (a hysteresis' coupling)
+        spec = lag_spec(ms, lag, (float(d[0]), sd_d))
+        _, b, k = new
+        priors[b] = _lognormal(rate, RATE_SPAN)
+        priors[k] = Normal(mean=0.0, sd=sd_acc / sd_d)
     elif lag.kind in ("sensor", "actuator"):
         # a sensor starts at its first reading, an actuator at its first command
         y0 = float(np.asarray(cols[lag.target if lag.kind == "sensor" else lag.term], float)[0])
@@ -174,6 +182,9 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the measurement {lag.target} reads {z}"
     elif lag.kind == "actuator":
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the dynamics read {z} for {lag.term}"
+    elif lag.kind == "store":
+        x = lag.term
+        eq = f"{z}' = {new[1]}*({x} - {z}), {new[2]}*({z} - {x}) in the {x} equation"
     elif lag.kind == "mode":
         q, dq, w, zeta, mu = new
         x, v = lag.term, lag.target
@@ -184,7 +195,7 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
     states = new_states(lag)
     out = {"name": z, "kind": lag.kind, "term": lag.term, "target": lag.target, "equation": eq,
            "states": list(states), "parameters": {n: shape_summary(row, n) for n in new[len(states):] if n in row.mean}}
-    if lag.kind in ("lag", "sensor", "actuator") and new[1] in row.mean:
+    if lag.kind in ("lag", "sensor", "actuator", "store") and new[1] in row.mean:
         r = out["parameters"][new[1]]
         out["time_constant"] = {"mean": 1.0 / r["mean"], "q005": 1.0 / r["q995"], "q995": 1.0 / r["q005"]}
     if lag.kind == "mode" and new[2] in row.mean:
@@ -193,7 +204,7 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
     return out
 
 
-COUPLING = {"hysteresis": 1, "mode": 4}
+COUPLING = {"hysteresis": 1, "store": 2, "mode": 4}
 """The parameter (its place in :func:`names_of`) through which a state of fixed form acts on the model: its
 coupling, an effect's coefficient whose 99 % interval must exclude 0."""
 
@@ -343,7 +354,8 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
 
     config, say = ctx.config, ctx.say
     ms = current.cand.model_spec()
-    offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors, "actuator": actuators, "mode": modes}
+    offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors, "actuator": actuators, "store": stores,
+             "mode": modes}
     offered, tasks = [], []
     moves = [m for kind in kinds for m in offer[kind](ms)]
     at = along(current) if moves else None

@@ -5,7 +5,7 @@ import sympy as sp
 
 from ardflow.ardcore.effects.states import Lag, lag_spec, lags
 from ardflow.ardcore.loop.states import dominant_rate, signal_values
-from ardflow.ardcore.model.declaration import symbolic
+from ardflow.ardcore.model.declaration import ModelSpec, symbolic
 from ardflow.ardcore.model.library import aero_m1, aero_m2
 
 
@@ -135,6 +135,29 @@ def test_a_second_mode_is_a_mass_on_a_spring_and_damper_and_is_offered_once():
     assert modes(m) == [] and hystereses(m) == [Lag(x, v, "hysteresis")]
 
 
+def test_a_store_exchanges_with_a_first_order_state_and_is_offered_once():
+    """The store built on Newton cooling is the two-mass system it stands for: the body's equation gains the
+    exchange k (S - T), the store follows the body at rate b; it is offered for a first-order state only (not for
+    an oscillator's), once, and not for a state a family added (a sensor's, its own)."""
+    from ardflow.ardcore.effects.states import sensors, stores
+    from ardflow.ardcore.model.library import builtin
+
+    cool = ModelSpec(name="nc", states=["T"], inputs=["u"], drift={"T": "q*u - a*(T - 295)"}, diffusion={"T": "s"},
+                     observations=[{"column": "y", "expr": "T", "noise_std": "gamma"}], constants={"gamma": 0.1},
+                     parameters=["a", "q", "s"], initial_mean={"T": 295.0}, initial_std={"T": 5.0})
+    assert stores(cool) == [Lag("T", "T", "store")] and stores(builtin("forced_linear_oscillator")) == []
+    m = lag_spec(cool, stores(cool)[0], (296.0, 3.0))
+    assert m.states == ["T", "store_T"] and m.parameters[-2:] == ["b_store_T", "k_store_T"]
+    assert m.initial_mean["store_T"] == 296.0 and m.initial_std["store_T"] == 3.0
+    sm = symbolic(m.with_fixed(b_store_T=0.001, k_store_T=0.003))
+    T, S = sp.Symbol("T", real=True), sp.Symbol("store_T", real=True)
+    assert sp.simplify(sm.drift[0] - symbolic(cool).drift[0] - 0.003 * (S - T)) == 0
+    assert sp.simplify(sm.drift[1] - 0.001 * (T - S)) == 0
+    assert stores(m) == []
+    read = lag_spec(cool, sensors(cool)[0], (295.0, 0.1))
+    assert stores(read) == [Lag("T", "T", "store")]
+
+
 def _screened(name: str):
     """The stop stage's screen of the state moves on a validation record's first 2,000 samples, from the user's
     linear oscillator fitted there: {kind: conditional ln BF}."""
@@ -142,7 +165,7 @@ def _screened(name: str):
 
     from ardflow.ardcore.loop.confirm import Fit
     from ardflow.ardcore.screening.states import conditional, screen
-    from ardflow.ardcore.effects.states import actuators, hystereses, modes, sensors
+    from ardflow.ardcore.effects.states import actuators, hystereses, modes, sensors, stores
     from ardflow.ardcore.loop.states import along, lag_candidate
     from ardflow.ardcore.selection.study import run_candidate
     from tests.bench.validation import RECORDS
@@ -152,7 +175,7 @@ def _screened(name: str):
     row, mr = run_candidate(cand, rec.est, rec.spec, 0, final_posterior="laplace")
     cur = Fit(cand, row, mr, rec.est)
     at, ms = along(cur), cand.model_spec()
-    moves = hystereses(ms) + sensors(ms) + actuators(ms) + modes(ms)
+    moves = hystereses(ms) + sensors(ms) + actuators(ms) + stores(ms) + modes(ms)
     reduced = [conditional(lag_candidate(cur, m, at), dict(zip(mr.sampler.names, mr.sampler.phi_star)))
                for m in moves]
     # the screen searches only the new state's own parameters: the current model's are held at its MAP

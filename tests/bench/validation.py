@@ -30,6 +30,9 @@ Records (the physics each one holds; ``sigma`` process noise, ``gamma`` measurem
   tau = 0.05 s (an 11 degree lag at the resonance). User model: linear, the sensor reading y directly.
 * ``actuator``: a hardening oscillator, y'' = -k y - c y' - k3 y^3 + b a, driven through an actuator with its own
   first-order lag, a' = (u - a)/tau, tau = 0.1 s. User model: the hardening oscillator driven by u directly.
+* ``two_mass``: a heated body, T' = q u - a (T - 295) + k (S - T), exchanging heat with a second mass,
+  S' = b (T - S), b = 0.001 1/s (a 1,000 s time constant), its heater stepped as the heated body's. User model:
+  Newton cooling, T' = q u - a (T - 295).
 * ``heated_body``: a lumped body (heat capacity 500 J/K) cooling to a 295 K ambient by convection (0.5 W/K)
   and radiation (2.55e-9 (T^4 - 295^4) W), its heater's power stepped every 5-25 minutes and held between the
   5 s samples (integrated here by 50 Euler-Maruyama steps per sample). User model: Newton cooling
@@ -280,6 +283,52 @@ def heated_body(n: int = 6000, seed: int = 20) -> Record:
                   ("square(T-295", "cube(T-295", "power_law(T-295"), _heated_truth())
 
 
+TWO_MASS = {"q": 0.002, "a": 0.001, "k": 0.003, "b": 0.001, "ambient": 295.0, "dt": 5.0, "substeps": 10,
+            "noise": 0.01, "sensor": 0.1}
+"""The two-mass record's physics: the body heated at ``q`` K/J, cooling at ``a`` 1/s, exchanging with a second
+mass at ``k`` 1/s seen from the body and ``b`` 1/s from the mass (its time constant 1,000 s); its making as the heated
+body's."""
+
+
+def two_mass(n: int = 6000, seed: int = 22) -> Record:
+    from ardflow.ardcore.data import Dataset
+    from ardflow.ardcore.model.declaration import ModelSpec
+    from ardflow.ardcore.selection.spec import StudySpec
+
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.uniform(0.0, 100.0, n), rng.integers(60, 300, n))[:n]  # W, held over 5-25 min
+    m = TWO_MASS
+    amb, h = m["ambient"], m["dt"] / m["substeps"]
+    T = S = amb
+    y = np.empty(n)
+    for i in range(n):
+        y[i] = T + m["sensor"] * rng.standard_normal()
+        for _ in range(m["substeps"]):
+            dT = m["q"] * u[i] - m["a"] * (T - amb) + m["k"] * (S - T)
+            S += h * m["b"] * (T - S)
+            T += h * dT + m["noise"] * np.sqrt(h) * rng.standard_normal()
+    data = Dataset(np.arange(n) * m["dt"], {"y": y, "u": u}, {"source": "validation:two_mass"})
+    lognormal = lambda v: {"kind": "lognormal", "median": v, "cov": 300}  # noqa: E731
+    spec = StudySpec.model_validate({
+        "name": "two_mass", "data": {"generator": "appendix_a"}, "evidence": "laplace",
+        "models": [{"model": {"name": "newton_cooling", "states": ["T"], "inputs": ["u"],
+                              "drift": {"T": f"q*u - a*(T - {amb:g})"}, "diffusion": {"T": "s"},
+                              "observations": [{"column": "y", "expr": "T", "noise_std": "gamma"}],
+                              "constants": {"gamma": m["sensor"]}, "parameters": ["a", "q", "s"],
+                              "initial_mean": {"T": amb}, "initial_std": {"T": 5.0}},
+                    "priors": {"a": lognormal(0.001), "q": lognormal(0.001), "s": lognormal(0.05)}}],
+        "sampler": {**SAMPLER, "start_maxfev": 1500}, "seed": 2})
+    truth = ModelSpec(name="two_mass_truth", states=["T", "S"], inputs=["u"],
+                      drift={"T": f"q*u - a*(T - {amb:g}) + k*(S - T)", "S": "b*(T - S)"}, diffusion={"T": "s"},
+                      observations=[{"column": "y", "expr": "T", "noise_std": "gamma"}],
+                      constants={"gamma": m["sensor"]}, parameters=["q", "a", "k", "b", "s"],
+                      initial_mean={"T": amb, "S": amb}, initial_std={"T": 5.0, "S": 5.0}, substeps=m["substeps"])
+    values = {"q": m["q"], "a": m["a"], "k": m["k"], "b": m["b"], "s": m["noise"]}
+    return _split("two_mass", spec, data, (True, False),
+                  "a heated body exchanging heat with a second mass (its time constant 1,000 s) the user's "
+                  "Newton cooling leaves out", ("form:store",), (truth, values))
+
+
 def none(n: int = 4000, seed: int = 16) -> Record:
     u = _noise_input(np.random.default_rng(seed), n)
     truth = _truth("-k*y - c*v + b*u", ["k", "c", "b", "sigma"], 2e-3)
@@ -429,6 +478,7 @@ def _lco_maker(name):
 
 RECORDS = {"cascade": cascade, "duffing": duffing, "friction": friction, "saturation": saturation,
            "backlash": backlash, "hysteresis": hysteresis, "sensor_lag": sensor_lag, "actuator": actuator,
+           "two_mass": two_mass,
            "second_mode": second_mode,
            "heated_body": heated_body, "none": none,
            "tanks_linear": lambda n=None, seed=None: tanks("linear"), "tanks_sqrt": lambda n=None, seed=None: tanks("sqrt"),
