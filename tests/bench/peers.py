@@ -10,11 +10,13 @@ outputs a NARX model needs), the error is taken from sample ``init`` on.
   NARX models used in simulation).
 * ``pysindy`` / ``sysidentpy``: when installed (``pip install -e '.[bench]'``): PySINDy's
   discrete-time SINDy and SysIdentPy's FROLS/AOLS polynomial NARX, their settings chosen on
-  a validation part of the estimation record.
+  a validation part of the estimation record, the record fed as it is or standardized
+  (:func:`scaling_tuned`).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -44,11 +46,35 @@ def _poly_map(coef, powers, x0, c):
     return out
 
 
-def pysindy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
+def scaling_tuned(peer):
+    """``peer(y_est, u_est, tests, init)`` (returning its errors on ``tests`` and its settings' error on its own
+    validation part of the estimation record) fed the record as it is and standardized (the output and the input
+    centred and scaled by the estimation record's mean and standard deviation), as a user tries both: the one
+    whose settings free-run the validation part better, its errors in the record's units. On raw values a
+    polynomial library's columns can differ in their sixth digit (a temperature near 300 K, cubed) and a
+    sparsity threshold means nothing across scales: PySINDy fed the two-mass record raw diverged."""
+
+    @functools.wraps(peer)
+    def run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
+        best = None
+        for standard in (False, True):
+            (my, sy), (mu, su) = (((float(np.mean(x)), float(np.std(x)) or 1.0) if standard else (0.0, 1.0))
+                                  for x in (y_est, u_est))
+            got = peer((y_est - my) / sy, (u_est - mu) / su,
+                       {k: ((y - my) / sy, (u - mu) / su) for k, (y, u) in tests.items()}, init)
+            if got is not None and (best is None or got[1] * sy < best[1]):
+                best = ({k: v * sy for k, v in got[0].items()}, got[1] * sy)
+        return None if best is None else best[0]
+    return run
+
+
+@scaling_tuned
+def pysindy_free_run(y_est, u_est, tests: dict, init: int = 50) -> tuple[dict, float] | None:
     """PySINDy's discrete-time SINDy (``DiscreteSINDy``) on the state (y_k, y_{k-1}) with (u_k, u_{k-1}) as
     control, a cubic polynomial library and STLSQ, the threshold chosen by free run on the last 20 % of the
     estimation record (continuous-time SINDy needs the second derivative of a measured signal, which
-    free-ran at 55-300 mV here); free run of the identified map from the first ``init`` samples."""
+    free-ran at 55-300 mV here); free run of the identified map from the first ``init`` samples, and the
+    chosen threshold's error on that last 20 % (:func:`scaling_tuned`)."""
     try:
         import pysindy as ps
     except ImportError:
@@ -80,15 +106,15 @@ def pysindy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
                         for th in (1e-5, 1e-4, 1e-3, 1e-2))
         # the best threshold whose map, fitted on the whole record, stays bounded there and on every test
         # record's inputs (a user re-chooses one that blows up; the test outputs only score it)
-        model = None
-        for _, th in ranked:
+        model, val = None, ranked[0][0]
+        for v, th in ranked:
             m = fit(th, y_est, u_est)
             if _bounded(run, m, [(y_est, u_est), *tests.values()]):
-                model = m
+                model, val = m, v
                 break
         if model is None:  # none stays bounded: the best on the validation part
             model = fit(ranked[0][1], y_est, u_est)
-    return {name: run(model, yt, ut) for name, (yt, ut) in tests.items()}
+    return {name: run(model, yt, ut) for name, (yt, ut) in tests.items()}, val
 
 
 def _bounded(run, model, records) -> bool:
@@ -98,11 +124,12 @@ def _bounded(run, model, records) -> bool:
     return all(math.isfinite(run(model, y, u)) for y, u in records)
 
 
-def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
+@scaling_tuned
+def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> tuple[dict, float] | None:
     """SysIdentPy's polynomial NARX as its users tune it: FROLS (and AOLS) over lags 1-4, degree 2-3 and 5-20
     terms, each fitted on the first 80 % of the estimation record and free-run (``steps_ahead=None``) over the
     rest; the best that stays bounded there is refitted on all of it and free-run on each test record from its
-    first ``init`` samples."""
+    first ``init`` samples, and its error on that rest (:func:`scaling_tuned`)."""
     try:
         from sysidentpy.basis_function import Polynomial
         from sysidentpy.model_structure_selection import AOLS, FROLS
@@ -149,7 +176,7 @@ def sysidentpy_free_run(y_est, u_est, tests: dict, init: int = 50) -> dict | Non
                 break
         if model is None:
             return None
-    return {name: run(model, yt, ut) for name, (yt, ut) in tests.items()}
+    return {name: run(model, yt, ut) for name, (yt, ut) in tests.items()}, val
 
 
 # --------------------------------------------------------------------------- the NARX as its users tune it
