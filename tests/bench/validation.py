@@ -254,12 +254,33 @@ def _heated_truth() -> tuple:
     return spec, {"C": b["C"], "h": b["h"], "r": b["r"], "s": b["noise"]}
 
 
-def heated_body(n: int = 6000, seed: int = 20) -> Record:
-    from ardflow.ardcore.data import Dataset
+def _heater_steps(rng, n: int) -> np.ndarray:
+    """A heater's power (W), stepped to a new level every 60-300 samples (5-25 minutes at 5 s)."""
+    return np.repeat(rng.uniform(0.0, 100.0, n), rng.integers(60, 300, n))[:n]
+
+
+def _newton_cooling_study(name: str):
+    """The heated records' study: the user's Newton cooling to a 295 K ambient, T' = q u - a (T - 295), read by a
+    thermometer of 0.1 K."""
     from ardflow.ardcore.selection.spec import StudySpec
 
+    lognormal = lambda m: {"kind": "lognormal", "median": m, "cov": 300}  # noqa: E731
+    return StudySpec.model_validate({
+        "name": name, "data": {"generator": "appendix_a"}, "evidence": "laplace",
+        "models": [{"model": {"name": "newton_cooling", "states": ["T"], "inputs": ["u"],
+                              "drift": {"T": "q*u - a*(T - 295)"}, "diffusion": {"T": "s"},
+                              "observations": [{"column": "y", "expr": "T", "noise_std": "gamma"}],
+                              "constants": {"gamma": 0.1}, "parameters": ["a", "q", "s"],
+                              "initial_mean": {"T": 295.0}, "initial_std": {"T": 5.0}},
+                    "priors": {"a": lognormal(0.001), "q": lognormal(0.001), "s": lognormal(0.05)}}],
+        "sampler": {**SAMPLER, "start_maxfev": 1500}, "seed": 2})
+
+
+def heated_body(n: int = 6000, seed: int = 20) -> Record:
+    from ardflow.ardcore.data import Dataset
+
     rng = np.random.default_rng(seed)
-    u = np.repeat(rng.uniform(0.0, 100.0, n), rng.integers(60, 300, n))[:n]  # W, held over 5-25 min
+    u = _heater_steps(rng, n)
     b = HEATED_BODY
     dt, sub = b["dt"], b["substeps"]
     T, y, h = b["ambient"], np.empty(n), b["dt"] / sub
@@ -268,16 +289,7 @@ def heated_body(n: int = 6000, seed: int = 20) -> Record:
         for _ in range(sub):
             T += h * heated_drift(T, u[i]) + b["noise"] * np.sqrt(h) * rng.standard_normal()
     data = Dataset(np.arange(n) * dt, {"y": y, "u": u}, {"source": "validation:heated_body"})
-    lognormal = lambda m: {"kind": "lognormal", "median": m, "cov": 300}  # noqa: E731
-    spec = StudySpec.model_validate({
-        "name": "heated_body", "data": {"generator": "appendix_a"}, "evidence": "laplace",
-        "models": [{"model": {"name": "newton_cooling", "states": ["T"], "inputs": ["u"],
-                              "drift": {"T": "q*u - a*(T - 295)"}, "diffusion": {"T": "s"},
-                              "observations": [{"column": "y", "expr": "T", "noise_std": "gamma"}],
-                              "constants": {"gamma": 0.1}, "parameters": ["a", "q", "s"],
-                              "initial_mean": {"T": 295.0}, "initial_std": {"T": 5.0}},
-                    "priors": {"a": lognormal(0.001), "q": lognormal(0.001), "s": lognormal(0.05)}}],
-        "sampler": {**SAMPLER, "start_maxfev": 1500}, "seed": 2})
+    spec = _newton_cooling_study("heated_body")
     # a design record: the powers about a declared level were built on this class
     return _split("heated_body", spec, data, (True, True), "convection and radiation (T^4) of a heated body",
                   ("square(T-295", "cube(T-295", "power_law(T-295"), _heated_truth())
@@ -293,10 +305,9 @@ body's."""
 def two_mass(n: int = 6000, seed: int = 22) -> Record:
     from ardflow.ardcore.data import Dataset
     from ardflow.ardcore.model.declaration import ModelSpec
-    from ardflow.ardcore.selection.spec import StudySpec
 
     rng = np.random.default_rng(seed)
-    u = np.repeat(rng.uniform(0.0, 100.0, n), rng.integers(60, 300, n))[:n]  # W, held over 5-25 min
+    u = _heater_steps(rng, n)
     m = TWO_MASS
     amb, h = m["ambient"], m["dt"] / m["substeps"]
     T = S = amb
@@ -308,16 +319,7 @@ def two_mass(n: int = 6000, seed: int = 22) -> Record:
             S += h * m["b"] * (T - S)
             T += h * dT + m["noise"] * np.sqrt(h) * rng.standard_normal()
     data = Dataset(np.arange(n) * m["dt"], {"y": y, "u": u}, {"source": "validation:two_mass"})
-    lognormal = lambda v: {"kind": "lognormal", "median": v, "cov": 300}  # noqa: E731
-    spec = StudySpec.model_validate({
-        "name": "two_mass", "data": {"generator": "appendix_a"}, "evidence": "laplace",
-        "models": [{"model": {"name": "newton_cooling", "states": ["T"], "inputs": ["u"],
-                              "drift": {"T": f"q*u - a*(T - {amb:g})"}, "diffusion": {"T": "s"},
-                              "observations": [{"column": "y", "expr": "T", "noise_std": "gamma"}],
-                              "constants": {"gamma": m["sensor"]}, "parameters": ["a", "q", "s"],
-                              "initial_mean": {"T": amb}, "initial_std": {"T": 5.0}},
-                    "priors": {"a": lognormal(0.001), "q": lognormal(0.001), "s": lognormal(0.05)}}],
-        "sampler": {**SAMPLER, "start_maxfev": 1500}, "seed": 2})
+    spec = _newton_cooling_study("two_mass")
     truth = ModelSpec(name="two_mass_truth", states=["T", "S"], inputs=["u"],
                       drift={"T": f"q*u - a*(T - {amb:g}) + k*(S - T)", "S": "b*(T - S)"}, diffusion={"T": "s"},
                       observations=[{"column": "y", "expr": "T", "noise_std": "gamma"}],
