@@ -330,10 +330,10 @@ def _screened_pick(ctx, current: Fit, offered: list, tasks: list, order: list, n
         i, task = head[j]
         return _taken(ctx, current, offered[i], task, fits[j], gains[j], need)
     _taken(ctx, current, offered[head[0][0]], head[0][1], fits[0], gains[0], need)  # says why not
+    rival = {i: f for (i, _), f in zip(head[1:], fits[1:])}  # fitted from its screened values already
     for i, task in order[1:]:
         # the rival's fit from the prior now; the others' from both starts
-        warm = [f for (j, _), f in zip(head[1:], fits[1:]) if j == i]
-        fit = _better_start([*warm, *fit_all(ctx.mapper, [tasks[i]])] if warm
+        fit = _better_start([rival[i], *fit_all(ctx.mapper, [tasks[i]])] if i in rival
                             else fit_all(ctx.mapper, [task, tasks[i]]))
         got = _taken(ctx, current, offered[i], task, fit, fit[0].log_evidence - base, need)
         if got is not None:
@@ -349,7 +349,8 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     the number offered and its fit is a result (:func:`_taken`). Lags are fitted side by side on the loop's pool
     (a full ARD re-selection each, the law's terms selected again) and the best is judged. The other states are
     screened first (:func:`screened_states`) and fitted in full in the screen's order, a sensor's and an
-    actuator's lag side by side (:func:`_screened_pick`). A round that takes one offers the others again. The record is a replacement's with the state (:func:`state_summary`)."""
+    actuator's lag side by side (:func:`_screened_pick`). A round that takes one offers the others again. The
+    record is a replacement's with the state (:func:`state_summary`)."""
     from .confirm import fit_all
 
     config, say = ctx.config, ctx.say
