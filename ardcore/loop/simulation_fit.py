@@ -223,7 +223,9 @@ def held_out_blocks(data: Dataset, column: str, share: float) -> dict[str, tuple
     m = min([m] + [sl.stop - sl.start for sl in recs])
     best, k = -np.inf, 0
     for sl in recs:
-        power = np.convolve(y[sl] ** 2, np.ones(m), mode="valid")
+        # each window's sum by a running sum (a convolution with m ones costs n m: seconds on a 65k record)
+        c = np.concatenate([[0.0], np.cumsum(y[sl] ** 2)])
+        power = c[m:] - c[:-m]
         j = int(np.argmax(power))
         if power[j] > best:
             best, k = power[j], sl.start + j
