@@ -32,6 +32,10 @@ second store exchanging with it (a second thermal mass, a tank or a capacitor it
 
 (``b`` the store's rate, ``k`` the exchange's rate seen from ``x``).
 
+**A transfer lag**. A state ``s`` that drives a first-order state's equation ``t`` directly reaches it through
+a lag: that equation reads ``z`` where it read ``s``, ``z' = b (s - z)`` (water
+falling from one tank to the next through a pipe, heat crossing a wall).
+
 **A second mode**. For an oscillator ``x' = v``, a mass on a spring and damper attached to it (a secondary
 structure, a sloshing or a flexible part), two states ``q, dq``::
 
@@ -57,7 +61,8 @@ class Lag(NamedTuple):
     lag), "hysteresis" (a Bouc-Wen state of the oscillator whose position is ``term`` in the velocity ``target``'s
     equation), "sensor" (the measurement ``term`` of the observed column ``target`` read through a lag),
     "actuator" (the input ``term`` read through a lag by every drift equation, ``target`` the first state it
-    drives), "store" (a second store exchanging with the first-order state ``term``, its equation ``target``) or
+    drives), "store" (a second store exchanging with the first-order state ``term``, its equation ``target``),
+    "transfer" (the state ``term`` read through a lag by the equation of ``target``) or
     "mode" (a second mode of the oscillator whose position is ``term``, coupled to its velocity
     ``target``)."""
 
@@ -134,6 +139,22 @@ def stores(spec: ModelSpec) -> list[Lag]:
             and names_of(Lag(x, x, "store"))[0] not in spec.states]
 
 
+def transfers(spec: ModelSpec) -> list[Lag]:
+    """A transfer lag for each first-order state that another first-order state's drift holds directly (a
+    level in the next tank's inflow, a temperature in the next body's heat flow), neither state an oscillator's
+    or one a family added, and not read through one yet. An oscillator's spring or damping read through a lag is
+    no omitted state but another law, which its equation's terms take up."""
+    names, made, out = declared_names(spec), _made(spec), []
+    paired = {n for pair in oscillator_pairs(spec) for n in pair}
+    first_order = [s for s in spec.states if s not in made and s not in paired]
+    for t in first_order:
+        sym = {str(x) for x in parse_expression(spec.drift[t], names).free_symbols}
+        for s in first_order:
+            if s != t and s in sym and names_of(Lag(s, t, "transfer"))[0] not in spec.states:
+                out.append(Lag(s, t, "transfer"))
+    return out
+
+
 def _made(spec: ModelSpec) -> set:
     """The states of ``spec`` a state family added (a lag, a sensor, an actuator, a store, a hysteresis, a mode),
     by their names."""
@@ -141,6 +162,7 @@ def _made(spec: ModelSpec) -> set:
     moves += [Lag(o.column, o.column, "sensor") for o in spec.observations]
     moves += [Lag(u, u, "actuator") for u in spec.inputs]
     moves += [Lag(x, x, k) for x in spec.states for k in ("store", "hysteresis", "mode")]
+    moves += [Lag(x, t, "transfer") for x in spec.states for t in spec.states]
     return {n for m in moves for n in new_states(m)} & set(spec.states)
 
 
@@ -183,6 +205,8 @@ def names_of(move: Lag) -> tuple[str, ...]:
     elif move.kind == "store":
         x = move.term
         names = (f"store_{x}", f"b_store_{x}", f"k_store_{x}")
+    elif move.kind == "transfer":
+        names = (f"tr_{move.term}_{move.target}", f"b_tr_{move.term}_{move.target}")
     elif move.kind == "mode":
         x = move.term
         names = (f"mode_{x}", f"dmode_{x}", f"w_mode_{x}", f"z_mode_{x}", f"mu_mode_{x}")
@@ -227,6 +251,10 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
         x = lag.term
         drift[x] = f"({drift[x]}) + {k}*({z} - {x})"
         drift[z] = f"{b}*({x} - {z})"
+    elif lag.kind == "transfer":
+        _, b = new
+        drift[lag.target] = _words(drift[lag.target], lag.term, z)
+        drift[z] = f"{b}*({lag.term} - {z})"
     elif lag.kind == "mode":
         q, dq, w, zeta, mu = new
         x, v = lag.term, lag.target

@@ -183,7 +183,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             t_round = time.perf_counter()
             swap = best_laws(ctx, held, brought(rounds), [x for r in rounds for x in r.record.get("replaced", [])
                                                           if x.get("form")])
-            lagged = best_state(ctx, held, ("lag",))  # a state: a declared quantity acting through a lag
+            # a state: a declared quantity, or a state in another's equation, acting through a lag
+            lagged = best_state(ctx, held, LAG_KINDS)
             if lagged is not None and (swap is None or lagged[2] > swap[2]):
                 swap = lagged
             rec, survivors, deferred, proposals = _trace_round(ctx, held, fspec, phi, res, rounds)
@@ -296,6 +297,10 @@ def _present(rounds: list[LoopRound]) -> set:
     beside the first, its width already fitted, is a basis expansion, not an effect)."""
     return {x.key for r in rounds for x in r.added if not x.record.get("removed")}
 
+
+LAG_KINDS = ("lag", "transfer")
+"""The state families offered every round beside the laws: a lag of what an equation already reads, which the
+term families' stand-ins would otherwise take up first (:mod:`.states`)."""
 
 STATE_KINDS = ("hysteresis", "sensor", "actuator", "store", "mode")
 """The state families offered when the term families leave what they cannot take up (:mod:`.states`)."""

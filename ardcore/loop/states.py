@@ -1,14 +1,15 @@
-"""States the model lacks: a declared quantity through a lag, a hysteresis, a sensor's or an actuator's dynamics, a
-second store, a second mode.
+"""States the model lacks: a declared quantity or a state through a lag, a hysteresis, a sensor's or an actuator's
+dynamics, a second store, a second mode.
 
 The loop's other moves add or reshape terms in the equations of the states the user declared. Many real
-omissions are a state of their own. Six families are offered, each a full fit judged like a law replacement
+omissions are a state of their own. Seven families are offered, each a full fit judged like a law replacement
 (:mod:`.replace`): its ln Bayes factor against the current model must exceed ``config.min_log_bf`` plus ln of
 the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it. The
-hysteresis, the sensor, the actuator, the store and the mode are screened first (:func:`screened_states`): only
-those that fit better with the current model held at its MAP are fitted in full (:func:`_screened_pick`). A lag
-is offered every round, beside the laws; the others only when the loop would stop (the term families left
-structure they cannot take up).
+hysteresis, the sensor, the actuator, the store, the mode and the transfer lag are screened first
+(:func:`screened_states`): only those that fit better with the current model held at its MAP are fitted in full
+(:func:`_screened_pick`). A lag and a transfer lag (a state read through a lag by another's equation) are offered
+every round, beside the laws, whose stand-ins would take them up first; the others only when the loop would stop
+(the term families left structure they cannot take up).
 
 The families and what each adds to a declaration are :mod:`ardcore.effects.states`. Priors: a lag's rate ``b``
 lognormal at the record's dominant angular frequency, a tenth to ten times it at +-2 sd (a sensor's or an
@@ -32,7 +33,8 @@ import numpy as np
 import sympy as sp
 
 from ..effects.base import declared_names, short_name
-from ..effects.states import Lag, actuators, hystereses, lag_spec, lags, modes, names_of, new_states, sensors, stores
+from ..effects.states import (Lag, actuators, hystereses, lag_spec, lags, modes, names_of, new_states, sensors,
+                              stores, transfers)
 from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
@@ -132,6 +134,10 @@ def lag_candidate(current: Fit, lag: Lag, at: Along | None = None) -> CandidateS
         priors[w] = _lognormal(rate, RATE_SPAN)
         priors[zeta] = LogNormal.spanning(0.05, 0.005, 0.5)
         priors[mu] = Normal(mean=0.0, sd=1.0)
+    elif lag.kind == "transfer":
+        # the lagged state starts where the state it follows does; its rate is a lag's
+        spec = lag_spec(ms, lag, (float(d[0]), sd_d))
+        priors[new[1]] = _lognormal(rate, RATE_SPAN)
     elif lag.kind == "store":
         # the store starts where its state does, as uncertain as that state's spread; its rate is a lag's, its
         # exchange as large as the state's own drift over its spread (a hysteresis' coupling)
@@ -182,6 +188,8 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the measurement {lag.target} reads {z}"
     elif lag.kind == "actuator":
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the dynamics read {z} for {lag.term}"
+    elif lag.kind == "transfer":
+        eq = f"{z}' = {new[1]}*({lag.term} - {z}), the {lag.target} equation reads {z} for {lag.term}"
     elif lag.kind == "store":
         x = lag.term
         eq = f"{z}' = {new[1]}*({x} - {z}), {new[2]}*({z} - {x}) in the {x} equation"
@@ -195,7 +203,7 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
     states = new_states(lag)
     out = {"name": z, "kind": lag.kind, "term": lag.term, "target": lag.target, "equation": eq,
            "states": list(states), "parameters": {n: shape_summary(row, n) for n in new[len(states):] if n in row.mean}}
-    if lag.kind in ("lag", "sensor", "actuator", "store") and new[1] in row.mean:
+    if lag.kind in ("lag", "sensor", "actuator", "store", "transfer") and new[1] in row.mean:
         r = out["parameters"][new[1]]
         out["time_constant"] = {"mean": 1.0 / r["mean"], "q005": 1.0 / r["q995"], "q995": 1.0 / r["q005"]}
     if lag.kind == "mode" and new[2] in row.mean:
@@ -356,7 +364,7 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     config, say = ctx.config, ctx.say
     ms = current.cand.model_spec()
     offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors, "actuator": actuators, "store": stores,
-             "mode": modes}
+             "transfer": transfers, "mode": modes}
     offered, tasks = [], []
     moves = [m for kind in kinds for m in offer[kind](ms)]
     at = along(current) if moves else None

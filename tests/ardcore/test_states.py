@@ -158,6 +158,32 @@ def test_a_store_exchanges_with_a_first_order_state_and_is_offered_once():
     assert stores(read) == [Lag("T", "T", "store")]
 
 
+def test_a_transfer_lag_puts_a_lag_between_two_first_order_states_and_is_offered_once():
+    """Two tanks in cascade with the upper one's level reaching the lower one's equation through a lag is the
+    pipe between them: the lower equation reads the lagged level, which follows the upper one at rate b. It is
+    offered for a first-order state that another first-order state's drift reads (not an oscillator's), once,
+    and not for the state it added."""
+    from ardflow.ardcore.effects.states import transfers
+    from ardflow.ardcore.model.library import builtin
+
+    tanks = ModelSpec(name="tanks", states=["h1", "h2"], inputs=["u"],
+                      drift={"h1": "q*u - a*h1", "h2": "a*sqrt(h1) - c*h2"}, diffusion={"h1": "s", "h2": "s"},
+                      observations=[{"column": "y", "expr": "h2", "noise_std": "gamma"}], constants={"gamma": 0.01},
+                      parameters=["a", "c", "q", "s"], initial_mean={"h1": 1.0, "h2": 1.0},
+                      initial_std={"h1": 0.1, "h2": 0.1})
+    assert transfers(tanks) == [Lag("h1", "h2", "transfer")]
+    assert transfers(builtin("forced_linear_oscillator")) == [] and transfers(aero_m2()) == []
+    m = lag_spec(tanks, transfers(tanks)[0], (1.2, 0.3))
+    assert m.states == ["h1", "h2", "tr_h1_h2"] and m.parameters[-1] == "b_tr_h1_h2"
+    assert m.initial_mean["tr_h1_h2"] == 1.2 and m.initial_std["tr_h1_h2"] == 0.3
+    sm, base = symbolic(m.with_fixed(b_tr_h1_h2=0.5)), symbolic(tanks)
+    h1, z = sp.Symbol("h1", real=True), sp.Symbol("tr_h1_h2", real=True)
+    assert sp.simplify(sm.drift[0] - base.drift[0]) == 0
+    assert sp.simplify(sm.drift[1] - base.drift[1].subs(h1, z)) == 0
+    assert sp.simplify(sm.drift[2] - 0.5 * (h1 - z)) == 0
+    assert transfers(m) == []
+
+
 def _screened(name: str):
     """The stop stage's screen of the state moves on a validation record's first 2,000 samples, from the user's
     linear oscillator fitted there: {kind: conditional ln BF}."""
