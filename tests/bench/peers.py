@@ -54,7 +54,8 @@ def scaling_tuned(peer):
     polynomial library's columns can differ in their sixth digit (a temperature near 300 K, cubed) and a
     sparsity threshold means nothing across scales: PySINDy fed the two-mass record raw diverged."""
 
-    @functools.wraps(peer)
+    # the peer's name and docstring, not its annotations: the wrapper returns the errors alone (a dict)
+    @functools.wraps(peer, assigned=("__module__", "__name__", "__qualname__", "__doc__"))
     def run(y_est, u_est, tests: dict, init: int = 50) -> dict | None:
         best = None
         for standard in (False, True):
