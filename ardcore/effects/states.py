@@ -32,9 +32,9 @@ second store exchanging with it (a second thermal mass, a tank or a capacitor it
 
 (``b`` the store's rate, ``k`` the exchange's rate seen from ``x``).
 
-**A transfer lag**. A state ``s`` that drives a first-order state's equation ``t`` directly reaches it through
-a lag: that equation reads ``z`` where it read ``s``, ``z' = b (s - z)`` (water
-falling from one tank to the next through a pipe, heat crossing a wall).
+**A transfer lag**. A first-order state ``s`` that another first-order state's equation ``t`` reads directly
+reaches it through a lag: that equation reads ``z`` where it read ``s``, ``z' = b (s - z)`` (water falling from
+one tank to the next through a pipe, heat crossing a wall).
 
 **A second mode**. For an oscillator ``x' = v``, a mass on a spring and damper attached to it (a secondary
 structure, a sloshing or a flexible part), two states ``q, dq``::

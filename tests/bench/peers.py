@@ -73,9 +73,10 @@ def scaling_tuned(peer):
 def pysindy_free_run(y_est, u_est, tests: dict, init: int = 50) -> tuple[dict, float] | None:
     """PySINDy's discrete-time SINDy (``DiscreteSINDy``) on the state (y_k, y_{k-1}) with (u_k, u_{k-1}) as
     control, a cubic polynomial library (quadratic, then linear, when every threshold's cubic map blows up) and
-    STLSQ, the threshold chosen by free run on the last 20 % of the estimation record (continuous-time SINDy needs the second derivative of a measured signal, which
-    free-ran at 55-300 mV here); free run of the identified map from the first ``init`` samples, and the
-    chosen threshold's error on that last 20 % (:func:`scaling_tuned`)."""
+    STLSQ, the threshold chosen by free run on the last 20 % of the estimation record (continuous-time SINDy
+    needs the second derivative of a measured signal, which free-ran at 55-300 mV here); free run of the
+    identified map from the first ``init`` samples, and the chosen threshold's error on that last 20 %
+    (:func:`scaling_tuned`)."""
     try:
         import pysindy as ps
     except ImportError:

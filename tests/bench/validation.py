@@ -340,71 +340,60 @@ def none(n: int = 4000, seed: int = 16) -> Record:
     return _split("none", spec, data, (False, False), "the user's linear oscillator is the truth", truth=truth)
 
 
-def cascade(n: int = 3000, seed: int = 17) -> Record:
+def _two_tanks(outflow: str, inflow: str, out: str, spill: str = "", extra: dict | None = None):
+    """Two tanks in cascade, the lower level measured (3 mm): h1' = q u - a outflow, h2' = a inflow - c out + spill;
+    ``extra``: the equations of further states, their rate ``b`` a parameter."""
     from ardflow.ardcore.model.declaration import ModelSpec
+
+    extra = extra or {}
+    return ModelSpec(name="tanks", description="two tanks in cascade", states=["h1", "h2", *extra], inputs=["u"],
+                     drift={"h1": f"q*u - a*{outflow}", "h2": f"a*{inflow} - c*{out}" + spill, **extra},
+                     diffusion={"h1": "s", "h2": "s"},
+                     observations=[{"column": "y", "expr": "h2", "noise_std": "gamma"}],
+                     constants={"gamma": 0.003}, parameters=["a", "c", "q", "s", *(["b"] if extra else [])],
+                     initial_mean={"h1": 1.0, "h2": 1.0, **{k: 1.0 for k in extra}},
+                     initial_std={"h1": 0.1, "h2": 0.1, **{k: 0.1 for k in extra}})
+
+
+def _tanks_record(name: str, truth: tuple, user, u: np.ndarray, t: np.ndarray, seed: int):
+    """The record ``truth`` (spec, values) makes under the pump ``u`` from 1 m in every state, and the study of the
+    user's two tanks ``user`` (its rates lognormal at 0.3, its noise at 0.01)."""
+    from ardflow.ardcore.data import Dataset
+    from ardflow.ardcore.likelihood.simulate import simulate_model
     from ardflow.ardcore.selection.spec import StudySpec
 
+    d = simulate_model(*truth, t, seed, inputs={"u": u}, x0=[1.0] * len(truth[0].states))
+    data = Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": f"validation:{name}"})
+    rate = {"kind": "lognormal", "median": 0.3, "cov": 200}
+    spec = StudySpec.model_validate({
+        "name": name, "data": {"generator": "appendix_a"}, "evidence": "laplace",
+        "models": [{"model": user.model_dump(mode="json"),
+                    "priors": {"a": rate, "c": rate, "q": rate,
+                               "s": {"kind": "lognormal", "median": 0.01, "cov": 200}}}],
+        "sampler": SAMPLER, "seed": 2})
+    return spec, data
+
+
+def cascade(n: int = 3000, seed: int = 17) -> Record:
     root = "sqrt(abs({0}))*sign({0})".format
     rim = " - 1.0*0.5*(h2 - 3.5)*(1 + sign(h2 - 3.5))"
-
-    def tanks(pipe: str, out: str, spill: str = "") -> ModelSpec:
-        return ModelSpec(name="tanks", description="two tanks in cascade", states=["h1", "h2"], inputs=["u"],
-                         drift={"h1": f"q*u - a*{pipe}", "h2": f"a*{pipe} - c*{out}" + spill},
-                         diffusion={"h1": "s", "h2": "s"},
-                         observations=[{"column": "y", "expr": "h2", "noise_std": "gamma"}],
-                         constants={"gamma": 0.003}, parameters=["a", "c", "q", "s"],
-                         initial_mean={"h1": 1.0, "h2": 1.0}, initial_std={"h1": 0.1, "h2": 0.1})
-
     rng = np.random.default_rng(seed)
     t = np.arange(n) * 0.2
     u = 1.1 + 0.9 * np.sign(np.sin(2 * np.pi * t / 60)) + 0.1 * rng.standard_normal(n)
-    from ardflow.ardcore.data import Dataset
-    from ardflow.ardcore.likelihood.simulate import simulate_model
-
-    truth = (tanks(root("h1"), root("h2"), rim), {"q": 0.5, "a": 0.5, "c": 0.4, "s": 0.005})
-    d = simulate_model(*truth, t, seed, inputs={"u": u}, x0=[1.0, 1.0])
-    data = Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": "validation:cascade"})
-    spec = StudySpec.model_validate({
-        "name": "cascade", "data": {"generator": "appendix_a"}, "evidence": "laplace",
-        "models": [{"model": tanks("h1", "h2").model_dump(mode="json"),
-                    "priors": {"a": {"kind": "lognormal", "median": 0.3, "cov": 200},
-                               "c": {"kind": "lognormal", "median": 0.3, "cov": 200},
-                               "q": {"kind": "lognormal", "median": 0.3, "cov": 200},
-                               "s": {"kind": "lognormal", "median": 0.01, "cov": 200}}}],
-        "sampler": SAMPLER, "seed": 2})
+    truth = (_two_tanks(root("h1"), root("h1"), root("h2"), rim), {"q": 0.5, "a": 0.5, "c": 0.4, "s": 0.005})
+    spec, data = _tanks_record("cascade", truth, _two_tanks("h1", "h1", "h2"), u, t, seed)
     return _split("cascade", spec, data, (True, True), "sqrt(h) pipe and orifice, a rim on the lower tank",
                   ("overflow", "form:power"), truth)
 
 
 def pipe(n: int = 3000, seed: int = 23) -> Record:
-    from ardflow.ardcore.data import Dataset
-    from ardflow.ardcore.likelihood.simulate import simulate_model
-    from ardflow.ardcore.model.declaration import ModelSpec
-    from ardflow.ardcore.selection.spec import StudySpec
-
-    def tanks(into: str, extra: dict) -> ModelSpec:
-        return ModelSpec(name="tanks", description="two tanks in cascade", states=["h1", "h2", *extra],
-                         inputs=["u"], drift={"h1": "q*u - a*h1", "h2": f"a*{into} - c*h2", **extra},
-                         diffusion={"h1": "s", "h2": "s"},
-                         observations=[{"column": "y", "expr": "h2", "noise_std": "gamma"}],
-                         constants={"gamma": 0.003}, parameters=["a", "c", "q", "s", *(["b"] if extra else [])],
-                         initial_mean={"h1": 1.0, "h2": 1.0, **{k: 1.0 for k in extra}},
-                         initial_std={"h1": 0.1, "h2": 0.1, **{k: 0.1 for k in extra}})
-
     rng = np.random.default_rng(seed)
     t = np.arange(n) * 0.2
     # the pump stepped to a new level every 10-40 s
     u = np.repeat(rng.uniform(0.2, 2.0, n), rng.integers(50, 200, n))[:n]
-    truth = (tanks("p", {"p": "b*(h1 - p)"}), {"q": 0.5, "a": 0.5, "c": 0.4, "s": 0.005, "b": 0.5})
-    d = simulate_model(*truth, t, seed, inputs={"u": u}, x0=[1.0, 1.0, 1.0])
-    data = Dataset(d.t, {"y": d.columns["y"], "u": u}, {"source": "validation:pipe"})
-    lognormal = {"kind": "lognormal", "median": 0.3, "cov": 200}
-    spec = StudySpec.model_validate({
-        "name": "pipe", "data": {"generator": "appendix_a"}, "evidence": "laplace",
-        "models": [{"model": tanks("h1", {}).model_dump(mode="json"),
-                    "priors": {"a": lognormal, "c": lognormal, "q": lognormal,
-                               "s": {"kind": "lognormal", "median": 0.01, "cov": 200}}}],
-        "sampler": SAMPLER, "seed": 2})
+    truth = (_two_tanks("h1", "p", "h2", extra={"p": "b*(h1 - p)"}),
+             {"q": 0.5, "a": 0.5, "c": 0.4, "s": 0.005, "b": 0.5})
+    spec, data = _tanks_record("pipe", truth, _two_tanks("h1", "h1", "h2"), u, t, seed)
     return _split("pipe", spec, data, (True, False),
                   "two linear tanks, the upper one's outflow reaching the lower through a pipe (a 2 s lag)",
                   ("form:transfer",), truth)
