@@ -52,7 +52,7 @@ from .states import best_state, state_summary
 from .replace import best_laws, shape_summary
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
-from ..errors import ArdflowError, FitError, LoopFailed, SpecError
+from ..errors import FitError, LoopFailed, SpecError
 from ..jsonio import to_jsonable
 from .criterion import Criterion, Move, decide, held_out_record, stable
 from .simulation_fit import reported_model
@@ -233,8 +233,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         shown = (last["after"], arrays["after"]) if last is not None else (first["before"], arrays["before"])
         first["reported"], reported = reported_model(ctx, final, held, cur_test, shown, len(rounds), score.held)
         out = _report(ctx, data, test_data, first, rounds, arrays, held)
-    except (ArdflowError, ArithmeticError, LookupError, ValueError, TypeError, RuntimeError,
-            np.linalg.LinAlgError) as exc:
+    except Exception as exc:  # noqa: BLE001 - any failure after the first fit, a defect included
         # never lose the work: what the loop had, with the reason, for the caller to write before it says so
         raise LoopFailed(f"diagnose failed in round {len(rounds)} ({type(exc).__name__}: {exc}); the rounds so far "
                          "and the last model held are written", _partial(ctx, first, rounds, held, exc, judged)) from exc

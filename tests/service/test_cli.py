@@ -222,10 +222,11 @@ def test_full_settings_are_the_engines_defaults():
     assert full.sampler.min_burnin_rounds == demo.sampler.min_burnin_rounds  # the rest as the spec says
 
 
-def test_a_diagnosis_that_fails_after_its_fit_writes_what_it_had(tmp_path, monkeypatch, capsys):
-    """A loop that fails after its first fit (here the trace raises inside the first round) loses nothing: the
-    CLI writes the measures, the rounds so far and the last model held to diagnosis.json with the reason, and
-    says so in one line with a non-zero status."""
+@pytest.mark.parametrize("error", [RuntimeError, AttributeError])
+def test_a_diagnosis_that_fails_after_its_fit_writes_what_it_had(tmp_path, monkeypatch, capsys, error):
+    """A loop that fails after its first fit (here the trace raises inside the first round, with a numerical
+    error or with a defect's) loses nothing: the CLI writes the measures, the rounds so far and the last model
+    held to diagnosis.json with the reason, and says so in one line with a non-zero status."""
     from ardflow.ardcore.likelihood.simulate import simulate_model
     from ardflow.ardcore.loop import diagnose as loop
     from ardflow.service.cli import main
@@ -237,13 +238,13 @@ def test_a_diagnosis_that_fails_after_its_fit_writes_what_it_had(tmp_path, monke
     (tmp_path / "spec.json").write_text(json.dumps(_oscillator_spec(str(tmp_path / "est.csv"))))
 
     def broken(*a, **k):
-        raise RuntimeError("the trace broke")
+        raise error("the trace broke")
 
     monkeypatch.setattr(loop, "trace_and_confirm", broken)
     rc = main(["diagnose", str(tmp_path / "spec.json"), "--out", str(tmp_path / "out"), "--max-rounds", "1"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "the trace broke" in err[0] and "diagnosis.json" in err[0], err
     rep = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
-    assert rep["status"] == "failed" and "RuntimeError: the trace broke" in rep["reason"]
+    assert rep["status"] == "failed" and f"{error.__name__}: the trace broke" in rep["reason"]
     assert rep["before"]["free_run"]["rms_error"] > 0 and rep["last_fit"]["mean"]["k"] > 0
     assert rep["model"] == "linear_oscillator" and rep["rounds"] == []
