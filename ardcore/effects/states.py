@@ -32,6 +32,14 @@ second store exchanging with it (a second thermal mass, a tank or a capacitor it
 
 (``b`` the store's rate, ``k`` the exchange's rate seen from ``x``).
 
+**A relaxation**. For an oscillator ``x' = v``, a viscoelastic element (a Maxwell element: a spring and a damper
+in series, a rubber mount, a lagged damping) acting on the velocity's equation, the same exchange as a store's::
+
+    v' = ... + k (z - v),    z' = b (v - z)
+
+(slow against ``b`` it is a damping ``-k v``, fast against it a stiffness ``k b x``: a damping and stiffness that
+change with frequency).
+
 **A transfer lag**. A first-order state ``s`` that another first-order state's equation ``t`` reads directly
 reaches it through a lag: that equation reads ``z`` where it read ``s``, ``z' = b (s - z)`` (water falling from
 one tank to the next through a pipe, heat crossing a wall).
@@ -62,6 +70,7 @@ class Lag(NamedTuple):
     equation), "sensor" (the measurement ``term`` of the observed column ``target`` read through a lag),
     "actuator" (the input ``term`` read through a lag by every drift equation, ``target`` the first state it
     drives), "store" (a second store exchanging with the first-order state ``term``, its equation ``target``),
+    "relaxation" (a viscoelastic element exchanging with the velocity ``term`` in its own equation),
     "transfer" (the state ``term`` read through a lag by the equation of ``target``) or
     "mode" (a second mode of the oscillator whose position is ``term``, coupled to its velocity
     ``target``)."""
@@ -155,13 +164,19 @@ def transfers(spec: ModelSpec) -> list[Lag]:
     return out
 
 
+def relaxations(spec: ModelSpec) -> list[Lag]:
+    """A relaxation for each oscillator (position, velocity; none a mode added) that has none yet."""
+    return [Lag(v, v, "relaxation") for _, v in _oscillators(spec)
+            if names_of(Lag(v, v, "relaxation"))[0] not in spec.states]
+
+
 def _made(spec: ModelSpec) -> set:
     """The states of ``spec`` a state family added (a lag, a sensor, an actuator, a store, a hysteresis, a mode),
     by their names."""
     moves = [Lag(d, d, "lag") for d in spec.derived]
     moves += [Lag(o.column, o.column, "sensor") for o in spec.observations]
     moves += [Lag(u, u, "actuator") for u in spec.inputs]
-    moves += [Lag(x, x, k) for x in spec.states for k in ("store", "hysteresis", "mode")]
+    moves += [Lag(x, x, k) for x in spec.states for k in ("store", "relaxation", "hysteresis", "mode")]
     moves += [Lag(x, t, "transfer") for x in spec.states for t in spec.states]
     return {n for m in moves for n in new_states(m)} & set(spec.states)
 
@@ -193,8 +208,8 @@ def actuators(spec: ModelSpec) -> list[Lag]:
 
 def names_of(move: Lag) -> tuple[str, ...]:
     """The new state and its parameters, named after what they act on: a lag's (state, rate, feedthrough), a
-    hysteresis' (state, coupling, beta, gamma), a sensor's or an actuator's (state, rate), a store's (state, rate,
-    exchange), a mode's (its two states, frequency, damping ratio, mass ratio)."""
+    hysteresis' (state, coupling, beta, gamma), a sensor's or an actuator's (state, rate), a store's or a
+    relaxation's (state, rate, exchange), a mode's (its two states, frequency, damping ratio, mass ratio)."""
     if move.kind == "hysteresis":
         x = move.term
         names = (f"hys_{x}", f"k_hys_{x}", f"beta_{x}", f"gamma_{x}")
@@ -205,6 +220,9 @@ def names_of(move: Lag) -> tuple[str, ...]:
     elif move.kind == "store":
         x = move.term
         names = (f"store_{x}", f"b_store_{x}", f"k_store_{x}")
+    elif move.kind == "relaxation":
+        v = move.term
+        names = (f"rel_{v}", f"b_rel_{v}", f"k_rel_{v}")
     elif move.kind == "transfer":
         names = (f"tr_{move.term}_{move.target}", f"b_tr_{move.term}_{move.target}")
     elif move.kind == "mode":
@@ -246,7 +264,7 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
         drift = {s: _words(text, lag.term, z) for s, text in drift.items()}
         derived = {d: _words(text, lag.term, z) for d, text in derived.items()}
         drift[z] = f"{b}*({lag.term} - {z})"
-    elif lag.kind == "store":
+    elif lag.kind in ("store", "relaxation"):
         _, b, k = new
         x = lag.term
         drift[x] = f"({drift[x]}) + {k}*({z} - {x})"

@@ -301,7 +301,7 @@ LAG_KINDS = ("lag", "transfer")
 """The state families offered every round beside the laws: a lag of what an equation already reads, which the
 term families' stand-ins would otherwise take up first (:mod:`.states`)."""
 
-STATE_KINDS = ("hysteresis", "sensor", "actuator", "store", "mode")
+STATE_KINDS = ("hysteresis", "sensor", "actuator", "store", "mode", "relaxation")
 """The state families offered when the term families leave what they cannot take up (:mod:`.states`)."""
 
 

@@ -33,8 +33,8 @@ import numpy as np
 import sympy as sp
 
 from ..effects.base import declared_names, short_name
-from ..effects.states import (Lag, actuators, hystereses, lag_spec, lags, modes, names_of, new_states, sensors,
-                              stores, transfers)
+from ..effects.states import (Lag, actuators, hystereses, lag_spec, lags, modes, names_of, new_states, relaxations,
+                              sensors, stores, transfers)
 from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
@@ -138,7 +138,7 @@ def lag_candidate(current: Fit, lag: Lag, at: Along | None = None) -> CandidateS
         # the lagged state starts where the state it follows does; its rate is a lag's
         spec = lag_spec(ms, lag, (float(d[0]), sd_d))
         priors[new[1]] = _lognormal(rate, RATE_SPAN)
-    elif lag.kind == "store":
+    elif lag.kind in ("store", "relaxation"):
         # the store starts where its state does, as uncertain as that state's spread; its rate is a lag's, its
         # exchange as large as the state's own drift over its spread (a hysteresis' coupling)
         spec = lag_spec(ms, lag, (float(d[0]), sd_d))
@@ -190,7 +190,7 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the dynamics read {z} for {lag.term}"
     elif lag.kind == "transfer":
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the {lag.target} equation reads {z} for {lag.term}"
-    elif lag.kind == "store":
+    elif lag.kind in ("store", "relaxation"):
         x = lag.term
         eq = f"{z}' = {new[1]}*({x} - {z}), {new[2]}*({z} - {x}) in the {x} equation"
     elif lag.kind == "mode":
@@ -203,7 +203,7 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
     states = new_states(lag)
     out = {"name": z, "kind": lag.kind, "term": lag.term, "target": lag.target, "equation": eq,
            "states": list(states), "parameters": {n: shape_summary(row, n) for n in new[len(states):] if n in row.mean}}
-    if lag.kind in ("lag", "sensor", "actuator", "store", "transfer") and new[1] in row.mean:
+    if lag.kind in ("lag", "sensor", "actuator", "store", "relaxation", "transfer") and new[1] in row.mean:
         r = out["parameters"][new[1]]
         out["time_constant"] = {"mean": 1.0 / r["mean"], "q005": 1.0 / r["q995"], "q995": 1.0 / r["q005"]}
     if lag.kind == "mode" and new[2] in row.mean:
@@ -212,7 +212,7 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
     return out
 
 
-COUPLING = {"hysteresis": 1, "store": 2, "mode": 4}
+COUPLING = {"hysteresis": 1, "store": 2, "relaxation": 2, "mode": 4}
 """The parameter (its place in :func:`names_of`) through which a state of fixed form acts on the model: its
 coupling, an effect's coefficient whose 99 % interval must exclude 0."""
 
@@ -364,7 +364,7 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
     config, say = ctx.config, ctx.say
     ms = current.cand.model_spec()
     offer = {"lag": lags, "hysteresis": hystereses, "sensor": sensors, "actuator": actuators, "store": stores,
-             "transfer": transfers, "mode": modes}
+             "relaxation": relaxations, "transfer": transfers, "mode": modes}
     offered, tasks = [], []
     moves = [m for kind in kinds for m in offer[kind](ms)]
     at = along(current) if moves else None

@@ -33,6 +33,8 @@ Records (the physics each one holds; ``sigma`` process noise, ``gamma`` measurem
 * ``two_mass``: a heated body, T' = q u - a (T - 295) + k (S - T), exchanging heat with a second mass,
   S' = b (T - S), b = 0.001 1/s (a 1,000 s time constant), its heater stepped as the heated body's. User model:
   Newton cooling, T' = q u - a (T - 295).
+* ``viscoelastic``: a hardening oscillator on a viscoelastic mount, y'' = -k y - c y' - k3 y^3 + kr (z - y') + b u,
+  z' = br (y' - z), br = 4 1/s (a Maxwell element). User model: the hardening oscillator without the mount.
 * ``pipe``: two linear tanks, h1' = q u - a h1, h2' = a p - c h2, the upper tank's outflow reaching the lower
   through a pipe, p' = b (h1 - p), b = 0.5 1/s. User model: the two tanks without the pipe, h2' = a h1 - c h2.
 * ``heated_body``: a lumped body (heat capacity 500 J/K) cooling to a 295 K ambient by convection (0.5 W/K)
@@ -218,6 +220,23 @@ def actuator(n: int = 4000, seed: int = 21) -> Record:
     return _split("actuator", spec, data, (True, False),
                   "a hardening oscillator driven through an actuator with its own first-order lag (tau 0.1 s)",
                   ("form:actuator",), (truth, values))
+
+
+def viscoelastic(n: int = 4000, seed: int = 24) -> Record:
+    u = 1.5 * _noise_input(np.random.default_rng(seed), n)
+    values = {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "kr": 1.5, "br": 4.0, "sigma": 0.3}
+    truth = _truth("-k*y - c*v - k3*y**3 + kr*(z - v) + b*u", list(values), 2e-3, states=("y", "v", "z"),
+                   drift_extra={"z": "br*(v - z)"})
+    data = _simulate(truth, values, np.arange(n) * 0.02, u, seed, 3)
+    # the user knows the hardening spring; what the model lacks is the mount's relaxation (a Maxwell element)
+    user = _linear_oscillator(2e-3)
+    user["drift"] = {"y": "v", "v": "-k*y - c*v - k3*y**3 + b*u"}
+    user["parameters"] = ["k", "c", "k3", "b", "sigma"]
+    spec = _oscillator_study("viscoelastic", user,
+                             {**OSC_PRIORS, "k3": {"kind": "lognormal", "median": 3.0, "cov": 200}})
+    return _split("viscoelastic", spec, data, (True, False),
+                  "a hardening oscillator on a viscoelastic mount (a Maxwell element, relaxation time 0.25 s)",
+                  ("form:relaxation",), (truth, values))
 
 
 def second_mode(n: int = 4000, seed: int = 19) -> Record:
@@ -505,7 +524,7 @@ def _lco_maker(name):
 
 RECORDS = {"cascade": cascade, "duffing": duffing, "friction": friction, "saturation": saturation,
            "backlash": backlash, "hysteresis": hysteresis, "sensor_lag": sensor_lag, "actuator": actuator,
-           "two_mass": two_mass, "pipe": pipe,
+           "two_mass": two_mass, "pipe": pipe, "viscoelastic": viscoelastic,
            "second_mode": second_mode,
            "heated_body": heated_body, "none": none,
            "tanks_linear": lambda n=None, seed=None: tanks("linear"), "tanks_sqrt": lambda n=None, seed=None: tanks("sqrt"),
