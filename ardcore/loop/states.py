@@ -1,12 +1,13 @@
 """States the model lacks: a declared quantity or a state through a lag, a hysteresis, a sensor's or an actuator's
-dynamics, a second store, a second mode.
+dynamics, a second store, a second mode, a relaxation.
 
 The loop's other moves add or reshape terms in the equations of the states the user declared. Many real
-omissions are a state of their own. Seven families are offered, each a full fit judged like a law replacement
+omissions are a state of their own. Eight families are offered, each a full fit judged like a law replacement
 (:mod:`.replace`): its ln Bayes factor against the current model must exceed ``config.min_log_bf`` plus ln of
 the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it. The
-hysteresis, the sensor, the actuator, the store, the mode and the transfer lag are screened first
-(:func:`screened_states`): only those that fit better with the current model held at its MAP are fitted in full
+hysteresis, the sensor, the actuator, the store, the mode, the relaxation and the transfer lag are screened first
+(:func:`screened_states`): only those that fit better with the current model held at its MAP (a store's and a
+relaxation's with the coefficient their exchange moves released, :func:`exchanged`) are fitted in full
 (:func:`_screened_pick`). A lag and a transfer lag (a state read through a lag by another's equation) are offered
 every round, beside the laws, whose stand-ins would take them up first; the others only when the loop would stop
 (the term families left structure they cannot take up).
@@ -19,7 +20,8 @@ zero (a lag turns the law's phase, so a sign chosen for the quasi-steady reading
 terms are selected again.
 A hysteresis' ``beta`` lognormal at the inverse of the displacement's spread, ``gamma`` normal around 0 at that
 size, ``k`` normal around 0 at the size of the velocity equation's own drift over the displacement. A store's
-``b`` as a lag's, its ``k`` normal around 0 at the size of its state's own drift over that state's spread. A mode's
+``b`` as a lag's, its ``k`` normal around 0 at the size of its state's own drift over that state's spread (a
+relaxation's as a store's, on the velocity). A mode's
 ``w`` lognormal over a tenth to ten times the record's dominant frequency, ``zeta`` lognormal from 0.5 % to 50 %,
 ``mu`` normal around 0 at 1 (an effect's coefficient, taken only when its 99 % interval excludes 0).
 """
@@ -236,16 +238,16 @@ def screened_states(ctx, current: Fit, offered: list, tasks: list) -> list[tuple
     reduced = [conditional(t[0], known, r) if m.kind != "lag" else None for t, m, r in zip(tasks, offered, released)]
     if any(r is None for r in reduced):
         return None
-    # what a move that releases some of the current model's parameters is weighed against: the current model
-    # with those released too (their Laplace evidence at its MAP), so that the released ones' Occam factors cancel
-    sets = sorted({r for r in released if r})
-    own = [conditional(current.cand, known, r) for r in sets]
-    cond = screen(ctx, reduced + own, current.data, ctx.spec.seed, ctx.config.search_window)
-    bases = {r: z for r, (z, _) in zip(sets, cond[len(reduced):])}
+    # what a move that releases some of the current model's parameters is weighed against: the current model with
+    # those released too, so that their Occam factors cancel (:func:`_baseline`)
+    own = [i for i, r in enumerate(released) if r]
+    cond = screen(ctx, reduced + [_baseline(tasks[i][0], offered[i], known, released[i]) for i in own],
+                  current.data, ctx.spec.seed, ctx.config.search_window)
+    bases = {i: z for i, (z, _) in zip(own, cond[len(reduced):])}
     base = current.row.goodness_of_fit
     order = []
     for i, (log_z, at) in enumerate(cond[:len(reduced)]):
-        gain, new, move = log_z - bases.get(released[i], base), reduced[i].new, offered[i]
+        gain, new, move = log_z - bases.get(i, base), reduced[i].new, offered[i]
         ctx.say(f"  screened: {_a(move.kind)} ({move.term} -> {move.target}): conditional ln BF {gain:.1f}"
                 + ("" if gain > 0 else ", not fitted in full"))
         if gain > 0:
@@ -266,6 +268,19 @@ def exchanged(spec: ModelSpec, move: Lag) -> tuple:
     x = sp.Symbol(move.term, real=True)
     slope = sp.diff(parse_expression(spec.drift[move.term], names), x)
     return tuple(sorted({str(p) for p in slope.free_symbols} & set(spec.free_parameters)))
+
+
+def _baseline(cand: CandidateSpec, move: Lag, known: dict, released: tuple):
+    """The current model inside ``move``'s own candidate ``cand``: its exchange off (the coupling at 0, so the new
+    state feeds nothing back and the likelihood is the current model's), its other parameters at their prior
+    medians, the ``released`` ones fitted (:func:`~ardcore.screening.states.conditional`): what a move that
+    releases them is weighed against, with their priors and the kernel the move's own."""
+    from ..screening.states import conditional
+
+    new = names_of(move)
+    held = {n: float(cand.priors[n].quantile(0.5)) for n in new[len(new_states(move)):]}
+    held[new[COUPLING[move.kind]]] = 0.0
+    return conditional(cand, {**known, **held}, released)
 
 
 SAME_MODE_NATS = 0.1

@@ -184,6 +184,32 @@ def test_a_transfer_lag_puts_a_lag_between_two_first_order_states_and_is_offered
     assert transfers(m) == []
 
 
+def test_a_relaxation_exchanges_with_an_oscillator_s_velocity_and_its_screen_releases_the_damping():
+    """The relaxation built on a forced oscillator is a Maxwell element on its velocity: the velocity's equation
+    gains k (z - v), z follows v at rate b; it is offered for an oscillator only (not for a first-order state),
+    once. Its screen, and a store's, fits the coefficients of the exchanged state in its own equation beside the
+    move's own (the damping c, the cooling a), which the exchange's -k v moves; no other move releases any."""
+    from ardflow.ardcore.effects.states import relaxations, sensors, stores
+    from ardflow.ardcore.loop.states import exchanged
+    from ardflow.ardcore.model.library import builtin
+
+    osc = builtin("forced_linear_oscillator")
+    assert relaxations(osc) == [Lag("v", "v", "relaxation")]
+    m = lag_spec(osc, relaxations(osc)[0], (0.0, 0.5))
+    assert m.states == ["y", "v", "rel_v"] and m.parameters[-2:] == ["b_rel_v", "k_rel_v"]
+    sm = symbolic(m.with_fixed(b_rel_v=4.0, k_rel_v=1.5))
+    V, Z = sp.Symbol("v", real=True), sp.Symbol("rel_v", real=True)
+    assert sp.simplify(sm.drift[1] - symbolic(osc).drift[1] - 1.5 * (Z - V)) == 0
+    assert sp.simplify(sm.drift[2] - 4.0 * (V - Z)) == 0
+    assert relaxations(m) == []
+    cool = ModelSpec(name="nc", states=["T"], inputs=["u"], drift={"T": "q*u - a*(T - 295)"}, diffusion={"T": "s"},
+                     observations=[{"column": "y", "expr": "T", "noise_std": "gamma"}], constants={"gamma": 0.1},
+                     parameters=["a", "q", "s"], initial_mean={"T": 295.0}, initial_std={"T": 5.0})
+    assert relaxations(cool) == []
+    assert exchanged(osc, relaxations(osc)[0]) == ("c",) and exchanged(cool, stores(cool)[0]) == ("a",)
+    assert exchanged(osc, sensors(osc)[0]) == ()
+
+
 def _screened(name: str):
     """The stop stage's screen of the state moves on a validation record's first 2,000 samples, from the user's
     linear oscillator fitted there: {kind: conditional ln BF}."""
