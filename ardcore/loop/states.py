@@ -5,12 +5,11 @@ The loop's other moves add or reshape terms in the equations of the states the u
 omissions are a state of their own. Eight families are offered, each a full fit judged like a law replacement
 (:mod:`.replace`): its ln Bayes factor against the current model must exceed ``config.min_log_bf`` plus ln of
 the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it. The
-hysteresis, the sensor, the actuator, the store, the mode, the relaxation and the transfer lag are screened first
-(:func:`screened_states`): only those that fit better with the current model held at its MAP (a store's and a
-relaxation's with the coefficient their exchange moves released, :func:`exchanged`) are fitted in full
-(:func:`_screened_pick`). A lag and a transfer lag (a state read through a lag by another's equation) are offered
-every round, beside the laws, whose stand-ins would take them up first; the others only when the loop would stop
-(the term families left structure they cannot take up).
+hysteresis, the sensor, the actuator, the store, the mode and the transfer lag are screened first
+(:func:`screened_states`): only those that fit better with the current model held at its MAP are fitted in full
+(:func:`_screened_pick`), a relaxation beside a mode (:data:`UNSCREENED`). A lag and a transfer lag (a state read
+through a lag by another's equation) are offered every round, beside the laws, whose stand-ins would take them up
+first; the others only when the loop would stop (the term families left structure they cannot take up).
 
 The families and what each adds to a declaration are :mod:`ardcore.effects.states`. Priors: a lag's rate ``b``
 lognormal at the record's dominant angular frequency, a tenth to ten times it at +-2 sd (a sensor's or an
@@ -233,21 +232,17 @@ def screened_states(ctx, current: Fit, offered: list, tasks: list) -> list[tuple
     from .confirm import warm_with
 
     known = dict(zip(current.mr.sampler.names, np.asarray(current.mr.sampler.phi_star, float)))
-    ms = current.cand.model_spec()
-    released = [exchanged(ms, m) for m in offered]
-    reduced = [conditional(t[0], known, r) if m.kind != "lag" else None for t, m, r in zip(tasks, offered, released)]
+    screened = [i for i, m in enumerate(offered) if m.kind not in UNSCREENED]
+    if not screened:
+        return []
+    reduced = [conditional(tasks[i][0], known) if offered[i].kind != "lag" else None for i in screened]
     if any(r is None for r in reduced):
         return None
-    # what a move that releases some of the current model's parameters is weighed against: the current model with
-    # those released too, so that their Occam factors cancel (:func:`_baseline`)
-    own = [i for i, r in enumerate(released) if r]
-    cond = screen(ctx, reduced + [_baseline(tasks[i][0], offered[i], known, released[i]) for i in own],
-                  current.data, ctx.spec.seed, ctx.config.search_window)
-    bases = {i: z for i, (z, _) in zip(own, cond[len(reduced):])}
+    cond = screen(ctx, reduced, current.data, ctx.spec.seed, ctx.config.search_window)
     base = current.row.goodness_of_fit
     order = []
-    for i, (log_z, at) in enumerate(cond[:len(reduced)]):
-        gain, new, move = log_z - bases.get(i, base), reduced[i].new, offered[i]
+    for i, r, (log_z, at) in zip(screened, reduced, cond):
+        gain, new, move = log_z - base, r.new, offered[i]
         ctx.say(f"  screened: {_a(move.kind)} ({move.term} -> {move.target}): conditional ln BF {gain:.1f}"
                 + ("" if gain > 0 else ", not fitted in full"))
         if gain > 0:
@@ -255,32 +250,6 @@ def screened_states(ctx, current: Fit, offered: list, tasks: list) -> list[tuple
             order.append((gain, i, (cand, data, spec, warm_with(current.mr.sampler, new, [at[n] for n in new]),
                                     posterior)))
     return [(i, task) for _, i, task in sorted(order, key=lambda x: -x[0])]
-
-
-def exchanged(spec: ModelSpec, move: Lag) -> tuple:
-    """The current model's parameters a state move's screen fits beside its own: for an exchange with a state (a
-    store, a relaxation: ``k (z - x)`` in ``x``'s equation) the coefficients of ``x`` in that equation, which the
-    exchange's ``-k x`` moves (held at the current model's MAP, they had taken up the exchange's mean effect, and
-    a move that helps screened negative: a relaxation, 83 nats in full, at -0.7)."""
-    if move.kind not in ("store", "relaxation"):
-        return ()
-    names = declared_names(spec)
-    x = sp.Symbol(move.term, real=True)
-    slope = sp.diff(parse_expression(spec.drift[move.term], names), x)
-    return tuple(sorted({str(p) for p in slope.free_symbols} & set(spec.free_parameters)))
-
-
-def _baseline(cand: CandidateSpec, move: Lag, known: dict, released: tuple):
-    """The current model inside ``move``'s own candidate ``cand``: its exchange off (the coupling at 0, so the new
-    state feeds nothing back and the likelihood is the current model's), its other parameters at their prior
-    medians, the ``released`` ones fitted (:func:`~ardcore.screening.states.conditional`): what a move that
-    releases them is weighed against, with their priors and the kernel the move's own."""
-    from ..screening.states import conditional
-
-    new = names_of(move)
-    held = {n: float(cand.priors[n].quantile(0.5)) for n in new[len(new_states(move)):]}
-    held[new[COUPLING[move.kind]]] = 0.0
-    return conditional(cand, {**known, **held}, released)
 
 
 SAME_MODE_NATS = 0.1
@@ -339,22 +308,28 @@ def _taken(ctx, current: Fit, lag: Lag, task: tuple, fit: tuple, gain: float, ne
     return Fit(task[0], row, mr, current.data), [record], float(gain)
 
 
-SWAPPED = {"sensor": "actuator", "actuator": "sensor", "mode": "relaxation", "relaxation": "mode"}
+SWAPPED = {"sensor": "actuator", "actuator": "sensor", "mode": "relaxation"}
 """Moves the screen, which holds the current model where it was, cannot order. The lag at a model's output and the
 lag at its input, which its linear part cannot tell apart (a linear system read through a lag is the same system
 driven through it: on the validation set's ``actuator`` record the actuator screened at 66 nats against the
 sensor's 292 and beat it in full by 140); a second mode and a relaxation (a massless mode on a spring and damper
-is a relaxation: on the ``viscoelastic`` record the mode screened at 3.8 against the relaxation's 2.4, and the
-relaxation beat it in full by 5). When the screen's best move is one of a pair, the best of the other is fitted
-beside it and the evidence chooses."""
+is a relaxation, :data:`UNSCREENED`). When the screen's best move is one of a pair, the other is fitted beside it
+and the evidence chooses."""
+
+UNSCREENED = ("relaxation",)
+"""Moves the screen cannot weigh, fitted in full only beside their :data:`SWAPPED` rival, from the prior. A
+relaxation's exchange ``-k v`` is a damping, which the current model's damping held at its MAP had taken up: on the
+``viscoelastic`` record it screened at -0.7 and beat every other move in full (ln BF 83 against the mode's 78).
+Screened with that damping released, it cost a 10,000-sample round's states 2.5 times its terms (bench
+``states_10k_ratio``, limit 2); a second mode, a mass on the same spring and damper, screens where it helps."""
 
 
 def _screened_pick(ctx, current: Fit, offered: list, tasks: list, order: list, need: float):
     """The move :func:`best_state` takes of the screened ones (``order``, :func:`screened_states`), or None.
 
     The screen's best is fitted in full from its screened values and from the prior (:func:`_better_start`),
-    side by side with its swapped rival if one screened (:data:`SWAPPED`, from its screened values); of those
-    that qualify (:func:`_refused`) the one with the higher evidence is the move. When none does, the rest are
+    side by side with its swapped rival if one screened (:data:`SWAPPED`, from its screened values; one not
+    screened, :data:`UNSCREENED`, from the prior); of those that qualify (:func:`_refused`) the one with the higher evidence is the move. When none does, the rest are
     fitted in the screen's order, each from both starts, and the first that qualifies is the move."""
     from .confirm import fit_all
 
@@ -363,6 +338,8 @@ def _screened_pick(ctx, current: Fit, offered: list, tasks: list, order: list, n
     base = current.row.log_evidence
     kind = SWAPPED.get(offered[order[0][0]].kind)
     head = [order[0], *[o for o in order[1:] if offered[o[0]].kind == kind][:1]]
+    if kind in UNSCREENED:  # its rival from the prior
+        head += [(i, tasks[i]) for i, m in enumerate(offered) if m.kind == kind][:1]
     got = fit_all(ctx.mapper, [head[0][1], tasks[head[0][0]], *(task for _, task in head[1:])])
     fits = [_better_start(got[:2]), *got[2:]]
     gains = [f[0].log_evidence - base if np.isfinite(f[0].log_evidence) else -math.inf for f in fits]
@@ -404,6 +381,8 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",)):
              "relaxation": relaxations, "transfer": transfers, "mode": modes}
     offered, tasks = [], []
     moves = [m for kind in kinds for m in offer[kind](ms)]
+    rivals = {SWAPPED.get(m.kind) for m in moves}
+    moves = [m for m in moves if m.kind not in UNSCREENED or m.kind in rivals]  # fitted only beside a rival
     at = along(current) if moves else None
     # the screened families' searches from the prior read the record's first config.search_window samples (a
     # lag's fit re-selects a law's terms, like the laws beside it, and reads the whole record)

@@ -27,8 +27,6 @@ class Conditional(NamedTuple):
     cand: CandidateSpec
     known: dict
     new: list
-    start: dict = {}
-    """Where the searches start the current model's parameters the move releases (their MAP)."""
 
     def target(self, data):
         """The posterior of the ``new`` parameters on ``data`` (:class:`Held`)."""
@@ -59,17 +57,15 @@ class Held(Target):
         return out
 
 
-def conditional(cand: CandidateSpec, known: dict, released: tuple = ()) -> Conditional | None:
+def conditional(cand: CandidateSpec, known: dict) -> Conditional | None:
     """``cand`` with every free parameter ``known`` names (the current model's MAP) held there and the new state's
-    own, the free parameters it does not name, sampled alone (:class:`Conditional`), with the ``released`` ones of
-    the current model (their searches start at their MAP); None when the move has none or when it selects terms by
-    ARD (a lag). A parameter ``cand`` fixes (a term dropped earlier, 0) stays fixed."""
+    own, the free parameters it does not name, sampled alone (:class:`Conditional`); None when the move has none or
+    when it selects terms by ARD (a lag). A parameter ``cand`` fixes (a term dropped earlier, 0) stays fixed."""
     free = cand.model_spec().free_parameters
-    new = [n for n in free if n not in known or n in released]
+    new = [n for n in free if n not in known]
     if cand.ard or not new:
         return None
-    return Conditional(cand, {n: float(known[n]) for n in free if n not in new}, new,
-                       {n: float(known[n]) for n in released if n in free and n in known})
+    return Conditional(cand, {n: float(known[n]) for n in free if n not in new}, new)
 
 
 SCREEN_STARTS = 4
@@ -116,11 +112,7 @@ def screen(ctx, cands: list[Conditional], data, seed: int, window: int | None = 
     for c in cands:
         prior = JointPrior(c.new, {n: c.cand.priors[n] for n in c.new})
         median = [p.quantile(0.5) if p.kind != "ard" else 0.0 for p in prior.priors]
-        xs = [np.asarray(median, float), *initial_points(prior, SCREEN_STARTS - 1, rng)]
-        for x in xs:  # a released parameter of the current model starts where the current model has it
-            for n, v in c.start.items():
-                x[c.new.index(n)] = v
-        starts.append(xs)
+        starts.append([np.asarray(median, float), *initial_points(prior, SCREEN_STARTS - 1, rng)])
     found = ctx.mapper(_screen_search, [(c, data, x, window) for c, xs in zip(cands, starts) for x in xs])
     best = [max(found[k * SCREEN_STARTS:(k + 1) * SCREEN_STARTS], key=lambda r: r[1])[0] for k in range(len(cands))]
     return ctx.mapper(_screen_evidence, [(c, data, x) for c, x in zip(cands, best)])
