@@ -47,9 +47,8 @@ import numpy as np
 
 from .checks import Added, backward_check, brought, not_degenerate, replace_laws
 from .confirm import Fit, confirm, hidden, pool_mapper, trace_and_confirm
-from ..effects.states import Lag
-from .states import best_state, state_summary
-from .replace import best_laws, shape_summary
+from .states import LAG_KINDS, STATE_KINDS, best_state
+from .replace import best_laws
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import FitError, LoopFailed, SpecError
@@ -66,8 +65,7 @@ from .residuals import Residuals, residuals
 from ..selection.fit import ModelFit
 from ..selection.spec import StudySpec
 from ..selection.study import run_candidate
-from .verdict import (character, headline, latest_forms, parameter_shifts, shape_words, state_words, unexplained,
-                      withheld_words)
+from .verdict import character, report, strip_tests, unexplained
 
 
 
@@ -169,7 +167,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             res, fr, err = _measure(ctx, held, fspec, phi, cur_test, rnd)
             if first is None:
                 initial = FittedModel(fspec, phi, (), held.cand.substeps)
-                first = {"before": err, "tests_before": _strip(res.tests), "noise_std_before": res.noise_std,
+                first = {"before": err, "tests_before": strip_tests(res.tests), "noise_std_before": res.noise_std,
                          "base_fit": held.row.summary(_BASE_FIT), "initial_state": notes, "input_hold": hold,
                          "max_rounds": config.max_rounds, "seed": spec.seed}
                 arrays["before"] = _arrays(res, fr)
@@ -232,7 +230,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
         last = next((r.record for r in reversed(rounds) if r.record.get("added") or r.record.get("replaced")), None)
         shown = (last["after"], arrays["after"]) if last is not None else (first["before"], arrays["before"])
         first["reported"], reported = reported_model(ctx, final, held, cur_test, shown, len(rounds), score.held)
-        out = _report(ctx, data, test_data, first, rounds, arrays, held)
+        out = report(ctx.spec, data, test_data, first, rounds, arrays, held)
     except Exception as exc:  # noqa: BLE001 - any failure after the first fit, a defect included
         # never lose the work: what the loop had, with the reason, for the caller to write before it says so
         raise LoopFailed(f"diagnose failed in round {len(rounds)} ({type(exc).__name__}: {exc}); the rounds so far "
@@ -295,14 +293,6 @@ def _present(rounds: list[LoopRound]) -> set:
     """(library name, target) of the effects the model holds: not screened again (a second saturating flow
     beside the first, its width already fitted, is a basis expansion, not an effect)."""
     return {x.key for r in rounds for x in r.added if not x.record.get("removed")}
-
-
-LAG_KINDS = ("lag", "transfer")
-"""The state families offered every round beside the laws: a lag of what an equation already reads, which the
-term families' stand-ins would otherwise take up first (:mod:`.states`)."""
-
-STATE_KINDS = ("hysteresis", "sensor", "actuator", "store", "mode", "relaxation")
-"""The state families offered when the term families leave what they cannot take up (:mod:`.states`)."""
 
 
 def _closed(rounds: list[LoopRound]) -> set:
@@ -403,78 +393,6 @@ def _adopt(ctx: LoopContext, held: Fit, move: Move, fspec, phi, rnd: LoopRound) 
                                                    f"(ln BF {r['log_bayes_factor']:.1f})" for r in recs)
         + (f"; together ln BF {jrow.log_evidence - row.log_evidence:.1f}" if len(recs) > 1 else ""))
     return fit
-
-
-def _report(ctx: LoopContext, data, test_data, first, rounds: list[LoopRound], arrays, held: Fit) -> dict:
-    """The loop's JSON report: before/after, the rounds, what was added and removed, the verdict."""
-    spec, row = ctx.spec, held.row
-    records = [x.record for r in rounds for x in r.added]
-    rounds = [r.record for r in rounds]
-    added = [a for a in records if not a.get("removed")]
-    removed = [a for a in records if a.get("removed")]
-    kept = rounds
-    replaced = latest_forms([x for r in kept for x in r.get("replaced", [])])
-    # what the evidence supported and the criterion refused, each once (its latest judgement), unless taken later
-    taken = {(a["effect"], a["target"]) for a in records} | {(x["by"], "") for x in replaced}
-    withheld = list({(x["effect"], x["target"]): x for r in rounds for x in r.get("refused", [])
-                     if (x["effect"], x["target"]) not in taken}.values())
-    final_spec = held.cand.model_spec()
-    for x in replaced:  # a form's shape as the final model has it (later rounds refit it with what they add)
-        if x.get("shape") and x["shape"]["name"] in row.mean:
-            x["shape"] = shape_summary(row, x["shape"]["name"])
-        if x.get("state") and x["state"]["name"] in final_spec.states:
-            x["state"] = state_summary(row, Lag(x["term"], x["target"], x["state"]["kind"]), final_spec)
-    out = {"model": spec.models[0].label, "final_model": held.cand.label,
-           "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
-           "rounds": rounds,
-           "candidates": rounds[0]["candidates"] if rounds else [],
-           "confirmed": rounds[0]["confirmed"] if rounds else [],
-           "added": added,
-           "after": [r for r in kept if r["added"] or r.get("replaced")][-1]["after"] if added or replaced else None,
-           "removed": removed, "replaced": replaced, "withheld": withheld, "tests_after": None,
-           "states": [x["state"] for x in replaced if x.get("state")],
-           "final_fit": row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
-    col = spec.models[0].model_spec().observed_columns[0]
-    unit = (data.meta.get("units") or {}).get(col, "")
-    if not added and not replaced:
-        out["verdict"] = (withheld_words(withheld, first) if withheld else
-                          rounds[0].get("verdict", "nothing added") if rounds else "no rounds run")
-        out["headline"] = headline(out, col, unit)
-        return out
-    a, b = out["after"], out["before"]
-    out["tests_after"] = _strip(arrays["after"]["tests"])
-    out["parameter_shifts"] = shifts = parameter_shifts(first["base_fit"], row)
-    out["verdict"] = (("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
-                                                  f"{x['log_bayes_factor']:.1f}"
-                                                  + (f", {x['character']}" if x.get("character") else "") + ")"
-                                                  for x in added) if added else
-                        "no effect added" if replaced else "nothing added")
-                      + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
-                      f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
-                      f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
-                      + "".join((f"; {state_words(x)}" if x.get("state") else
-                                 f"; the declared term {x['parameter']}*({x['term']}) of the {x['target']} "
-                                 f"equation is replaced by {x['by']}" + shape_words(x))
-                                + f" (ln BF {x['log_bayes_factor']:.1f})" for x in replaced)
-                      + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
-                                f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
-                      + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "
-                                f"absorbed part of what was missing" for k, v in shifts.items())
-                      + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else "")
-                      + (f"; {withheld_words(withheld, first)}" if withheld else ""))
-    out["headline"] = headline(out, col, unit)
-    return out
-
-
-def _strip(tests: dict) -> dict:
-    """JSON part of the tests (the spectrum arrays go to the figures)."""
-    out = {}
-    for c, t in tests.items():
-        d = {k: v for k, v in t.items() if k not in ("spectrum", "acf")}
-        d["acf"] = [float(x) for x in t["acf"]]
-        d["spectral_peaks"] = t["spectrum"]["peaks"]
-        out[c] = d
-    return out
 
 
 def _arrays(res: Residuals, fr: dict) -> dict:

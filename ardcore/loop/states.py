@@ -324,6 +324,14 @@ Screened with that damping released, it cost a 10,000-sample round's states 2.5 
 ``states_10k_ratio``, limit 2); a second mode, a mass on the same spring and damper, screens where it helps."""
 
 
+LAG_KINDS = ("lag", "transfer")
+"""The state families offered every round beside the laws: a lag of what an equation already reads, which the
+term families' stand-ins would otherwise take up first."""
+
+STATE_KINDS = ("hysteresis", "sensor", "actuator", "store", "mode", "relaxation")
+"""The state families offered when the term families leave what they cannot take up."""
+
+
 def _screened_pick(ctx, current: Fit, offered: list, tasks: list, order: list, need: float):
     """The move :func:`best_state` takes of the screened ones (``order``, :func:`screened_states`), or None.
 

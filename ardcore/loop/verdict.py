@@ -1,6 +1,6 @@
 """What the closed loop says about a model: the character of an added term, the verdict when nothing is
-added, the report's words for what was withheld or replaced, and the declared parameters that moved (used by
-:func:`ardcore.loop.diagnose.diagnose`)."""
+added, the report's words for what was withheld or replaced, the declared parameters that moved, and the report
+that holds them (:func:`report`, used by :func:`ardcore.loop.diagnose.diagnose`)."""
 
 from __future__ import annotations
 
@@ -258,3 +258,81 @@ def expected_words(fr: dict) -> str:
     if fr.get("band_diverged"):
         words += f", {fr['band_diverged']:.0%} of its draws diverged"
     return words
+
+
+def report(spec, data, test_data, first: dict, rounds: list, arrays: dict, held) -> dict:
+    """The loop's JSON report of a study ``spec`` on ``data``: before/after (``first``, ``arrays``), the rounds
+    (:class:`~.result.LoopRound`), what was added, removed and replaced, the verdict, for the model it ``held``
+    (a :class:`~.confirm.Fit`)."""
+    from ..effects.states import Lag
+    from .replace import shape_summary
+    from .states import state_summary
+
+    row = held.row
+    records = [x.record for r in rounds for x in r.added]
+    rounds = [r.record for r in rounds]
+    added = [a for a in records if not a.get("removed")]
+    removed = [a for a in records if a.get("removed")]
+    kept = rounds
+    replaced = latest_forms([x for r in kept for x in r.get("replaced", [])])
+    # what the evidence supported and the criterion refused, each once (its latest judgement), unless taken later
+    taken = {(a["effect"], a["target"]) for a in records} | {(x["by"], "") for x in replaced}
+    withheld = list({(x["effect"], x["target"]): x for r in rounds for x in r.get("refused", [])
+                     if (x["effect"], x["target"]) not in taken}.values())
+    final_spec = held.cand.model_spec()
+    for x in replaced:  # a form's shape as the final model has it (later rounds refit it with what they add)
+        if x.get("shape") and x["shape"]["name"] in row.mean:
+            x["shape"] = shape_summary(row, x["shape"]["name"])
+        if x.get("state") and x["state"]["name"] in final_spec.states:
+            x["state"] = state_summary(row, Lag(x["term"], x["target"], x["state"]["kind"]), final_spec)
+    out = {"model": spec.models[0].label, "final_model": held.cand.label,
+           "data": data.meta.get("source"), "n": len(data), "n_test": len(test_data), **first,
+           "rounds": rounds,
+           "candidates": rounds[0]["candidates"] if rounds else [],
+           "confirmed": rounds[0]["confirmed"] if rounds else [],
+           "added": added,
+           "after": [r for r in kept if r["added"] or r.get("replaced")][-1]["after"] if added or replaced else None,
+           "removed": removed, "replaced": replaced, "withheld": withheld, "tests_after": None,
+           "states": [x["state"] for x in replaced if x.get("state")],
+           "final_fit": row.summary(("log_evidence", "log_evidence_se", "mean", "sd", "q005", "q995"))}
+    col = spec.models[0].model_spec().observed_columns[0]
+    unit = (data.meta.get("units") or {}).get(col, "")
+    if not added and not replaced:
+        out["verdict"] = (withheld_words(withheld, first) if withheld else
+                          rounds[0].get("verdict", "nothing added") if rounds else "no rounds run")
+        out["headline"] = headline(out, col, unit)
+        return out
+    a, b = out["after"], out["before"]
+    out["tests_after"] = strip_tests(arrays["after"]["tests"])
+    out["parameter_shifts"] = shifts = parameter_shifts(first["base_fit"], row)
+    out["verdict"] = (("added " + ", then ".join(f"{x['effect']} ({x['target']} equation, ln BF "
+                                                  f"{x['log_bayes_factor']:.1f}"
+                                                  + (f", {x['character']}" if x.get("character") else "") + ")"
+                                                  for x in added) if added else
+                        "no effect added" if replaced else "nothing added")
+                      + f"; innovation RMS {b['innovation_rms']:.4g} -> {a['innovation_rms']:.4g}; free-run RMS "
+                      f"error {b['free_run']['rms_error']:.4g} -> {a['free_run']['rms_error']:.4g}; ln Z "
+                      f"{b['log_evidence']:.2f} -> {a['log_evidence']:.2f}"
+                      + "".join((f"; {state_words(x)}" if x.get("state") else
+                                 f"; the declared term {x['parameter']}*({x['term']}) of the {x['target']} "
+                                 f"equation is replaced by {x['by']}" + shape_words(x))
+                                + f" (ln BF {x['log_bayes_factor']:.1f})" for x in replaced)
+                      + "".join(f"; {x['effect']} dropped again in round {x['removed']} (worth "
+                                f"{x['log_bayes_factor_after']:.1f} nats beside the later effects)" for x in removed)
+                      + "".join(f"; {k} moved {v['before']:.4g} -> {v['after']:.4g} ({v['z']:.0f} sd): it had "
+                                f"absorbed part of what was missing" for k, v in shifts.items())
+                      + (f"; then: {rounds[-1]['verdict']}" if rounds[-1].get("verdict") else "")
+                      + (f"; {withheld_words(withheld, first)}" if withheld else ""))
+    out["headline"] = headline(out, col, unit)
+    return out
+
+
+def strip_tests(tests: dict) -> dict:
+    """JSON part of the tests (the spectrum arrays go to the figures)."""
+    out = {}
+    for c, t in tests.items():
+        d = {k: v for k, v in t.items() if k not in ("spectrum", "acf")}
+        d["acf"] = [float(x) for x in t["acf"]]
+        d["spectral_peaks"] = t["spectrum"]["peaks"]
+        out[c] = d
+    return out
