@@ -51,7 +51,7 @@ from .states import LAG_KINDS, STATE_KINDS, best_state
 from .replace import best_laws
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
-from ..errors import FitError, LoopFailed, SpecError
+from ..errors import DataError, FitError, LoopFailed, SpecError
 from ..jsonio import to_jsonable
 from .criterion import Criterion, Move, decide, held_out_record, stable
 from .simulation_fit import reported_model
@@ -267,12 +267,17 @@ def _informed_start(spec: StudySpec, data: Dataset, base, say) -> tuple[StudySpe
 
 
 def _check_columns(ms: ModelSpec, data: Dataset, test_data: Dataset) -> None:
-    """Before any fit: a free run at the end must not be what finds a missing column."""
+    """Before any fit: a free run at the end must not be what finds a missing column, an input with a gap or an
+    observed column without a value (a test record that diverged in its simulation, a wrong file)."""
     for what, d in (("data", data), ("held-out data", test_data)):
         missing = [c for c in list(ms.observed_columns) + list(ms.inputs) if c not in d.columns]
         if missing:
             raise SpecError(f"diagnose: the {what} ({d.meta.get('source', 'given')}) has no column "
                             f"{missing[0]!r} (it has {sorted(d.columns)}); rename its columns")
+        try:
+            d.arrays(list(ms.observed_columns), list(ms.inputs))
+        except DataError as exc:
+            raise DataError(f"diagnose: the {what}: {exc}") from exc
 
 
 def check_fitted(label: str, row: ModelFit, data: Dataset) -> None:

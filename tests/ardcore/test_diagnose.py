@@ -116,6 +116,21 @@ def test_a_loop_ended_by_its_round_cap_says_so():
     assert "cap of 1 round," in rep["headline"] and "--max-rounds" in rep["headline"], rep["headline"]
 
 
+def test_a_held_out_record_without_values_is_refused_before_any_fit():
+    """A held-out record whose observed column holds no value (a simulation that diverged, the wrong file) or
+    whose input has a gap is a data error said in one line before the first fit, not a failure after it."""
+    from ardflow.ardcore.data import Dataset
+    from ardflow.ardcore.errors import DataError
+
+    data = duffing_free_decay(-4.0, 3)
+    test = data.slice(1000, None)
+    said = []
+    blank = Dataset(test.t, {**test.columns, "y": np.full(len(test), np.nan)}, {"source": "val.csv"})
+    with pytest.raises(DataError, match="held-out data: val.csv: observed column 'y' has no values"):
+        diagnose(duffing_spec(), data.slice(0, 1000), test_data=blank, progress=said.append)
+    assert not any("fitting" in m for m in said), said
+
+
 def _tank(drift):
     from ardflow.ardcore.model.declaration import ModelSpec
 
