@@ -276,38 +276,6 @@ def hidden(screening: Screening, confirmed: list) -> list:
     return [c for c in screening.screened if getattr(c, "conditional_on", None) and id(c) not in tried]
 
 
-NOISE_SHARE = 0.1
-"""A declared measurement noise whose variance is under this share of the innovations' (the median over the
-record) is one the screen cannot see raised: its score is taken at the declared level, where the measurement's
-term in the innovations' variance vanishes beside the state's, so it is ~0 where the level is worth hundreds of
-nats (a clean oscillator declared 25 times too quiet screened it at 0.1 and took a forcing, a mode and an
-actuator in its place). Such a level is confirmed whatever it screened. A declared level the record's noise is
-far below is seen by the score (its term dominates), and confirming it regardless would let a coloured, filtered
-noise (the reference LCO records: ln BF 19,000 for a tenth of the declared level) decide the first round."""
-
-
-def quiet_channels(inp: ScreenInput) -> dict:
-    """The observed columns whose declared measurement noise is under :data:`NOISE_SHARE` of the innovations'
-    variance at the model ``inp`` screens from: {column: that share}."""
-    from ..likelihood.ekf import compile_model
-    from ..model.declaration import symbolic
-
-    sm = symbolic(inp.spec)
-    at = {sp_: float(inp.phi[str(sp_)]) for sp_ in sm.params if str(sp_) in inp.phi}
-    S = compile_model(inp.spec).filter(inp.phi, inp.data, inp.substeps).innovation_var
-    out = {}
-    for j, col in enumerate(inp.spec.observed_columns):
-        try:
-            r = float(sm.obs_std[j].subs(at)) ** 2
-        except (TypeError, ValueError):
-            continue  # a level that is not a number at this fit: nothing to judge
-        s = S[:, j][np.isfinite(S[:, j]) & (S[:, j] > 0)]
-        share = float(np.median(r / s)) if s.size else math.nan
-        if share < NOISE_SHARE:
-            out[col] = share
-    return out
-
-
 def confirm(ctx, held: Fit, inp: ScreenInput, screened: list, n_tried: int) -> list:
     """The best distinct candidates of ``screened`` (forward selection on the screened evidence, with their
     twins) re-selected under ARD side by side: their confirmations (:class:`Confirmation`). ``n_tried``: the
@@ -319,11 +287,10 @@ def confirm(ctx, held: Fit, inp: ScreenInput, screened: list, n_tried: int) -> l
         update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
     confirmed = []
     picked = distinct_candidates(inp, screened, config.top_k, config.min_score)
-    quiet = quiet_channels(inp)
-    if quiet:
-        say("  the declared measurement noise is under " f"{NOISE_SHARE:.0%} of the innovations' variance on "
-            + ", ".join(f"{c} ({v:.2g})" for c, v in quiet.items()) + ": its level is confirmed whatever it screened")
-    picked += [c for c in screened if c.effect.where == "noise" and c.target in quiet and c not in picked]
+    # a noise level is confirmed whatever it screened: the screen's score at the declared level is local, and a
+    # declared measurement noise far below the record's makes its term in the innovations' variance vanish
+    # beside the state's, so the score is ~0 where the level is worth hundreds of nats
+    picked += [c for c in screened if c.effect.where == "noise" and c not in picked]
     rivals = _rivals(screened, picked, config, say)
     by_id = {id(c): c for c in screened}
     chosen = list(picked) + [by_id[i] for i in rivals]
