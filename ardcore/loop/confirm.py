@@ -287,10 +287,6 @@ def confirm(ctx, held: Fit, inp: ScreenInput, screened: list, n_tried: int) -> l
         update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
     confirmed = []
     picked = distinct_candidates(inp, screened, config.top_k, config.min_score)
-    # a noise level is confirmed whatever it screened: the screen's score at the declared level is local, and a
-    # declared measurement noise far below the record's makes its term in the innovations' variance vanish
-    # beside the state's, so the score is ~0 where the level is worth hundreds of nats
-    picked += [c for c in screened if c.effect.where == "noise" and c not in picked]
     rivals = _rivals(screened, picked, config, say)
     by_id = {id(c): c for c in screened}
     chosen = list(picked) + [by_id[i] for i in rivals]
