@@ -206,17 +206,21 @@ def sensor_lag(n: int = 4000, seed: int = 18) -> Record:
                   ("form:sensor",), truth)
 
 
+def _hardening_study(name: str):
+    """The study of a user who knows the hardening spring, y'' = -k y - c y' - k3 y^3 + b u."""
+    user = _linear_oscillator(2e-3)
+    user["drift"] = {"y": "v", "v": "-k*y - c*v - k3*y**3 + b*u"}
+    user["parameters"] = ["k", "c", "k3", "b", "sigma"]
+    return _oscillator_study(name, user, {**OSC_PRIORS, "k3": {"kind": "lognormal", "median": 3.0, "cov": 200}})
+
+
 def actuator(n: int = 4000, seed: int = 21) -> Record:
     u = 1.5 * _noise_input(np.random.default_rng(seed), n)
     values = {"k": 16.0, "c": 0.4, "k3": 4.0, "b": 8.0, "sigma": 0.3}
     truth = _truth("-k*y - c*v - k3*y**3 + b*a", list(values), 2e-3, states=("y", "v", "a"),
                    drift_extra={"a": "10.0*(u - a)"})
     data = _simulate(truth, values, np.arange(n) * 0.02, u, seed, 3)
-    # the user knows the hardening spring; what the model lacks is the actuator's own lag
-    user = _linear_oscillator(2e-3)
-    user["drift"] = {"y": "v", "v": "-k*y - c*v - k3*y**3 + b*u"}
-    user["parameters"] = ["k", "c", "k3", "b", "sigma"]
-    spec = _oscillator_study("actuator", user, {**OSC_PRIORS, "k3": {"kind": "lognormal", "median": 3.0, "cov": 200}})
+    spec = _hardening_study("actuator")  # what the model lacks is the actuator's own lag
     return _split("actuator", spec, data, (True, False),
                   "a hardening oscillator driven through an actuator with its own first-order lag (tau 0.1 s)",
                   ("form:actuator",), (truth, values))
@@ -228,12 +232,7 @@ def viscoelastic(n: int = 4000, seed: int = 24) -> Record:
     truth = _truth("-k*y - c*v - k3*y**3 + kr*(z - v) + b*u", list(values), 2e-3, states=("y", "v", "z"),
                    drift_extra={"z": "br*(v - z)"})
     data = _simulate(truth, values, np.arange(n) * 0.02, u, seed, 3)
-    # the user knows the hardening spring; what the model lacks is the mount's relaxation (a Maxwell element)
-    user = _linear_oscillator(2e-3)
-    user["drift"] = {"y": "v", "v": "-k*y - c*v - k3*y**3 + b*u"}
-    user["parameters"] = ["k", "c", "k3", "b", "sigma"]
-    spec = _oscillator_study("viscoelastic", user,
-                             {**OSC_PRIORS, "k3": {"kind": "lognormal", "median": 3.0, "cov": 200}})
+    spec = _hardening_study("viscoelastic")  # what the model lacks is the mount's relaxation (a Maxwell element)
     return _split("viscoelastic", spec, data, (True, False),
                   "a hardening oscillator on a viscoelastic mount (a Maxwell element, relaxation time 0.25 s)",
                   ("form:relaxation",), (truth, values))
