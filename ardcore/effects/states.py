@@ -164,6 +164,11 @@ def transfers(spec: ModelSpec) -> list[Lag]:
     return out
 
 
+EXCHANGES = ("store", "relaxation")
+"""The kinds that exchange with a state of the model, ``k (z - x)`` in its equation and ``z' = b (x - z)``: their
+declaration, priors and report are one."""
+
+
 def relaxations(spec: ModelSpec) -> list[Lag]:
     """A relaxation for each oscillator (position, velocity; none a mode added) that has none yet."""
     return [Lag(v, v, "relaxation") for _, v in _oscillators(spec)
@@ -171,8 +176,8 @@ def relaxations(spec: ModelSpec) -> list[Lag]:
 
 
 def _made(spec: ModelSpec) -> set:
-    """The states of ``spec`` a state family added (a lag, a sensor, an actuator, a store, a hysteresis, a mode),
-    by their names."""
+    """The states of ``spec`` a state family added (a lag, a sensor, an actuator, a store, a relaxation, a
+    hysteresis, a mode), by their names."""
     moves = [Lag(d, d, "lag") for d in spec.derived]
     moves += [Lag(o.column, o.column, "sensor") for o in spec.observations]
     moves += [Lag(u, u, "actuator") for u in spec.inputs]
@@ -264,7 +269,7 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
         drift = {s: _words(text, lag.term, z) for s, text in drift.items()}
         derived = {d: _words(text, lag.term, z) for d, text in derived.items()}
         drift[z] = f"{b}*({lag.term} - {z})"
-    elif lag.kind in ("store", "relaxation"):
+    elif lag.kind in EXCHANGES:
         _, b, k = new
         x = lag.term
         drift[x] = f"({drift[x]}) + {k}*({z} - {x})"

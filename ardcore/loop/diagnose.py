@@ -301,8 +301,8 @@ def _present(rounds: list[LoopRound]) -> set:
 
 
 def _closed(rounds: list[LoopRound]) -> set:
-    """The states added with an equation of fixed form (a hysteresis, a sensor, an actuator, a store, a mode): the
-    screen leaves them alone."""
+    """The states added with an equation of fixed form (a hysteresis, a sensor, an actuator, a store, a relaxation,
+    a mode): the screen leaves them alone."""
     return {n for r in rounds for x in r.record.get("replaced", []) if x.get("state") and x["state"]["kind"] != "lag"
             for n in x["state"].get("states", [x["state"]["name"]])}
 

@@ -34,8 +34,8 @@ import numpy as np
 import sympy as sp
 
 from ..effects.base import declared_names, short_name
-from ..effects.states import (Lag, actuators, hystereses, lag_spec, lags, modes, names_of, new_states, relaxations,
-                              sensors, stores, transfers)
+from ..effects.states import (EXCHANGES, Lag, actuators, hystereses, lag_spec, lags, modes, names_of, new_states,
+                              relaxations, sensors, stores, transfers)
 from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
@@ -139,7 +139,7 @@ def lag_candidate(current: Fit, lag: Lag, at: Along | None = None) -> CandidateS
         # the lagged state starts where the state it follows does; its rate is a lag's
         spec = lag_spec(ms, lag, (float(d[0]), sd_d))
         priors[new[1]] = _lognormal(rate, RATE_SPAN)
-    elif lag.kind in ("store", "relaxation"):
+    elif lag.kind in EXCHANGES:
         # the store starts where its state does, as uncertain as that state's spread; its rate is a lag's, its
         # exchange as large as the state's own drift over its spread (a hysteresis' coupling)
         spec = lag_spec(ms, lag, (float(d[0]), sd_d))
@@ -191,7 +191,7 @@ def state_summary(row, lag: Lag, spec: ModelSpec | None = None) -> dict:
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the dynamics read {z} for {lag.term}"
     elif lag.kind == "transfer":
         eq = f"{z}' = {new[1]}*({lag.term} - {z}), the {lag.target} equation reads {z} for {lag.term}"
-    elif lag.kind in ("store", "relaxation"):
+    elif lag.kind in EXCHANGES:
         x = lag.term
         eq = f"{z}' = {new[1]}*({x} - {z}), {new[2]}*({z} - {x}) in the {x} equation"
     elif lag.kind == "mode":
@@ -337,8 +337,9 @@ def _screened_pick(ctx, current: Fit, offered: list, tasks: list, order: list, n
 
     The screen's best is fitted in full from its screened values and from the prior (:func:`_better_start`),
     side by side with its swapped rival if one screened (:data:`SWAPPED`, from its screened values; one not
-    screened, :data:`UNSCREENED`, from the prior); of those that qualify (:func:`_refused`) the one with the higher evidence is the move. When none does, the rest are
-    fitted in the screen's order, each from both starts, and the first that qualifies is the move."""
+    screened, :data:`UNSCREENED`, from the prior); of those that qualify (:func:`_refused`) the one with the
+    higher evidence is the move. When none does, the rest are fitted in the screen's order, each from both
+    starts, and the first that qualifies is the move."""
     from .confirm import fit_all
 
     if not order:
