@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable, Literal
 
 from pydantic import BaseModel, Field
@@ -145,3 +145,6 @@ class LoopContext:
     mapper: Callable
     extra_effects: tuple = ()
     column: str = ""
+    forced: set = field(default_factory=set)
+    """The observed columns whose declared noise level has been confirmed unscreened once (a quiet channel,
+    :func:`ardcore.loop.confirm.quiet_channels`): it is forced once, then the screen judges it."""

@@ -90,6 +90,9 @@ class Confirmation:
     """Why a confirmed effect was not added although the evidence supports it (its model free-runs worse or
     its fit is degenerate, :func:`ardcore.loop.diagnose._no_worse`)."""
     stability: dict | None = None
+    forced: bool = False
+    """A noise level confirmed whatever it screened (a quiet channel, :func:`quiet_channels`): the criterion
+    takes it only when it free-runs better held out, never merely no worse."""
 
     @property
     def score(self) -> float:
@@ -113,6 +116,8 @@ class Confirmation:
             out["rejected"] = self.rejected
         if self.stability is not None:
             out["stability"] = self.stability
+        if self.forced:
+            out["forced"] = True
         return to_jsonable(out)
 
 
@@ -276,6 +281,39 @@ def hidden(screening: Screening, confirmed: list) -> list:
     return [c for c in screening.screened if getattr(c, "conditional_on", None) and id(c) not in tried]
 
 
+NOISE_SHARE = 0.1
+"""A declared measurement noise whose variance is under this share of the innovations' (the median over the
+record) is one the screen cannot see raised: its score is taken at the declared level, where the measurement's
+term in the innovations' variance vanishes beside the state's, so it is ~0 where the level is worth hundreds of
+nats (a clean oscillator declared 25 times too quiet screened it at 0.1 and took a forcing, a mode and an
+actuator in its place). Such a level is confirmed once whatever it screened, and taken only when it free-runs
+better held out. A declared level the record's noise is far below is seen by the score (its term dominates):
+forcing it would let a coloured, filtered noise (the reference LCO records: ln BF 19,000 for a tenth of the
+declared level) decide a round."""
+
+
+def quiet_channels(inp: ScreenInput) -> dict:
+    """The observed columns whose declared measurement noise is under :data:`NOISE_SHARE` of the innovations'
+    variance at the model ``inp`` screens from: {column: that share}."""
+    from ..likelihood.ekf import compile_model
+    from ..model.declaration import symbolic
+
+    sm = symbolic(inp.spec)
+    at = {p: float(inp.phi[str(p)]) for p in sm.params if str(p) in inp.phi}
+    S = np.asarray(compile_model(inp.spec).filter(inp.phi, inp.data, inp.substeps).innovation_var, dtype=float)
+    S = S.reshape(S.shape[0], -1)
+    out = {}
+    for j, col in enumerate(inp.spec.observed_columns):
+        try:
+            r = float(sm.obs_std[j].subs(at)) ** 2
+        except (TypeError, ValueError):
+            continue  # a level that is not a number at this fit: nothing to judge
+        s = S[:, j][np.isfinite(S[:, j]) & (S[:, j] > 0)]
+        if s.size and float(np.median(r / s)) < NOISE_SHARE:
+            out[col] = float(np.median(r / s))
+    return out
+
+
 def confirm(ctx, held: Fit, inp: ScreenInput, screened: list, n_tried: int) -> list:
     """The best distinct candidates of ``screened`` (forward selection on the screened evidence, with their
     twins) re-selected under ARD side by side: their confirmations (:class:`Confirmation`). ``n_tried``: the
@@ -287,6 +325,14 @@ def confirm(ctx, held: Fit, inp: ScreenInput, screened: list, n_tried: int) -> l
         update={"alpha_start": max(config.alpha_start, spec.maximiser.alpha_start)})})
     confirmed = []
     picked = distinct_candidates(inp, screened, config.top_k, config.min_score)
+    quiet = {c: v for c, v in quiet_channels(inp).items() if c not in ctx.forced}
+    forced = [c for c in screened if c.effect.where == "noise" and c.target in quiet
+              and not any(c is p for p in picked)]
+    if forced:
+        say("  the declared measurement noise is under " f"{NOISE_SHARE:.0%} of the innovations' variance on "
+            + ", ".join(f"{c} ({v:.2g})" for c, v in quiet.items()) + ": its level is confirmed whatever it screened")
+        ctx.forced.update(c.target for c in forced)
+        picked += forced
     rivals = _rivals(screened, picked, config, say)
     by_id = {id(c): c for c in screened}
     chosen = list(picked) + [by_id[i] for i in rivals]
@@ -332,6 +378,7 @@ def confirm(ctx, held: Fit, inp: ScreenInput, screened: list, n_tried: int) -> l
             f"(the prior odds of one of the {n_tried} candidates tried)")
     for sc, (eff, shape), (acand, adata, *_), (arow, amr) in zip(chosen, fitted, tasks, results):
         confirmed.append(_confirmation(sc, eff, shape, Fit(acand, arow, amr, adata), row, threshold, say))
+        confirmed[-1].forced = any(sc is c for c in forced)
     _resolve_twins(confirmed, rivals, config, say)
     return confirmed
 

@@ -81,6 +81,36 @@ def test_screen_ranks_the_missing_cubic_stiffness_first():
     assert ranked[0].log_bayes_factor > 30 > ranked[-1].log_bayes_factor
 
 
+@pytest.mark.parametrize("declared", [0.002, 0.05])
+def test_a_channel_declared_far_too_quiet_is_one_the_screen_cannot_see(declared):
+    """A linear oscillator whose sensor noise is 0.05, declared at 0.002 (25 times too quiet) and at 0.05. Too
+    quiet, the declared level's share of the innovations' variance is far under NOISE_SHARE and the screen's score
+    for raising it, taken at the declared level, is ~0 although the level is worth hundreds of nats: the channel is
+    quiet (its level is confirmed whatever it screened). Declared right, the channel is not quiet."""
+    from ardflow.ardcore.loop.confirm import NOISE_SHARE, quiet_channels
+
+    base = builtin("linear_oscillator")
+    t = np.arange(1500) * 0.02
+    data = simulate_model(base.model_copy(update={"constants": {"gamma": 0.05}}).revalidate(),
+                          {"k": 16.0, "c": 0.4, "sigma": 0.3}, t, 5, x0=[1.5, 0.0])
+    spec = base.model_copy(update={"constants": {"gamma": declared}}).revalidate()
+    lik = compile_model(spec).bind(data)
+    r = optimize.minimize(lambda z: -lik(np.exp(z)), np.log([16, 0.4, 0.3]), method="Nelder-Mead")
+    inp = ScreenInput(spec, dict(zip(["k", "c", "sigma"], np.exp(r.x))), data)
+    quiet = quiet_channels(inp)
+    noise = [e for e in candidate_effects(spec) if e.where == "noise"]
+    (screened,) = screen_effects(inp, noise, [], ["y"])
+    if declared == 0.002:
+        assert set(quiet) == {"y"} and quiet["y"] < NOISE_SHARE / 10
+        # the level at the truth, refitted, is worth hundreds of nats; the screen sees ~0 of it
+        right = compile_model(base.model_copy(update={"constants": {"gamma": 0.05}}).revalidate()).bind(data)
+        r2 = optimize.minimize(lambda z: -right(np.exp(z)), np.log([16, 0.4, 0.3]), method="Nelder-Mead")
+        assert r.fun - r2.fun > 100
+        assert screened.log_bayes_factor < 3
+    else:
+        assert quiet == {}
+
+
 def duffing_spec():
     return StudySpec.model_validate({
         "name": "osc", "data": {"generator": "appendix_a"}, "evidence": "laplace",

@@ -84,6 +84,34 @@ def test_nothing_is_added_without_an_undeclared_effect(seed):
     assert rep["replaced"] == []  # no law in another form and no state (a lag, a sensor, a hysteresis) either
 
 
+def test_a_measurement_noise_declared_far_too_small_is_raised_and_nothing_else_added():
+    """A clean forced oscillator whose user declares its sensor 25 times quieter than it is (0.002 against 0.05).
+    The filter then explains the sensor's noise by process noise, and the fit free-runs about five times worse
+    than the model with the right noise. The score of the noise level at the declared value is ~0 (its share of
+    the innovations' variance vanishes there), so the loop must confirm it anyway: it raises the noise, its
+    factor's 99 % interval holding 25, adds nothing else (no forcing, mode or actuator standing in for it), and
+    the reported model free-runs within 5 % of the same structure declared with the right noise."""
+    from tests.bench import validation as V
+
+    rng = np.random.default_rng(34)
+    u = V._noise_input(rng, 4000)
+    truth = V._truth("-k*y - c*v + b*u", ["k", "c", "b", "sigma"], 0.05)
+    data = V._simulate(truth, {"k": 16.0, "c": 0.4, "b": 8.0, "sigma": 0.6}, np.arange(4000) * 0.02, u, 34, 2)
+    est, test = data.slice(0, 2400), data.slice(2400, None)
+    right = diagnose(V._oscillator_study("right", V._linear_oscillator(0.05), V.OSC_PRIORS), est, test_data=test,
+                     config=DiagnoseConfig(max_rounds=0)).to_json()
+    rep = diagnose(V._oscillator_study("quiet", V._linear_oscillator(2e-3), V.OSC_PRIORS), est,
+                   test_data=test).to_json()
+    fr, floor = rep["reported"]["free_run"]["rms_error"], right["before"]["free_run"]["rms_error"]
+    k = {q: rep["final_fit"][q]["k_mny_y"] for q in ("q005", "q995")}
+    print(f"\n[quiet sensor] {rep['verdict']}\n  free run {rep['before']['free_run']['rms_error']:.4g} -> {fr:.4g}"
+          f" (declared right: {floor:.4g}); noise factor 99 % {np.exp(k['q005']):.3g}-{np.exp(k['q995']):.3g}")
+    assert [a["effect"] for a in rep["added"]] == ["measurement_noise(y)"], rep["verdict"]
+    assert rep["replaced"] == [], rep["verdict"]
+    assert np.exp(k["q005"]) < 25.0 < np.exp(k["q995"])
+    assert fr <= 1.05 * floor
+
+
 def test_effect_outside_the_library_is_reported_unexplained():
     """The sensor also picks up a lightly damped, noise-driven mode at 0.15 cycles/tau (y = theta + z).
 
