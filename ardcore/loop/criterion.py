@@ -255,7 +255,7 @@ class Move:
     @property
     def nuisance(self) -> bool:
         """A measurement-noise level: it changes what the filter trusts, not the dynamics, so it must free-run
-        no worse held out rather than better; unless it was confirmed whatever it screened (``forced``, a quiet
+        no worse held out rather than better; unless it was confirmed unscreened (``forced``, a quiet
         channel): the screen did not propose it, so it must free-run better as every addition must."""
         return self.kind == "add" and all(c.fitted_effect.where == "noise" and not c.forced for c in self.chosen)
 
