@@ -91,8 +91,8 @@ class Confirmation:
     its fit is degenerate, :func:`ardcore.loop.diagnose._no_worse`)."""
     stability: dict | None = None
     forced: bool = False
-    """A noise level confirmed although it screened under ``min_score`` (a quiet channel, :func:`quiet_channels`): the criterion
-    takes it only when it free-runs better held out, never merely no worse."""
+    """A noise level confirmed although it screened under ``min_score`` (a quiet channel, :func:`quiet_channels`):
+    the criterion takes it only when it free-runs better held out, never merely no worse."""
 
     @property
     def score(self) -> float:
@@ -287,30 +287,26 @@ record) is one the screen cannot see raised: its score is taken at the declared 
 term in the innovations' variance vanishes beside the state's, so it is ~0 where the level is worth hundreds of
 nats (a clean oscillator declared 25 times too quiet screened it at 0.1 and took a forcing, a mode and an
 actuator in its place). Such a level, when it screened under ``min_score``, is confirmed once all the same, and
-taken only when it free-runs better held out. A declared level the record's noise is far below is seen by the score (its term dominates):
-forcing it would let a coloured, filtered noise (the reference LCO records: ln BF 19,000 for a tenth of the
-declared level) decide a round."""
+taken only when it free-runs better held out. A declared level the record's noise is far below is seen by the
+score (its term dominates): forcing it would let a coloured, filtered noise (the reference LCO records: ln BF
+19,000 for a tenth of the declared level) decide a round."""
 
 
 def quiet_channels(inp: ScreenInput) -> dict:
     """The observed columns whose declared measurement noise is under :data:`NOISE_SHARE` of the innovations'
     variance at the model ``inp`` screens from: {column: that share}."""
     from ..likelihood.ekf import compile_model
-    from ..model.declaration import symbolic
 
-    sm = symbolic(inp.spec)
-    at = {p: float(inp.phi[str(p)]) for p in sm.params if str(p) in inp.phi}
-    S = np.asarray(compile_model(inp.spec).filter(inp.phi, inp.data, inp.substeps).innovation_var, dtype=float)
+    cm = compile_model(inp.spec)
+    R = np.asarray(cm.obs_std(inp.phi), dtype=float).reshape(-1) ** 2
+    S = np.asarray(cm.filter(inp.phi, inp.data, inp.substeps).innovation_var, dtype=float)
     S = S.reshape(S.shape[0], -1)
     out = {}
     for j, col in enumerate(inp.spec.observed_columns):
-        try:
-            r = float(sm.obs_std[j].subs(at)) ** 2
-        except (TypeError, ValueError):
-            continue  # a level that is not a number at this fit: nothing to judge
         s = S[:, j][np.isfinite(S[:, j]) & (S[:, j] > 0)]
-        if s.size and float(np.median(r / s)) < NOISE_SHARE:
-            out[col] = float(np.median(r / s))
+        share = float(np.median(R[j] / s)) if s.size else math.nan
+        if share < NOISE_SHARE:  # a NaN level or no innovation: nothing to judge
+            out[col] = share
     return out
 
 

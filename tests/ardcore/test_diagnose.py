@@ -86,7 +86,7 @@ def test_a_channel_declared_far_too_quiet_is_one_the_screen_cannot_see(declared)
     """A linear oscillator whose sensor noise is 0.05, declared at 0.002 (25 times too quiet) and at 0.05. Too
     quiet, the declared level's share of the innovations' variance is far under NOISE_SHARE and the screen's score
     for raising it, taken at the declared level, is ~0 although the level is worth hundreds of nats: the channel is
-    quiet (its level is confirmed whatever it screened). Declared right, the channel is not quiet."""
+    quiet (its level is confirmed although it screened under min_score). Declared right, the channel is not quiet."""
     from ardflow.ardcore.loop.confirm import NOISE_SHARE, quiet_channels
 
     base = builtin("linear_oscillator")
