@@ -50,6 +50,15 @@ structure, a sloshing or a flexible part), two states ``q, dq``::
     q' = dq,   dq' = -f,   v' = ... + mu f,   f = w^2 (q - x) + 2 zeta w (dq - v)
 
 (``w`` its angular frequency, ``zeta`` its damping ratio, ``mu`` the mass ratio that couples it back).
+
+**A pickup**. For a measurement of the states, a lightly damped vibration driven by noise that the sensor reads
+on top of them (its mount's or a support's resonance, a sting's mode): two states ``p, dp`` the dynamics never
+see::
+
+    y = h + p,   p' = dp,   dp' = -w^2 p - 2 zeta w dp + s xi
+
+(``w`` its angular frequency, ``zeta`` its damping ratio, ``s`` the level of the noise that drives it). It is
+coloured measurement noise: what the filter trusts changes, the dynamics do not.
 """
 
 from __future__ import annotations
@@ -71,9 +80,10 @@ class Lag(NamedTuple):
     "actuator" (the input ``term`` read through a lag by every drift equation, ``target`` the first state it
     drives), "store" (a second store exchanging with the first-order state ``term``, its equation ``target``),
     "relaxation" (a viscoelastic element exchanging with the velocity ``term`` in its own equation),
-    "transfer" (the state ``term`` read through a lag by the equation of ``target``) or
+    "transfer" (the state ``term`` read through a lag by the equation of ``target``),
     "mode" (a second mode of the oscillator whose position is ``term``, coupled to its velocity
-    ``target``)."""
+    ``target``) or "pickup" (a noise-driven vibration the measurement ``term`` of the observed column ``target``
+    reads on top)."""
 
     term: str
     target: str
@@ -121,11 +131,10 @@ def lags(spec: ModelSpec) -> list[Lag]:
 
 
 def _oscillators(spec: ModelSpec) -> list[tuple[str, str]]:
-    """The oscillators (position, velocity) of ``spec`` but those a second mode added: a state of fixed form
-    takes nothing more (a mode of a mode, or its hysteresis, is a basis expansion, not a missing effect)."""
-    pairs = oscillator_pairs(spec)
-    added = {n for x, v in pairs for n in new_states(Lag(x, v, "mode"))}
-    return [(x, v) for x, v in pairs if x not in added]
+    """The oscillators (position, velocity) of ``spec`` but those a second mode or a pickup added: a state of fixed
+    form takes nothing more (a mode of a mode, or its hysteresis, is a basis expansion, not a missing effect)."""
+    made = _made(spec)
+    return [(x, v) for x, v in oscillator_pairs(spec) if x not in made]
 
 
 def hystereses(spec: ModelSpec) -> list[Lag]:
@@ -179,7 +188,7 @@ def _made(spec: ModelSpec) -> set:
     """The states of ``spec`` a state family added (a lag, a sensor, an actuator, a store, a relaxation, a
     hysteresis, a mode), by their names."""
     moves = [Lag(d, d, "lag") for d in spec.derived]
-    moves += [Lag(o.column, o.column, "sensor") for o in spec.observations]
+    moves += [Lag(o.column, o.column, k) for o in spec.observations for k in ("sensor", "pickup")]
     moves += [Lag(u, u, "actuator") for u in spec.inputs]
     moves += [Lag(x, x, k) for x in spec.states for k in ("store", "relaxation", "hysteresis", "mode")]
     moves += [Lag(x, t, "transfer") for x in spec.states for t in spec.states]
@@ -196,6 +205,17 @@ def sensors(spec: ModelSpec) -> list[Lag]:
         sym = {str(x) for x in parse_expression(str(o.expr), names).free_symbols}
         if sym & states and names_of(Lag(str(o.expr), o.column, "sensor"))[0] not in sym:
             out.append(Lag(str(o.expr), o.column, "sensor"))
+    return out
+
+
+def pickups(spec: ModelSpec) -> list[Lag]:
+    """A pickup for each measurement of the states that reads none yet."""
+    names, states = declared_names(spec), set(spec.states)
+    out = []
+    for o in spec.observations:
+        sym = {str(x) for x in parse_expression(str(o.expr), names).free_symbols}
+        if sym & states and names_of(Lag(str(o.expr), o.column, "pickup"))[0] not in states:
+            out.append(Lag(str(o.expr), o.column, "pickup"))
     return out
 
 
@@ -233,6 +253,9 @@ def names_of(move: Lag) -> tuple[str, ...]:
     elif move.kind == "mode":
         x = move.term
         names = (f"mode_{x}", f"dmode_{x}", f"w_mode_{x}", f"z_mode_{x}", f"mu_mode_{x}")
+    elif move.kind == "pickup":
+        y = move.target
+        names = (f"pick_{y}", f"dpick_{y}", f"w_pick_{y}", f"z_pick_{y}", f"s_pick_{y}")
     else:
         names = (f"lag_{move.term}", f"b_{move.term}", f"k_{move.term}")
     # short enough that the loop's own names built on them (q_diag_<state>) stay within 32 characters
@@ -240,17 +263,22 @@ def names_of(move: Lag) -> tuple[str, ...]:
 
 
 def new_states(move: Lag) -> tuple[str, ...]:
-    """The states ``move`` adds (:func:`names_of`'s first: two for a mode, one otherwise); its parameters follow."""
-    return names_of(move)[:2 if move.kind == "mode" else 1]
+    """The states ``move`` adds (:func:`names_of`'s first: two for a mode or a pickup, one otherwise); its
+    parameters follow."""
+    return names_of(move)[:2 if move.kind in SECOND_ORDER else 1]
+
+
+SECOND_ORDER = ("mode", "pickup")
+"""The kinds that add a position and its rate."""
 
 
 def _words(text: str, old: str, new: str) -> str:
     return re.sub(rf"\b{re.escape(old)}\b", new, text)
 
 
-def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0)) -> ModelSpec:
+def lag_spec(spec: ModelSpec, lag: Lag, start: tuple = (0.0, 1.0)) -> ModelSpec:
     """``spec`` with the state move ``lag`` (module docstring); ``start``: the new state's initial mean and
-    standard deviation."""
+    standard deviation (and, for a pickup, its rate's)."""
     names = declared_names(spec)
     drift, derived, diffusion = dict(spec.drift), dict(spec.derived), dict(spec.diffusion)
     observations, new = list(spec.observations), names_of(lag)
@@ -285,6 +313,13 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
         drift[v] = f"({drift[v]}) + {mu}*{force}"
         drift[q] = dq
         drift[dq] = f"-{force}"
+    elif lag.kind == "pickup":
+        p, dp, w, zeta, level = new
+        observations = [o.model_copy(update={"expr": f"({o.expr}) + {p}"}) if o.column == lag.target else o
+                        for o in observations]
+        drift[p] = dp
+        drift[dp] = f"-{w}**2*{p} - 2*{zeta}*{w}*{dp}"
+        diffusion[dp] = level
     else:
         _, b, k = new
         drift = {s: _words(text, lag.term, z) for s, text in drift.items()}
@@ -299,9 +334,12 @@ def lag_spec(spec: ModelSpec, lag: Lag, start: tuple[float, float] = (0.0, 1.0))
                 diffusion[z] = str(level)
         drift[z] = f"{b}*({lag.term} - {z}) + {k}*({drift[lag.target]})"
     states = list(new_states(lag))
-    # a mode starts with the oscillator (q at x's start, dq at rest), as uncertain as the new state's start says
-    mean = {z: float(start[0])} if lag.kind != "mode" else {new[0]: float(start[0]), new[1]: 0.0}
+    # a mode starts with the oscillator (q at x's start, dq at rest), as uncertain as the new state's start says;
+    # a pickup about 0, its rate as uncertain as ``start`` says
+    mean = {z: float(start[0])} if lag.kind not in SECOND_ORDER else {new[0]: float(start[0]), new[1]: 0.0}
     std = {n: float(start[1]) for n in states}
+    if lag.kind == "pickup" and len(start) > 2:
+        std[new[1]] = float(start[2])
     return spec.model_copy(update={
         "name": short_name(f"{spec.name}_{lag.kind[:3]}"), "states": list(spec.states) + states, "drift": drift,
         "derived": derived, "diffusion": diffusion, "observations": observations,

@@ -47,7 +47,7 @@ import numpy as np
 
 from .checks import Added, backward_check, brought, not_degenerate, replace_laws
 from .confirm import Fit, confirm, hidden, pool_mapper, trace_and_confirm
-from .states import LAG_KINDS, STATE_KINDS, best_state
+from .states import LAG_KINDS, STATE_KINDS, best_state, lines
 from .replace import best_laws
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
@@ -192,7 +192,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             if move is None and config.states:
                 # the term families left what they cannot take up: the states that could hold it
                 t_states = time.perf_counter()
-                extra = best_state(ctx, held, STATE_KINDS)
+                extra = best_state(ctx, held, STATE_KINDS, lines(res.tests))
                 if extra is not None:
                     move, more = decide(ctx, crit, held, extra, [], [], rec)
                     judged_round["moves"] += more["moves"]

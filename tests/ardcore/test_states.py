@@ -206,6 +206,44 @@ def test_a_relaxation_exchanges_with_an_oscillator_s_velocity():
     assert relaxations(cool) == []
 
 
+def test_a_pickup_is_a_noise_driven_vibration_the_sensor_reads_and_the_dynamics_never_see():
+    """The pickup built on the forced linear oscillator: the measurement reads the declared expression plus the
+    vibration, whose own second-order equation is driven by its noise level and by nothing of the model; no drift
+    of the oscillator changes; it is offered once, and no state family takes the pickup for an oscillator (no
+    mode, hysteresis or relaxation of it)."""
+    from ardflow.ardcore.effects.states import hystereses, modes, pickups, relaxations
+    from ardflow.ardcore.model.library import builtin
+
+    osc = builtin("forced_linear_oscillator")
+    col = osc.observations[0].column
+    assert pickups(osc) == [Lag(str(osc.observations[0].expr), col, "pickup")]
+    m = lag_spec(osc, pickups(osc)[0], (0.0, 0.01, 0.09))
+    p, dp = m.states[-2:]
+    assert (p, dp) == (f"pick_{col}", f"dpick_{col}")
+    assert m.parameters[-3:] == [f"w_pick_{col}", f"z_pick_{col}", f"s_pick_{col}"]
+    assert m.initial_std[p] == 0.01 and m.initial_std[dp] == 0.09 and m.initial_mean[p] == 0.0
+    sm = symbolic(m.with_fixed(**{f"w_pick_{col}": 9.0, f"z_pick_{col}": 0.03, f"s_pick_{col}": 0.2}))
+    base = symbolic(osc)
+    P, DP = (sp.Symbol(n, real=True) for n in (p, dp))
+    assert all(sp.simplify(a - b) == 0 for a, b in zip(sm.drift[:2], base.drift))
+    assert sm.drift[2] == DP and sp.simplify(sm.drift[3] + 81 * P + 2 * 0.03 * 9 * DP) == 0
+    assert sp.simplify(sm.obs[0] - base.obs[0] - P) == 0
+    assert sm.diffusion[3] == sp.Float(0.2) and all(sm.diffusion[i] == base.diffusion[i] for i in range(2))
+    assert pickups(m) == [] and modes(m) == modes(osc) and hystereses(m) == hystereses(osc)
+    assert relaxations(m) == relaxations(osc)
+
+
+def test_a_pickup_is_offered_at_the_innovations_line_that_is_no_harmonic():
+    """:func:`lines` reads each channel's strongest innovation peak that is not a harmonic of the record's own
+    oscillation (in rad per time unit); a channel with none is offered no pickup."""
+    from ardflow.ardcore.loop.states import lines
+
+    tests = {"y": {"spectrum": {"peaks": [{"f": 0.2, "harmonic": 1}, {"f": 0.15, "harmonic": None},
+                                          {"f": 0.4, "harmonic": 2}]}},
+             "z": {"spectrum": {"peaks": [{"f": 0.2, "harmonic": 1}]}}}
+    assert lines(tests) == {"y": 2 * np.pi * 0.15}
+
+
 def _screened(name: str):
     """The stop stage's screen of the state moves on a validation record's first 2,000 samples, from the user's
     linear oscillator fitted there: {kind: conditional ln BF}."""
