@@ -57,8 +57,8 @@ see::
 
     y = h + p,   p' = dp,   dp' = -w^2 p - 2 zeta w dp + s xi
 
-(``w`` its angular frequency, ``zeta`` its damping ratio, ``s`` the level of the noise that drives it). It is
-coloured measurement noise: what the filter trusts changes, the dynamics do not.
+(``w`` its angular frequency, ``zeta`` its damping ratio, ``s`` the level of the noise that drives it): coloured
+measurement noise, which the dynamics never see.
 """
 
 from __future__ import annotations

@@ -246,8 +246,6 @@ class Move:
     fit: Fit
     name: str
     chosen: list = field(default_factory=list)
-    measured: bool = False
-    """A state on the measurement's side only (a pickup, :mod:`.states`): coloured measurement noise."""
 
     def holds(self, other: "Move") -> bool:
         """Whether this move adds everything ``other`` adds and more (the survivors together hold each alone)."""
@@ -258,10 +256,8 @@ class Move:
     def nuisance(self) -> bool:
         """A measurement-noise level: it changes what the filter trusts, not the dynamics, so it must free-run
         no worse held out rather than better; unless it was confirmed unscreened (``forced``, a quiet
-        channel): the screen did not propose it, so it must free-run better as every addition must. A pickup (a
-        vibration the sensor reads on top of the states, ``measured``) is coloured measurement noise: a nuisance."""
-        return self.measured or (
-            self.kind == "add" and all(c.fitted_effect.where == "noise" and not c.forced for c in self.chosen))
+        channel): the screen did not propose it, so it must free-run better as every addition must."""
+        return self.kind == "add" and all(c.fitted_effect.where == "noise" and not c.forced for c in self.chosen)
 
 
 def _moves(ctx: LoopContext, held: Fit, swap, survivors: list) -> list[Move]:
@@ -270,8 +266,7 @@ def _moves(ctx: LoopContext, held: Fit, swap, survivors: list) -> list[Move]:
     config, say = ctx.config, ctx.say
     moves = []
     if swap is not None:
-        moves.append(Move("replace", swap[0], " and ".join(x["by"] for x in swap[1]),
-                          measured=all(x.get("state", {}).get("kind") == "pickup" for x in swap[1])))
+        moves.append(Move("replace", swap[0], " and ".join(x["by"] for x in swap[1])))
     for c in survivors:
         moves.append(Move("add", c.fit, f"{c.effect} -> {c.target}", [c]))
     if config.joint and len([c for c in survivors if c.fitted_effect.where != "noise"]) > 1:

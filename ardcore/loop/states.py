@@ -26,8 +26,10 @@ relaxation's as a store's, on the velocity). A mode's
 offered only for a channel whose innovations hold a line that is not a harmonic of the record's own oscillation
 (:func:`lines`): its ``w`` lognormal at that line, 0.8 to 1.25 times it at +-2 sd, ``zeta`` as a mode's, the level
 ``s`` lognormal at the level that makes the vibration a tenth of the measurement's spread (with ``zeta`` 5 %), 30
-times less to 30 times more at +-2 sd. It changes what the filter trusts, not the dynamics: the criterion takes it
-when it free-runs no worse held out, as a measurement-noise level (:attr:`~.criterion.Move.nuisance`).
+times less to 30 times more at +-2 sd. Though it changes what the filter trusts and not the dynamics, it is taken,
+as any addition, only when it free-runs better held out: a measurement filtered before it was sampled (the reference
+problem's anti-aliasing filter) holds coloured noise that a pickup takes up by tens of nats, and there it free-runs
+worse.
 """
 
 from __future__ import annotations
