@@ -199,24 +199,23 @@ def sensors(spec: ModelSpec) -> list[Lag]:
     """A sensor state for each measurement of the states that is not read through one yet (what earlier rounds
     added to the measurement, a feedthrough standing in for the sensor's lag, is read through it too: the
     backward check then weighs it again)."""
+    return _measured(spec, "sensor")
+
+
+def _measured(spec: ModelSpec, kind: str) -> list[Lag]:
+    """A move of ``kind`` for each measurement of the states that does not read its state yet."""
     names, states = declared_names(spec), set(spec.states)
     out = []
     for o in spec.observations:
         sym = {str(x) for x in parse_expression(str(o.expr), names).free_symbols}
-        if sym & states and names_of(Lag(str(o.expr), o.column, "sensor"))[0] not in sym:
-            out.append(Lag(str(o.expr), o.column, "sensor"))
+        if sym & states and names_of(Lag(str(o.expr), o.column, kind))[0] not in sym:
+            out.append(Lag(str(o.expr), o.column, kind))
     return out
 
 
 def pickups(spec: ModelSpec) -> list[Lag]:
     """A pickup for each measurement of the states that reads none yet."""
-    names, states = declared_names(spec), set(spec.states)
-    out = []
-    for o in spec.observations:
-        sym = {str(x) for x in parse_expression(str(o.expr), names).free_symbols}
-        if sym & states and names_of(Lag(str(o.expr), o.column, "pickup"))[0] not in states:
-            out.append(Lag(str(o.expr), o.column, "pickup"))
-    return out
+    return _measured(spec, "pickup")
 
 
 def actuators(spec: ModelSpec) -> list[Lag]:
