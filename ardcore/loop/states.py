@@ -23,7 +23,7 @@ size, ``k`` normal around 0 at the size of the velocity equation's own drift ove
 relaxation's as a store's, on the velocity). A mode's
 ``w`` lognormal over a tenth to ten times the record's dominant frequency, ``zeta`` lognormal from 0.5 % to 50 %,
 ``mu`` normal around 0 at 1 (an effect's coefficient, taken only when its 99 % interval excludes 0). A pickup is
-offered only for a channel whose innovations hold a line that is not a harmonic of the record's own oscillation
+offered only for a channel measuring an oscillator's position whose innovations hold a line that is not a harmonic of the record's own oscillation
 (:func:`lines`): its ``w`` lognormal at that line, 0.8 to 1.25 times it at +-2 sd, ``zeta`` as a mode's, the level
 ``s`` lognormal at the level that makes the vibration a tenth of the measurement's spread (with ``zeta`` 5 %), 30
 times less to 30 times more at +-2 sd. Though it changes what the filter trusts and not the dynamics, it is taken,

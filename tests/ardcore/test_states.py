@@ -210,7 +210,7 @@ def test_a_pickup_is_a_noise_driven_vibration_the_sensor_reads_and_the_dynamics_
     """The pickup built on the forced linear oscillator: the measurement reads the declared expression plus the
     vibration, whose own second-order equation is driven by its noise level and by nothing of the model; no drift
     of the oscillator changes; it is offered once, and no state family takes the pickup for an oscillator (no
-    mode, hysteresis or relaxation of it)."""
+    mode, hysteresis or relaxation of it), and only an oscillator's measurement is offered one."""
     from ardflow.ardcore.effects.states import hystereses, modes, pickups, relaxations
     from ardflow.ardcore.model.library import builtin
 
@@ -231,6 +231,11 @@ def test_a_pickup_is_a_noise_driven_vibration_the_sensor_reads_and_the_dynamics_
     assert sm.diffusion[3] == sp.Float(0.2) and all(sm.diffusion[i] == base.diffusion[i] for i in range(2))
     assert pickups(m) == [] and modes(m) == modes(osc) and hystereses(m) == hystereses(osc)
     assert relaxations(m) == relaxations(osc)
+    # a first-order system's measurement is offered none: its line is as often a store or a forcing it lacks
+    cool = ModelSpec(name="nc", states=["T"], inputs=["u"], drift={"T": "q*u - a*(T - 295)"}, diffusion={"T": "s"},
+                     observations=[{"column": "y", "expr": "T", "noise_std": "gamma"}], constants={"gamma": 0.1},
+                     parameters=["a", "q", "s"], initial_mean={"T": 295.0}, initial_std={"T": 5.0})
+    assert pickups(cool) == []
 
 
 def test_a_pickup_is_offered_at_the_innovations_line_that_is_no_harmonic():
