@@ -51,14 +51,13 @@ structure, a sloshing or a flexible part), two states ``q, dq``::
 
 (``w`` its angular frequency, ``zeta`` its damping ratio, ``mu`` the mass ratio that couples it back).
 
-**A pickup**. For a measurement of an oscillator's position, a lightly damped vibration driven by noise that the sensor reads
-on top of them (its mount's or a support's resonance, a sting's mode): two states ``p, dp`` the dynamics never
-see::
+**A pickup**. For a measurement of an oscillator's position, a lightly damped vibration driven by noise that the
+sensor reads on top of it (its mount's or a support's resonance, a sting's mode): coloured measurement noise, two
+states ``p, dp`` the dynamics never see::
 
     y = h + p,   p' = dp,   dp' = -w^2 p - 2 zeta w dp + s xi
 
-(``w`` its angular frequency, ``zeta`` its damping ratio, ``s`` the level of the noise that drives it): coloured
-measurement noise, which the dynamics never see.
+(``w`` its angular frequency, ``zeta`` its damping ratio, ``s`` the level of the noise that drives it).
 """
 
 from __future__ import annotations
@@ -185,8 +184,8 @@ def relaxations(spec: ModelSpec) -> list[Lag]:
 
 
 def _made(spec: ModelSpec) -> set:
-    """The states of ``spec`` a state family added (a lag, a sensor, an actuator, a store, a relaxation, a
-    hysteresis, a mode), by their names."""
+    """The states of ``spec`` a state family added (a lag, a sensor, a pickup, an actuator, a store, a relaxation,
+    a hysteresis, a mode, a transfer lag), by their names."""
     moves = [Lag(d, d, "lag") for d in spec.derived]
     moves += [Lag(o.column, o.column, k) for o in spec.observations for k in ("sensor", "pickup")]
     moves += [Lag(u, u, "actuator") for u in spec.inputs]

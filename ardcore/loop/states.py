@@ -2,10 +2,10 @@
 dynamics, a second store, a second mode, a relaxation, a vibration the sensor picks up.
 
 The loop's other moves add or reshape terms in the equations of the states the user declared. Many real
-omissions are a state of their own. Eight families are offered, each a full fit judged like a law replacement
+omissions are a state of their own. Nine families are offered, each a full fit judged like a law replacement
 (:mod:`.replace`): its ln Bayes factor against the current model must exceed ``config.min_log_bf`` plus ln of
 the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it. The
-hysteresis, the sensor, the actuator, the store, the mode and the transfer lag are screened first
+hysteresis, the sensor, the actuator, the store, the mode, the pickup and the transfer lag are screened first
 (:func:`screened_states`): only those that fit better with the current model held at its MAP are fitted in full
 (:func:`_screened_pick`), a relaxation beside a mode (:data:`UNSCREENED`). A lag and a transfer lag (a state read
 through a lag by another's equation) are offered every round, beside the laws, whose stand-ins would take them up
@@ -23,13 +23,13 @@ size, ``k`` normal around 0 at the size of the velocity equation's own drift ove
 relaxation's as a store's, on the velocity). A mode's
 ``w`` lognormal over a tenth to ten times the record's dominant frequency, ``zeta`` lognormal from 0.5 % to 50 %,
 ``mu`` normal around 0 at 1 (an effect's coefficient, taken only when its 99 % interval excludes 0). A pickup is
-offered only for a channel measuring an oscillator's position whose innovations hold a line that is not a harmonic of the record's own oscillation
-(:func:`lines`): its ``w`` lognormal at that line, 0.8 to 1.25 times it at +-2 sd, ``zeta`` as a mode's, the level
-``s`` lognormal at the level that makes the vibration a tenth of the measurement's spread (with ``zeta`` 5 %), 30
-times less to 30 times more at +-2 sd. Though it changes what the filter trusts and not the dynamics, it is taken,
-as any addition, only when it free-runs better held out: a measurement filtered before it was sampled (the reference
-problem's anti-aliasing filter) holds coloured noise that a pickup takes up by tens of nats, and there it free-runs
-worse.
+offered only for a channel measuring an oscillator's position whose innovations hold a line that is not a
+harmonic of the record's own oscillation (:func:`lines`): its ``w`` lognormal at that line, 0.8 to 1.25 times it
+at +-2 sd, ``zeta`` as a mode's, the level ``s`` lognormal at the level that makes the vibration a tenth of the
+measurement's spread (with ``zeta`` 5 %), 30 times less to 30 times more at +-2 sd. Though it changes what the
+filter trusts and not the dynamics, it is taken, as any addition, only when it free-runs better held out: a
+measurement filtered before it was sampled (the reference problem's anti-aliasing filter) holds coloured noise that
+a pickup takes up by tens of nats, and there it free-runs worse.
 """
 
 from __future__ import annotations
