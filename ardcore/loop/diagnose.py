@@ -47,7 +47,7 @@ import numpy as np
 
 from .checks import Added, backward_check, brought, not_degenerate, replace_laws
 from .confirm import Fit, confirm, hidden, pool_mapper, trace_and_confirm
-from .states import LAG_KINDS, STATE_KINDS, best_state, lines
+from .states import LAG_KINDS, STATE_KINDS, best_state, lines, state_moves
 from .replace import best_laws
 from ..data import Dataset
 from ..effects.base import Effect, with_columns
@@ -192,11 +192,13 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
             if move is None and config.states:
                 # the term families left what they cannot take up: the states that could hold it
                 t_states = time.perf_counter()
-                extra = best_state(ctx, held, STATE_KINDS, lines(res.tests))
-                if extra is not None:
+                # a state the criterion refuses must not hide the next: each that qualifies is judged in turn
+                for extra in state_moves(ctx, held, STATE_KINDS, lines(res.tests)):
                     move, more = decide(ctx, crit, held, extra, [], [], rec)
                     judged_round["moves"] += more["moves"]
-                    swap = extra if move is not None else swap
+                    if move is not None:
+                        swap = extra
+                        break
                 rec.record["states_s"] = time.perf_counter() - t_states  # the cost the bench holds to the terms'
             if move is None:
                 t_next = time.perf_counter()

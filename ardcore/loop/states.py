@@ -7,7 +7,7 @@ omissions are a state of their own. Nine families are offered, each a full fit j
 the number of candidates tried and its fit must be a result, then the loop's held-out criterion judges it. The
 hysteresis, the sensor, the actuator, the store, the mode, the pickup and the transfer lag are screened first
 (:func:`screened_states`): only those that fit better with the current model held at its MAP are fitted in full
-(:func:`_screened_pick`), a relaxation beside a mode (:data:`UNSCREENED`). A lag and a transfer lag (a state read
+(:func:`_screened_picks`), a relaxation beside a mode (:data:`UNSCREENED`). A lag and a transfer lag (a state read
 through a lag by another's equation) are offered every round, beside the laws, whose stand-ins would take them up
 first; the others only when the loop would stop (the term families left structure they cannot take up).
 
@@ -371,18 +371,20 @@ STATE_KINDS = ("hysteresis", "sensor", "actuator", "store", "mode", "relaxation"
 """The state families offered when the term families leave what they cannot take up."""
 
 
-def _screened_pick(ctx, current: Fit, offered: list, tasks: list, order: list, need: float):
-    """The move :func:`best_state` takes of the screened ones (``order``, :func:`screened_states`), or None.
+def _screened_picks(ctx, current: Fit, offered: list, tasks: list, order: list, need: float):
+    """The moves :func:`state_moves` offers of the screened ones (``order``, :func:`screened_states`), one at a time,
+    as the criterion refuses them.
 
     The screen's best is fitted in full from its screened values and from the prior (:func:`_better_start`),
     side by side with its swapped rivals (:data:`SWAPPED`: one that screened positive from its screened values, one
     not screened, :data:`UNSCREENED`, from the prior); of those that qualify (:func:`_refused`) the one with the
-    higher evidence is the move. When none does, the rest are fitted in the screen's order, each from both
-    starts, and the first that qualifies is the move."""
+    higher evidence comes first, then the others that qualify. Then the rest are fitted in the screen's order,
+    each from both starts, and each that qualifies comes next: a fit is paid for only once the moves before it
+    were refused."""
     from .confirm import fit_all
 
     if not order:
-        return None
+        return
     base = current.row.log_evidence
     head = [order[0]]
     for kind in SWAPPED.get(offered[order[0][0]].kind, ()):
@@ -397,31 +399,42 @@ def _screened_pick(ctx, current: Fit, offered: list, tasks: list, order: list, n
         ctx.say("  fitted in full: " + ", ".join(f"{_a(offered[i].kind)} ln BF {g:.1f}"
                                                  for (i, _), g in zip(head, gains)))
     ok = [j for j in range(len(head)) if _refused(offered[head[j][0]], fits[j][0], gains[j], need) is None]
-    if ok:
-        j = max(ok, key=lambda j: gains[j])
+    if not ok:
+        _taken(ctx, current, offered[head[0][0]], head[0][1], fits[0], gains[0], need)  # says why not
+    done = set()
+    for j in sorted(ok, key=lambda j: -gains[j]):
         i, task = head[j]
-        return _taken(ctx, current, offered[i], task, fits[j], gains[j], need)
-    _taken(ctx, current, offered[head[0][0]], head[0][1], fits[0], gains[0], need)  # says why not
+        done.add(i)
+        yield _taken(ctx, current, offered[i], task, fits[j], gains[j], need)
     rival = {i: f for (i, _), f in zip(head[1:], fits[1:])}  # fitted from its screened values already
     for i, task in order[1:]:
+        if i in done:
+            continue
         # the rival's fit from the prior now; the others' from both starts
         fit = _better_start([rival[i], *fit_all(ctx.mapper, [tasks[i]])] if i in rival
                             else fit_all(ctx.mapper, [task, tasks[i]]))
         got = _taken(ctx, current, offered[i], task, fit, fit[0].log_evidence - base, need)
         if got is not None:
-            return got
-    return None
+            yield got
 
 
 def best_state(ctx, current: Fit, kinds: tuple = ("lag",), lines: dict | None = None):
     """The state move of ``kinds`` (module docstring) worth most, as ``(fit, [record], ln BF)`` like
-    :func:`~.replace.best_laws`, or None.
+    :func:`~.replace.best_laws`, or None: the first of :func:`state_moves`."""
+    return next(state_moves(ctx, current, kinds, lines), None)
+
+
+def state_moves(ctx, current: Fit, kinds: tuple = ("lag",), lines: dict | None = None):
+    """The state moves of ``kinds`` (module docstring) that qualify, each as ``(fit, [record], ln BF)`` like
+    :func:`~.replace.best_laws`, the one worth most first; the next is fitted only when asked for (the criterion
+    refused the one before: a refused state must not hide the next, as a pickup that gained hundreds of nats and
+    free-ran worse hid a second thermal store).
 
     A move qualifies when its ln Bayes factor against the current model exceeds ``config.min_log_bf`` plus ln of
     the number offered and its fit is a result (:func:`_taken`). Lags are fitted side by side on the loop's pool
     (a full ARD re-selection each, the law's terms selected again) and the best is judged. The other states are
     screened first (:func:`screened_states`) and fitted in full in the screen's order, a sensor's and an
-    actuator's lag side by side (:func:`_screened_pick`). A round that takes one offers the others again. The
+    actuator's lag side by side (:func:`_screened_picks`). A round that takes one offers the others again. The
     record is a replacement's with the state (:func:`state_summary`). ``lines``: per observed column, its
     innovations' line (:func:`lines`), where a pickup is offered."""
     from .confirm import fit_all
@@ -445,15 +458,19 @@ def best_state(ctx, current: Fit, kinds: tuple = ("lag",), lines: dict | None = 
             offered.append(lag)
             tasks.append((cand, current.data, ctx.spec if lag.kind == "lag" else windowed, None, config.posterior))
     if not tasks:
-        return None
+        return
     say("  a state: " + ", ".join(f"{x.kind} ({x.term} -> {x.target})" for x in offered))
     need = config.min_log_bf + math.log(len(tasks))
     order = screened_states(ctx, current, offered, tasks)
     if order is not None:
-        return _screened_pick(ctx, current, offered, tasks, order, need)
+        yield from _screened_picks(ctx, current, offered, tasks, order, need)
+        return
     fits = fit_all(ctx.mapper, tasks)  # lags: fits from the prior, their start searches spread over the pool
     gain = np.array([row.log_evidence - current.row.log_evidence for row, _ in fits], dtype=float)
     if not np.isfinite(gain).any():
-        return None
+        return
+    # the lags are judged against the laws by their best alone (its ln BF), so the best one is the only one offered
     k = int(np.nanargmax(np.where(np.isfinite(gain), gain, -np.inf)))
-    return _taken(ctx, current, offered[k], tasks[k], fits[k], float(gain[k]), need)
+    got = _taken(ctx, current, offered[k], tasks[k], fits[k], float(gain[k]), need)
+    if got is not None:
+        yield got

@@ -125,6 +125,15 @@ class _Service:
                 self._parse_pool.submit(int).result()  # started now, inside the ignoring window
         return await asyncio.get_running_loop().run_in_executor(self._parse_pool, fn, *args)
 
+    def close(self) -> None:
+        """Stop the parser process and the submission thread, waiting for the parser: its queues' semaphores are
+        then released while the resource tracker the service shares with its children still holds them (left to
+        the interpreter's exit, the tracker was told to release one it no longer held and printed a traceback)."""
+        pool, self._parse_pool = self._parse_pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        self._heavy_pool.shutdown(wait=False, cancel_futures=True)
+
     def status(self, sid: str, progress: bool = True) -> StudyStatus:
         now = time.monotonic()
         hit = self._recent.get(sid) if progress else None
@@ -189,6 +198,7 @@ def create_app(settings: Settings, client) -> FastAPI:
     app = FastAPI(title="ardflow", version="0.1.0", docs_url=None, redoc_url=None,
                   description="Bayesian model selection (ARD, EKF likelihood, parallel adaptive MCMC) on Dask.")
     app.state.registry, app.state.runner, app.state.settings = c.reg, c.runner, settings
+    app.state.close = c.close
     app.add_middleware(RequestGuard, max_body=c.max_body, allowed_hosts=settings.allowed_hosts,
                        csv_paths=(f"/{API_VERSION}/datasets",))
     _error_handlers(app)

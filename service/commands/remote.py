@@ -77,6 +77,7 @@ def cmd_serve(a) -> int:
                         http=with_header_deadline(a.header_timeout))
         finally:
             app.state.runner.stop()
+            app.state.close()
     print("[ardflow] service stopped (its scheduler, workers and drivers with it)", flush=True)
     return 0
 
