@@ -85,6 +85,7 @@ class _Service:
     heavy work, the Dask client, and a short-lived cache of study status."""
 
     STATUS_TTL = 0.2  # s: clients polling faster than this share one read of the registry and the logs
+    CLOSE_WAIT_S = 3.0  # s: how long a stopping service waits for its parser process to leave
 
     def __init__(self, settings: Settings, client):
         self.settings, self.client = settings, client
@@ -131,7 +132,10 @@ class _Service:
         the interpreter's exit, the tracker was told to release one it no longer held and printed a traceback)."""
         pool, self._parse_pool = self._parse_pool, None
         if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+            # a parse still running holds the exit for at most a few seconds (its process dies with the service)
+            waiter = threading.Thread(target=pool.shutdown, kwargs={"wait": True, "cancel_futures": True}, daemon=True)
+            waiter.start()
+            waiter.join(self.CLOSE_WAIT_S)
         self._heavy_pool.shutdown(wait=False, cancel_futures=True)
 
     def status(self, sid: str, progress: bool = True) -> StudyStatus:
