@@ -229,6 +229,8 @@ def pool_mapper(workers: int):
         if len(tasks) <= 1:
             return [fn(t) for t in tasks]
         return list(pool.map(fn, tasks))
+    # one task started now, its result read later (a Future): the pool works while this process fits something else
+    run.submit = pool.submit
     return run, (lambda: pool.shutdown(cancel_futures=True))
 
 

@@ -138,16 +138,31 @@ class Criterion:
         self.settings = SimulationSettings(held_out=config.simulation_held_out, init_samples=config.init_samples)
         self.mapper, self.say = mapper, say
         self._kept: dict[int, tuple] = {}  # id(row) -> (row, score): the row is held so its id stays its own
+        self._pending: dict[int, tuple] = {}  # id(row) -> (row, Future): scores started by :meth:`prefetch`
+
+    def _task(self, f) -> tuple:
+        fspec, phi = fitted(f.cand, f.row)
+        return fspec, phi, f.data, f.cand.substeps, self.settings
+
+    def prefetch(self, fits: list) -> None:
+        """Start scoring ``fits`` on the pool now, for :meth:`scores` to collect: the round's moves are scored while
+        this process fits the survivors together. Nothing is started on a pool that runs tasks in this process."""
+        submit = getattr(self.mapper, "submit", None)
+        if submit is None:
+            return
+        for f in fits:
+            if id(f.row) not in self._kept and id(f.row) not in self._pending:
+                self._pending[id(f.row)] = (f.row, submit(held_out_task, self._task(f)))
 
     def scores(self, fits: list) -> list[Score]:
         """The held-out score of each :class:`~.confirm.Fit` (its structure with pruned terms fixed, refitted
         from its posterior mean)."""
-        todo = [f for f in fits if id(f.row) not in self._kept]
-        tasks = []
+        todo = list({id(f.row): f for f in fits if id(f.row) not in self._kept}.values())
+        fresh = [f for f in todo if id(f.row) not in self._pending]
+        computed = dict(zip(map(id, (f.row for f in fresh)),
+                            self.mapper(held_out_task, [self._task(f) for f in fresh]) if fresh else []))
         for f in todo:
-            fspec, phi = fitted(f.cand, f.row)
-            tasks.append((fspec, phi, f.data, f.cand.substeps, self.settings))
-        for f, got in zip(todo, self.mapper(held_out_task, tasks) if tasks else []):
+            got = self._pending.pop(id(f.row))[1].result() if id(f.row) not in computed else computed[id(f.row)]
             if isinstance(got, HeldOut):
                 errs = {b: (float(e) if math.isfinite(e) else INF) for b, e in got.errors.items()}
                 self._kept[id(f.row)] = (f.row, Score(errs, got))
@@ -306,6 +321,8 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
             + ", ".join(c.effect for c in deferred) + " judged now")
         _refuse(rec, noise[0], s)
         survivors = stable(ctx, deferred)
+    # the single moves are scored on the pool while this process fits the survivors together (_moves)
+    crit.prefetch([held] + ([swap[0]] if swap is not None else []) + [c.fit for c in survivors])
     moves = _moves(ctx, held, swap, survivors)
     if not moves:
         return None, judged
