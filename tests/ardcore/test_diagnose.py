@@ -412,6 +412,18 @@ def test_the_criterion_takes_what_free_runs_better_held_out_and_refuses_a_fit_th
     assert improves(s_cub, s_lin) and not improves(s_lin, s_cub)
     assert no_worse(s_cub, s_lin) and not no_worse(s_lin, s_cub)
     assert crit.score(lin) is s_lin  # scored once per fit
+    # scores started on a process pool ahead of time (the round's moves while the survivors are fitted together)
+    # are collected for the fits they belong to, the same as scored in turn
+    from ardflow.ardcore.loop.confirm import pool_mapper
+
+    mapper, close = pool_mapper(2)
+    try:
+        pooled = Criterion(DiagnoseConfig(), mapper, lambda m: None)
+        pooled.prefetch([cub, lin])
+        p_lin, p_cub, again = pooled.scores([lin, cub, lin])
+    finally:
+        close()
+    assert (p_lin.errors, p_cub.errors) == (s_lin.errors, s_cub.errors) and again is p_lin
     # the rule itself: the blocks' mean log error ratio must be better by more than 1 %, the loudest no worse; a
     # diverging model never improves
     from ardflow.ardcore.loop.criterion import Score
