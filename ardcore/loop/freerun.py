@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 import warnings
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import sympy as sp
@@ -51,6 +52,8 @@ class Band:
     calibration: Dataset | None = None
     seed: int = 0
     refits: tuple = ()
+    mapper: Callable | None = field(default=None, compare=False)
+    """``mapper(fn, tasks)``: where the calibration's blocks are simulated (the loop's pool; default here, in turn)."""
 
 
 def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
@@ -169,7 +172,7 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
         spread = math.sqrt(n / max(n - (b - a), 1))  # the refit saw the rest of the record only
         parts.append((pspec, part, k0, y, np.isfinite(y), moved_draws(band.draws, phi, q, noise, spread)))
     out = {"held_out_blocks": [[int(a), int(b)] for a, b, _ in band.refits], "out_of_sample": True}
-    at_one = _blocks_inside(parts, noise, 1.0, substeps, band.seed + 1)
+    at_one = _blocks_inside(parts, noise, 1.0, substeps, band.seed + 1, band.mapper)
     if at_one is not None:
         c = _share_inside(at_one)
         se = math.sqrt(0.9 * 0.1 / max(sum(independent_samples(a) for _, a in at_one), 1.0))
@@ -180,7 +183,7 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
     chosen, below, ceiling = max(BAND_FACTORS), None, None
     for f in sorted(BAND_FACTORS):  # from the narrowest, until the band holds 90 %
         # scale 1 was run above, with the same draws and seed
-        inside_f = at_one if f == 1.0 else _blocks_inside(parts, noise, f, substeps, band.seed + 1)
+        inside_f = at_one if f == 1.0 else _blocks_inside(parts, noise, f, substeps, band.seed + 1, band.mapper)
         if inside_f is None:
             # more than 5 % of a block's draws diverge at this scale: a band that holds the data by being
             # infinite is no band, so the largest scale below it stands
@@ -200,13 +203,22 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
     return float(chosen), out
 
 
-def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int) -> list | None:
+def _predictive_task(args) -> np.ndarray:
+    """:func:`_predictive` of ``(spec, draws, data, k0, substeps, seed)``: a picklable unit of work for a pool."""
+    return _predictive(*args)
+
+
+def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int,
+                   mapper: Callable | None = None) -> list | None:
     """Per calibration block (:func:`calibrated_out_of_sample`'s ``parts``), where its data lie inside the band
     at process-noise ``factor`` (boolean series, its finite points) and how far across it (the squared distance
-    from its centre in half-widths); None when more than 5 % of a block's draws diverge."""
+    from its centre in half-widths); None when more than 5 % of a block's draws diverge. The blocks' draws are
+    simulated by ``mapper`` (each block from its own seeded random numbers, so anywhere alike)."""
+    tasks = [(pspec, _scaled(draws, noise, factor), part, k0, substeps, seed)
+             for pspec, part, k0, _, _, draws in parts]
+    sims = (mapper or (lambda fn, ts: [fn(t) for t in ts]))(_predictive_task, tasks)
     got = []
-    for pspec, part, k0, y, ok, draws in parts:
-        ys = _predictive(pspec, _scaled(draws, noise, factor), part, k0, substeps, seed)
+    for (pspec, part, k0, y, ok, draws), ys in zip(parts, sims):
         if len(ys) < 5 or diverged(ys) > MAX_DIVERGED:
             return None
         lo, hi = band_of(ys)

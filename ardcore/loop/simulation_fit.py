@@ -145,8 +145,15 @@ class SimulationSettings:
     maxfun: int = 3000
 
 
+def _fit_task(args) -> dict:
+    """:func:`_fit` of ``(spec, data, substeps, phi, noise, factor, names, maxfun, L)``, the likelihood bound where it
+    runs: a picklable unit of work for a pool."""
+    spec, data, substeps, phi, noise, factor, names, maxfun, L = args
+    return _fit(compile_model(spec).bind(data, substeps), phi, noise, factor, names, maxfun, L)
+
+
 def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int | None = None,
-                   settings: SimulationSettings = SimulationSettings()) -> SimulationFit | None:
+                   settings: SimulationSettings = SimulationSettings(), mapper=None) -> SimulationFit | None:
     """Choose the process-noise factor for simulation on held-out data (see module docstring).
 
     The factors are fitted in turn from the largest, each from the previous one's parameters (a
@@ -163,6 +170,9 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
     settings : SimulationSettings
         The factors of the noise parameters tried besides 1, the share of the record (at its end) the free
         runs are scored on, the relative reduction of that error a factor needs over factor 1.
+    mapper : callable, optional
+        ``mapper(fn, tasks)``: where the two contenders' fits without the record's start run (the loop's pool;
+        default here, in turn).
 
     Returns
     -------
@@ -194,9 +204,9 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
     if best == 1.0 or not rms[best] < (1 - min_gain) * rms[1.0]:
         return SimulationFit(1.0, dict(phi), noise, rms, n_fit, n - n_fit)
     # the start block only for the two contenders, each fitted from its end-block fit (near its optimum)
-    lik = model.bind(data.slice(n - n_fit, None), substeps)
-    other = {f: _fit(lik, {**fitted[f], **{p: phi[p] for p in noise}}, noise, f, names, maxfun, L)
-             for f in (1.0, best)}
+    tasks = [(spec, data.slice(n - n_fit, None), substeps, {**fitted[f], **{p: phi[p] for p in noise}}, noise, f,
+              names, maxfun, L) for f in (1.0, best)]
+    other = dict(zip((1.0, best), (mapper or (lambda fn, ts: [fn(t) for t in ts]))(_fit_task, tasks)))
     start_rms = _held_out_rms(spec, other, data.slice(0, n - n_fit), init_samples, substeps)
     if not start_rms[best] < (1 - min_gain) * start_rms[1.0]:
         return SimulationFit(1.0, dict(phi), noise, rms, n_fit, n - n_fit, held_out_start=start_rms)
@@ -368,7 +378,7 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
             sim = simulation_fit(final.spec, final.phi, held.data, substeps=final.substeps,
                                  settings=SimulationSettings(factors=tuple(config.simulation_factors),
                                                              held_out=config.simulation_held_out,
-                                                             init_samples=config.init_samples))
+                                                             init_samples=config.init_samples), mapper=ctx.mapper)
         except (FitError, ValueError, np.linalg.LinAlgError) as e:  # the posterior's own result stands
             rec["chosen_by"] = f"the posterior (the other noise levels failed: {type(e).__name__}: {e})"
         else:
@@ -382,7 +392,8 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
         say("reported model: the posterior (no smaller process noise free-runs both held-out ends better)")
         return rec, final
     fr = free_run(model.spec, model.phi, test, init_samples=config.init_samples, substeps=model.substeps,
-                  band=Band(draws, calibration=held.data, seed=seed, refits=blocks.refits() if blocks else ()))
+                  band=Band(draws, calibration=held.data, seed=seed, refits=blocks.refits() if blocks else (),
+                            mapper=ctx.mapper))
     rec["free_run"] = {k: fr[k] for k in keep if k in fr}
     measure["free_run"] = {**{k: v for k, v in fr.items() if k in measured},
                            "band_calibration": fr.get("band_calibration"), "noise_factor": model_factor(sim)}
