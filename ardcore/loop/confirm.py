@@ -26,6 +26,7 @@ from ..screening.screen import ScreenInput, Screened, distinct_candidates, scree
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec
 from ..sampling.chains import Batch
+from .config import in_turn
 from ..selection.study import CandidateHooks, iter_candidate, run_candidate
 
 INF = math.inf
@@ -213,7 +214,7 @@ def _batch_task(args):
 def pool_mapper(workers: int):
     """(map function, closer): confirmations and halves run side by side on ``workers`` processes."""
     if workers <= 1:
-        return (lambda fn, tasks: [fn(t) for t in tasks]), (lambda: None)
+        return in_turn, (lambda: None)
     import multiprocessing as mp
 
     # fork from a single-threaded process: a plain script without a __main__ guard keeps working (spawn

@@ -162,7 +162,7 @@ class Criterion:
         computed = dict(zip(map(id, (f.row for f in fresh)),
                             self.mapper(held_out_task, [self._task(f) for f in fresh]) if fresh else []))
         for f in todo:
-            got = self._pending.pop(id(f.row))[1].result() if id(f.row) not in computed else computed[id(f.row)]
+            got = computed[id(f.row)] if id(f.row) in computed else self._pending.pop(id(f.row))[1].result()
             if isinstance(got, HeldOut):
                 errs = {b: (float(e) if math.isfinite(e) else INF) for b, e in got.errors.items()}
                 self._kept[id(f.row)] = (f.row, Score(errs, got))

@@ -19,6 +19,7 @@ from ..selection.initial import recentred
 from ..model.declaration import ModelSpec
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec
+from .config import in_turn
 from .residuals import dominant_frequency, harmonics
 
 
@@ -52,8 +53,9 @@ class Band:
     calibration: Dataset | None = None
     seed: int = 0
     refits: tuple = ()
-    mapper: Callable | None = field(default=None, compare=False)
-    """``mapper(fn, tasks)``: where the calibration's blocks are simulated (the loop's pool; default here, in turn)."""
+    mapper: Callable = field(default=in_turn, compare=False)
+    """``mapper(fn, tasks)``: where the calibration's blocks are simulated (the loop's pool; default
+    :func:`~.config.in_turn`, here)."""
 
 
 def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
@@ -209,14 +211,14 @@ def _predictive_task(args) -> np.ndarray:
 
 
 def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int,
-                   mapper: Callable | None = None) -> list | None:
+                   mapper: Callable = in_turn) -> list | None:
     """Per calibration block (:func:`calibrated_out_of_sample`'s ``parts``), where its data lie inside the band
     at process-noise ``factor`` (boolean series, its finite points) and how far across it (the squared distance
     from its centre in half-widths); None when more than 5 % of a block's draws diverge. The blocks' draws are
     simulated by ``mapper`` (each block from its own seeded random numbers, so anywhere alike)."""
     tasks = [(pspec, _scaled(draws, noise, factor), part, k0, substeps, seed)
              for pspec, part, k0, _, _, draws in parts]
-    sims = (mapper or (lambda fn, ts: [fn(t) for t in ts]))(_predictive_task, tasks)
+    sims = mapper(_predictive_task, tasks)
     got = []
     for (pspec, part, k0, y, ok, draws), ys in zip(parts, sims):
         if len(ys) < 5 or diverged(ys) > MAX_DIVERGED:

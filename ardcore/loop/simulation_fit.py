@@ -31,7 +31,7 @@ from scipy.optimize import minimize
 from ..data import Dataset
 from ..errors import FitError
 from ..likelihood.ekf import compile_model
-from .config import LoopContext
+from .config import LoopContext, in_turn
 from .freerun import Band, free_run, moved_draws, noise_parameters, posterior_draws
 from .result import FittedModel
 from .verdict import expected_words
@@ -153,7 +153,7 @@ def _fit_task(args) -> dict:
 
 
 def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int | None = None,
-                   settings: SimulationSettings = SimulationSettings(), mapper=None) -> SimulationFit | None:
+                   settings: SimulationSettings = SimulationSettings(), mapper=in_turn) -> SimulationFit | None:
     """Choose the process-noise factor for simulation on held-out data (see module docstring).
 
     The factors are fitted in turn from the largest, each from the previous one's parameters (a
@@ -172,7 +172,7 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
         runs are scored on, the relative reduction of that error a factor needs over factor 1.
     mapper : callable, optional
         ``mapper(fn, tasks)``: where the two contenders' fits without the record's start run (the loop's pool;
-        default here, in turn).
+        default :func:`~.config.in_turn`, here).
 
     Returns
     -------
@@ -206,7 +206,7 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
     # the start block only for the two contenders, each fitted from its end-block fit (near its optimum)
     tasks = [(spec, data.slice(n - n_fit, None), substeps, {**fitted[f], **{p: phi[p] for p in noise}}, noise, f,
               names, maxfun, L) for f in (1.0, best)]
-    other = dict(zip((1.0, best), (mapper or (lambda fn, ts: [fn(t) for t in ts]))(_fit_task, tasks)))
+    other = dict(zip((1.0, best), mapper(_fit_task, tasks)))
     start_rms = _held_out_rms(spec, other, data.slice(0, n - n_fit), init_samples, substeps)
     if not start_rms[best] < (1 - min_gain) * start_rms[1.0]:
         return SimulationFit(1.0, dict(phi), noise, rms, n_fit, n - n_fit, held_out_start=start_rms)
