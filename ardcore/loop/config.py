@@ -133,12 +133,6 @@ class DiagnoseConfig(BaseModel):
     simulation_held_out: float = Field(0.3, gt=0, lt=1)
 
 
-def in_turn(fn: Callable, tasks: list) -> list:
-    """``[fn(t) for t in tasks]``: the loop's pool when it has one worker, and the default wherever a ``mapper`` may
-    be given."""
-    return [fn(t) for t in tasks]
-
-
 @dataclass(frozen=True)
 class LoopContext:
     """What every step of one diagnosis shares: the study spec (its evidence method, sampler and maximiser

@@ -25,8 +25,7 @@ from ..jsonio import is_pruned, to_jsonable
 from ..screening.screen import ScreenInput, Screened, distinct_candidates, screen_effects
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec
-from ..sampling.chains import Batch
-from .config import in_turn
+from ..sampling.chains import Batch, serial_map
 from ..selection.study import CandidateHooks, iter_candidate, run_candidate
 
 INF = math.inf
@@ -214,7 +213,7 @@ def _batch_task(args):
 def pool_mapper(workers: int):
     """(map function, closer): confirmations and halves run side by side on ``workers`` processes."""
     if workers <= 1:
-        return in_turn, (lambda: None)
+        return serial_map, (lambda: None)
     import multiprocessing as mp
 
     # fork from a single-threaded process: a plain script without a __main__ guard keeps working (spawn

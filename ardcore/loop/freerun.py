@@ -17,9 +17,9 @@ from ..jsonio import is_pruned
 from ..likelihood.ekf import compile_model
 from ..selection.initial import recentred
 from ..model.declaration import ModelSpec
+from ..sampling.chains import serial_map
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec
-from .config import in_turn
 from .residuals import dominant_frequency, harmonics
 
 
@@ -53,9 +53,9 @@ class Band:
     calibration: Dataset | None = None
     seed: int = 0
     refits: tuple = ()
-    mapper: Callable = field(default=in_turn, compare=False)
+    mapper: Callable = field(default=serial_map, compare=False)
     """``mapper(fn, tasks)``: where the calibration's blocks are simulated (the loop's pool; default
-    :func:`~.config.in_turn`, here)."""
+    :func:`~ardcore.sampling.chains.serial_map`, here)."""
 
 
 def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 50,
@@ -211,7 +211,7 @@ def _predictive_task(args) -> np.ndarray:
 
 
 def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int,
-                   mapper: Callable = in_turn) -> list | None:
+                   mapper: Callable = serial_map) -> list | None:
     """Per calibration block (:func:`calibrated_out_of_sample`'s ``parts``), where its data lie inside the band
     at process-noise ``factor`` (boolean series, its finite points) and how far across it (the squared distance
     from its centre in half-widths); None when more than 5 % of a block's draws diverge. The blocks' draws are

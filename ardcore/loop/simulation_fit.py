@@ -31,7 +31,8 @@ from scipy.optimize import minimize
 from ..data import Dataset
 from ..errors import FitError
 from ..likelihood.ekf import compile_model
-from .config import LoopContext, in_turn
+from ..sampling.chains import serial_map
+from .config import LoopContext
 from .freerun import Band, free_run, moved_draws, noise_parameters, posterior_draws
 from .result import FittedModel
 from .verdict import expected_words
@@ -153,7 +154,7 @@ def _fit_task(args) -> dict:
 
 
 def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int | None = None,
-                   settings: SimulationSettings = SimulationSettings(), mapper=in_turn) -> SimulationFit | None:
+                   settings: SimulationSettings = SimulationSettings(), mapper=serial_map) -> SimulationFit | None:
     """Choose the process-noise factor for simulation on held-out data (see module docstring).
 
     The factors are fitted in turn from the largest, each from the previous one's parameters (a
@@ -172,7 +173,7 @@ def simulation_fit(spec: ModelSpec, phi: dict, data: Dataset, *, substeps: int |
         runs are scored on, the relative reduction of that error a factor needs over factor 1.
     mapper : callable, optional
         ``mapper(fn, tasks)``: where the two contenders' fits without the record's start run (the loop's pool;
-        default :func:`~.config.in_turn`, here).
+        default :func:`~ardcore.sampling.chains.serial_map`, here).
 
     Returns
     -------

@@ -38,6 +38,8 @@ belongs to chain ``c`` (see :class:`Step`)."""
 
 
 def serial_map(func, items, step: Step | None = None):
+    """``[func(it) for it in items]``, in this process one after another (``step`` ignored): the default
+    :data:`Map`, and the loop's pool when it has one worker."""
     return [func(it) for it in items]
 
 

@@ -387,7 +387,7 @@ def test_the_criterion_takes_what_free_runs_better_held_out_and_refuses_a_fit_th
     from ardflow.ardcore.effects.base import with_columns
     from ardflow.ardcore.loop.checks import not_degenerate
     from ardflow.ardcore.loop.confirm import Fit
-    from ardflow.ardcore.loop.config import in_turn
+    from ardflow.ardcore.sampling.chains import serial_map
     from ardflow.ardcore.loop.criterion import Criterion, improves, no_worse
     from ardflow.ardcore.loop.diagnose import check_fitted
     from ardflow.ardcore.errors import FitError
@@ -406,7 +406,7 @@ def test_the_criterion_takes_what_free_runs_better_held_out_and_refuses_a_fit_th
     adata = with_columns(data, cubic)
     arow, amr = run_candidate(acand, adata, spec, 0)
     cub = Fit(acand, arow, amr, adata)
-    crit = Criterion(DiagnoseConfig(), in_turn, lambda m: None)
+    crit = Criterion(DiagnoseConfig(), serial_map, lambda m: None)
     s_lin, s_cub = crit.scores([lin, cub])
     assert set(s_lin.errors) == {"start", "end", "loudest"} and s_lin.held is not None
     assert all(s_cub.errors[b] < 0.5 * s_lin.errors[b] for b in s_lin.errors), (s_lin, s_cub)
