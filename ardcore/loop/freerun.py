@@ -172,12 +172,18 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
         k0 = _start(pspec, part, init_samples)
         y = part.columns[spec.observed_columns[0]][k0:]
         spread = math.sqrt(n / max(n - (b - a), 1))  # the refit saw the rest of the record only
-        parts.append((pspec, part, k0, y, np.isfinite(y), moved_draws(band.draws, phi, q, noise, spread)))
+        parts.append((pspec, part, k0, y, np.isfinite(y), moved_draws(band.draws, phi, q, noise, spread), a + k0))
+    # blocks may overlap (the loudest stretch runs into the record's end): a sample two blocks hold counts half in
+    # each, so that no stretch of the record weighs double in the coverage or counts twice as independent
+    at = [first + np.flatnonzero(ok) for *_, ok, _, first in parts]
+    times = np.bincount(np.concatenate(at), minlength=n) if at else np.zeros(n)
+    parts = [(*p[:6], 1.0 / times[i]) for p, i in zip(parts, at)]
     out = {"held_out_blocks": [[int(a), int(b)] for a, b, _ in band.refits], "out_of_sample": True}
     at_one = _blocks_inside(parts, noise, 1.0, substeps, band.seed + 1, band.mapper)
     if at_one is not None:
         c = _share_inside(at_one)
-        se = math.sqrt(0.9 * 0.1 / max(sum(independent_samples(a) for _, a in at_one), 1.0))
+        se = math.sqrt(0.9 * 0.1 / max(sum(independent_samples(a) * float(np.mean(w)) for _, a, w in at_one if w.size),
+                                       1.0))
         out.update({"coverage": {"1": c}, "coverage_se": se})
         if abs(c - 0.9) <= 2.0 * se:  # no evidence against the posterior's noise
             return 1.0, out
@@ -213,14 +219,15 @@ def _predictive_task(args) -> np.ndarray:
 def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int,
                    mapper: Callable = serial_map) -> list | None:
     """Per calibration block (:func:`calibrated_out_of_sample`'s ``parts``), where its data lie inside the band
-    at process-noise ``factor`` (boolean series, its finite points) and how far across it (the squared distance
-    from its centre in half-widths); None when more than 5 % of a block's draws diverge. The blocks' draws are
+    at process-noise ``factor`` (boolean series, its finite points), how far across it (the squared distance
+    from its centre in half-widths) and each point's weight (one over the blocks that hold it); None when more
+    than 5 % of a block's draws diverge. The blocks' draws are
     simulated by ``mapper`` (each block from its own seeded random numbers, so anywhere alike)."""
     tasks = [(pspec, _scaled(draws, noise, factor), part, k0, substeps, seed)
-             for pspec, part, k0, _, _, draws in parts]
+             for pspec, part, k0, _, _, draws, _ in parts]
     sims = mapper(_predictive_task, tasks)
     got = []
-    for (pspec, part, k0, y, ok, draws), ys in zip(parts, sims):
+    for (pspec, part, k0, y, ok, draws, w), ys in zip(parts, sims):
         if len(ys) < 5 or diverged(ys) > MAX_DIVERGED:
             return None
         lo, hi = band_of(ys)
@@ -228,13 +235,15 @@ def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int,
         # as the error's envelope, so its independent stretches are the block's
         with np.errstate(invalid="ignore", divide="ignore"):
             across = (y[ok] - (lo[ok] + hi[ok]) / 2) / ((hi[ok] - lo[ok]) / 2)
-        got.append((inside(y[ok], lo[ok], hi[ok]), np.nan_to_num(across ** 2, nan=0.0, posinf=1e6)))
+        got.append((inside(y[ok], lo[ok], hi[ok]), np.nan_to_num(across ** 2, nan=0.0, posinf=1e6), w))
     return got
 
 
 def _share_inside(blocks: list) -> float:
-    """The share of the calibration blocks' data inside their bands (:func:`_blocks_inside`), 0 without any."""
-    return float(np.mean(np.concatenate([x for x, _ in blocks]))) if blocks else 0.0
+    """The share of the calibration blocks' data inside their bands (:func:`_blocks_inside`), each point by its
+    weight; 0 without any."""
+    w = np.concatenate([w for *_, w in blocks]) if blocks else np.zeros(0)
+    return float(np.sum(np.concatenate([x for x, _, _ in blocks]) * w) / np.sum(w)) if w.sum() > 0 else 0.0
 
 
 def independent_samples(x: np.ndarray) -> float:

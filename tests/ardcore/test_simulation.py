@@ -104,3 +104,41 @@ def test_the_posterior_noise_is_kept_when_a_smaller_one_free_runs_worse():
     sim = simulation_fit(model, phi, est)
     assert sim.factor == 1.0 and sim.phi == phi, sim.held_out_rms
     assert min(sim.held_out_rms[f] for f in (0.3, 0.1, 0.03)) > sim.held_out_rms[1.0]
+
+
+def test_a_stretch_two_blocks_share_is_refitted_and_calibrated_on_once():
+    """A record whose input is ten times as strong over its last third: its loudest stretch is its end. That block is the end's (one
+    refit, the same error) and a band is calibrated on it once, not twice (twice, its data would weigh double
+    and its stretches count as independent twice over)."""
+    truth = _osc("-k*y - c*v + b*u", ["k", "c", "b", "sigma"])
+    params = {"k": 16.0, "c": 0.3, "b": 8.0, "sigma": 0.3}
+    n, dt = 3000, 0.02
+    rng = np.random.default_rng(4)
+    t = np.arange(n) * dt
+    u = np.where(t > 0.65 * t[-1], 2.0, 0.2) * np.convolve(rng.standard_normal(n + 20), np.ones(8) / np.sqrt(8), "same")[:n]
+    est = Dataset(t, {"y": simulate_model(truth, params, t, 4, inputs={"u": u}, x0=[0.0, 0.0]).columns["y"], "u": u},
+                  {})
+    phi = {"k": 16.0, "c": 0.3, "b": 8.0, "sigma": 0.3}
+    held = held_out_free_runs(truth, phi, est)
+    assert held.blocks["loudest"] == held.blocks["end"] != held.blocks["start"]
+    assert held.fits["loudest"] is held.fits["end"] and held.errors["loudest"] == held.errors["end"]
+    assert [r[:2] for r in held.refits()] == [held.blocks["start"], held.blocks["end"]]
+    assert [r[:2] for r in held.refits("end", "loudest")] == [held.blocks["end"]]
+
+
+def test_a_stretch_two_calibration_blocks_hold_weighs_once():
+    """A band calibrated on a block given twice (or two blocks overlapping in full) finds the coverage and its
+    standard error it finds on that block once: an overlap is no second look at the record."""
+    from ardflow.ardcore.loop.freerun import calibrated_out_of_sample
+
+    truth = _osc("-k*y - c*v + b*u", ["k", "c", "b", "sigma"])
+    model, phi, est, _ = _fitted_linear_model(truth, {"k": 16.0, "c": 0.3, "b": 8.0, "sigma": 0.3})
+    rng = np.random.default_rng(3)
+    draws = [{**phi, "k": phi["k"] * (1 + 0.01 * rng.standard_normal())} for _ in range(20)]
+    block = held_out_free_runs(model, phi, est).refits("end")
+    got = [calibrated_out_of_sample(model, phi, Band(draws, calibration=est, seed=1, refits=r), 50, None)
+           for r in (block, block + block)]
+    (f1, once), (f2, twice) = got
+    assert once is not None and f1 == f2
+    assert once["coverage"] == pytest.approx(twice["coverage"]) and once["coverage_se"] == pytest.approx(
+        twice["coverage_se"])
