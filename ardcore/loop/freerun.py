@@ -6,7 +6,7 @@ import math
 import warnings
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 import sympy as sp
@@ -164,20 +164,20 @@ def calibrated_out_of_sample(spec: ModelSpec, phi: dict, band: Band, init_sample
     noise = noise_parameters(spec)
     if not noise:
         return 1.0, None
-    parts = []
     n = len(band.calibration)
+    blocks, held = [], []
     for a, b, q in band.refits:
         part = band.calibration.slice(a, b)
         pspec, _ = recentred(spec, part)
         k0 = _start(pspec, part, init_samples)
         y = part.columns[spec.observed_columns[0]][k0:]
         spread = math.sqrt(n / max(n - (b - a), 1))  # the refit saw the rest of the record only
-        parts.append((pspec, part, k0, y, np.isfinite(y), moved_draws(band.draws, phi, q, noise, spread), a + k0))
+        blocks.append((pspec, part, k0, y, moved_draws(band.draws, phi, q, noise, spread)))
+        held.append(a + k0 + np.flatnonzero(np.isfinite(y)))  # the record's samples the block is judged on
     # blocks may overlap (the loudest stretch runs into the record's end): a sample two blocks hold counts half in
     # each, so that no stretch of the record weighs double in the coverage or counts twice as independent
-    at = [first + np.flatnonzero(ok) for *_, ok, _, first in parts]
-    times = np.bincount(np.concatenate(at), minlength=n) if at else np.zeros(n)
-    parts = [(*p[:6], 1.0 / times[i]) for p, i in zip(parts, at)]
+    times = np.bincount(np.concatenate(held), minlength=n) if held else np.zeros(n)
+    parts = [_Block(*blk, 1.0 / times[i]) for blk, i in zip(blocks, held)]
     out = {"held_out_blocks": [[int(a), int(b)] for a, b, _ in band.refits], "out_of_sample": True}
     at_one = _blocks_inside(parts, noise, 1.0, substeps, band.seed + 1, band.mapper)
     if at_one is not None:
@@ -216,6 +216,19 @@ def _predictive_task(args) -> np.ndarray:
     return _predictive(*args)
 
 
+class _Block(NamedTuple):
+    """A calibration block (:func:`calibrated_out_of_sample`): its model recentred on it, its data, the sample its
+    band starts at, the outputs from there, the posterior draws moved to its refit, and the weight of each finite
+    output (one over the blocks that hold it)."""
+
+    spec: ModelSpec
+    data: Dataset
+    k0: int
+    y: np.ndarray
+    draws: list
+    weight: np.ndarray
+
+
 def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int,
                    mapper: Callable = serial_map) -> list | None:
     """Per calibration block (:func:`calibrated_out_of_sample`'s ``parts``), where its data lie inside the band
@@ -223,19 +236,19 @@ def _blocks_inside(parts: list, noise: list, factor: float, substeps, seed: int,
     from its centre in half-widths) and each point's weight (one over the blocks that hold it); None when more
     than 5 % of a block's draws diverge. The blocks' draws are
     simulated by ``mapper`` (each block from its own seeded random numbers, so anywhere alike)."""
-    tasks = [(pspec, _scaled(draws, noise, factor), part, k0, substeps, seed)
-             for pspec, part, k0, _, _, draws, _ in parts]
+    tasks = [(p.spec, _scaled(p.draws, noise, factor), p.data, p.k0, substeps, seed) for p in parts]
     sims = mapper(_predictive_task, tasks)
     got = []
-    for (pspec, part, k0, y, ok, draws, w), ys in zip(parts, sims):
+    for p, ys in zip(parts, sims):
         if len(ys) < 5 or diverged(ys) > MAX_DIVERGED:
             return None
         lo, hi = band_of(ys)
+        y, ok = p.y, np.isfinite(p.y)
         # where the data lie across the band (inside within +-1): slower than its inside-outside series, as slow
         # as the error's envelope, so its independent stretches are the block's
         with np.errstate(invalid="ignore", divide="ignore"):
             across = (y[ok] - (lo[ok] + hi[ok]) / 2) / ((hi[ok] - lo[ok]) / 2)
-        got.append((inside(y[ok], lo[ok], hi[ok]), np.nan_to_num(across ** 2, nan=0.0, posinf=1e6), w))
+        got.append((inside(y[ok], lo[ok], hi[ok]), np.nan_to_num(across ** 2, nan=0.0, posinf=1e6), p.weight))
     return got
 
 

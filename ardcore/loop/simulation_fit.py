@@ -255,8 +255,8 @@ class HeldOut:
     def refits(self, *names: str) -> tuple:
         """``(first, stop, parameters)`` of each block (of those ``names``, default all): what a band is
         calibrated on out of sample (:class:`~.freerun.Band`). A stretch two blocks share (the loudest is the
-        record's start or end) is given once: twice, its data would weigh double in the coverage, and its stretches
-        would count twice as independent ones, making the coverage's standard error too small."""
+        record's start or end) is given once: its band would be simulated twice for the same answer (the
+        calibration weighs a sample that overlapping blocks hold by one over their number)."""
         spans = {}
         for b in names or self.blocks:
             spans.setdefault(self.blocks[b], (*self.blocks[b], self.fits[b]))
