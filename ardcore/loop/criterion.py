@@ -319,7 +319,7 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
             return noise[0], judged
         say(f"  held out: {noise[0].name} free-runs worse ({describe(s)} against {describe(cur)}): not added; "
             + ", ".join(c.effect for c in deferred) + " judged now")
-        _refuse(rec, noise[0], s)
+        refuse(rec, noise[0], s)
         survivors = stable(ctx, deferred)
     # the single moves are scored on the pool while this process fits the survivors together (_moves)
     crit.prefetch([held] + ([swap[0]] if swap is not None else []) + [c.fit for c in survivors])
@@ -332,7 +332,7 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
         judged["moves"].append({"move": m.name, "kind": m.kind, **s.to_json(), "taken": i == k})
         say(f"  held out: {m.name}: {describe(s)}" + (" (taken)" if i == k else ""))
         if i != k:
-            _refuse(rec, m, s)
+            refuse(rec, m, s)
     if k is None:
         say(f"  nothing the evidence supports free-runs better held out than the model ({describe(cur)})")
         rec["verdict"] = (rec.get("verdict") or "") + ("; " if rec.get("verdict") else "") + (
@@ -341,7 +341,7 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
     return (moves[k] if k is not None else None), judged
 
 
-def _refuse(rec: dict, move: Move, score) -> None:
+def refuse(rec: dict, move: Move, score) -> None:
     """Record in the round that ``move``, which the evidence supports, was not taken by the criterion."""
     for c in move.chosen or [None]:
         rec.setdefault("refused", []).append(

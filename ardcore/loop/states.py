@@ -368,7 +368,8 @@ LAG_KINDS = ("lag", "transfer")
 term families' stand-ins would otherwise take up first."""
 
 STATE_KINDS = ("hysteresis", "sensor", "actuator", "store", "mode", "relaxation", "pickup")
-"""The state families offered when the term families leave what they cannot take up."""
+"""The state families offered every round that does not take a noise level alone, competing with the terms' move
+(``diagnose``: a state that free-runs better on every held-out block displaces it)."""
 
 
 def _screened_picks(ctx, current: Fit, offered: list, tasks: list, order: list, need: float):

@@ -388,7 +388,7 @@ def test_the_criterion_takes_what_free_runs_better_held_out_and_refuses_a_fit_th
     from ardflow.ardcore.loop.checks import not_degenerate
     from ardflow.ardcore.loop.confirm import Fit
     from ardflow.ardcore.sampling.chains import serial_map
-    from ardflow.ardcore.loop.criterion import Criterion, improves, no_worse
+    from ardflow.ardcore.loop.criterion import Criterion, dominates, improves, no_worse
     from ardflow.ardcore.loop.diagnose import check_fitted
     from ardflow.ardcore.errors import FitError
     from ardflow.ardcore.selection.spec import CandidateSpec
@@ -476,6 +476,19 @@ def test_the_criterion_takes_what_free_runs_better_held_out_and_refuses_a_fit_th
     assert not Move("add", None, "a", [a]).holds(Move("replace", None, "laws"))
     better = Score({k: 0.8 * v for k, v in over.errors.items()})
     assert pick(tanks3, [over, better], [False, False], [1748.1, 1760.0], [[], [0]]) == 1
+    # a state against the round's terms (diagnose): it displaces them only when it free-runs better on every block.
+    # The two-mass record, round 1 (real scores): an overflow, a cube and a forcing together stand in for the
+    # second thermal store the model lacks, and the store free-runs every block thirtyfold better
+    model = Score({"start": 6.657, "end": 13.52, "loudest": 6.657})
+    stand_ins = Score({"start": 5.303, "end": 3.589, "loudest": 5.303})
+    store = Score({"start": 0.1527, "end": 0.1864, "loudest": 0.1527})
+    assert improves(stand_ins, model) and improves(store, model)
+    assert dominates(store, stand_ins) and not dominates(stand_ins, store)
+    # the tanks from the square-root model, round 0: a sensor lag the evidence ranks ahead of the laws in other
+    # forms free-runs the record's start worse; neither dominates, and the terms go first
+    lagged = Score({"start": 1.161, "end": 0.5534, "loudest": 0.5088})
+    assert not dominates(lagged, laws) and not dominates(laws, lagged)
+    assert not dominates(store, Score({"start": 0.1527, "end": 0.1864}))  # scored on other blocks: no ranking
     # near-perfect blocks are floored: a tenfold gain on a block already at 0.1 % of the largest is no gain
     assert not improves(Score({"start": 1e-4, "end": 1.05, "loudest": 1.0}), Score({"start": 1e-3, "end": 1.0,
                                                                                      "loudest": 1.0}))

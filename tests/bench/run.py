@@ -696,8 +696,8 @@ def bench_loop(tiny: bool = False) -> dict:
     loop_silverbox_samples and loop_silverbox_rounds (the record's length and the rounds run in loop_silverbox_s),
     loop_silverbox_multisine_band_coverage and loop_pendulum_band_coverage (the held-out data's share inside the
     final model's 90 % posterior predictive band), loop_silverbox_states_ratio (:func:`states_ratio` on that
-    65k-sample record: what the state families cost beside a round's terms, at most 2; written when the
-    criterion, not the round cap, ended the loop).
+    65k-sample record: what the state families cost beside a round's terms, at most 2; written when a round ran
+    them).
     """
     from ardflow.ardcore.data import SILVERBOX_SPLITS, load_pendulum, load_silverbox
     from ardflow.ardcore.loop.config import DiagnoseConfig
@@ -751,7 +751,7 @@ def bench_loop(tiny: bool = False) -> dict:
     # the long-record contract: this many samples through this many rounds in loop_silverbox_s
     out["loop_silverbox_samples"] = len(est)
     out["loop_silverbox_rounds"] = len(rep.report["rounds"])
-    if states_ratio(rep.report) is not None:  # only a loop its criterion ends runs the state families
+    if states_ratio(rep.report) is not None:  # a round that took a noise level alone runs no state family
         out["loop_silverbox_states_ratio"] = states_ratio(rep.report)
     out["loop_silverbox_multisine_before_mv"] = 1e3 * rep.report["before"]["free_run"]["rms_error"]
     out["loop_silverbox_arrow_before_mv"] = 1e3 * rep.initial.free_run(seg["test_arrow"])["rms_error"]
@@ -864,8 +864,8 @@ def _peers(rec) -> dict:
 
 def states_ratio(report: dict) -> float | None:
     """The state families' cost against the terms': the largest over a loop's rounds of the time the hysteresis,
-    sensor and mode states took (their screen and the full fits it orders; run only in a round that takes
-    nothing else) over the time the round's additions, laws and lags took (None: no round ran them)."""
+    sensor and mode states took (their screen and the full fits it orders; run in every round that does not take
+    a noise level alone) over the time the round's additions, laws and lags took (None: no round ran them)."""
     got = [r["states_s"] / r["terms_s"] for r in report.get("rounds", []) if r.get("states_s") and r.get("terms_s")]
     return max(got) if got else None
 
