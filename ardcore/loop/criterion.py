@@ -21,6 +21,9 @@ law, drop a term, stop) is decided here, by one number computed in one place:
   beside a move of the dynamics, the survivors together are out unless they free-run better than each alone;
   between the rest the blocks disagree and the evidence picks (:func:`pick`);
 * a measurement-noise level changes what the filter trusts, not the dynamics: it must free-run no worse;
+* a state the model lacks (a lag, a store, a hysteresis) that the criterion would take displaces the terms'
+  move only when it free-runs better on every block, else the terms, the cheaper change, go first
+  (:func:`contest`);
 * the loop **stops** when no move the evidence supports improves the score.
 
 The evidence proposes, the held-out free run decides: a stand-in that the evidence supports but that
@@ -339,6 +342,31 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
             "supported by the evidence but free-running no better on held-out blocks of the estimation record "
             "(each left out of a refit): " + ", ".join(m.name for m in moves))
     return (moves[k] if k is not None else None), judged
+
+
+def contest(ctx: LoopContext, crit: Criterion, held: Fit, move: Move | None, swap, states,
+            rnd: LoopRound, judged: dict) -> tuple[Move | None, object]:
+    """The round's move once the states have competed with the terms' ``move`` (and its ``swap``).
+
+    ``states`` yields the state moves in order (each a ``swap`` tuple, fitted on demand); each is judged by
+    :func:`decide` and the first the criterion would take competes: it displaces the terms' move only when it
+    free-runs better on every held-out block (:func:`dominates`), else the terms go first, as they are the
+    cheaper change. The loser is recorded as refused. A state the criterion refuses does not hide the next."""
+    for extra in states:
+        found, more = decide(ctx, crit, held, extra, [], [], rnd)
+        judged["moves"] += more["moves"]
+        if found is None:
+            continue
+        state_wins = move is None or dominates(crit.score(found.fit), crit.score(move.fit))
+        if move is not None:
+            loser = move if state_wins else found
+            ctx.say(f"  held out: {found.name if state_wins else move.name} is taken over {loser.name}")
+            for j in judged["moves"]:
+                if j["move"] == loser.name:
+                    j["taken"] = False
+            refuse(rnd.record, loser, crit.score(loser.fit))
+        return (found, extra) if state_wins else (move, swap)
+    return move, swap
 
 
 def refuse(rec: dict, move: Move, score) -> None:

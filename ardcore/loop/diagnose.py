@@ -53,7 +53,7 @@ from ..data import Dataset
 from ..effects.base import Effect, with_columns
 from ..errors import DataError, FitError, LoopFailed, SpecError
 from ..jsonio import to_jsonable
-from .criterion import Criterion, Move, decide, dominates, held_out_record, refuse, stable
+from .criterion import Criterion, Move, contest, decide, held_out_record, stable
 from .simulation_fit import reported_model
 from .result import Diagnosis, FittedModel, LoopRound
 from .freerun import Band, fitted, free_run, posterior_draws
@@ -194,27 +194,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 # terms that stand in for it (on the two-mass record an overflow, a cube and a forcing together
                 # free-ran its held-out blocks 5.3/3.6 K, the second store it lacked 0.14/0.18 K)
                 t_states = time.perf_counter()
-                # a state the criterion refuses must not hide the next: each that qualifies is judged in turn
-                for extra in state_moves(ctx, held, STATE_KINDS, lines(res.tests)):
-                    found, more = decide(ctx, crit, held, extra, [], [], rec)
-                    judged_round["moves"] += more["moves"]
-                    if found is not None:
-                        # the criterion's first rule between the two: a state that free-runs better on every
-                        # block displaces the terms; else the terms go first, as they are the cheaper change (on
-                        # the tanks from the square-root model a sensor lag, ahead of the laws in another form by
-                        # evidence but worse on the record's start, ended the loop at 0.77 V against 0.53)
-                        state_wins = move is None or dominates(crit.score(found.fit), crit.score(move.fit))
-                        if move is not None:
-                            loser = move if state_wins else found
-                            ctx.say(f"  held out: {found.name if state_wins else move.name} is taken over "
-                                    f"{loser.name}")
-                            for j in judged_round["moves"]:
-                                if j["move"] == loser.name:
-                                    j["taken"] = False
-                            refuse(rec.record, loser, crit.score(loser.fit))
-                        if state_wins:
-                            move, swap = found, extra
-                        break
+                move, swap = contest(ctx, crit, held, move, swap, state_moves(ctx, held, STATE_KINDS, lines(res.tests)),
+                                     rec, judged_round)
                 rec.record["states_s"] = time.perf_counter() - t_states  # the cost the bench holds to the terms'
             if move is None:
                 t_next = time.perf_counter()
