@@ -20,6 +20,7 @@ from ..model.declaration import ModelSpec
 from ..sampling.chains import serial_map
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec
+from .band import MAX_DIVERGED, band_of, diverged, expected_coverage, inside
 from .residuals import dominant_frequency, harmonics
 
 
@@ -277,21 +278,6 @@ def independent_samples(x: np.ndarray) -> float:
     return n / tau
 
 
-MAX_DIVERGED = 0.05
-"""The largest share of a band's draws that may diverge: beyond it the bounds are infinite (:func:`band_of`), so
-no scale is taken at which more do."""
-
-
-def inside(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Where ``y`` lies inside the band ``lo``-``hi`` (False where ``y`` is not finite: a diverged draw)."""
-    return (y >= lo) & (y <= hi)
-
-
-def diverged(ys: np.ndarray) -> float:
-    """The share of predictive draws ``ys`` (draws x samples) that diverged somewhere."""
-    return float(np.mean(~np.all(np.isfinite(ys), axis=1))) if len(ys) else 0.0
-
-
 def moved_draws(draws: list, mean: dict, point: dict, noise: list, spread: float = 1.0) -> list:
     """Posterior ``draws`` moved from their ``mean`` to another ``point`` (a fit without part of the record, a
     fit at another noise level): each keeps its offset from the mean, times ``spread`` (a fit to a share s of
@@ -314,42 +300,6 @@ def _predictive(spec: ModelSpec, draws: list, data: Dataset, k0: int, substeps: 
     draw that diverged holds non-finite values from where it did (:func:`band_of` counts it)."""
     rng = np.random.default_rng(seed)
     return np.array([_predictive_one(spec, d, data, k0, substeps, rng) for d in draws])
-
-
-def band_level(n: int, coverage: float = 0.9) -> float:
-    """The lower quantile level of ``n`` draws whose interval to the matching upper one holds a new draw of the
-    same distribution with probability ``coverage``. The sample's 5 % and 95 % quantiles do not: a new draw falls
-    outside the k-th smallest of n with probability k / (n + 1), so 40 draws' 5-95 % interpolated quantiles make
-    an 86 % band. The level puts the bound at order statistic ``(1 - coverage) / 2 * (n + 1)`` (interpolated),
-    the draws' own extremes when ``n`` is too small for it."""
-    k = (1.0 - coverage) / 2.0 * (n + 1)
-    return float(min(max(k - 1.0, 0.0) / max(n - 1, 1), 0.5))
-
-
-def band_of(ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The pointwise 90 % predictive band of draws ``ys`` (draws x samples): the quantiles at
-    :func:`band_level`, which hold a new draw of the same model 90 % of the time. A draw that diverged is beyond
-    either bound from where it did, not dropped (dropping it would narrow the band of a model that diverges):
-    where more than 5 % of the draws have, the bound is infinite."""
-    fin = np.isfinite(ys)
-    q = band_level(len(ys))
-    # an interpolation that touches an infinite draw is NaN: the bound there is the infinite one
-    with np.errstate(invalid="ignore"):
-        lo = np.quantile(np.where(fin, ys, -np.inf), q, axis=0)
-        hi = np.quantile(np.where(fin, ys, np.inf), 1.0 - q, axis=0)
-    return np.where(np.isnan(lo), -np.inf, lo), np.where(np.isnan(hi), np.inf, hi)
-
-
-def expected_coverage(ys: np.ndarray) -> list[float]:
-    """The coverage the band's own model expects on one record: each predictive draw's share inside the band of
-    the others, its 5 %, 50 % and 95 % quantiles over the draws. A record's coverage varies a lot about 90 %
-    when its errors are slow (a lightly damped response holds few independent stretches); a coverage outside
-    this range is one the model did not expect."""
-    cover = []
-    for i in range(len(ys)):
-        lo, hi = band_of(np.delete(ys, i, axis=0))
-        cover.append(float(np.mean(inside(ys[i], lo, hi))))
-    return [float(x) for x in np.quantile(cover, [0.05, 0.5, 0.95])]
 
 
 def noise_parameters(spec: ModelSpec) -> list[str]:

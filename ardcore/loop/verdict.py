@@ -251,7 +251,7 @@ def parameter_shifts(before: dict, after: ModelFit) -> dict:
 
 
 def expected_words(fr: dict) -> str:
-    """`` (its own draws: 75-97 %)``: the coverage range the band's model expects (:func:`~.freerun.expected_coverage`),
+    """`` (its own draws: 75-97 %)``: the coverage range the band's model expects (:func:`~.band.expected_coverage`),
     and the share of its draws that diverged."""
     e = fr.get("band_expected")
     words = f" (its own draws: {e[0]:.0%}-{e[2]:.0%})" if e else ""
