@@ -376,7 +376,7 @@ def reported_model(ctx: LoopContext, final: FittedModel, held: Fit, test: Datase
     measure, figure = shown
     measured = measure["free_run"]
     keep = ("rms_error", "relative_rms_error", "band_coverage", "band_expected", "band_diverged",
-            "band_halfwidth_rms", "band_factor", "n")
+            "band_halfwidth_rms", "band_factor", "band_calibration", "n")
     rec["free_run"] = {k: measured[k] for k in keep if k in measured}
     sim, model = None, final
     if not config.simulation_factors:

@@ -989,7 +989,7 @@ def bench_validation(tiny: bool = False, records: list | None = None, seed: int 
         out[f"loop_{name}_band_coverage"] = r["reported"]["free_run"].get("band_coverage")
         out[f"loop_{name}_band_expected"] = r["reported"]["free_run"].get("band_expected")
         # how the band's scale was chosen (the held-out blocks' coverage at each scale tried)
-        out[f"loop_{name}_band_calibration"] = r["reported"].get("band_calibration")
+        out[f"loop_{name}_band_calibration"] = r["reported"]["free_run"].get("band_calibration")
         out[f"loop_{name}_band_factor"] = r["reported"]["free_run"].get("band_factor")
         out[f"loop_{name}_added"] = [a["effect"] + " -> " + a["target"] for a in rep.added]
         out[f"loop_{name}_replaced"] = [f"{x['state']['term']} -> {x['by']}" if x.get("state") else
