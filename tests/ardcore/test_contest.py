@@ -1,0 +1,90 @@
+"""The states against the terms (ardcore.loop.criterion.contest): the round's move once the state moves have
+competed with the terms' move, on the real criterion (decide, pick, dominates) with held-out scores the loop
+measured. The fits are stand-ins that carry only an evidence; their scores are the criterion's own cache, so
+nothing here is refitted."""
+
+from types import SimpleNamespace
+
+from ardflow.ardcore.loop.config import DiagnoseConfig
+from ardflow.ardcore.loop.criterion import Criterion, Move, Score, contest
+from ardflow.ardcore.sampling.chains import serial_map
+
+# the two-mass record, round 1: the model, the terms that stand in for its second store, and the store
+MODEL = Score({"start": 6.657, "end": 13.52, "loudest": 6.657})
+STAND_INS = Score({"start": 5.303, "end": 3.589, "loudest": 5.303})
+STORE = Score({"start": 0.1527, "end": 0.1864, "loudest": 0.1527})
+# a state that free-runs better than the model but not on every block better than the terms
+HALF = Score({"start": 0.1527, "end": 4.0, "loudest": 0.1527})
+WORSE = Score({"start": 7.0, "end": 14.0, "loudest": 7.0})  # a state the criterion refuses
+
+
+def _fit(log_evidence: float):
+    return SimpleNamespace(row=SimpleNamespace(log_evidence=log_evidence), cand=SimpleNamespace(label="model"))
+
+
+def _criterion(*scored) -> Criterion:
+    crit = Criterion(DiagnoseConfig(), serial_map, lambda m: None)
+    for fit, score in scored:
+        crit._kept[id(fit.row)] = (fit.row, score)  # what the pool measured: scored once per fit
+    return crit
+
+
+def _state(name: str, fit):
+    return fit, [{"by": f"the state {name}"}], 100.0
+
+
+def _round(terms_fit):
+    held = _fit(0.0)
+    rnd = SimpleNamespace(record={"round": 1})
+    move = Move("add", terms_fit, "overflow with cube with forcing") if terms_fit is not None else None
+    judged = {"moves": [{"move": move.name, "kind": "add", "taken": True}] if move else []}
+    ctx = SimpleNamespace(config=DiagnoseConfig(), say=lambda m: None)
+    return held, rnd, move, judged, ctx
+
+
+def test_a_state_that_free_runs_better_on_every_block_displaces_the_terms():
+    terms, store = _fit(50.0), _fit(40.0)
+    held, rnd, move, judged, ctx = _round(terms)
+    crit = _criterion((held, MODEL), (terms, STAND_INS), (store, STORE))
+    swap = ("the terms' swap",)
+    got, got_swap = contest(ctx, crit, held, move, swap, iter([_state("store_T2", store)]), rnd, judged)
+    assert got.fit is store and got_swap[0] is store
+    # the terms' move is refused in the round's record and no longer marked taken
+    assert [r["effect"] for r in rnd.record["refused"]] == [move.name]
+    assert [j["taken"] for j in judged["moves"] if j["move"] == move.name] == [False]
+
+
+def test_the_terms_go_first_unless_the_state_is_better_on_every_block():
+    terms, half = _fit(50.0), _fit(40.0)
+    held, rnd, move, judged, ctx = _round(terms)
+    crit = _criterion((held, MODEL), (terms, STAND_INS), (half, HALF))
+    swap = ("the terms' swap",)
+    got, got_swap = contest(ctx, crit, held, move, swap, iter([_state("store_T2", half)]), rnd, judged)
+    assert got is move and got_swap is swap
+    assert [r["effect"] for r in rnd.record["refused"]] == ["the state store_T2"]
+
+
+def test_a_state_the_criterion_refuses_does_not_hide_the_next_and_the_rest_are_not_fitted():
+    worse, store, never = _fit(90.0), _fit(40.0), _fit(10.0)
+    held, rnd, move, judged, ctx = _round(None)
+    crit = _criterion((held, MODEL), (worse, WORSE), (store, STORE))
+    asked = []
+
+    def states():
+        for name, fit in (("pick_y", worse), ("store_T2", store), ("mode_y", never)):
+            asked.append(name)
+            yield _state(name, fit)
+
+    got, _ = contest(ctx, crit, held, None, None, states(), rnd, judged)
+    assert got.fit is store
+    assert asked == ["pick_y", "store_T2"]  # the generator fits each on demand: the third is never fitted
+    assert [j["move"] for j in judged["moves"]] == ["the state pick_y", "the state store_T2"]
+
+
+def test_no_state_qualifies_and_the_terms_stand():
+    terms, worse = _fit(50.0), _fit(90.0)
+    held, rnd, move, judged, ctx = _round(terms)
+    crit = _criterion((held, MODEL), (terms, STAND_INS), (worse, WORSE))
+    got, _ = contest(ctx, crit, held, move, "swap", iter([_state("pick_y", worse)]), rnd, judged)
+    assert got is move
+    assert [j["taken"] for j in judged["moves"] if j["move"] == move.name] == [True]
