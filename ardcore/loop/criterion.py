@@ -46,7 +46,7 @@ from .checks import joint_fit, split_stability
 from .config import DiagnoseConfig, LoopContext
 from .confirm import Fit
 from .freerun import fitted
-from .result import LoopRound
+from .verdict import LoopRound
 from .simulation_fit import HeldOut, SimulationSettings, held_out_task
 
 INF = math.inf
@@ -344,14 +344,17 @@ def decide(ctx: LoopContext, crit: Criterion, held: Fit, swap, survivors: list, 
     return (moves[k] if k is not None else None), judged
 
 
-def contest(ctx: LoopContext, crit: Criterion, held: Fit, move: Move | None, swap, states,
-            rnd: LoopRound, judged: dict) -> tuple[Move | None, object]:
-    """The round's move once the states have competed with the terms' ``move`` (and its ``swap``).
+def contest(ctx: LoopContext, crit: Criterion, held: Fit, terms: tuple, states, rnd: LoopRound,
+            judged: dict) -> tuple[Move | None, object]:
+    """The round's move and its swap once the states have competed with the terms' move: ``terms`` is
+    ``(move, swap)``, the move :func:`decide` took from the terms (or None) and the declared laws in another form
+    it may be.
 
     ``states`` yields the state moves in order (each a ``swap`` tuple, fitted on demand); each is judged by
     :func:`decide` and the first the criterion would take competes: it displaces the terms' move only when it
     free-runs better on every held-out block (:func:`dominates`), else the terms go first, as they are the
     cheaper change. The loser is recorded as refused. A state the criterion refuses does not hide the next."""
+    move, swap = terms
     for extra in states:
         found, more = decide(ctx, crit, held, extra, [], [], rnd)
         judged["moves"] += more["moves"]

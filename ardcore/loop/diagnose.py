@@ -55,7 +55,7 @@ from ..errors import DataError, FitError, LoopFailed, SpecError
 from ..jsonio import to_jsonable
 from .criterion import Criterion, Move, contest, decide, held_out_record, stable
 from .simulation_fit import reported_model
-from .result import Diagnosis, FittedModel, LoopRound
+from .verdict import Diagnosis, FittedModel, LoopRound
 from .freerun import Band, fitted, free_run, posterior_draws
 from ..selection.hold import with_holds
 from ..selection.initial import data_informed_initial
@@ -194,8 +194,8 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 # terms that stand in for it (on the two-mass record an overflow, a cube and a forcing together
                 # free-ran its held-out blocks 5.3/3.6 K, the second store it lacked 0.14/0.18 K)
                 t_states = time.perf_counter()
-                move, swap = contest(ctx, crit, held, move, swap, state_moves(ctx, held, STATE_KINDS, lines(res.tests)),
-                                     rec, judged_round)
+                move, swap = contest(ctx, crit, held, (move, swap), state_moves(ctx, held, STATE_KINDS,
+                                                                                 lines(res.tests)), rec, judged_round)
                 rec.record["states_s"] = time.perf_counter() - t_states  # the cost the bench holds to the terms'
             if move is None:
                 t_next = time.perf_counter()

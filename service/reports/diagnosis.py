@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ardflow.ardcore.jsonio import number
-from ardflow.ardcore.loop.result import Diagnosis
+from ardflow.ardcore.loop.verdict import Diagnosis
 from ardflow.ardcore.loop.verdict import expected_words, state_words
 
 from ardflow.service.reports.diagnosis_figures import plot_candidates, plot_free_run, plot_noise, plot_tests

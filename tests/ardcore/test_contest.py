@@ -47,7 +47,7 @@ def test_a_state_that_free_runs_better_on_every_block_displaces_the_terms():
     held, rnd, move, judged, ctx = _round(terms)
     crit = _criterion((held, MODEL), (terms, STAND_INS), (store, STORE))
     swap = ("the terms' swap",)
-    got, got_swap = contest(ctx, crit, held, move, swap, iter([_state("store_T2", store)]), rnd, judged)
+    got, got_swap = contest(ctx, crit, held, (move, swap), iter([_state("store_T2", store)]), rnd, judged)
     assert got.fit is store and got_swap[0] is store
     # the terms' move is refused in the round's record and no longer marked taken
     assert [r["effect"] for r in rnd.record["refused"]] == [move.name]
@@ -59,7 +59,7 @@ def test_the_terms_go_first_unless_the_state_is_better_on_every_block():
     held, rnd, move, judged, ctx = _round(terms)
     crit = _criterion((held, MODEL), (terms, STAND_INS), (half, HALF))
     swap = ("the terms' swap",)
-    got, got_swap = contest(ctx, crit, held, move, swap, iter([_state("store_T2", half)]), rnd, judged)
+    got, got_swap = contest(ctx, crit, held, (move, swap), iter([_state("store_T2", half)]), rnd, judged)
     assert got is move and got_swap is swap
     assert [r["effect"] for r in rnd.record["refused"]] == ["the state store_T2"]
 
@@ -75,7 +75,7 @@ def test_a_state_the_criterion_refuses_does_not_hide_the_next_and_the_rest_are_n
             asked.append(name)
             yield _state(name, fit)
 
-    got, _ = contest(ctx, crit, held, None, None, states(), rnd, judged)
+    got, _ = contest(ctx, crit, held, (None, None), states(), rnd, judged)
     assert got.fit is store
     assert asked == ["pick_y", "store_T2"]  # the generator fits each on demand: the third is never fitted
     assert [j["move"] for j in judged["moves"]] == ["the state pick_y", "the state store_T2"]
@@ -85,6 +85,6 @@ def test_no_state_qualifies_and_the_terms_stand():
     terms, worse = _fit(50.0), _fit(90.0)
     held, rnd, move, judged, ctx = _round(terms)
     crit = _criterion((held, MODEL), (terms, STAND_INS), (worse, WORSE))
-    got, _ = contest(ctx, crit, held, move, "swap", iter([_state("pick_y", worse)]), rnd, judged)
+    got, _ = contest(ctx, crit, held, (move, "swap"), iter([_state("pick_y", worse)]), rnd, judged)
     assert got is move
     assert [j["taken"] for j in judged["moves"] if j["move"] == move.name] == [True]
