@@ -59,6 +59,14 @@ COUPLING_FORMS = ("dead_zone", "saturation", "power")
 backlash, a free-play), a limit on what it transmits (a slipping clutch), or a power law."""
 
 
+def _settled(e: sp.Expr) -> sp.Expr:
+    """``e`` with every number at 12 significant digits. A law's text holds its width as ``w**2``; once a model's
+    equation has been printed and parsed again that square is one number, which may differ from the text's in
+    its last bit, and sympy would keep both terms of a difference that is zero (the old shape left in the model
+    while its parameter is gone)."""
+    return e.xreplace({f: sp.Float(f"{float(f):.12g}") for f in e.atoms(sp.Float)})
+
+
 def _text(e: sp.Expr) -> str:
     """A sympy expression in the model language (``abs``, not ``Abs``)."""
     return str(e).replace("Abs(", "abs(")
@@ -255,10 +263,16 @@ def reform_spec(spec: ModelSpec, law: Law, now: tuple, form: Form, shape: str, v
     drift = dict(spec.drift)
     names = {*spec.states, *spec.inputs, *spec.parameters, *spec.constants, *spec.derived, shape}
     p = parse_expression(law.parameter, names)
-    old, new = parse_expression(old_text, names), parse_expression(form.text(law.term, shape, values), names)
+    old = _settled(parse_expression(old_text, names))
+    new = parse_expression(form.text(law.term, shape, values), names)
+    gone = sp.Symbol(old_shape)
     for state, sign in law.drifts.items():
         # in sympy, not as text: the old shape must be gone from the text the model is validated from
-        drift[state] = _text(parse_expression(drift[state], names) - sign * p * old + sign * p * new)
+        e = _settled(parse_expression(drift[state], names)) - sign * p * old + sign * p * new
+        if gone in e.free_symbols:
+            raise ValueError(f"the law {law.parameter}*({law.term}) in its {old_shape} form is not in the "
+                             f"{state} equation as recorded")
+        drift[state] = _text(e)
     params = [q for q in spec.parameters if q != old_shape] + [shape]
     return spec.model_copy(update={"name": (spec.name + "_" + form.prefix)[:32], "drift": drift,
                                    "parameters": params}).revalidate()
@@ -307,7 +321,11 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
             prior = form.prior(values)
             if form.name == now_form.name or prior is None or shape in ms.parameters:
                 continue
-            pspec = reform_spec(ms, w, (now_shape, now_text), form, shape, values)
+            try:
+                pspec = reform_spec(ms, w, (now_shape, now_text), form, shape, values)
+            except ValueError as e:  # the model no longer holds the law as recorded: it keeps its form
+                say(f"  {w.parameter}*({w.term}) is not offered as a {form.name} law: {e}")
+                continue
             cpriors = {k: v for k, v in priors.items() if k != now_shape}
             cfixed = {k: v for k, v in fixed.items() if k != now_shape}
             cand = CandidateSpec(model=pspec, name=pspec.name, priors={**cpriors, shape: prior}, fixed=cfixed,

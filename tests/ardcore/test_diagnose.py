@@ -575,6 +575,33 @@ def test_a_wrong_law_is_replaced_by_its_true_form(law, form, p):
     assert rep["after"]["free_run"]["rms_error"] < 0.2 * rep["before"]["free_run"]["rms_error"]
 
 
+def test_a_knee_law_changes_form_after_its_equation_was_printed_again():
+    """A knee law's text holds its width as ``w**2``; once another change has printed and parsed the model's
+    equations again, that square is one number that may differ from the text's in its last bit. The knee must
+    still leave the model when the law takes another form (the real tanks from the linear model failed in round
+    4: the knee's shape left the parameters and stayed in the equation)."""
+    from ardflow.ardcore.loop.replace import FORMS, Law, _text, law_spec, reform_spec
+    from ardflow.ardcore.model.declaration import ModelSpec
+    from ardflow.ardcore.model.expr import parse_expression
+
+    declared = ModelSpec(name="tanks", states=["h1", "h2"], inputs=["u"],
+                         drift={"h1": "q*u - a*h1", "h2": "a*h1 - c*h2"}, diffusion={"h1": "s", "h2": "s"},
+                         observations=[{"column": "y", "expr": "h2", "noise_std": "0.003"}],
+                         parameters=["a", "c", "q", "s"])
+    pipe = Law("a", "h1", {"h1": -1, "h2": 1})
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        values = np.sort(rng.uniform(0.1, 4.0, 50)) * rng.uniform(0.3, 3.0)
+        knee = law_spec(declared, pipe, FORMS["knee"], "knee_a", values)
+        names = {*knee.states, *knee.inputs, *knee.parameters}
+        printed = knee.model_copy(update={"drift": {k: _text(parse_expression(v, names))
+                                                    for k, v in knee.drift.items()}})
+        power = reform_spec(printed, pipe, ("knee_a", FORMS["knee"].text("h1", "knee_a", values)), FORMS["power"],
+                            "e_a", values)
+        assert not any("knee_a" in d for d in power.drift.values()), power.drift
+        assert "knee_a" not in power.parameters
+
+
 def test_a_replaced_law_changes_form_exactly():
     """A law an earlier round replaced (a pipe taken for a saturation while the overflow it feeds was
     missing) may take another form later: the model in the new form is exactly the declared model written in
