@@ -72,8 +72,8 @@ def typical_level(ys: np.ndarray, coverage: float = COVERAGE) -> float:
     with k; the median of that share over the draws, interpolated between the integers, reaches ``coverage`` at
     some k* (the middle of the stretch where it equals it). Judged against n - 1 draws, k* is order statistic
     k* (n + 1) / n of n (a new draw falls below the k-th of n with probability k / (n + 1), below the k-th of
-    n - 1 with k / n). For independent draws the
-    median share is the mean, and the level is :func:`band_level`'s."""
+    n - 1 with k / n). For independent draws the median share is the mean, and the level is
+    :func:`band_level`'s."""
     n, m = ys.shape
     if n < 3 or m == 0:
         return band_level(n, coverage)
@@ -94,11 +94,11 @@ def _crossing(f: np.ndarray, level: float, strict: bool) -> float:
     """Where the falling series ``f`` (linear between its integers) leaves ``level``: past the last index at
     which it is above it (``strict``) or at least at it; its last index when it never falls below."""
     above = np.flatnonzero(f > level if strict else f >= level)
-    k = int(above[-1]) if above.size else 0
-    if k + 1 >= f.size:
-        return float(k)
     if not above.size:  # f starts at the level (strict): the stretch starts at 0
         return 0.0
+    k = int(above[-1])
+    if k + 1 >= f.size:
+        return float(k)
     return k + float((f[k] - level) / (f[k] - f[k + 1])) if f[k] > f[k + 1] else float(k)
 
 
@@ -121,12 +121,12 @@ def band_of(ys: np.ndarray, level: float | None = None) -> tuple[np.ndarray, np.
     return lo, hi
 
 
-def expected_coverage(ys: np.ndarray) -> list[float]:
+def expected_coverage(ys: np.ndarray, level: float | None = None) -> list[float]:
     """The coverage the band's own model expects on one record: each predictive draw's share inside the band of
-    the others (at the band's level), its 5 %, 50 % and 95 % quantiles over the draws. A record's coverage
-    varies about its median when its errors are slow (a lightly damped response holds few independent
-    stretches); a coverage outside this range is one the model did not expect."""
-    q = typical_level(ys)
+    the others (at the band's ``level``, default :func:`typical_level`), its 5 %, 50 % and 95 % quantiles over
+    the draws. A record's coverage varies about its median when its errors are slow (a lightly damped response
+    holds few independent stretches); a coverage outside this range is one the model did not expect."""
+    q = typical_level(ys) if level is None else level
     cover = []
     for i in range(len(ys)):
         lo, hi = band_of(np.delete(ys, i, axis=0), q)

@@ -20,7 +20,7 @@ from ..model.declaration import ModelSpec
 from ..sampling.chains import serial_map
 from ..selection.fit import ModelFit
 from ..selection.spec import CandidateSpec
-from .band import MAX_DIVERGED, band_of, diverged, expected_coverage, inside
+from .band import MAX_DIVERGED, band_of, diverged, expected_coverage, inside, typical_level
 from .residuals import dominant_frequency, harmonics
 
 
@@ -101,13 +101,14 @@ def free_run(spec: ModelSpec, phi: dict, data: Dataset, *, init_samples: int = 5
         factor = f
         ys = _predictive(spec, _scaled(band.draws, noise, factor), data, out["start"], substeps, band.seed)
     if len(ys) >= 5:
-        lo, hi = band_of(ys)
+        level = typical_level(ys)  # one sort of the draws for the band and the coverage its model expects
+        lo, hi = band_of(ys, level)
         y = out["y"]
         ok = np.isfinite(y)
         wide = np.isfinite(hi - lo)
         out["band"] = (lo, hi)
         out["band_coverage"] = float(np.mean(inside(y[ok], lo[ok], hi[ok])))
-        out["band_expected"] = expected_coverage(ys)
+        out["band_expected"] = expected_coverage(ys, level)
         out["band_diverged"] = diverged(ys)
         out["band_halfwidth_rms"] = float(np.sqrt(np.mean(((hi[wide] - lo[wide]) / 2) ** 2))) if wide.any() else math.inf
         out["draws_rms_error"] = float(np.median([r["rms_error"] for r in sims]))

@@ -34,8 +34,7 @@ from ..likelihood.ekf import compile_model
 from ..sampling.chains import serial_map
 from .config import LoopContext
 from .freerun import Band, free_run, moved_draws, noise_parameters, posterior_draws
-from .verdict import FittedModel
-from .verdict import expected_words
+from .verdict import FittedModel, expected_words
 from ..sampling.starts import fd_derivatives
 from ..model.declaration import ModelSpec
 

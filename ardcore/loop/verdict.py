@@ -91,7 +91,6 @@ class Diagnosis:
         return to_jsonable(self.report)
 
 
-
 _ODD = ("cubic_stiffness", "quintic_stiffness", "saturation", "sine_stiffness")
 
 

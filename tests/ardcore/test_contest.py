@@ -5,6 +5,8 @@ nothing here is refitted."""
 
 from types import SimpleNamespace
 
+import pytest
+
 from ardflow.ardcore.loop.config import DiagnoseConfig
 from ardflow.ardcore.loop.criterion import Criterion, Move, Score, contest
 from ardflow.ardcore.sampling.chains import serial_map
@@ -42,26 +44,23 @@ def _round(terms_fit):
     return held, rnd, move, judged, ctx
 
 
-def test_a_state_that_free_runs_better_on_every_block_displaces_the_terms():
-    terms, store = _fit(50.0), _fit(40.0)
+@pytest.mark.parametrize("state_score, state_wins", [(STORE, True), (HALF, False)], ids=["every_block", "not_every"])
+def test_a_state_displaces_the_terms_only_when_it_free_runs_better_on_every_block(state_score, state_wins):
+    """The two-mass store free-runs every block better than the terms that stand in for it and displaces them;
+    a state better than the model but not on every block better than the terms leaves them to go first. The
+    loser is refused in the round's record, and a displaced move is no longer marked taken."""
+    terms, state = _fit(50.0), _fit(40.0)
     held, rnd, move, judged, ctx = _round(terms)
-    crit = _criterion((held, MODEL), (terms, STAND_INS), (store, STORE))
+    crit = _criterion((held, MODEL), (terms, STAND_INS), (state, state_score))
     swap = ("the terms' swap",)
-    got, got_swap = contest(ctx, crit, held, (move, swap), iter([_state("store_T2", store)]), rnd, judged)
-    assert got.fit is store and got_swap[0] is store
-    # the terms' move is refused in the round's record and no longer marked taken
-    assert [r["effect"] for r in rnd.record["refused"]] == [move.name]
-    assert [j["taken"] for j in judged["moves"] if j["move"] == move.name] == [False]
-
-
-def test_the_terms_go_first_unless_the_state_is_better_on_every_block():
-    terms, half = _fit(50.0), _fit(40.0)
-    held, rnd, move, judged, ctx = _round(terms)
-    crit = _criterion((held, MODEL), (terms, STAND_INS), (half, HALF))
-    swap = ("the terms' swap",)
-    got, got_swap = contest(ctx, crit, held, (move, swap), iter([_state("store_T2", half)]), rnd, judged)
-    assert got is move and got_swap is swap
-    assert [r["effect"] for r in rnd.record["refused"]] == ["the state store_T2"]
+    got, got_swap = contest(ctx, crit, held, (move, swap), iter([_state("store_T2", state)]), rnd, judged)
+    if state_wins:
+        assert got.fit is state and got_swap[0] is state
+        assert [r["effect"] for r in rnd.record["refused"]] == [move.name]
+        assert [j["taken"] for j in judged["moves"] if j["move"] == move.name] == [False]
+    else:
+        assert got is move and got_swap is swap
+        assert [r["effect"] for r in rnd.record["refused"]] == ["the state store_T2"]
 
 
 def test_a_state_the_criterion_refuses_does_not_hide_the_next_and_the_rest_are_not_fitted():
