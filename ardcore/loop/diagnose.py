@@ -180,7 +180,7 @@ def diagnose(spec: StudySpec, data: Dataset, *, test_data: Dataset | None = None
                 break
             t_round = time.perf_counter()
             swap = best_laws(ctx, held, brought(rounds), [x for r in rounds for x in r.record.get("replaced", [])
-                                                          if x.get("form")])
+                                                          if x.get("form")], crit)
             # a state: a declared quantity, or a state in another's equation, acting through a lag
             lagged = best_state(ctx, held, LAG_KINDS)
             if lagged is not None and (swap is None or lagged[2] > swap[2]):

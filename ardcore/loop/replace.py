@@ -222,15 +222,16 @@ def term_values(current: Fit, law: Law) -> np.ndarray:
     return np.asarray(f(*fr.filtered.T, *cols), dtype=float) * np.ones(len(current.data))
 
 
-def best_laws(ctx, current: Fit, new_parameters: set = frozenset(), replaced: list = ()):
+def best_laws(ctx, current: Fit, new_parameters: set = frozenset(), replaced: list = (), crit=None):
     """The declared laws worth replacing, one after another, as ``(fit, records, ln BF)``, or None.
 
     :func:`best_law` on the current model, then again on the model it leaves, while one qualifies (two wrong
     laws of a cascade are each worth less alone than a stand-in that patches both, and more together). The
     caller weighs the total ln Bayes factor against the round's best addition. ``replaced``: the records of
-    the laws replaced in earlier rounds, which may change form again (:func:`best_law`)."""
+    the laws replaced in earlier rounds, which may change form again (:func:`best_law`). ``crit``: the loop's
+    :class:`~.criterion.Criterion`, which chooses between the forms that qualify (None: the evidence does)."""
     fit, records = current, []
-    while (got := best_law(ctx, fit, new_parameters, [*replaced, *records])) is not None:
+    while (got := best_law(ctx, fit, new_parameters, [*replaced, *records], crit)) is not None:
         fit = got[0]
         records.append(got[1])
     if not records:
@@ -278,7 +279,7 @@ def reform_spec(spec: ModelSpec, law: Law, now: tuple, form: Form, shape: str, v
                                    "parameters": params}).revalidate()
 
 
-def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: list = ()):
+def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: list = (), crit=None):
     """The declared law and form (module docstring) worth most, as ``(fit, record)``, or None.
 
     A law an earlier round replaced (``replaced``: their records) is offered in its other forms too: which
@@ -286,10 +287,12 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
     a saturation while the overflow it feeds is missing), and once that is in, the law may be worth more in
     another form.
 
-    Every candidate is fitted side by side on the loop's pool; the best qualifies when its ln Bayes factor
-    against the current model exceeds ``config.min_log_bf`` plus ln of the number of candidates tried (their
-    multiplicity, as for additions) and its fit is a result; the loop's criterion then judges it beside the round's
-    additions (:mod:`.criterion`). The record says
+    Every candidate is fitted side by side on the loop's pool; one qualifies when its ln Bayes factor against
+    the current model exceeds ``config.min_log_bf`` plus ln of the number of candidates tried (their
+    multiplicity, as for additions) and its fit is a result. Of several that qualify, ``crit`` (the loop's
+    :class:`~.criterion.Criterion`) takes the one that free-runs best held out
+    (:meth:`~.criterion.Criterion.alternative`; without it, the highest evidence); the criterion then judges it
+    beside the round's additions (:mod:`.criterion`). The record says
     what was replaced (parameter, term, target, by, form, the shape's posterior, ln BF)."""
 
     spec, config, say, mapper = ctx.spec, ctx.config, ctx.say, ctx.mapper
@@ -340,21 +343,38 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
     if not np.isfinite(gain).any():
         return None
     need = config.min_log_bf + math.log(len(tasks))
-    k = int(np.nanargmax(np.where(np.isfinite(gain), gain, -np.inf)))
+    why = [row.degenerate() for row, _ in fits]
+    ok = [i for i in range(len(tasks)) if np.isfinite(gain[i]) and gain[i] > need and why[i] is None]
+    if not ok:
+        k = int(np.nanargmax(np.where(np.isfinite(gain), gain, -np.inf)))
+        w, form, _ = offered[k]
+        if gain[k] > need:
+            say(f"  the declared {w.parameter}*({w.term}) stays: as a {form.name} law {why[k]}")
+        else:
+            say(f"  the declared {w.parameter}*({w.term}) is no worse than any other form (best: {form.name}, ln BF "
+                f"{gain[k]:.1f}, needs {need:.1f})")
+        return None
+    k = ok[0]
+    if len(ok) > 1:
+        say("  the forms the evidence supports (ln BF): " + ", ".join(
+            f"{offered[i][0].parameter} as {offered[i][1].name} {gain[i]:.1f}" for i in ok))
+        if crit is not None:
+            # the free run on held-out blocks, not a few nats of one-step evidence, says which form is the law
+            from .criterion import describe
+
+            j, scores = crit.alternative(current, [Fit(tasks[i][0], *fits[i], current.data) for i in ok])
+            for i, sc in zip(ok, scores):
+                say(f"  held out: {offered[i][0].parameter} as {offered[i][1].name}: {describe(sc)}"
+                    + (" (the form taken)" if i == ok[j] else ""))
+            k = ok[j]
+        else:
+            k = max(ok, key=lambda i: gain[i])
     (w, form, shape), (row, mr) = offered[k], fits[k]
     by = {"power": f"{w.parameter}*|{w.term}|^{shape}*sign({w.term})",
           "saturation": f"{w.parameter}*{shape}*tanh({w.term}/{shape})",
           "knee": f"{w.parameter}*max({w.term} - {shape}, 0)",
           "dead_zone": f"{w.parameter}*sign({w.term})*max(|{w.term}| - {shape}, 0)"}[form.name]
-    if not gain[k] > need:
-        say(f"  the declared {w.parameter}*({w.term}) is no worse than any other form (best: {form.name}, ln BF "
-            f"{gain[k]:.1f}, needs {need:.1f})")
-        return None
     fit = Fit(tasks[k][0], row, mr, current.data)
-    why = row.degenerate()
-    if why is not None:
-        say(f"  the declared {w.parameter}*({w.term}) stays: as a {form.name} law {why}")
-        return None
     say(f"  {w.parameter}*({w.term}) as a {form.name} law: {by}, {shape} = {row.mean[shape]:.3g} +- "
         f"{row.sd[shape]:.2g} (ln BF {gain[k]:.1f})")
     return fit, {"parameter": w.parameter, "term": w.term, "target": next(iter(w.drifts)), "by": by,

@@ -87,3 +87,27 @@ def test_no_state_qualifies_and_the_terms_stand():
     got, _ = contest(ctx, crit, held, (move, "swap"), iter([_state("pick_y", worse)]), rnd, judged)
     assert got is move
     assert [j["taken"] for j in judged["moves"] if j["move"] == move.name] == [True]
+
+
+# the real tanks from the square-root model, round 0: the upper outflow's forms the evidence supports
+KNEE = Score({"start": 0.8891, "end": 0.9074, "loudest": 0.7484})
+POWER = Score({"start": 0.70, "end": 0.60, "loudest": 0.55})
+TANKS = Score({"start": 0.7415, "end": 1.045, "loudest": 0.9241})
+
+
+MIXED = Score({"start": 0.95, "end": 0.60, "loudest": 0.55})  # better than the knee on two blocks, worse on one
+
+
+@pytest.mark.parametrize("scores, taken", [((KNEE, POWER), 1), ((KNEE, MIXED), 0), ((WORSE, Score({
+    "start": 0.75, "end": 1.05, "loudest": 0.93})), 1), ((Score({}), Score({})), 0)],
+    ids=["better_on_every_block", "blocks_disagree_evidence", "none_improves_least_worse", "no_score_evidence"])
+def test_between_the_forms_of_a_law_the_held_out_free_run_chooses(scores, taken):
+    """A law's forms the evidence supports: one that free-runs better on every held-out block is taken over one a
+    few nats more probable; between forms the blocks disagree on, the evidence; when neither improves, the one that changes the blocks least for the worse; on a record
+    without a score, the evidence."""
+    held = _fit(0.0)
+    forms = [_fit(40.0), _fit(35.0)]  # the first has the higher evidence
+    crit = _criterion((held, TANKS if scores[0].errors else Score({})), *zip(forms, scores))
+    k, got = crit.alternative(held, forms)
+    assert k == taken
+    assert got == list(scores)
