@@ -185,13 +185,14 @@ class Criterion:
             return None
         return f"without it the model free-runs worse held out ({describe(without)} against {describe(now)})"
 
-    def alternative(self, current, fits: list) -> tuple[int, list[Score]]:
+    def alternative(self, current, fits: list, names: list[str] | None = None) -> tuple[int, list[Score]]:
         """Which of ``fits``, alternatives for one change of ``current`` (a declared law in each of its forms, all
         supported by the evidence), the held-out free run prefers, and their scores: :func:`pick` among those
         that improve on ``current``; when none does, the one whose blocks change least for the worse
         (:func:`change`), for the criterion to judge beside the round's other moves. The forms of a law are often
         within a few nats of each other where the law is wrong, and which of them the evidence ranks first
-        then turns on a fit's last digits (on the real tanks a knee or a power law of the upper outflow)."""
+        then turns on a fit's last digits (on the real tanks a knee or a power law of the upper outflow). With
+        ``names`` (one per fit) each score is said."""
         got = self.scores([current] + list(fits))
         cur, alts = got[0], got[1:]
         k = pick(cur, alts, [False] * len(fits), [f.row.log_evidence for f in fits])
@@ -199,6 +200,8 @@ class Criterion:
             finite = [i for i, s in enumerate(alts) if s.errors and math.isfinite(s.overall)]
             k = (min(finite, key=lambda i: change(alts[i], cur)) if finite and cur.errors and math.isfinite(cur.overall)
                  else max(range(len(fits)), key=lambda i: fits[i].row.log_evidence))
+        for i, (name, sc) in enumerate(zip(names or (), alts)):
+            self.say(f"  held out: {name}: {describe(sc)}" + (" (taken)" if i == k else ""))
         return k, alts
 
     def choose(self, current, moves: list) -> tuple[int | None, list[Score]]:

@@ -360,12 +360,8 @@ def best_law(ctx, current: Fit, new_parameters: set = frozenset(), replaced: lis
             f"{offered[i][0].parameter} as {offered[i][1].name} {gain[i]:.1f}" for i in ok))
         if crit is not None:
             # the free run on held-out blocks, not a few nats of one-step evidence, says which form is the law
-            from .criterion import describe
-
-            j, scores = crit.alternative(current, [Fit(tasks[i][0], *fits[i], current.data) for i in ok])
-            for i, sc in zip(ok, scores):
-                say(f"  held out: {offered[i][0].parameter} as {offered[i][1].name}: {describe(sc)}"
-                    + (" (the form taken)" if i == ok[j] else ""))
+            j, _ = crit.alternative(current, [Fit(tasks[i][0], *fits[i], current.data) for i in ok],
+                                    [f"{offered[i][0].parameter} as {offered[i][1].name}" for i in ok])
             k = ok[j]
         else:
             k = max(ok, key=lambda i: gain[i])
