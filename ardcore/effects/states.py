@@ -172,6 +172,10 @@ def transfers(spec: ModelSpec) -> list[Lag]:
     return out
 
 
+READINGS = ("sensor", "pickup")
+"""The kinds that act on a measurement, not on a state's equation: their term is the observed channel's
+expression, their target the channel."""
+
 EXCHANGES = ("store", "relaxation")
 """The kinds that exchange with a state of the model, ``k (z - x)`` in its equation and ``z' = b (x - z)``: their
 declaration, priors and report are one."""
@@ -187,7 +191,7 @@ def _made(spec: ModelSpec) -> set:
     """The states of ``spec`` a state family added (a lag, a sensor, a pickup, an actuator, a store, a relaxation,
     a hysteresis, a mode, a transfer lag), by their names."""
     moves = [Lag(d, d, "lag") for d in spec.derived]
-    moves += [Lag(o.column, o.column, k) for o in spec.observations for k in ("sensor", "pickup")]
+    moves += [Lag(o.column, o.column, k) for o in spec.observations for k in READINGS]
     moves += [Lag(u, u, "actuator") for u in spec.inputs]
     moves += [Lag(x, x, k) for x in spec.states for k in ("store", "relaxation", "hysteresis", "mode")]
     moves += [Lag(x, t, "transfer") for x in spec.states for t in spec.states]

@@ -41,8 +41,8 @@ import numpy as np
 import sympy as sp
 
 from ..effects.base import declared_names, short_name
-from ..effects.states import (EXCHANGES, SECOND_ORDER, Lag, actuators, hystereses, lag_spec, lags, modes, names_of,
-                              new_states, pickups, relaxations, sensors, stores, transfers)
+from ..effects.states import (EXCHANGES, READINGS, SECOND_ORDER, Lag, actuators, hystereses, lag_spec, lags, modes,
+                              names_of, new_states, pickups, relaxations, sensors, stores, transfers)
 from ..likelihood.ekf import compile_model
 from ..model.declaration import ModelSpec
 from ..model.expr import parse_expression
@@ -137,7 +137,7 @@ def lag_candidate(current: Fit, lag: Lag, at: Along | None = None) -> CandidateS
     at = at or along(current)
     fspec, phi, states, rate = at.fspec, at.phi, at.states, at.rate
     cols = current.data.columns
-    target = lag.target if lag.kind not in ("sensor", "pickup") else None
+    target = lag.target if lag.kind not in READINGS else None
     d = signal_values(fspec, phi, lag.term, states, cols)
     acc = signal_values(fspec, phi, fspec.drift[target], states, cols) if target else d
     sd_d, sd_acc = float(np.nanstd(d)), float(np.nanstd(acc))
@@ -281,11 +281,11 @@ def screened_states(ctx, current: Fit, offered: list, tasks: list) -> list[tuple
     for i, r, (log_z, at) in zip(screened, reduced, cond):
         gain, new, move = log_z - base, r.new, offered[i]
         if not np.isfinite(gain):  # never a NaN said as a figure: the screen found no evidence to weigh
-            ctx.say(f"  screened: {_a(move.kind)} {where(move)}: no finite conditional evidence (the likelihood or "
+            ctx.say(f"  screened: {_a(move.kind)} {_where(move)}: no finite conditional evidence (the likelihood or "
                     "its curvature is not finite where the state fits best beside the current model), not fitted "
                     "in full")
             continue
-        ctx.say(f"  screened: {_a(move.kind)} {where(move)}: conditional ln BF {gain:.1f}"
+        ctx.say(f"  screened: {_a(move.kind)} {_where(move)}: conditional ln BF {gain:.1f}"
                 + ("" if gain > 0 else ", not fitted in full"))
         if gain > 0:
             cand, data, spec, _, posterior = tasks[i]
@@ -312,11 +312,11 @@ def _better_start(fits: list) -> tuple:
     return cold, cm
 
 
-def where(lag: Lag) -> str:
+def _where(lag: Lag) -> str:
     """Where a state move acts, as the progress lines say it: ``(h1 -> h2)``; a sensor or a pickup by the channel it
     reads (``(y)``): its term is the measurement's whole expression, which after a few rounds holds every
     measurement effect's scaled terms."""
-    return f"({lag.target})" if lag.kind in ("sensor", "pickup") else f"({lag.term} -> {lag.target})"
+    return f"({lag.target})" if lag.kind in READINGS else f"({lag.term} -> {lag.target})"
 
 
 def _a(kind: str) -> str:
@@ -328,17 +328,17 @@ def _refused(lag: Lag, row, gain: float, need: float) -> str | None:
     """Why the state move ``lag`` fitted as ``row`` does not qualify (it gains no more than ``need`` nats, its
     fit is no result, or a coupled state's coupling may be 0), None when it does."""
     if not gain > need:
-        return f"the best state, {_a(lag.kind)} {where(lag)}: ln BF {gain:.1f}, needs {need:.1f}"
+        return f"the best state, {_a(lag.kind)} {_where(lag)}: ln BF {gain:.1f}, needs {need:.1f}"
     why = row.degenerate()
     if why is not None:
-        return f"{_a(lag.kind)} {where(lag)}: {why}"
+        return f"{_a(lag.kind)} {_where(lag)}: {why}"
     if lag.kind in COUPLING:
         # a Bouc-Wen state or a second mode acts on the model only through its coupling: one whose 99 % interval
         # holds 0 changes nothing the data pin down (its shape then fits the noise), as an effect ARD would prune
         name = names_of(lag)[COUPLING[lag.kind]]
         c = state_summary(row, lag)["parameters"].get(name)
         if c is None or not (c["q005"] > 0 or c["q995"] < 0):
-            return f"{_a(lag.kind)} {where(lag)}: its coupling {name}'s 99 % interval holds 0"
+            return f"{_a(lag.kind)} {_where(lag)}: its coupling {name}'s 99 % interval holds 0"
     return None
 
 
@@ -472,7 +472,7 @@ def state_moves(ctx, current: Fit, kinds: tuple = ("lag",), lines: dict | None =
             tasks.append((cand, current.data, ctx.spec if lag.kind == "lag" else windowed, None, config.posterior))
     if not tasks:
         return
-    say("  a state: " + ", ".join(f"{x.kind} {where(x)}" for x in offered))
+    say("  a state: " + ", ".join(f"{x.kind} {_where(x)}" for x in offered))
     need = config.min_log_bf + math.log(len(tasks))
     order = screened_states(ctx, current, offered, tasks)
     if order is not None:
