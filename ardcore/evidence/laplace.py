@@ -32,10 +32,14 @@ def _same_scale(a, b) -> bool:
     return bool(np.all((a > 0.5 * b) & (a < 2 * b)))
 
 
-def newton(f, x: np.ndarray, h: np.ndarray, iters: int):
+def newton(f, x: np.ndarray, h: np.ndarray, iters: int, curvature=None):
     """Newton steps minimising ``f`` from ``x`` with finite-difference steps ``h``; returns x, h, whether it
     converged (step < 1e-3 sd) and the last Hessian when it was taken at the returned x's predecessor
     (else None).
+
+    ``curvature``: ``(x, h) -> H``, a cheaper stand-in for ``f``'s Hessian (:func:`record_curvature`) that the
+    steps use in its place with ``f``'s own gradient; they then converge to ``f``'s mode, linearly, and no
+    Hessian is returned (none of ``f``'s own was taken).
 
     A Hessian (with its gradient) costs d^2 evaluations and a gradient alone 2 d, so a Hessian is reused
     for up to ``CHORD_STEPS`` steps (a chord method: near the mode it barely changes) and taken afresh when
@@ -48,7 +52,11 @@ def newton(f, x: np.ndarray, h: np.ndarray, iters: int):
         if H is None:
             if hessians == iters:
                 return x, h, False, None
-            fx, g, H = fd_derivatives(f, x, h)
+            if curvature is None:
+                fx, g, H = fd_derivatives(f, x, h)
+            else:
+                fx, g = f(x), _gradient(f, x, h)
+                H = curvature(x, h)
             hessians, chords = hessians + 1, 0
             if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
                 return x, h, False, None  # a step left the posterior's support
@@ -59,9 +67,7 @@ def newton(f, x: np.ndarray, h: np.ndarray, iters: int):
             h_used, h = h, np.where(np.isfinite(sd) & (sd > 0), 0.01 * sd, h)
         fresh = chords == 0
         if not fresh:
-            fx = f(x)
-            g = np.array([(f(x + h_used[i] * e) - f(x - h_used[i] * e)) / (2 * h_used[i])
-                          for i, e in enumerate(np.eye(x.size))])
+            fx, g = f(x), _gradient(f, x, h_used)
         step = C @ g
         descends = f(x - step) <= fx
         small = ok and np.all(np.abs(step) < 1e-3 * sd)
@@ -70,7 +76,7 @@ def newton(f, x: np.ndarray, h: np.ndarray, iters: int):
             x = x - step if descends else x
             # a fresh Hessian a step of < 1e-3 sd away, taken with steps of its own sd's size, is the
             # mode's (the final one would be the same up to finite-difference error)
-            return x, h, True, (H if fresh and _same_scale(h_used, h) else None)
+            return x, h, True, (H if fresh and curvature is None and _same_scale(h_used, h) else None)
         for _ in range(0 if descends else BACKTRACKS):
             # far from the mode the quadratic model overshoots: halve the step until it descends
             step = 0.5 * step
@@ -88,6 +94,34 @@ def newton(f, x: np.ndarray, h: np.ndarray, iters: int):
             # an old curvature misled the step, or a fresh one taken with steps far from its own sd's
             # size (the first, with the caller's steps): take it afresh here
             H = None
+
+
+def _gradient(f, x: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Central-difference gradient of ``f`` at ``x`` with steps ``h`` (2 d evaluations)."""
+    return np.array([(f(x + h[i] * e) - f(x - h[i] * e)) / (2 * h[i]) for i, e in enumerate(np.eye(x.size))])
+
+
+def record_curvature(target, window):
+    """The Hessian of ``target``'s negative log posterior read off ``window`` (``target`` on its record's first
+    samples, :meth:`~ardcore.likelihood.posterior.Target.window`): the window's likelihood curvature scaled by
+    the record's length over the window's, plus the prior's own. None when the window is the whole record.
+
+    A likelihood's curvature grows with the samples it reads, so on a stationary record the window's, scaled,
+    is the record's up to the window's sampling error, at the window's cost: what Newton steps towards the
+    record's mode need (:func:`newton`'s ``curvature``; its gradient is the record's, so they converge to the
+    record's own mode). The Laplace evidence still takes the record's own Hessian at that mode."""
+    n, big = len(getattr(window, "data", ())), len(getattr(target, "data", ()))
+    if window is target or not 0 < n < big:
+        return None
+    ratio = big / n
+
+    def prior(v):
+        return -target.prior.logpdf(v)
+
+    def curvature(x, h):
+        H_prior = fd_hessian(prior, x, h)
+        return H_prior + ratio * (fd_hessian(lambda v: -window(v).log_posterior, x, h) - H_prior)
+    return curvature
 
 
 def _newton_inverse(H: np.ndarray) -> tuple[np.ndarray | None, bool]:
@@ -239,13 +273,22 @@ def laplace(target, x0: np.ndarray, scale: np.ndarray | None = None, *, maxfev: 
         scale = np.maximum(np.abs(x0) * 0.1, 1e-3)
     f = lambda v: -target(v).log_posterior  # noqa: E731
 
+    # on a record longer than the search's window, Newton steps with the window's curvature scaled to the record
+    # (record_curvature) take x to the record's mode first, so the record's own Hessian is taken there alone
+    curvature = record_curvature(target, search) if search is not None else None
+
+    def steps(x, h, iters):
+        if curvature is not None:
+            x, h, _, _ = newton(f, x, h, iters + 5, curvature)
+        return newton(f, x, h, iters)
+
     converged, H = False, None
     if warm:
         # a warm start is near the mode: Newton from there, Nelder-Mead only if Newton does not converge
-        x, h, converged, H = newton(f, x0.copy(), 1e-3 * scale, polish + 5)
+        x, h, converged, H = steps(x0.copy(), 1e-3 * scale, polish + 5)
     if not converged:
         x, _ = local_mode(search if search is not None else target, x0, scale, maxfev)
-        x, h, _, H = newton(f, x, 1e-3 * scale, polish)
+        x, h, _, H = steps(x, 1e-3 * scale, polish)
     if H is None:
         H = fd_hessian(f, x, h)
     lp, ll = target(x)

@@ -89,14 +89,15 @@ def _screen_search(args) -> tuple[np.ndarray, float]:
 
 
 def _screen_evidence(args) -> tuple[float, dict]:
-    """A screen's Laplace evidence and MAP from its best search's point ``x0`` (Newton steps on the whole record):
-    ``(conditional, data, x0)``."""
+    """A screen's Laplace evidence and MAP from its best search's point ``x0`` (Newton steps on the whole record,
+    with the curvature of its first ``window`` samples until the record's mode): ``(conditional, data, x0,
+    window)``."""
     from ..evidence.laplace import laplace
     from ..sampling.starts import initial_scale
 
-    c, data, x0 = args
+    c, data, x0, window = args
     target = c.target(data)
-    ev, x, _ = laplace(target, x0, initial_scale(target.prior), warm=True)
+    ev, x, _ = laplace(target, x0, initial_scale(target.prior), warm=True, search=target.window(window))
     return ev.log_evidence, dict(zip(target.names, map(float, x)))
 
 
@@ -115,4 +116,4 @@ def screen(ctx, cands: list[Conditional], data, seed: int, window: int | None = 
         starts.append([np.asarray(median, float), *initial_points(prior, SCREEN_STARTS - 1, rng)])
     found = ctx.mapper(_screen_search, [(c, data, x, window) for c, xs in zip(cands, starts) for x in xs])
     best = [max(found[k * SCREEN_STARTS:(k + 1) * SCREEN_STARTS], key=lambda r: r[1])[0] for k in range(len(cands))]
-    return ctx.mapper(_screen_evidence, [(c, data, x) for c, x in zip(cands, best)])
+    return ctx.mapper(_screen_evidence, [(c, data, x, window) for c, x in zip(cands, best)])
