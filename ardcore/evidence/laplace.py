@@ -13,6 +13,8 @@ from .estimators import Evidence, collapse_drops, collapse_warning, collapsed
 
 CHORD_STEPS = 4
 """Newton steps :func:`laplace` takes with one finite-difference Hessian before taking it again."""
+QUASI_STEPS = 12
+"""Steps :func:`newton` takes from one stand-in curvature, each correcting it (BFGS), before taking it again."""
 BACKTRACKS = 8
 """Halvings of a Newton step that does not descend before the Hessian is taken afresh."""
 PROFILE_FALL = 2.0
@@ -38,8 +40,9 @@ def newton(f, x: np.ndarray, h: np.ndarray, iters: int, curvature=None):
     (else None).
 
     ``curvature``: ``(x, h) -> H``, a cheaper stand-in for ``f``'s Hessian (:func:`record_curvature`) that the
-    steps use in its place with ``f``'s own gradient; they then converge to ``f``'s mode, linearly, and no
-    Hessian is returned (none of ``f``'s own was taken).
+    steps start from with ``f``'s own gradient, corrected after each step by the gradients' change (BFGS) and
+    taken afresh every :data:`QUASI_STEPS` steps; they then converge to ``f``'s mode, and no Hessian is
+    returned (none of ``f``'s own was taken).
 
     A Hessian (with its gradient) costs d^2 evaluations and a gradient alone 2 d, so a Hessian is reused
     for up to ``CHORD_STEPS`` steps (a chord method: near the mode it barely changes) and taken afresh when
@@ -67,9 +70,14 @@ def newton(f, x: np.ndarray, h: np.ndarray, iters: int, curvature=None):
             h_used, h = h, np.where(np.isfinite(sd) & (sd > 0), 0.01 * sd, h)
         fresh = chords == 0
         if not fresh:
-            fx, g = f(x), _gradient(f, x, h_used)
+            g_was, g = g, _gradient(f, x, h_used)
+            if curvature is not None:
+                H = _bfgs(H, moved, g - g_was)
+                C, ok = _newton_inverse(H)
+                sd = np.sqrt(np.abs(np.diag(C)))
         step = C @ g
-        descends = f(x - step) <= fx
+        f_new = f(x - step)
+        descends = f_new <= fx
         small = ok and np.all(np.abs(step) < 1e-3 * sd)
         if small:
             # converged: a step this small may not descend only by the likelihood's rounding noise
@@ -80,13 +88,14 @@ def newton(f, x: np.ndarray, h: np.ndarray, iters: int, curvature=None):
         for _ in range(0 if descends else BACKTRACKS):
             # far from the mode the quadratic model overshoots: halve the step until it descends
             step = 0.5 * step
-            if f(x - step) <= fx:
+            f_new = f(x - step)
+            if f_new <= fx:
                 descends = True
                 break
         if descends:
-            x = x - step
+            x, fx, moved = x - step, f_new, -step
             chords += 1
-            if chords >= CHORD_STEPS or not ok:
+            if chords >= (CHORD_STEPS if curvature is None else QUASI_STEPS) or not ok:
                 H = None
         elif fresh and _same_scale(h_used, h):
             return x, h, False, None
@@ -94,6 +103,16 @@ def newton(f, x: np.ndarray, h: np.ndarray, iters: int, curvature=None):
             # an old curvature misled the step, or a fresh one taken with steps far from its own sd's
             # size (the first, with the caller's steps): take it afresh here
             H = None
+
+
+def _bfgs(H: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``H`` corrected by the BFGS update for a step ``s`` whose gradient changed by ``y``; as it is where the
+    change shows no positive curvature along the step (finite-difference noise near the mode)."""
+    Hs = H @ s
+    sy, sHs = float(s @ y), float(s @ Hs)
+    if not (sy > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y) and sHs > 0):
+        return H
+    return H - np.outer(Hs, Hs) / sHs + np.outer(y, y) / sy
 
 
 def _gradient(f, x: np.ndarray, h: np.ndarray) -> np.ndarray:
