@@ -139,7 +139,10 @@ def record_curvature(target, window):
 
     def curvature(x, h):
         H_prior = fd_hessian(prior, x, h)
-        return H_prior + ratio * (fd_hessian(lambda v: -window(v).log_posterior, x, h) - H_prior)
+        # a step out of the support makes it infinite there (inf - inf): newton sees a curvature that is not
+        # finite and takes the record's own, so the arithmetic's warning says nothing a user could act on
+        with np.errstate(invalid="ignore", over="ignore"):
+            return H_prior + ratio * (fd_hessian(lambda v: -window(v).log_posterior, x, h) - H_prior)
     return curvature
 
 
