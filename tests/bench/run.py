@@ -926,7 +926,9 @@ def bench_bands(tiny: bool = False) -> dict:
 
 
 TINY_RECORDS = ("cascade", "duffing", "backlash", "heated_body", "none", "tanks_linear", "lco_gust")
-"""The validation records a ``--tiny`` run fits: one of each kind."""
+"""The validation records a ``--tiny`` run fits, one of each kind (each fits a model of its own, compiled on a
+first run): a simulated tank with laws, a driven oscillator, one with a kink (abs, sign), a heated body, a clean
+record, the real tanks, a gate LCO with a gust input."""
 
 
 def bench_validation(tiny: bool = False, records: list | None = None, seed: int | None = None) -> dict:
@@ -961,10 +963,7 @@ def bench_validation(tiny: bool = False, records: list | None = None, seed: int 
     recorded = json.loads(VERDICTS.read_text()) if VERDICTS.exists() else {}
     wins = clean_added = checks = checks_won = compared = 0
     regressions = []
-    # --tiny: every kind of record once, not every record (each fits a model of its own, compiled on a first run):
-    # a simulated tank with laws, a driven oscillator, one with a kink (abs, sign), a heated body, a clean
-    # record, the real tanks, a gate LCO with a gust input
-    names = [n for n in RECORDS if not tiny or n in TINY_RECORDS]
+    names = [n for n in RECORDS if not tiny or n in TINY_RECORDS]  # --tiny: one record of each kind
     if records is not None:
         names = [n for n in names if n in records]
     for name in names:
